@@ -1,0 +1,165 @@
+"""Flight logs: one row per controller tick, compressed `.npz`, atomic writes.
+
+A log holds the arrays below (T rows, V vehicles) plus a JSON metadata record with
+the schema version, the full flight config and the seed. Loading checks all of it
+and names the file in every error, so a truncated or foreign file never reaches
+training silently.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "ARRAY_SPECS",
+    "STATUS_CODES",
+    "FlightLog",
+    "LogError",
+    "save_log",
+    "load_log",
+    "atomic_write_bytes",
+    "atomic_write_json",
+]
+
+SCHEMA_VERSION = 1
+
+# name -> (trailing shape after (T,), meaning). V is the number of vehicles.
+ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
+    "t": ((), "s, time of the controller tick"),
+    "pos": (("V", 3), "m, true position, world frame (z up)"),
+    "vel": (("V", 3), "m/s, true velocity, world frame"),
+    "quat": (("V", 4), "true attitude, MuJoCo (w, x, y, z), body to world"),
+    "pos_est": (("V", 3), "m, Kalman-filter position estimate used by the controller"),
+    "vel_est": (("V", 3), "m/s, Kalman-filter velocity estimate"),
+    "yaw_est": (("V",), "rad, yaw used by the controller (motion capture)"),
+    "mocap_pos": (("V", 3), "m, latest motion-capture position (noisy)"),
+    "ref_pos": (("V", 3), "m, reference position"),
+    "ref_vel": (("V", 3), "m/s, reference velocity"),
+    "ref_acc": (("V", 3), "m/s^2, reference acceleration (feed-forward)"),
+    "u_cmd": (("V", 3), "m/s^2, commanded acceleration actually applied, compensation included, gravity excluded"),
+    "f_hat": (("V", 3), "m/s^2, downwash prediction in use (held 45 Hz output; 0 without a model)"),
+    "field_mean": (("V", 3), "m/s^2, true mean downwash on the vehicle at the tick"),
+    "field_applied": (("V", 3), "m/s^2, downwash actually applied at the tick (mean + turbulence)"),
+}
+
+# status code -> meaning; a flight that ends early keeps its rows up to the end.
+STATUS_CODES = {0: "ok", 1: "diverged", 2: "ground collision", 3: "vehicle collision"}
+
+
+class LogError(ValueError):
+    """A log file is missing, truncated, foreign or of another schema version."""
+
+
+@dataclass
+class FlightLog:
+    """One flight of one world.
+
+    arrays: name -> (T, ...) array, see ARRAY_SPECS.
+    meta: JSON-serialisable dict; always holds schema_version, seed, config,
+      vehicles (names), status (code), message.
+    """
+
+    arrays: dict[str, np.ndarray]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
+
+    def __len__(self) -> int:
+        return int(self.arrays["t"].shape[0])
+
+    @property
+    def ok(self) -> bool:
+        return self.meta.get("status", 0) == 0
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write to a temporary file in the same folder, then rename: never a half file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Atomically write `obj` as indented JSON."""
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def save_log(path: str | os.PathLike, log: FlightLog) -> None:
+    """Save a flight log atomically as compressed `.npz` (arrays + `__meta__` JSON)."""
+    _check_arrays(log.arrays, where=str(path))
+    meta = dict(log.meta)
+    meta["schema_version"] = SCHEMA_VERSION
+    import io
+
+    buf = io.BytesIO()
+    meta_bytes = np.frombuffer(json.dumps(meta, sort_keys=True, default=_json_default).encode(), dtype=np.uint8)
+    np.savez_compressed(buf, __meta__=meta_bytes, **log.arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_log(path: str | os.PathLike) -> FlightLog:
+    """Load and validate a flight log; raises LogError naming the file on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise LogError(f"{path}: no such log file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            contents = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+        raise LogError(f"{path}: not a readable .npz flight log (truncated or foreign file): {e}") from e
+    if "__meta__" not in contents:
+        raise LogError(f"{path}: not a flight log of this project (no __meta__ record)")
+    try:
+        meta = json.loads(contents.pop("__meta__").tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise LogError(f"{path}: corrupt metadata record: {e}") from e
+    version = meta.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise LogError(f"{path}: schema version {version!r}, this code reads version {SCHEMA_VERSION}")
+    _check_arrays(contents, where=str(path))
+    return FlightLog(contents, meta)
+
+
+def _check_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
+    missing = sorted(set(ARRAY_SPECS) - set(arrays))
+    if missing:
+        raise LogError(f"{where}: missing arrays {missing}")
+    T = arrays["t"].shape[0] if arrays["t"].ndim == 1 else None
+    if T is None:
+        raise LogError(f"{where}: 't' must be 1-D, got shape {arrays['t'].shape}")
+    V = arrays["pos"].shape[1] if arrays["pos"].ndim == 3 else None
+    for name, (trail, _) in ARRAY_SPECS.items():
+        shape = arrays[name].shape
+        expected = (T,) + tuple(V if d == "V" else d for d in trail)
+        if shape != expected:
+            raise LogError(f"{where}: array '{name}' has shape {shape}, expected {expected}")

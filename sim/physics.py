@@ -1,0 +1,101 @@
+"""One stepping interface over plain `MjData` (one world) and `mujoco.batch.Batch` (many).
+
+Both expose the same live (W, ...) arrays, so the control stack above them is a
+single code path: a single flight is a batch of one.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+__all__ = ["Physics", "make_physics"]
+
+log = logging.getLogger(__name__)
+
+# warnings after which MuJoCo has reset or corrupted the state: the flight diverged
+_FATAL_WARNINGS = np.array(
+    [int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQVEL), int(mujoco.mjtWarning.mjWARN_BADQACC)]
+)
+
+
+class Physics:
+    """Live state arrays of W worlds and a step that advances the active ones.
+
+    qpos (W, nq), qvel (W, nv), act (W, na), ctrl (W, nu), xfrc_applied (W, nbody, 6)
+    are writable views of the simulation state.
+    """
+
+    n_worlds: int
+    qpos: np.ndarray
+    qvel: np.ndarray
+    act: np.ndarray
+    ctrl: np.ndarray
+    xfrc_applied: np.ndarray
+
+    def step(self, nstep: int, active: np.ndarray) -> np.ndarray:
+        """Advance active worlds by nstep physics steps; returns (W,) bool: which diverged."""
+        raise NotImplementedError
+
+    def reset(self, worlds: np.ndarray) -> None:
+        """Reset the given worlds to the model's defaults (warnings cleared)."""
+        raise NotImplementedError
+
+
+class _SerialPhysics(Physics):
+    def __init__(self, model: mujoco.MjModel):
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.n_worlds = 1
+        d = self.data
+        self.qpos, self.qvel, self.act = d.qpos[None], d.qvel[None], d.act[None]
+        self.ctrl, self.xfrc_applied = d.ctrl[None], d.xfrc_applied[None]
+
+    def step(self, nstep: int, active: np.ndarray) -> np.ndarray:
+        if active[0]:
+            mujoco.mj_step(self.model, self.data, nstep=nstep)
+        bad = any(self.data.warning[i].number > 0 for i in _FATAL_WARNINGS)
+        return np.array([bad])
+
+    def reset(self, worlds: np.ndarray) -> None:
+        if len(worlds):
+            mujoco.mj_resetData(self.model, self.data)
+
+
+class _BatchPhysics(Physics):
+    def __init__(self, model: mujoco.MjModel, n_worlds: int, n_threads: int):
+        self.model = model
+        self.batch = mujoco.batch.Batch(model, n_worlds, nthread=n_threads)
+        self.n_worlds = n_worlds
+        b = self.batch
+        self.qpos, self.qvel, self.act = b.bind("qpos"), b.bind("qvel"), b.bind("act")
+        self.ctrl, self.xfrc_applied = b.bind("ctrl"), b.bind("xfrc_applied")
+
+    def step(self, nstep: int, active: np.ndarray) -> np.ndarray:
+        failed = np.zeros(self.n_worlds, bool)
+        ids = None if active.all() else np.flatnonzero(active)
+        if ids is not None and ids.size == 0:
+            return failed
+        try:
+            self.batch.step(ids=ids, nstep=nstep)
+        except mujoco.batch.SimulationError as e:  # those worlds kept their state; the rest stepped
+            failed[e.ids] = True
+            log.warning("%s", e)
+        failed |= (self.batch.warning[:, _FATAL_WARNINGS, 1] > 0).any(axis=1)
+        return failed
+
+    def reset(self, worlds: np.ndarray) -> None:
+        if len(worlds):
+            self.batch.reset(ids=np.asarray(worlds), stage=0)
+
+
+def make_physics(model: mujoco.MjModel, n_worlds: int, n_threads: int = 0) -> Physics:
+    """Plain MjData for one world (faster there), `mujoco.batch.Batch` for more."""
+    if n_worlds < 1:
+        raise ValueError(f"n_worlds: expected >= 1, got {n_worlds}")
+    if n_worlds == 1:
+        return _SerialPhysics(model)
+    return _BatchPhysics(model, n_worlds, n_threads)

@@ -1,0 +1,113 @@
+"""Build a scene of N quadrotors from `assets/quad.xml` (MjSpec attach with prefixes).
+
+Names are resolved to indices once, here; everything downstream uses the
+`Scene`'s index arrays, never string lookups in a loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import mujoco
+import numpy as np
+
+from sim.params import GRAVITY, RATES, Rates
+
+__all__ = ["QUAD_XML", "DEFAULT_VEHICLES", "Scene", "build_scene", "load_quad_spec"]
+
+QUAD_XML = Path(__file__).resolve().parent.parent / "assets" / "quad.xml"
+DEFAULT_VEHICLES = ("alpha", "bravo")  # leader, follower
+
+# Names inside assets/quad.xml (one place).
+_BODY = "quad"
+_JOINT = "root"
+_ROTORS = ("rotor0", "rotor1", "rotor2", "rotor3")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A compiled scene and the indices the simulation needs.
+
+    body_ids: (V,) body id of each vehicle.
+    qpos_adr: (V,) start of each vehicle's free joint in qpos (pos 3, quat 4).
+    qvel_adr: (V,) start of each vehicle's free joint in qvel (lin vel world 3, ang vel body 3).
+    act_ids: (V, 4) actuator (= act and ctrl) index of each rotor.
+    """
+
+    model: mujoco.MjModel
+    vehicles: tuple[str, ...]
+    body_ids: np.ndarray
+    qpos_adr: np.ndarray
+    qvel_adr: np.ndarray
+    act_ids: np.ndarray
+
+    @property
+    def n_vehicles(self) -> int:
+        return len(self.vehicles)
+
+
+def load_quad_spec(path: str | Path = QUAD_XML) -> mujoco.MjSpec:
+    """Parse the vehicle MJCF; a missing or malformed file raises a clear error naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"quadrotor model not found: {path}")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+    except ValueError as e:  # mujoco reports XML parse errors as ValueError
+        raise ValueError(f"{path}: malformed quadrotor MJCF: {e}") from e
+    if spec.body(_BODY) is None:
+        raise ValueError(f"{path}: expected a body named '{_BODY}' (the vehicle root)")
+    for name in _ROTORS:
+        if spec.actuator(name) is None:
+            raise ValueError(f"{path}: expected actuator '{name}' (one per rotor: {', '.join(_ROTORS)})")
+    return spec
+
+
+def build_scene(
+    vehicles: Sequence[str] = DEFAULT_VEHICLES,
+    quad_xml: str | Path = QUAD_XML,
+    rates: Rates = RATES,
+) -> Scene:
+    """Compile a scene with one quadrotor per name (prefix `name/`), a ground plane and cameras."""
+    vehicles = tuple(vehicles)
+    if len(vehicles) < 1 or len(set(vehicles)) != len(vehicles):
+        raise ValueError(f"vehicles: expected one or more distinct names, got {vehicles}")
+    quad = load_quad_spec(quad_xml)
+
+    spec = mujoco.MjSpec()
+    spec.modelname = "downwash_scene"
+    spec.option.timestep = rates.physics_dt
+    spec.option.gravity = [0.0, 0.0, -GRAVITY]
+    spec.visual.global_.offwidth = 640
+    spec.visual.global_.offheight = 480
+    world = spec.worldbody
+    world.add_geom(name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[20, 20, 0.1], rgba=[0.55, 0.6, 0.55, 1])
+    world.add_light(name="sun", pos=[0, 0, 6], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    for i, name in enumerate(vehicles):
+        frame = world.add_frame(pos=[0.0, 1.0 * i, 1.0])
+        spec.attach(quad.copy(), prefix=f"{name}/", frame=frame)  # a copy: attach consumes its child
+    # Overview camera that keeps the first vehicle (the leader) centred; the env moves it.
+    world.add_camera(
+        name="overview",
+        pos=[2.6, -2.6, 2.2],
+        mode=mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY,
+        targetbody=f"{vehicles[0]}/{_BODY}",
+    )
+    try:
+        model = spec.compile()
+    except ValueError as e:
+        raise ValueError(f"{quad_xml}: the scene does not compile: {e}") from e
+
+    body_ids = np.array([model.body(f"{v}/{_BODY}").id for v in vehicles])
+    joint_ids = [model.joint(f"{v}/{_JOINT}").id for v in vehicles]
+    act_ids = np.array([[model.actuator(f"{v}/{r}").id for r in _ROTORS] for v in vehicles])
+    return Scene(
+        model=model,
+        vehicles=vehicles,
+        body_ids=body_ids,
+        qpos_adr=np.array([model.jnt_qposadr[j] for j in joint_ids]),
+        qvel_adr=np.array([model.jnt_dofadr[j] for j in joint_ids]),
+        act_ids=act_ids,
+    )
