@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim.jit import njit
 from sim.params import QUAD, QuadParams
 
 __all__ = ["mixer_matrix", "Autopilot"]
@@ -83,10 +84,32 @@ class Autopilot:
         yaw_rate_des: (...,) rad/s; thrust_acc: (...,) m/s^2 collective thrust / mass.
         mass: the vehicle mass the controller believes in (kg), default the nominal one.
         """
-        m = self.mass if mass is None else mass
-        E = (np.swapaxes(rot_des, -1, -2) @ rot).reshape(rot.shape[:-2] + (9,))
+        batch = thrust_acc.shape
+        m = np.full(batch, self.mass) if mass is None else np.broadcast_to(mass, batch).astype(float)
+        out = _autopilot_kernel(
+            rot.reshape(-1, 3, 3), omega.reshape(-1, 3), rot_des.reshape(-1, 3, 3), yaw_rate_des.reshape(-1),
+            thrust_acc.reshape(-1), m.reshape(-1), self._gain, self.max_thrust,
+        )
+        return out.reshape(batch + (4,))
+
+
+@njit
+def _autopilot_kernel(rot, omega, rot_des, yaw_rate_des, thrust_acc, mass, gain, max_thrust):
+    """Compiled body of Autopilot.__call__ on flat (n, ...) float64 arrays; returns (n, 4) N."""
+    out = np.empty((rot.shape[0], 4))
+    x = np.empty(14)
+    for i in range(rot.shape[0]):
+        for a in range(3):
+            for b in range(3):  # E = R_d^T R, flattened row-major
+                x[1 + 3 * a + b] = rot_des[i, 0, a] * rot[i, 0, b] + rot_des[i, 1, a] * rot[i, 1, b] + rot_des[i, 2, a] * rot[i, 2, b]
         # thrust projected on the current body axis (E[8] = b3_des . b3) keeps the vertical
         # acceleration right while the attitude converges
-        collective = (m * thrust_acc) * np.maximum(E[..., 8], 0.5)
-        x = np.concatenate([collective[..., None], E, omega, yaw_rate_des[..., None]], axis=-1)
-        return np.clip(x @ self._gain, 0.0, self.max_thrust)
+        x[0] = mass[i] * thrust_acc[i] * max(x[9], 0.5)
+        x[10], x[11], x[12] = omega[i, 0], omega[i, 1], omega[i, 2]
+        x[13] = yaw_rate_des[i]
+        for k in range(4):
+            acc = 0.0
+            for j in range(14):
+                acc += x[j] * gain[j, k]
+            out[i, k] = min(max(acc, 0.0), max_thrust)
+    return out

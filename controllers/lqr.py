@@ -16,6 +16,7 @@ from typing import NamedTuple
 import control
 import numpy as np
 
+from sim.jit import njit
 from sim.params import GRAVITY
 
 __all__ = [
@@ -113,9 +114,6 @@ class FeedbackLinearisedLQR:
         return LQRCommand(acc, ref_yaw_rate - fb[..., 3])
 
 
-_ROLL1, _ROLL2 = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[R1] b[R2] - a[R2] b[R1]
-
-
 def attitude_setpoint(
     acc: np.ndarray, yaw: np.ndarray, max_tilt: float = np.deg2rad(35.0), min_vertical: float = 0.25 * GRAVITY
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -126,18 +124,34 @@ def attitude_setpoint(
     whose third column is the desired thrust direction. The tilt is limited to `max_tilt`
     and the vertical specific force kept above `min_vertical` (no commanded free fall).
     """
-    f = acc + np.array([0.0, 0.0, GRAVITY])
-    fz = np.maximum(f[..., 2], min_vertical)
-    fxy = f[..., :2]
-    nxy = np.sqrt((fxy * fxy).sum(-1))
-    limit = np.tan(max_tilt) * fz
-    scale = np.minimum(1.0, limit / np.maximum(nxy, 1e-9))
-    f = np.concatenate([fxy * scale[..., None], fz[..., None]], axis=-1)
-    thrust = np.sqrt((f * f).sum(-1))
-    b3 = f / thrust[..., None]
-    # b2 = b3 x c1 / |.| with c1 = (cos yaw, sin yaw, 0) the desired heading; b1 = b2 x b3
-    c, s = np.cos(yaw), np.sin(yaw)
-    b2 = np.stack([-b3[..., 2] * s, b3[..., 2] * c, b3[..., 0] * s - b3[..., 1] * c], axis=-1)
-    b2 /= np.sqrt((b2 * b2).sum(-1))[..., None]
-    b1 = b2[..., _ROLL1] * b3[..., _ROLL2] - b2[..., _ROLL2] * b3[..., _ROLL1]
-    return thrust, np.stack([b1, b2, b3], axis=-1)
+    batch = yaw.shape
+    thrust, rot = _attitude_setpoint_kernel(
+        acc.reshape(-1, 3).astype(float, copy=False), yaw.reshape(-1).astype(float, copy=False),
+        np.tan(max_tilt), min_vertical,
+    )
+    return thrust.reshape(batch), rot.reshape(batch + (3, 3))
+
+
+@njit
+def _attitude_setpoint_kernel(acc, yaw, tan_tilt, min_vertical):
+    n = acc.shape[0]
+    thrust = np.empty(n)
+    rot = np.empty((n, 3, 3))
+    for i in range(n):
+        fx, fy, fz = acc[i, 0], acc[i, 1], max(acc[i, 2] + GRAVITY, min_vertical)
+        nxy = np.sqrt(fx * fx + fy * fy)
+        limit = tan_tilt * fz
+        if nxy > limit:  # keep the heading of the lateral command, shorten it to the tilt limit
+            fx, fy = fx * limit / nxy, fy * limit / nxy
+        t = np.sqrt(fx * fx + fy * fy + fz * fz)
+        thrust[i] = t
+        b3x, b3y, b3z = fx / t, fy / t, fz / t
+        # b2 = b3 x c1 / |.| with c1 = (cos yaw, sin yaw, 0) the heading; b1 = b2 x b3
+        c, s = np.cos(yaw[i]), np.sin(yaw[i])
+        b2x, b2y, b2z = -b3z * s, b3z * c, b3x * s - b3y * c
+        norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
+        b2x, b2y, b2z = b2x / norm, b2y / norm, b2z / norm
+        rot[i, 0, 0], rot[i, 1, 0], rot[i, 2, 0] = b2y * b3z - b2z * b3y, b2z * b3x - b2x * b3z, b2x * b3y - b2y * b3x
+        rot[i, 0, 1], rot[i, 1, 1], rot[i, 2, 1] = b2x, b2y, b2z
+        rot[i, 0, 2], rot[i, 1, 2], rot[i, 2, 2] = b3x, b3y, b3z
+    return thrust, rot

@@ -57,8 +57,7 @@ class _SerialPhysics(Physics):
     def step(self, nstep: int, active: np.ndarray) -> np.ndarray:
         if active[0]:
             mujoco.mj_step(self.model, self.data, nstep=nstep)
-        bad = any(self.data.warning[i].number > 0 for i in _FATAL_WARNINGS)
-        return np.array([bad])
+        return (self.data.warning.number[_FATAL_WARNINGS] > 0).any(keepdims=True)
 
     def reset(self, worlds: np.ndarray) -> None:
         if len(worlds):

@@ -21,6 +21,7 @@ from controllers.autopilot import Autopilot
 from controllers.lqr import DEFAULT_Q, DEFAULT_R, FeedbackLinearisedLQR, attitude_setpoint
 from sim.estimation import MocapConfig, MocapKalmanFilter
 from sim.field import DownwashField, pairwise_field
+from sim.jit import njit
 from sim.params import QUAD, RATES, QuadParams, Rates
 from sim.physics import make_physics
 from sim.predictor import Predictor, VehicleStates, ZeroPredictor
@@ -61,41 +62,45 @@ class SimConfig:
         return asdict(self)
 
 
-def _quat_products() -> np.ndarray:
-    """T (16, 9): flattened R = (q outer q) @ T for unit quaternions q = (w, x, y, z)."""
-    T = np.zeros((4, 4, 9))
-    w, x, y, z = range(4)
-
-    def term(i, j, k, c):  # c q_i q_j, split evenly over (i, j) and (j, i)
-        T[i, j, k] += c / 2
-        T[j, i, k] += c / 2
-
-    for k, (a, sa, b, sb, c_, sc, d, sd) in {
-        0: (w, 1, x, 1, y, -1, z, -1), 4: (w, 1, x, -1, y, 1, z, -1), 8: (w, 1, x, -1, y, -1, z, 1)
-    }.items():
-        for i, sgn in ((a, sa), (b, sb), (c_, sc), (d, sd)):
-            term(i, i, k, sgn)
-    for k, pairs in {
-        1: ((x, y, 2), (w, z, -2)), 2: ((x, z, 2), (w, y, 2)), 3: ((x, y, 2), (w, z, 2)),
-        5: ((y, z, 2), (w, x, -2)), 6: ((x, z, 2), (w, y, -2)), 7: ((y, z, 2), (w, x, 2)),
-    }.items():
-        for i, j, c in pairs:
-            term(i, j, k, c)
-    return T.reshape(16, 9)
-
-
-_QUAT_PRODUCTS = _quat_products()
-
-
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices (body to world)."""
-    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
-    return (qq @ _QUAT_PRODUCTS).reshape(q.shape[:-1] + (3, 3))
+    return _attitude_kernel(q.reshape(-1, 4).astype(float, copy=False))[0].reshape(q.shape[:-1] + (3, 3))
 
 
 def yaw_of(rot: np.ndarray) -> np.ndarray:
     """(..., 3, 3) body-to-world rotations -> (...,) heading (rad), Z-Y-X convention."""
     return np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
+
+
+@njit
+def _attitude_kernel(q):
+    """Flat (n, 4) quaternions -> rotation matrices (n, 3, 3) and headings (n,) rad."""
+    n = q.shape[0]
+    R = np.empty((n, 3, 3))
+    yaw = np.empty(n)
+    for i in range(n):
+        w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        R[i, 0, 0], R[i, 0, 1], R[i, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        R[i, 1, 0], R[i, 1, 1], R[i, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        R[i, 2, 0], R[i, 2, 1], R[i, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        yaw[i] = np.arctan2(R[i, 1, 0], R[i, 0, 0])
+    return R, yaw
+
+
+@njit
+def _wake_force_kernel(mean, turb, xi, decay, diffusion, intensity):
+    """Advance the Ornstein-Uhlenbeck turbulence (in place) and return the applied field.
+
+    mean, turb, xi: flat (n, 3); applied = mean + intensity |mean| turb, so the
+    turbulence is zero where the wake is and scales with the local mean force.
+    """
+    applied = np.empty_like(mean)
+    for i in range(mean.shape[0]):
+        mag = np.sqrt(mean[i, 0] ** 2 + mean[i, 1] ** 2 + mean[i, 2] ** 2)
+        for k in range(3):
+            turb[i, k] = decay * turb[i, k] + diffusion * xi[i, k]
+            applied[i, k] = mean[i, k] + intensity * mag * turb[i, k]
+    return applied
 
 
 class Simulator:
@@ -145,6 +150,8 @@ class Simulator:
 
         # index arrays, resolved once
         qa, va = scene.qpos_adr, scene.qvel_adr
+        self._q_idx = qa[:, None] + np.arange(7)
+        self._dq_idx = va[:, None] + np.arange(6)
         self._pos_idx = qa[:, None] + np.arange(3)
         self._quat_idx = qa[:, None] + 3 + np.arange(4)
         self._vel_idx = va[:, None] + np.arange(3)
@@ -168,8 +175,11 @@ class Simulator:
         self.f_hat = np.zeros((W, V, 3))
         self.next_prediction = np.zeros(W)
         self._rngs: list[np.random.Generator] = [None] * W  # type: ignore[list-item]
-        self._noise = np.zeros((W, cfg.noise_block, 7 * V))
+        self._noise = np.zeros((W, cfg.noise_block, V, 7))  # per tick: mocap xyz, yaw, turbulence xyz
+        self._all_fields_on = bool(self.field_enabled.all())
+        self._mass_believed = np.full((W, V), cfg.quad.mass)  # kg, the controller's model
         self._cursor = np.zeros(W, np.int64)
+        self._world_index = np.arange(W)
         self.row: dict[str, np.ndarray] = {}
         self.reset(np.arange(W), seeds)
 
@@ -219,11 +229,11 @@ class Simulator:
         self._cursor[w] = 0
 
     def _draw(self) -> np.ndarray:
-        """(W, 7V) standard normals for this autopilot tick, from each world's own stream."""
-        full = np.flatnonzero(self._cursor >= self._noise.shape[1])
-        for w in full:
-            self._refill(w)
-        out = self._noise[np.arange(self.W), self._cursor]
+        """(W, V, 7) standard normals for this autopilot tick, from each world's own stream."""
+        if self._cursor.max() >= self._noise.shape[1]:
+            for w in np.flatnonzero(self._cursor >= self._noise.shape[1]):
+                self._refill(w)
+        out = self._noise[self._world_index, self._cursor]
         self._cursor += 1
         return out
 
@@ -237,21 +247,21 @@ class Simulator:
         """
         cfg, r = self.cfg, self.cfg.rates
         ph, W, V = self.physics, self.W, self.V
+        sigma_p, sigma_yaw = cfg.mocap.position_noise, cfg.mocap.yaw_noise
         row: dict[str, np.ndarray] = {}
-        cmd_acc = thrust = rot_des = yaw_rate = None
+        dt_active = r.autopilot_dt * self.active
         for sub in range(r.autopilot_per_control):
-            qpos, qvel = ph.qpos, ph.qvel
-            pos = qpos[:, self._pos_idx]
-            quat = qpos[:, self._quat_idx]
-            vel = qvel[:, self._vel_idx]
-            rot = quat_to_mat(quat)
+            q = ph.qpos[:, self._q_idx]  # (W, V, 7): position, quaternion
+            dq = ph.qvel[:, self._dq_idx]  # (W, V, 6): linear velocity (world), angular (body)
+            pos, vel = q[..., :3], dq[..., :3]
+            rot, yaw = _attitude_kernel(q[..., 3:].reshape(-1, 4))
+            rot = rot.reshape(W, V, 3, 3)
 
             # motion capture and Kalman update
-            noise = self._draw()
-            mocap = pos + cfg.mocap.position_noise * noise[:, : 3 * V].reshape(W, V, 3)
-            self.yaw_meas = yaw_of(rot) + cfg.mocap.yaw_noise * noise[:, 3 * V : 4 * V]
+            noise = self._draw()  # (W, V, 7)
+            mocap = pos + sigma_p * noise[..., :3]
+            self.yaw_meas = yaw.reshape(W, V) + sigma_yaw * noise[..., 3]
             self.pos_est, self.vel_est = self.kf.update(self.pos_est, self.vel_est, mocap)
-            self.mocap_pos = mocap
 
             # predictor at 45 Hz, held
             due = self.t >= self.next_prediction - 1e-9
@@ -263,11 +273,12 @@ class Simulator:
 
             # downwash field, applied as an external force until the next autopilot tick
             mean = pairwise_field(self.field, pos, vel, rot)
-            mean *= self.field_enabled[:, None, None]
-            xi = noise[:, 4 * V :].reshape(W, V, 3)
-            self.turb = self._ou_a * self.turb + self._ou_b * xi
-            magnitude = np.sqrt((mean * mean).sum(-1, keepdims=True))
-            applied = mean + cfg.turbulence_intensity * magnitude * self.turb
+            if not self._all_fields_on:
+                mean *= self.field_enabled[:, None, None]
+            applied = _wake_force_kernel(
+                mean.reshape(-1, 3), self.turb.reshape(-1, 3), noise[..., 4:].reshape(-1, 3),
+                self._ou_a, self._ou_b, cfg.turbulence_intensity,
+            ).reshape(W, V, 3)
             ph.xfrc_applied[:, self._body_ids, :3] = self.mass * applied
 
             if sub == 0:  # the LQR and feedback linearisation at 50 Hz
@@ -276,25 +287,24 @@ class Simulator:
                     self.pos_est, self.vel_est, self.yaw_meas,
                     ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, self.f_hat,
                 )
-                cmd_acc = cmd.acc
+                cmd_acc, yaw_rate = cmd.acc, cmd.yaw_rate
                 if residual is not None:
                     cmd_acc = cmd_acc + residual
                 if override is not None:
                     cmd_acc = np.where(np.isfinite(override), override, cmd_acc)
-                yaw_rate = cmd.yaw_rate
                 thrust, rot_des = attitude_setpoint(cmd_acc, self.yaw_meas + yaw_rate * r.control_dt, self.max_tilt)
                 row = {
-                    "t": self.t.copy(), "pos": pos, "vel": vel, "quat": quat,
+                    "t": self.t, "pos": pos, "vel": vel, "quat": q[..., 3:],
                     "pos_est": self.pos_est, "vel_est": self.vel_est, "yaw_est": self.yaw_meas,
                     "mocap_pos": mocap, "ref_pos": ref.pos, "ref_vel": ref.vel, "ref_acc": ref.acc,
                     "u_cmd": cmd_acc, "f_hat": self.f_hat, "field_mean": mean, "field_applied": applied,
                 }
 
-            rotors = self.autopilot(rot, qvel[:, self._omega_idx], rot_des, yaw_rate, thrust)
+            rotors = self.autopilot(rot, dq[..., 3:], rot_des, yaw_rate, thrust, self._mass_believed)
             ph.ctrl[:, self._act_idx] = rotors.reshape(W, -1)
             diverged = ph.step(r.physics_per_autopilot, self.active)
             self.pos_est, self.vel_est = self.kf.predict(self.pos_est, self.vel_est, cmd_acc)
-            self.t = self.t + r.autopilot_dt * self.active
+            self.t = self.t + dt_active
         self.tick_index += self.active
         self._check(diverged)
         self.row = row
@@ -303,21 +313,44 @@ class Simulator:
     def _check(self, diverged: np.ndarray) -> None:
         """End worlds that diverged or collided; they keep their rows and stop stepping."""
         cfg = self.cfg
-        pos = self.physics.qpos[:, self._pos_idx]
-        finite = np.isfinite(pos).all(axis=(1, 2)) & np.isfinite(self.physics.qvel).all(axis=1)
-        far = np.abs(np.where(np.isfinite(pos), pos, 0.0)).max(axis=(1, 2)) > cfg.max_distance
-        bad = self.active & (diverged | ~finite | far)
-        ground = self.active & ~bad & (pos[..., 2] < cfg.ground_clearance).any(axis=1)
-        dp = pos[:, :, None, :] - pos[:, None, :, :]
-        d2 = (dp[..., 0] ** 2 + dp[..., 1] ** 2) / cfg.collision_radius_xy**2 + dp[..., 2] ** 2 / cfg.collision_radius_z**2
-        d2[:, np.arange(self.V), np.arange(self.V)] = np.inf
-        hit = self.active & ~bad & ~ground & (d2 < 1.0).any(axis=(1, 2))
-        for mask, code, what in (
-            (bad, STATUS_DIVERGED, "diverged (NaN, runaway state or MuJoCo instability warning)"),
-            (ground, STATUS_GROUND, "hit the ground"),
-            (hit, STATUS_VEHICLE, "vehicles collided"),
-        ):
-            for w in np.flatnonzero(mask):
-                self.status[w] = code
-                self.message[w] = f"world {w} (seed {self.seeds[w]}): {what} at t = {self.t[w]:.2f} s"
-            self.active &= ~mask
+        status = _status_kernel(
+            self.physics.qpos[:, self._pos_idx], self.physics.qvel, diverged, self.active,
+            cfg.max_distance, cfg.ground_clearance, cfg.collision_radius_xy, cfg.collision_radius_z,
+        )
+        if status.any():
+            what = {STATUS_DIVERGED: "diverged (NaN, runaway state or MuJoCo instability warning)",
+                    STATUS_GROUND: "hit the ground", STATUS_VEHICLE: "vehicles collided"}
+            for w in np.flatnonzero(status):
+                self.status[w] = status[w]
+                self.message[w] = f"world {w} (seed {self.seeds[w]}): {what[status[w]]} at t = {self.t[w]:.2f} s"
+                self.active[w] = False
+
+
+@njit
+def _status_kernel(pos, qvel, diverged, active, max_distance, ground, radius_xy, radius_z):
+    """(W,) status codes for active worlds that end now: diverged, ground or vehicle collision."""
+    W, V = pos.shape[0], pos.shape[1]
+    status = np.zeros(W, np.int64)
+    for w in range(W):
+        if not active[w]:
+            continue
+        bad = diverged[w]
+        for j in range(qvel.shape[1]):
+            bad = bad or not np.isfinite(qvel[w, j])
+        for i in range(V):
+            for k in range(3):
+                bad = bad or not (abs(pos[w, i, k]) <= max_distance)  # NaN fails too
+        if bad:
+            status[w] = STATUS_DIVERGED
+            continue
+        for i in range(V):
+            if pos[w, i, 2] < ground:
+                status[w] = STATUS_GROUND
+        if status[w]:
+            continue
+        for i in range(V):
+            for j in range(i + 1, V):
+                dx, dy, dz = pos[w, i, 0] - pos[w, j, 0], pos[w, i, 1] - pos[w, j, 1], pos[w, i, 2] - pos[w, j, 2]
+                if (dx * dx + dy * dy) / radius_xy**2 + dz * dz / radius_z**2 < 1.0:
+                    status[w] = STATUS_VEHICLE
+    return status
