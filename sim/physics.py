@@ -6,6 +6,7 @@ single code path: a single flight is a batch of one.
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import mujoco
@@ -44,6 +45,17 @@ class Physics:
         """Reset the given worlds to the model's defaults (warnings cleared)."""
         raise NotImplementedError
 
+    def set_body_mass(self, worlds: np.ndarray, body_ids: np.ndarray, mass: np.ndarray) -> None:
+        """Give bodies of the given worlds their own mass (kg), e.g. for domain randomisation.
+
+        mass: (len(worlds), len(body_ids)). Inertia scales with the mass (same shape).
+        """
+        raise NotImplementedError
+
+    def mjdata(self, world: int) -> mujoco.MjData:
+        """An MjData with world `world`'s state and derived quantities (for rendering)."""
+        raise NotImplementedError
+
 
 class _SerialPhysics(Physics):
     def __init__(self, model: mujoco.MjModel):
@@ -62,6 +74,20 @@ class _SerialPhysics(Physics):
     def reset(self, worlds: np.ndarray) -> None:
         if len(worlds):
             mujoco.mj_resetData(self.model, self.data)
+
+    def set_body_mass(self, worlds: np.ndarray, body_ids: np.ndarray, mass: np.ndarray) -> None:
+        if len(worlds):
+            if not getattr(self, "_own_model", False):  # copy on write: the scene's model may be shared
+                self.model, self._own_model = copy.copy(self.model), True
+            m = self.model
+            scale = np.asarray(mass, float).reshape(len(worlds), len(body_ids))[-1] / m.body_mass[body_ids]
+            m.body_mass[body_ids] *= scale
+            m.body_inertia[body_ids] *= scale[:, None]
+            mujoco.mj_setConst(m, self.data)
+
+    def mjdata(self, world: int) -> mujoco.MjData:
+        mujoco.mj_forward(self.model, self.data)
+        return self.data
 
 
 class _BatchPhysics(Physics):
@@ -89,6 +115,23 @@ class _BatchPhysics(Physics):
     def reset(self, worlds: np.ndarray) -> None:
         if len(worlds):
             self.batch.reset(ids=np.asarray(worlds), stage=0)
+
+    def set_body_mass(self, worlds: np.ndarray, body_ids: np.ndarray, mass: np.ndarray) -> None:
+        if len(worlds):
+            worlds = np.asarray(worlds)
+            masses = self.batch.expand("body_mass")
+            inertia = self.batch.expand("body_inertia")
+            scale = np.asarray(mass, float).reshape(len(worlds), len(body_ids)) / self.model.body_mass[body_ids]
+            masses[np.ix_(worlds, body_ids)] = scale * self.model.body_mass[body_ids]
+            inertia[np.ix_(worlds, body_ids)] = scale[..., None] * self.model.body_inertia[body_ids]
+            self.batch.set_const(ids=worlds)
+
+    def mjdata(self, world: int) -> mujoco.MjData:
+        if not hasattr(self, "_render_data"):
+            self._render_data = mujoco.MjData(self.model)
+        data = self.batch.get_data(world, self._render_data)
+        mujoco.mj_forward(self.batch.get_model(world) if self.batch.expanded("body_mass") is not None else self.model, data)
+        return data
 
 
 def make_physics(model: mujoco.MjModel, n_worlds: int, n_threads: int = 0) -> Physics:
