@@ -461,8 +461,8 @@ def test_pairwise_two_vehicles_is_the_two_directed_pairs() -> None:
     assert F.shape == (6, 2, 3)
     on_lower = DEFAULT(pos[:, 0], vel[:, 0], rot[:, 0], pos[:, 1], vel[:, 1])
     on_upper = DEFAULT(pos[:, 1], vel[:, 1], rot[:, 1], pos[:, 0], vel[:, 0])
-    np.testing.assert_array_equal(F[:, 1], on_lower)
-    np.testing.assert_array_equal(F[:, 0], on_upper)
+    np.testing.assert_allclose(F[:, 1], on_lower, rtol=0, atol=1e-13)  # compiled path vs broadcast law
+    np.testing.assert_allclose(F[:, 0], on_upper, rtol=0, atol=1e-13)
     assert np.all(F[:, 0] == 0.0)  # nothing acts on the upper one
     F = pairwise_field(DEFAULT, pos, np.zeros_like(vel), rot)
     assert np.all(F[:, 1, 2] < -0.1)  # at rest the lower vehicle is pushed down
@@ -484,8 +484,8 @@ def test_pairwise_three_vehicles_equals_the_double_loop(field: DownwashField) ->
 
 def test_pairwise_with_a_single_unbatched_fleet() -> None:
     pos, vel, rot = _fleet(np.random.default_rng(17), 1, 3)
-    np.testing.assert_array_equal(
-        pairwise_field(DEFAULT, pos[0], vel[0], rot[0]), pairwise_field(DEFAULT, pos, vel, rot)[0]
+    np.testing.assert_allclose(
+        pairwise_field(DEFAULT, pos[0], vel[0], rot[0]), pairwise_field(DEFAULT, pos, vel, rot)[0], rtol=0, atol=1e-13
     )
 
 
@@ -548,3 +548,27 @@ def test_field_validate_names_the_bad_argument() -> None:
         DEFAULT(**dict(good, R_a=np.zeros(3)), validate=True)
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: .*v_a \(4,\)"):
         DEFAULT(**dict(good, p_a=np.zeros((5, 3)), v_a=np.zeros((4, 3))), validate=True)
+
+
+@pytest.mark.parametrize(
+    "knobs", [{}, {"c4_amplitude": 0.3}, {"swirl": 0.5}, {"skew": 0.4}, {"c4_amplitude": 0.3, "swirl": 0.5, "skew": 0.4}]
+)
+def test_compiled_pairwise_matches_broadcast_evaluation(knobs):
+    """DownwashField.pairwise (compiled, the loop's hot path) == the NumPy broadcast law."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    W, V = 300, 3
+    pos = rng.normal(size=(W, V, 3)) * [0.4, 0.4, 0.8]
+    vel = rng.normal(size=(W, V, 3))
+    rot = Rotation.random(W * V, random_state=6).as_matrix().reshape(W, V, 3, 3)
+    field = DownwashField(**knobs)
+    fast = field.pairwise(pos, vel, rot)
+    slow = pairwise_field(lambda *a: field(*a), pos, vel, rot)  # a plain callable: no fast path
+    assert np.abs(slow).max() > 1.0  # the samples do reach the wake
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(pairwise_field(field, pos, vel, rot), fast)
+    # per-world constants decline the compiled path and still work through broadcasting
+    per_world = DownwashField(strength=np.full((W, 1, 1), 10.6), **knobs)
+    assert per_world.pairwise(pos, vel, rot) is None
+    np.testing.assert_allclose(pairwise_field(per_world, pos, vel, rot), slow, atol=1e-12)
