@@ -85,10 +85,11 @@ class Autopilot:
         mass: the vehicle mass the controller believes in (kg), default the nominal one.
         """
         batch = thrust_acc.shape
-        m = np.full(batch, self.mass) if mass is None else np.broadcast_to(mass, batch).astype(float)
+        if not (isinstance(mass, np.ndarray) and mass.shape == batch):  # the loop passes a ready (W, V) array
+            mass = np.broadcast_to(np.asarray(self.mass if mass is None else mass, dtype=float), batch)
         out = _autopilot_kernel(
             rot.reshape(-1, 3, 3), omega.reshape(-1, 3), rot_des.reshape(-1, 3, 3), yaw_rate_des.reshape(-1),
-            thrust_acc.reshape(-1), m.reshape(-1), self._gain, self.max_thrust,
+            thrust_acc.reshape(-1), mass.reshape(-1), self._gain, self.max_thrust,
         )
         return out.reshape(batch + (4,))
 

@@ -713,8 +713,12 @@ class StackedReference:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)): pos/vel/acc (W, V, 3), yaw/yaw_rate (W, V)."""
         t = _times(t, self.n_worlds)
-        samples = [r(t) for r in self.refs]
-        return RefSample(*(np.stack(field, axis=1) for field in zip(*samples)))
+        W, V = self.n_worlds, self.n_vehicles
+        out = RefSample(np.empty((W, V, 3)), np.empty((W, V, 3)), np.empty((W, V, 3)), np.empty((W, V)), np.empty((W, V)))
+        for v, ref in enumerate(self.refs):  # filling preallocated arrays beats np.stack per field
+            for dst, src in zip(out, ref(t)):
+                dst[:, v] = src
+        return out
 
 
 def stack(refs: Sequence[Reference]) -> StackedReference:

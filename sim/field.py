@@ -175,10 +175,7 @@ class DownwashField:
         """
         if self._packed is None:
             return None
-        return _pairwise_kernel(
-            np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(vel, dtype=np.float64),
-            np.ascontiguousarray(rot, dtype=np.float64), self._packed,
-        )
+        return _pairwise_kernel(pos, vel, rot, self._packed)  # numba takes strided views as they are
 
     def __call__(
         self,
