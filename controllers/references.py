@@ -34,6 +34,7 @@ __all__ = [
     "Transect",
     "Waypoints",
     "StackedReference",
+    "Mixed",
     "random_passes",
     "stack",
 ]
@@ -684,6 +685,44 @@ def random_passes(
         all_dwell.append(np.array(dwl))
         all_tags.append(tags)
     return Waypoints.from_patterns(all_pts, all_durs, all_dwell, move_tags=all_tags)
+
+
+# ----------------------------------------------------------------------------- mixing
+
+
+class Mixed:
+    """Different references for different worlds of one batch.
+
+    parts: (reference, worlds) pairs; `worlds` (index array) are the batch worlds that
+    `reference` (built with n_worlds = len(worlds)) serves. Every world must be served
+    exactly once. Sampling calls each part once on its worlds' times.
+    """
+
+    def __init__(self, parts: Sequence[tuple[Reference, ArrayLike]]) -> None:
+        parts = [(ref, np.asarray(worlds, dtype=np.int64).reshape(-1)) for ref, worlds in parts]
+        if not parts:
+            raise ValueError("parts: expected at least one (reference, worlds) pair")
+        for ref, worlds in parts:
+            if int(ref.n_worlds) != worlds.size:
+                raise ValueError(f"parts: a reference with n_worlds={ref.n_worlds} was given {worlds.size} worlds")
+        all_worlds = np.sort(np.concatenate([w for _, w in parts]))
+        if not np.array_equal(all_worlds, np.arange(all_worlds.size)):
+            raise ValueError("parts: the worlds must be 0..W-1, each served by exactly one reference")
+        self.parts = parts
+        self.n_worlds = int(all_worlds.size)
+        self.duration = np.zeros(self.n_worlds)
+        for ref, worlds in parts:
+            self.duration[worlds] = np.broadcast_to(np.asarray(ref.duration, dtype=float), (worlds.size,))
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)): the fields of RefSample, (W, 3) and (W,)."""
+        t = _times(t, self.n_worlds)
+        W = self.n_worlds
+        out = RefSample(np.empty((W, 3)), np.empty((W, 3)), np.empty((W, 3)), np.empty(W), np.empty(W))
+        for ref, worlds in self.parts:
+            for dst, src in zip(out, ref(t[worlds])):
+                dst[worlds] = src
+        return out
 
 
 # ----------------------------------------------------------------------------- stacking

@@ -20,7 +20,7 @@ from typing import Any, Sequence, TypeVar
 from sim.field import DownwashField
 from sim.logs import atomic_write_json
 
-__all__ = ["CommonArgs", "arg", "parse_args", "load_field", "write_results", "format_table", "setup_logging"]
+__all__ = ["CommonArgs", "ProgressBar", "arg", "parse_args", "load_field", "write_results", "format_table", "setup_logging"]
 
 A = TypeVar("A")
 
@@ -111,3 +111,24 @@ def setup_logging(verbose: bool = False) -> None:
 
 def dumps(obj: Any) -> str:
     return json.dumps(obj, indent=2, default=str)
+
+
+class ProgressBar:
+    """A one-line progress bar on a terminal (stderr); silent when stderr is not a TTY."""
+
+    def __init__(self, label: str, width: int = 30):
+        self.label, self.width = label, width
+        self.enabled = sys.stderr.isatty()
+        self._last = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        filled = int(self.width * done / max(total, 1))
+        if filled == self._last and done != total:
+            return
+        self._last = filled
+        bar = "#" * filled + "-" * (self.width - filled)
+        end = "\n" if done >= total else ""
+        sys.stderr.write(f"\r{self.label} [{bar}] {done}/{total}{end}")
+        sys.stderr.flush()

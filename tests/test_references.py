@@ -535,3 +535,20 @@ def test_sampling_rejects_wrong_time_shape():
 def test_unknown_keywords_raise_type_error(make):
     with pytest.raises(TypeError):
         make()
+
+
+def test_mixed_routes_worlds_to_their_references():
+    from controllers.references import Mixed
+
+    lem = Lemniscate(np.zeros(3), n_worlds=2)
+    hov = Hover(np.array([[1.0, 2.0, 3.0]]))
+    mixed = Mixed([(lem, [0, 2]), (hov, [1])])
+    t = np.array([1.5, 7.0, 3.0])
+    s = mixed(t)
+    np.testing.assert_array_equal(s.pos[[0, 2]], lem(t[[0, 2]]).pos)
+    np.testing.assert_array_equal(s.pos[1], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(s.vel[1], 0.0)
+    with pytest.raises(ValueError, match="exactly one"):
+        Mixed([(lem, [0, 1]), (hov, [1])])
+    with pytest.raises(ValueError, match="n_worlds=2"):
+        Mixed([(lem, [0]), (hov, [1])])
