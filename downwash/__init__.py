@@ -1,0 +1,16 @@
+"""Learned downwash models: features, models, labels, data sets, training, checkpoints.
+
+Modules (import them directly; this package imports nothing heavy on its own):
+
+- `downwash.features`: the model inputs (paper eq. 4, NED mapping), NumPy and torch
+- `downwash.models`: `EquivariantModel`, `ShallowMLP`, `DeepSNMLP`, `make_model`
+- `downwash.labels`: labels ``f = a - u`` from flight logs, the label-noise floor
+- `downwash.datasets`: `Dataset`, `load_dataset`, `split_by_flight`, `shorten_per_stage`
+- `downwash.train`: `TrainConfig`, `train_model`, `rmse`
+- `downwash.checkpoint`: `save_checkpoint`, `load_checkpoint` (no code runs on load)
+- `downwash.predictor`: `LearnedPredictor`, a model in the control loop (`sim.predictor.Predictor`)
+
+Data flows one way: `downwash` may import `sim`, never `experiments`.
+"""
+
+__all__ = ["features", "models", "labels", "datasets", "train", "checkpoint", "predictor"]

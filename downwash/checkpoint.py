@@ -1,0 +1,164 @@
+"""Model checkpoints that load without executing code.
+
+One file (``torch.save`` of plain containers: the state dict's tensors and a JSON
+string) carries the weights, the normalisation buffers and the metadata: model
+kind, feature set, architecture, parameter count, plus whatever the caller adds
+(training config, data summary, seed). A human-readable copy of the metadata is
+written beside it as ``<name>.json``; loading reads only the weights file.
+
+Loading uses ``torch.load(..., weights_only=True)``: a file holding any pickled
+object other than tensors and plain containers is refused. Writes are atomic
+(temporary file, then ``os.replace``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+import zipfile
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from downwash.models import MODEL_KINDS, DownwashModel, make_model
+from sim.logs import atomic_write_bytes
+
+__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint", "sidecar_path"]
+
+CHECKPOINT_FORMAT = "downwash-model"
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, unreadable, unsafe, or does not match what was expected."""
+
+
+def _unpickling_reason(e: Exception) -> str:
+    """The informative line of torch's long weights-only error message."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for ln in lines:
+        if "Unsupported" in ln:
+            return ln
+    return lines[0] if lines else type(e).__name__
+
+
+def sidecar_path(path: str | os.PathLike) -> Path:
+    """The JSON metadata copy written beside a checkpoint: ``model.pt`` -> ``model.json``."""
+    return Path(path).with_suffix(".json")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, (np.ndarray, torch.Tensor)):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if is_dataclass(o) and not isinstance(o, type):
+        return asdict(o)
+    raise TypeError(f"checkpoint metadata: {type(o).__name__} is not JSON serialisable")
+
+
+def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``model`` and metadata to ``path`` (conventionally ``*.pt``) atomically.
+
+    meta: JSON-serialisable extras (NumPy values, paths and dataclasses such as
+    TrainConfig are converted); the key "model" is reserved. The stored record is
+    ``{**meta, "model": model.describe() + normalisation + dtype}``; it is returned.
+    """
+    meta = dict(meta or {})
+    if "model" in meta:
+        raise ValueError("meta: the key 'model' is reserved for the model description")
+    if not isinstance(model, DownwashModel):
+        raise TypeError(f"model: expected a DownwashModel, got {type(model).__name__}")
+    record = dict(meta)
+    record["model"] = {
+        **model.describe(),
+        "normalization": model.normalization(),
+        "dtype": str(model.in_mean.dtype).replace("torch.", ""),
+    }
+    meta_json = json.dumps(record, sort_keys=True, default=_json_default)
+    record = json.loads(meta_json)
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "meta_json": meta_json,
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+    }
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    path = Path(path)
+    atomic_write_bytes(sidecar_path(path), (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
+    atomic_write_bytes(path, buf.getvalue())
+    return record
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    expect_kind: str | None = None,
+    expect_feature_set: str | None = None,
+) -> tuple[DownwashModel, dict[str, Any]]:
+    """Rebuild a model from ``path``; returns (model in eval mode, metadata record).
+
+    Raises CheckpointError naming the file when it is missing or unreadable, holds
+    anything but tensors and plain containers, is not a checkpoint of this
+    project, or its kind / feature set / tensor names and shapes differ from what
+    was expected (each difference is named).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(
+            f"{path}: refused by the safe loader (weights_only=True): it holds objects other than tensors "
+            f"and plain containers ({_unpickling_reason(e)})"
+        ) from e
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as e:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): {e}") from e
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {CHECKPOINT_VERSION}")
+    try:
+        record = json.loads(payload["meta_json"])
+        desc = record["model"]
+        kind, feature_set = desc["kind"], desc["feature_set"]
+        architecture = desc.get("architecture", {})
+        state = payload["state_dict"]
+    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
+
+    if expect_kind is not None and kind != expect_kind:
+        raise CheckpointError(f"{path}: model kind is {kind!r}, expected {expect_kind!r}")
+    if expect_feature_set is not None and feature_set != expect_feature_set:
+        raise CheckpointError(f"{path}: feature set is {feature_set!r}, expected {expect_feature_set!r}")
+    if kind not in MODEL_KINDS:
+        raise CheckpointError(f"{path}: unknown model kind {kind!r} (known: {sorted(MODEL_KINDS)})")
+    try:
+        model = make_model(kind, feature_set, **architecture)
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"{path}: cannot rebuild the model: {e}") from e
+    if desc.get("dtype") == "float64":
+        model = model.double()
+
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    found = {k: tuple(v.shape) for k, v in state.items()} if isinstance(state, dict) else {}
+    problems = [f"missing tensor {k!r} (expected shape {s})" for k, s in expected.items() if k not in found]
+    problems += [f"unexpected tensor {k!r}" for k in found if k not in expected]
+    problems += [
+        f"tensor {k!r} has shape {found[k]}, expected {s}" for k, s in expected.items() if k in found and found[k] != s
+    ]
+    if problems:
+        raise CheckpointError(f"{path}: weights do not match a {kind!r} model with feature set {feature_set!r}: " + "; ".join(problems))
+    model.load_state_dict(state, strict=True)
+    model.eval()
+    return model, record

@@ -1,0 +1,264 @@
+"""Model inputs: the one place where they are computed, for NumPy and torch alike.
+
+Every function here is written once against an array namespace ``xp`` (``numpy``
+or ``torch``, picked from the arguments): NumPy arrays in give NumPy arrays out,
+torch tensors in give torch tensors out (differentiable). Only operations with the
+same meaning in both libraries are used (``xp.sqrt``, ``xp.stack``,
+``xp.concatenate``, arithmetic, indexing); the two primitives that differ are
+wrapped once: `_dot` (np.vecdot / torch.linalg.vecdot) and `_sqrt0` (a square
+root whose torch gradient stays finite at 0).
+
+Raw per-sample inputs (leader ``a`` = Alpha, follower ``b`` = Bravo)::
+
+    dp  (..., 3)    m     p_b - p_a, world frame (MuJoCo: z up)
+    v_a (..., 3)    m/s   leader velocity, world frame
+    v_b (..., 3)    m/s   follower velocity, world frame
+    R_a (..., 3, 3) -     leader body-to-world rotation; n = R_a[..., :, 2] is its
+                          body "up" axis (world +z for a level leader)
+
+NED mapping (written here once). The paper works in North-East-Down with the
+leader's body axis ``a3`` pointing DOWN. In our z-up world ``a3 = -n``, so
+
+* the paper's ``[R dp]_3`` is ``s = -(dp . n)``: the depth of the follower below
+  the leader along its axis, POSITIVE BELOW the leader;
+* the paper's ``[R v_b]_3`` is ``w = -(v_b . n)``: the follower's axial speed,
+  positive when it moves DOWN (away from the leader);
+* the network's second output ``f2`` is the paper's ``[F]_3`` component along
+  NED-down, so the world-frame axial force is ``-f2 n``: a positive ``f2`` pushes
+  the follower toward the ground (our negative z for a level leader).
+
+Equivariant output (paper eq. 5): ``F = f1 r_hat + f2 d`` with the basis rows
+``r_hat = P dp / sqrt(|P dp|^2 + R_EPS^2)`` (the radial direction in the leader's
+rotor plane, smoothly 0 at r = 0) and ``d = -n`` (the leader's NED-down axis),
+where ``P = I - n n^T``. Both rows rotate with any rotation about ``n`` and the
+features are invariant under it, so ``F`` is SO(2)-equivariant (the paper's
+theorem 1) for any network ``(f1, f2) = f(h)``.
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = [
+    "R_EPS",
+    "V_EPS",
+    "FEATURE_SETS",
+    "EQUIVARIANT_FEATURE_SETS",
+    "RAW_FEATURE_SETS",
+    "leader_axis",
+    "project_plane",
+    "safe_norm",
+    "depth",
+    "invariant_features",
+    "raw_features",
+    "equivariant_basis",
+    "assemble",
+    "project_onto_basis",
+    "model_inputs",
+    "rotation_about_axis",
+    "quat_to_rotmat",
+]
+
+R_EPS = 1e-3  # m, softening of the radial unit vector and of the cosine near the wake axis
+V_EPS = 1e-3  # m/s, softening of the cosine feature near zero lateral follower speed
+
+# feature-set name -> feature names, in column order
+FEATURE_SETS: dict[str, tuple[str, ...]] = {
+    # paper eq. 4 without |P v_a| (level, near-hover leader, paper section 5.D)
+    "5": ("cos_dp_vb", "r_lateral", "vb_lateral", "depth", "vb_axial_down"),
+    # paper eq. 4, all six features
+    "6": ("cos_dp_vb", "r_lateral", "vb_lateral", "depth", "vb_axial_down", "va_lateral"),
+    # non-equivariant baselines: [dp, v_b] in the world frame
+    "raw": ("dp_x", "dp_y", "dp_z", "vb_x", "vb_y", "vb_z"),
+}
+EQUIVARIANT_FEATURE_SETS = ("5", "6")
+RAW_FEATURE_SETS = ("raw",)
+
+
+def _namespace(*arrays: Any) -> tuple[ModuleType, list[Any]]:
+    """torch if any argument is a tensor (the others are converted to it), else numpy."""
+    tensors = [a for a in arrays if isinstance(a, torch.Tensor)]
+    if not tensors:
+        return np, [np.asarray(a) for a in arrays]
+    ref = tensors[0]
+    out = [a if isinstance(a, torch.Tensor) else torch.as_tensor(a, dtype=ref.dtype, device=ref.device) for a in arrays]
+    return torch, out
+
+
+def _dot(xp: ModuleType, a, b):
+    """Dot product over the last axis (np.vecdot / torch.linalg.vecdot: one fused call)."""
+    return np.vecdot(a, b) if xp is np else torch.linalg.vecdot(a, b)
+
+
+def _sqrt0(xp: ModuleType, sq):
+    """sqrt of a non-negative array, with gradient 0 (not inf) at 0 under torch.
+
+    NumPy needs no guard (no gradients; sqrt(0) = 0). torch uses the "double
+    where": the square root only ever sees positive arguments.
+    """
+    if xp is np:
+        return np.sqrt(sq)
+    pos = sq > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, sq, 1.0)), 0.0)
+
+
+def _stack(xp: ModuleType, arrays: list, axis: int):
+    """``xp.stack(arrays, axis)`` for axis -1 or -2 (NumPy: a C concatenate, not Python np.stack)."""
+    if xp is not np:
+        return torch.stack(arrays, axis)
+    index = (Ellipsis, None) if axis == -1 else (Ellipsis, None, slice(None))
+    return np.concatenate([a[index] for a in arrays], axis)
+
+
+def leader_axis(R_a):
+    """The leader's body up axis ``n = R_a[..., :, 2]`` (..., 3), world frame, unit."""
+    return R_a[..., :, 2]
+
+
+def project_plane(x, n):
+    """``P x = x - (x . n) n``: the part of x (..., 3) in the plane normal to n (..., 3)."""
+    xp, (x, n) = _namespace(x, n)
+    return x - _dot(xp, x, n)[..., None] * n
+
+
+def safe_norm(x):
+    """Euclidean norm over the last axis (...,), value 0 and (torch) gradient 0 at x = 0."""
+    xp, (x,) = _namespace(x)
+    return _sqrt0(xp, _dot(xp, x, x))
+
+
+def depth(dp, R_a):
+    """Depth of the follower below the leader along the leader's axis (...,), m.
+
+    ``s = -(dp . n)``, the paper's ``[R dp]_3`` in NED: +1 for a follower 1 m
+    directly below a level leader, negative above it.
+    """
+    xp, (dp, R_a) = _namespace(dp, R_a)
+    return -_dot(xp, dp, leader_axis(R_a))
+
+
+def _check_equivariant_set(feature_set: str) -> None:
+    if feature_set not in EQUIVARIANT_FEATURE_SETS:
+        raise ValueError(
+            f"feature_set: expected one of {list(EQUIVARIANT_FEATURE_SETS)} for invariant features, got {feature_set!r}"
+        )
+
+
+def _equivariant_inputs(xp: ModuleType, dp, v_a, v_b, R_a, feature_set: str, want_features: bool = True):
+    """Invariant features (..., k) (or None) and output basis (..., 2, 3), sharing intermediates."""
+    n = leader_axis(R_a)
+    dp_n = _dot(xp, dp, n)
+    pdp = dp - dp_n[..., None] * n
+    r2 = _dot(xp, pdp, pdp)
+    r_soft = xp.sqrt(r2 + R_EPS**2)
+    basis = _stack(xp, [pdp / r_soft[..., None], -n], -2)
+    if not want_features:
+        return None, basis
+    vb_n = _dot(xp, v_b, n)
+    pvb = v_b - vb_n[..., None] * n
+    q2 = _dot(xp, pvb, pvb)
+    c = _dot(xp, pdp, pvb) / (r_soft * xp.sqrt(q2 + V_EPS**2))
+    cols = [c, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n]
+    if feature_set == "6":
+        pva = v_a - _dot(xp, v_a, n)[..., None] * n
+        cols.append(_sqrt0(xp, _dot(xp, pva, pva)))
+    return _stack(xp, cols, -1), basis
+
+
+def invariant_features(dp, v_a, v_b, R_a, feature_set: str = "5"):
+    """The paper's invariant features h(x) (eq. 4), (..., 5) or (..., 6).
+
+    Columns (see FEATURE_SETS), with ``P = I - n n^T``:
+
+    0. ``c``: cosine of the angle between ``P dp`` and ``P v_b``, softened as
+       ``(P dp . P v_b) / sqrt((|P dp|^2 + R_EPS^2) (|P v_b|^2 + V_EPS^2))`` so that
+       it is smooth, lies in (-1, 1), and goes to 0 when either vector vanishes;
+    1. ``|P dp|`` (m), the lateral offset from the leader's axis;
+    2. ``|P v_b|`` (m/s), the follower's lateral speed;
+    3. ``s = -(dp . n)`` (m), depth below the leader (paper ``[R dp]_3``, NED);
+    4. ``w = -(v_b . n)`` (m/s), axial speed, positive downward (paper ``[R v_b]_3``);
+    5. ``|P v_a|`` (m/s), the leader's lateral speed (feature set "6" only).
+
+    All are invariant under rotations about ``n`` applied to dp and v_b, with
+    finite values and gradients everywhere (also at r = 0 and v = 0).
+    """
+    _check_equivariant_set(feature_set)
+    xp, (dp, v_a, v_b, R_a) = _namespace(dp, v_a, v_b, R_a)
+    return _equivariant_inputs(xp, dp, v_a, v_b, R_a, feature_set)[0]
+
+
+def raw_features(dp, v_b):
+    """Baseline inputs ``[dp, v_b]`` (..., 6), world frame (m, m/s)."""
+    xp, (dp, v_b) = _namespace(dp, v_b)
+    return xp.concatenate([dp, v_b], -1)
+
+
+def equivariant_basis(dp, R_a):
+    """Output basis (..., 2, 3), world frame: rows ``r_hat`` and ``d = -n``.
+
+    ``r_hat = P dp / sqrt(|P dp|^2 + R_EPS^2)``: the radial unit vector in the
+    leader's rotor plane, smoothly 0 on the axis (finite gradient there);
+    ``d = -n``: the leader's NED-down axis (world -z for a level leader).
+    """
+    xp, (dp, R_a) = _namespace(dp, R_a)
+    return _equivariant_inputs(xp, dp, None, None, R_a, "5", want_features=False)[1]
+
+
+def assemble(f, basis):
+    """World-frame force ``F = f1 r_hat + f2 d`` (..., 3) from outputs f (..., 2) and basis (..., 2, 3)."""
+    xp, (f, basis) = _namespace(f, basis)
+    return xp.einsum("...k,...kj->...j", f, basis)
+
+
+def project_onto_basis(y, basis):
+    """Components ``(y . r_hat, y . d)`` (..., 2) of world vectors y (..., 3): radial and NED-down."""
+    xp, (y, basis) = _namespace(y, basis)
+    return xp.einsum("...kj,...j->...k", basis, y)
+
+
+def model_inputs(feature_set: str, dp, v_a, v_b, R_a):
+    """Network inputs for a feature set: ``(x (..., k), basis (..., 2, 3) or None)``.
+
+    Equivariant sets ("5", "6") give invariant features and the equivariant basis;
+    "raw" gives ``[dp, v_b]`` and no basis (the network outputs world axes).
+    """
+    if feature_set in EQUIVARIANT_FEATURE_SETS:
+        xp, (dp, v_a, v_b, R_a) = _namespace(dp, v_a, v_b, R_a)
+        return _equivariant_inputs(xp, dp, v_a, v_b, R_a, feature_set)
+    if feature_set in RAW_FEATURE_SETS:
+        return raw_features(dp, v_b), None
+    raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {feature_set!r}")
+
+
+def rotation_about_axis(axis, angle):
+    """Rotation matrices (..., 3, 3) by ``angle`` (...,) rad about unit ``axis`` (..., 3) (Rodrigues)."""
+    xp, (axis, angle) = _namespace(axis, angle)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    c, s = xp.cos(angle), xp.sin(angle)
+    C = 1 - c
+    rows = [
+        [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+        [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+        [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+    ]
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)
+
+
+def quat_to_rotmat(quat):
+    """Body-to-world rotation matrices (..., 3, 3) from MuJoCo quaternions (w, x, y, z) (..., 4).
+
+    The quaternion is normalised first, so slightly non-unit input is fine.
+    """
+    xp, (quat,) = _namespace(quat)
+    q = quat / safe_norm(quat)[..., None]
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)

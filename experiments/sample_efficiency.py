@@ -1,0 +1,124 @@
+"""Validation RMSE against minutes of training data (the paper's figure 3 and table).
+
+    python -m experiments.sample_efficiency [--collection runs/staged_collection] [--quick]
+
+For each training length (each stage shortened proportionally, whole flights or
+flight prefixes) and each of several trials (different subsets and seeds), the
+three models are trained and evaluated on the whole validation set of the staged
+collection. The label-noise floor (labels against the true mean field) is the line
+no model can go below. Runs the staged collection first if its data is missing.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import CommonArgs, ProgressBar, arg, format_table, parse_args, setup_logging, write_results
+
+__all__ = ["EfficiencyArgs", "run", "main"]
+
+MODELS = ("shallow", "deep", "equivariant")
+MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # plus the full set
+
+
+@dataclass(frozen=True)
+class EfficiencyArgs(CommonArgs):
+    collection: str = arg("runs/staged_collection", "staged collection folder (stage*/train and stage*/val logs)")
+    models_dir: str = arg("runs/models", "models folder used if the staged collection has to run first")
+    trials: int = arg(5, "trials per point (different data subsets and seeds)")
+    minutes: str = arg(",".join(str(m) for m in MINUTES), "comma list of training minutes; the full set is always added")
+
+
+def run(args: EfficiencyArgs) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from downwash.datasets import concatenate, find_logs, load_dataset, shorten_per_stage
+    from downwash.labels import label_noise_floor
+    from downwash.train import TrainConfig, rmse, train_model
+
+    try:
+        wanted = sorted({float(m) for m in args.minutes.split(",") if m.strip()})
+    except ValueError as e:
+        raise ValueError(f"--minutes: expected a comma list of numbers, got {args.minutes!r}") from e
+    if any(m <= 0 for m in wanted):
+        raise ValueError(f"--minutes: every value must be > 0, got {wanted}")
+    if args.trials < 1:
+        raise ValueError(f"--trials: expected >= 1, got {args.trials}")
+    collection = Path(args.collection)
+    if not (collection / "manifest.json").is_file():
+        from experiments import staged_collection
+
+        staged_collection.run(staged_collection.StagedArgs(
+            out=str(collection), seed=args.seed, quick=args.quick, field=args.field, models_dir=args.models_dir))
+    t_start = time.perf_counter()
+    train_dirs = sorted(collection.glob("stage*/train"))
+    val_dirs = sorted(collection.glob("stage*/val"))
+    if not train_dirs or not val_dirs:
+        raise ValueError(f"{collection}: expected stage*/train and stage*/val folders of flight logs")
+    train_all = concatenate([load_dataset(d) for d in train_dirs])
+    val = concatenate([load_dataset(d) for d in val_dirs])
+    floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)])
+    full = train_all.n_minutes
+    minutes = [m for m in wanted if m < full] + [full]
+    trials = min(args.trials, 2) if args.quick else args.trials
+    config = {"max_epochs": 3, "min_steps": 30} if args.quick else {}
+
+    rmse_runs = {m: np.zeros((len(minutes), trials)) for m in MODELS}
+    bar = ProgressBar("sample efficiency", 30)
+    total, done = len(minutes) * trials * len(MODELS), 0
+    for i, minute in enumerate(minutes):
+        for trial in range(trials):
+            rng = np.random.default_rng([args.seed, trial, i])
+            data = train_all if minute >= full else shorten_per_stage(train_all, minute, rng)
+            for kind in MODELS:
+                model, _ = train_model(kind, data, None, TrainConfig(seed=args.seed + trial, **config))
+                rmse_runs[kind][i, trial] = rmse(model, val)[0]
+                done += 1
+                bar(done, total)
+
+    results = {
+        "minutes": minutes, "trials": trials, "noise_floor": floor["rmse_mean"],
+        "noise_floor_applied": floor["rmse"], "validation_minutes": val.n_minutes,
+        "models": {k: {"rmse_mean": v.mean(axis=1).tolist(), "rmse_std": v.std(axis=1).tolist(),
+                       "rmse_runs": v.tolist()} for k, v in rmse_runs.items()},
+        "wall_seconds": time.perf_counter() - t_start,
+    }
+    out = Path(args.out)
+    path = write_results(out, results, args)
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    colors = {"shallow": "tab:orange", "deep": "tab:blue", "equivariant": "tab:green"}
+    for kind, r in results["models"].items():
+        mean, std = np.array(r["rmse_mean"]), np.array(r["rmse_std"])
+        ax.plot(minutes, mean, "o-", color=colors[kind], label=kind)
+        ax.fill_between(minutes, mean - std, mean + std, color=colors[kind], alpha=0.2)
+    ax.axhline(floor["rmse_mean"], color="k", ls="--", lw=1, label="label noise floor")
+    ax.set_xlabel("training flight time (min)"), ax.set_ylabel("validation RMSE (m/s^2)")
+    ax.set_title(f"sample efficiency ({trials} trials per point)"), ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "sample_efficiency.png", dpi=110)
+    plt.close(fig)
+
+    rows = []
+    for kind, r in results["models"].items():
+        rows.append([kind] + [f"{m:.3f} +/- {s:.3f}" for m, s in zip(r["rmse_mean"], r["rmse_std"])])
+    print(format_table(rows, ["model"] + [f"{m:g} min" for m in minutes]))
+    print(f"label noise floor: {floor['rmse_mean']:.4f} m/s^2")
+    print(f"\nwrote {path} and sample_efficiency.png in {out}/")
+    return results
+
+
+def main(argv=None) -> dict:
+    setup_logging()
+    return run(parse_args(EfficiencyArgs, "sample_efficiency", argv, __doc__))
+
+
+if __name__ == "__main__":
+    main()
