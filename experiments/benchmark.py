@@ -22,10 +22,11 @@ import numpy as np
 from controllers.references import Hover, Lemniscate, stack
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.predictor import OraclePredictor
+from sim.params import LEADER_POSITION, RATES
 from sim.scene import build_scene
 from sim.simulator import Simulator
 
-LEADER = np.array([0.0, 0.0, 2.5])
+LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,56 @@ def run(args: BenchmarkArgs) -> dict:
     r["closed_loop_batched_world_steps_per_s"] = closed_loop_steps_per_s(worlds, seconds, repeats, field)
     r["batched_worlds"] = worlds
     r["batched_over_bare"] = r["closed_loop_batched_world_steps_per_s"] / r["bare_mj_step_per_s"]
+    r["predictor_us_per_call_batch64"] = predictor_us_per_call(64, 50 if args.quick else 2000)
+    r["predictor_us_per_call_batch1"] = predictor_us_per_call(1, 50 if args.quick else 2000)
+    r["train_seconds_equivariant_full"] = train_seconds_equivariant(0.5 if args.quick else 17.0, field)
+    from sim.env import env_steps_per_s_single, env_steps_per_s_vector
+
+    r["env_steps_per_s_single"] = env_steps_per_s_single(100 if args.quick else 2000, repeats=repeats)
+    r["env_steps_per_s_vector64"] = env_steps_per_s_vector(worlds, 20 if args.quick else 200, repeats=repeats)
+    r["env_vector64_physics_over_bare"] = r["env_steps_per_s_vector64"] * RATES.physics_per_control / r["bare_mj_step_per_s"]
     return r
+
+
+def predictor_us_per_call(n_worlds: int, n_calls: int) -> float:
+    """Microseconds per call of the equivariant model in the predictor slot (untrained weights, same cost)."""
+    from downwash.models import make_model
+    from downwash.predictor import LearnedPredictor
+    from sim.predictor import VehicleStates
+
+    rng = np.random.default_rng(0)
+    predictor = LearnedPredictor(make_model("equivariant"))
+    pos = LEADER + rng.normal(scale=0.3, size=(n_worlds, 2, 3))
+    pos[:, 1, 2] -= 0.6
+    states = VehicleStates(pos, rng.normal(size=(n_worlds, 2, 3)), np.broadcast_to(np.eye(3), (n_worlds, 2, 3, 3)).copy())
+    predictor(states, states)
+    t0 = time.perf_counter()
+    for _ in range(n_calls):
+        predictor(states, states)
+    return (time.perf_counter() - t0) / n_calls * 1e6
+
+
+def train_seconds_equivariant(minutes: float, field: Any) -> float:
+    """Wall seconds to train the equivariant model on `minutes` of 50 Hz samples of the true field.
+
+    The samples are drawn like flight data (positions below the leader, speeds up to 1 m/s)
+    with labels = true field + 0.1 m/s^2 noise: training cost depends on the sample count,
+    not on where the labels came from.
+    """
+    from downwash.datasets import Dataset
+    from downwash.train import TrainConfig, train_model
+
+    rng = np.random.default_rng(0)
+    n = int(minutes * 60 * 50)
+    dp = np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), -rng.uniform(0.4, 1.8, n)], axis=1)
+    v_b = rng.uniform(-1, 1, (n, 3)) * [1, 1, 0.3]
+    v_a, R_a = np.zeros((n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    y = field(np.zeros((n, 3)), v_a, R_a, dp, v_b) + 0.1 * rng.normal(size=(n, 3))
+    flight = np.arange(n) // 1425  # 28.5 s flights, as in the staged collection
+    data = Dataset(dp, v_a, v_b, R_a, y, flight, np.zeros(n, int), (np.arange(n) % 1425) * RATES.control_dt, y)
+    t0 = time.perf_counter()
+    train_model("equivariant", data, None, TrainConfig(seed=0))
+    return time.perf_counter() - t0
 
 
 def main(argv=None) -> dict:

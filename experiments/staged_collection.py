@@ -31,13 +31,14 @@ from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_
 from sim.flight import fly
 from sim.logs import atomic_write_json, save_log
 from sim.predictor import ZeroPredictor
+from sim.params import LEADER_POSITION
 from sim.scene import build_scene
 
 __all__ = ["STAGES", "StagedArgs", "run", "main"]
 
 log = logging.getLogger(__name__)
 
-LEADER = np.array([0.0, 0.0, 2.5])  # m, Alpha hovers here
+LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 # (name, vertical separation range (m), model deployed while flying: the previous stage's)
 STAGES = (
     {"separation": (1.35, 1.75)},  # stage 0: far enough for the nominal controller

@@ -17,18 +17,18 @@ import numpy as np
 
 from experiments.common import CommonArgs, arg, format_table, load_field, write_results
 from sim.flight import fly
+from sim.params import LEADER_POSITION, SEPARATION_RANGE
 from sim.metrics import IMPROVEMENT_METRICS, TRACKING_METRICS, improvement, tracking_errors, tracking_metrics
 from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
 
-__all__ = ["CONDITIONS", "LEARNED", "TrackingArgs", "LEADER_POSITION", "SEPARATION_RANGE", "run_tracking"]
+__all__ = ["CONDITIONS", "LEARNED", "TrackingArgs", "run_tracking"]
 
 log = logging.getLogger(__name__)
 
 CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")
 LEARNED = ("shallow", "deep", "equivariant")
-LEADER_POSITION = np.array([0.0, 0.0, 2.5])  # m, Alpha hovers here (paper: 2.5 m up)
-SEPARATION_RANGE = (0.3, 2.0)  # m, vertical; closer collides, farther leaves little wake
+LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here (paper: 2.5 m up)
 
 
 @dataclass(frozen=True)
@@ -105,8 +105,8 @@ def run_tracking(
     duration = args.duration or period
     from controllers.references import Hover, stack
 
-    center = LEADER_POSITION - np.array([0.0, 0.0, args.separation])
-    reference = stack([Hover(LEADER_POSITION, n_worlds=W), make_reference(center, W)])
+    center = LEADER - np.array([0.0, 0.0, args.separation])
+    reference = stack([Hover(LEADER, n_worlds=W), make_reference(center, W)])
     by_condition = []
     for c in conditions:
         if c in ("no_downwash", "baseline"):

@@ -10,9 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GRAVITY", "QUAD", "RATES", "QuadParams", "Rates"]
+__all__ = ["GRAVITY", "LEADER_POSITION", "SEPARATION_RANGE", "QUAD", "RATES", "QuadParams", "Rates"]
 
 GRAVITY = 9.81  # m/s^2, magnitude; MuJoCo's world z is up, gravity along -z
+LEADER_POSITION = (0.0, 0.0, 2.5)  # m, world frame: where Alpha hovers in the experiments (paper: 2.5 m up)
+SEPARATION_RANGE = (0.3, 2.0)  # m, allowed vertical separations: closer collides, farther leaves little wake
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,7 @@ class _SerialPhysics(Physics):
         d = self.data
         self.qpos, self.qvel, self.act = d.qpos[None], d.qvel[None], d.act[None]
         self.ctrl, self.xfrc_applied = d.ctrl[None], d.xfrc_applied[None]
+        self._nominal: tuple[np.ndarray, np.ndarray] | None = None  # mass, inertia before any change
 
     def step(self, nstep: int, active: np.ndarray) -> np.ndarray:
         if active[0]:
@@ -77,13 +78,14 @@ class _SerialPhysics(Physics):
 
     def set_body_mass(self, worlds: np.ndarray, body_ids: np.ndarray, mass: np.ndarray) -> None:
         if len(worlds):
-            if not getattr(self, "_own_model", False):  # copy on write: the scene's model may be shared
-                self.model, self._own_model = copy.copy(self.model), True
-            m = self.model
-            scale = np.asarray(mass, float).reshape(len(worlds), len(body_ids))[-1] / m.body_mass[body_ids]
-            m.body_mass[body_ids] *= scale
-            m.body_inertia[body_ids] *= scale[:, None]
-            mujoco.mj_setConst(m, self.data)
+            if self._nominal is None:  # copy on write: the scene's model may be shared
+                self._nominal = (self.model.body_mass.copy(), self.model.body_inertia.copy())
+                self.model = copy.copy(self.model)
+            mass0, inertia0 = self._nominal
+            scale = np.asarray(mass, float).reshape(len(worlds), len(body_ids))[-1] / mass0[body_ids]
+            self.model.body_mass[body_ids] = scale * mass0[body_ids]
+            self.model.body_inertia[body_ids] = scale[:, None] * inertia0[body_ids]
+            mujoco.mj_setConst(self.model, self.data)
 
     def mjdata(self, world: int) -> mujoco.MjData:
         mujoco.mj_forward(self.model, self.data)

@@ -80,6 +80,10 @@ def build_scene(
     spec.modelname = "downwash_scene"
     spec.option.timestep = rates.physics_dt
     spec.option.gravity = [0.0, 0.0, -GRAVITY]
+    # No contact dynamics: a flight ends at the first collision with the ground or the other
+    # vehicle (sim.simulator checks the geometry), so contacts would never be resolved; the
+    # collision pipeline was half the cost of a physics step.
+    spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480
     world = spec.worldbody

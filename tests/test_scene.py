@@ -73,3 +73,8 @@ def test_missing_and_malformed_xml(tmp_path):
         build_scene(quad_xml=no_rotor)
     with pytest.raises(ValueError, match="distinct"):
         build_scene(("a", "a"))
+
+
+def test_contacts_are_off_and_collisions_are_detected_geometrically(scene):
+    """Contact dynamics are disabled (flights end at a collision, see test_simulator)."""
+    assert scene.model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT

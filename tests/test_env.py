@@ -1,0 +1,430 @@
+"""The Gymnasium envs: API contracts, vector == sync, determinism, reward terms, episode ends, rendering."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+import sim
+from sim.env import (
+    OBS_DIM,
+    REWARD_TERMS,
+    STATUS_LEFT_BOX,
+    DownwashFollowerEnv,
+    DownwashFollowerVectorEnv,
+    env_steps_per_s_single,
+    env_steps_per_s_vector,
+    evaluate_lqr,
+)
+from sim.simulator import STATUS_GROUND, STATUS_VEHICLE
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OBS = {"dp": slice(0, 3), "pos_error": slice(9, 12), "vel_error": slice(12, 15),
+       "follower_z_axis": slice(21, 24), "leader_z_axis": slice(24, 27), "last_action": slice(27, 30)}
+
+
+def _run_python(code: str, env_vars: dict[str, str] | None = None, timeout: float = 180) -> str:
+    """Run `code` in a fresh interpreter at the repo root; returns stdout (fails with stderr)."""
+    env = {**os.environ, **(env_vars or {})}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0, out.stderr[-4000:]
+    return out.stdout
+
+
+def _same_info(a: dict, b: dict) -> None:
+    assert set(a) == set(b), (sorted(a), sorted(b))
+    for k in a:
+        assert a[k].dtype == b[k].dtype, (k, a[k].dtype, b[k].dtype)
+        assert np.array_equal(a[k], b[k]), (k, a[k], b[k])
+
+
+# ----------------------------------------------------------------------------- registration
+
+
+def test_import_is_light_and_module_qualified_id_works():
+    out = _run_python("""
+        import json, sys, sim, gymnasium as gym
+        heavy = [m for m in ("torch", "mujoco", "sim.env") if m in sys.modules]
+        print(json.dumps([heavy, sorted(i for i in gym.registry if i.startswith("DownwashFollower"))]))
+    """)
+    heavy, ids = json.loads(out)
+    assert heavy == []  # registration imports gymnasium's registry only
+    assert ids == sorted(sim.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
+    out = _run_python("""
+        import sys, gymnasium as gym
+        assert "sim" not in sys.modules
+        env = gym.make("sim:DownwashFollower-v0")
+        obs, _ = env.reset(seed=0)
+        print(obs.shape, env.spec.max_episode_steps, "torch" in sys.modules)
+    """)
+    assert out.strip() == "(30,) 500 False", out
+
+
+def test_make_and_make_vec_give_the_documented_spaces():
+    env = gym.make("DownwashFollower-v0")
+    assert isinstance(env.unwrapped, DownwashFollowerEnv)
+    assert env.observation_space.shape == (OBS_DIM,) == (30,)
+    assert env.action_space.shape == (3,) and env.action_space.high[0] == 5.0
+    assert gym.make("DownwashFollower-v0", action_mode="acceleration").action_space.high[0] == 10.0
+    envs = gym.make_vec("DownwashFollower-v0", num_envs=2)  # the vector entry point by default
+    assert isinstance(envs, DownwashFollowerVectorEnv)
+    assert envs.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    assert envs.observation_space.shape == (2, 30) and envs.action_space.shape == (2, 3)
+    assert envs.single_observation_space == env.observation_space
+    assert envs.single_action_space == env.action_space
+    assert envs.max_episode_steps == 500
+    assert gym.spec("DownwashFollowerPasses-v0").max_episode_steps == 1000
+
+
+@pytest.mark.parametrize("env_id", sim.ENV_IDS)
+@pytest.mark.parametrize("mode", ["residual", "acceleration"])
+def test_check_env(env_id, mode):
+    env = gym.make(env_id, action_mode=mode)
+    with warnings.catch_warnings():
+        # physical units (m/s^2) rather than [-1, 1]: check_env's recommendation, not an error
+        warnings.filterwarnings("ignore", message=".*normalized.*")
+        check_env(env.unwrapped, skip_render_check=True)  # rendering: test_rendering (needs MUJOCO_GL)
+
+
+# ----------------------------------------------------------------------------- vector == sync
+
+VECTOR_CASES = {
+    # vehicle collisions (world 0 pushes up into the leader), box exits, truncation; randomised field and mass
+    "acceleration_hover_randomised": dict(
+        action_mode="acceleration", reference="hover", separation=(0.3, 0.5),
+        field_randomization="default", mass_randomization=(0.8, 1.2)),
+    # per-world random passes, the oracle in the loop, a 25 Hz controller
+    "residual_passes_oracle": dict(reference="passes", predictor="oracle", control_hz=25, separation=(0.4, 0.9)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(VECTOR_CASES))
+def test_vector_env_equals_sync_vector_env(case):
+    """Same seeds, same actions: identical obs, rewards, terminations, truncations and infos,
+    across autoresets after both termination and truncation."""
+    n, horizon = 3, 25
+    opts = VECTOR_CASES[case]
+    vec = gym.make_vec("DownwashFollower-v0", num_envs=n, vectorization_mode="vector_entry_point",
+                       max_episode_steps=horizon, **opts)
+    syn = gym.make_vec("DownwashFollower-v0", num_envs=n, vectorization_mode="sync",
+                       max_episode_steps=horizon, **opts)
+    assert isinstance(vec, DownwashFollowerVectorEnv) and isinstance(syn, SyncVectorEnv)
+    o1, i1 = vec.reset(seed=11)
+    o2, i2 = syn.reset(seed=11)
+    assert np.array_equal(o1, o2)
+    _same_info(i1, i2)
+    rng = np.random.default_rng(0)
+    high = vec.single_action_space.high
+    terminated = truncated = autoresets = 0
+    for _ in range(45):
+        a = rng.uniform(-high, high, (n, 3)).astype(np.float32)
+        a[0] = [0.0, 0.0, high[2]]  # world 0 climbs (into the leader, or out of the box)
+        r1, r2 = vec.step(a), syn.step(a)
+        for x, y in zip(r1[:4], r2[:4]):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+        _same_info(r1[4], r2[4])
+        autoresets += int((~r1[4].get("_status", np.ones(n, bool))).sum())
+        terminated += int(r1[2].sum())
+        truncated += int(r1[3].sum())
+    assert terminated >= 1 and truncated >= 1 and autoresets >= 2, (terminated, truncated, autoresets)
+    vec.close()
+    syn.close()
+
+
+def test_passes_are_drawn_per_world_within_the_separation_range():
+    envs = DownwashFollowerVectorEnv(3, reference="passes", separation=(0.5, 1.2))
+    _, info = envs.reset(seed=0)
+    assert np.all((info["separation"] >= 0.5) & (info["separation"] <= 1.2))
+    ref = envs.simulator.reference(np.full(3, 7.0)).pos[:, 1]  # follower reference at t = 7 s
+    assert len({tuple(p) for p in ref}) == 3  # each world flies its own pattern
+    assert np.all((2.5 - ref[:, 2] >= 0.5 - 1e-9) & (2.5 - ref[:, 2] <= 1.2 + 1e-9))
+
+
+def test_vector_env_reset_mask_and_seed_list():
+    envs = DownwashFollowerVectorEnv(3, max_episode_steps=50, reference="hover", separation=(0.4, 0.8))
+    obs, _ = envs.reset(seed=[1, 2, 3])
+    single = DownwashFollowerEnv(reference="hover", separation=(0.4, 0.8))
+    assert np.array_equal(obs[1], single.reset(seed=2)[0])
+    envs.step(np.zeros((3, 3), np.float32))
+    before = envs.step(np.zeros((3, 3), np.float32))[0]
+    obs, info = envs.reset(seed=[None, 9, None], options={"reset_mask": np.array([False, True, False])})
+    assert np.array_equal(obs[[0, 2]], before[[0, 2]])
+    assert np.array_equal(obs[1], single.reset(seed=9)[0])
+    assert info["_separation"].tolist() == [False, True, False]
+    with pytest.raises(ValueError, match="reset_mask"):
+        envs.reset(options={"reset_mask": np.array([1, 0, 0])})
+    with pytest.raises(ValueError, match="one per world"):
+        envs.reset(seed=[1, 2])
+
+
+# ----------------------------------------------------------------------------- determinism and contracts
+
+
+def _rollout(env, seed, n, action_seed=0):
+    rng = np.random.default_rng(action_seed)
+    out = [env.reset(seed=seed)[0]]
+    for _ in range(n):
+        obs, reward, term, trunc, info = env.step(rng.uniform(-5, 5, 3).astype(np.float32))
+        out += [obs, np.array([reward, term, trunc, info["position_error"]])]
+        if term or trunc:
+            out.append(env.reset()[0])
+    return out
+
+
+def test_same_seed_same_actions_bit_identical():
+    opts = dict(reference="passes", separation=(0.5, 1.0), field_randomization="default",
+                mass_randomization=(0.9, 1.1), max_episode_steps=15)
+    a = _rollout(gym.make("DownwashFollower-v0", **opts), 3, 40)
+    b = _rollout(gym.make("DownwashFollower-v0", **opts), 3, 40)
+    assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+    c = _rollout(gym.make("DownwashFollower-v0", **opts), 4, 40)
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c))
+
+
+@pytest.mark.parametrize("mode", ["residual", "acceleration"])
+def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
+    env = gym.make("DownwashFollower-v0", action_mode=mode, reference="lemniscate", separation=0.4,
+                   max_tracking_error=0.5, max_episode_steps=40)
+    env.action_space.seed(1)
+    obs, _ = env.reset(seed=1)
+    ends = 0
+    for _ in range(120):
+        assert np.all(np.isfinite(obs)) and obs in env.observation_space
+        action = env.action_space.sample()
+        obs, reward, term, trunc, info = env.step(action)
+        assert isinstance(reward, float) and isinstance(term, bool)
+        terms = [info[f"reward_{k}"] for k in REWARD_TERMS]
+        assert reward == sum(terms)  # exactly, in REWARD_TERMS order
+        assert info["reward_alive"] == (0.0 if term else 1.0)
+        assert info["reward_termination"] == (-50.0 if term else 0.0)
+        assert info["reward_position"] == pytest.approx(-2.0 * info["position_error"])
+        assert info["reward_action"] <= 0.0 and info["reward_action_rate"] <= 0.0
+        assert np.array_equal(obs[OBS["last_action"]], action.astype(np.float64))
+        assert np.linalg.norm(obs[OBS["follower_z_axis"]]) == pytest.approx(1.0)
+        if term or trunc:
+            ends += 1
+            obs, _ = env.reset()
+    assert ends >= 1
+
+
+def test_reset_observation_matches_the_table():
+    env = DownwashFollowerEnv(reference="hover", separation=0.7, reference_kwargs={"offset": (0.1, -0.2, 0.0)})
+    obs, info = env.reset(seed=0)
+    assert info == {"separation": 0.7, "mass_scale": 1.0}
+    assert np.allclose(obs[OBS["dp"]], [0.1, -0.2, -0.7])  # below the leader, offset
+    assert np.array_equal(obs[OBS["pos_error"]], np.zeros(3))
+    assert np.array_equal(obs[OBS["follower_z_axis"]], [0.0, 0.0, 1.0])
+    assert np.array_equal(obs[OBS["leader_z_axis"]], [0.0, 0.0, 1.0])
+    # after a step the estimates track the truth to motion-capture accuracy
+    env.step(np.zeros(3, np.float32))
+    obs = env.step(np.zeros(3, np.float32))[0]
+    true = env.simulator.true_states()
+    assert np.allclose(obs[OBS["dp"]], true.pos[0, 1] - true.pos[0, 0], atol=5e-3)
+
+
+def test_actions_reach_the_controller():
+    """Residual: added to the LQR command; acceleration: replaces it; the leader keeps its LQR."""
+    a = np.array([0.5, -1.0, 2.0], np.float32)
+    cmds = {}
+    for mode, action in (("residual", np.zeros(3, np.float32)), ("residual", a), ("acceleration", a)):
+        env = DownwashFollowerEnv(action_mode=mode)
+        env.reset(seed=5)
+        env.step(action)
+        cmds[mode, float(action[0])] = env.simulator.row["u_cmd"][0]  # (V, 3): leader, follower
+    base, res, acc = cmds["residual", 0.0], cmds["residual", 0.5], cmds["acceleration", 0.5]
+    assert np.allclose(res[1] - base[1], a, atol=1e-12)
+    assert np.array_equal(acc[1], a.astype(np.float64))
+    assert np.array_equal(res[0], base[0]) and np.array_equal(acc[0], base[0])
+    # out-of-range actions are clipped to the documented bound
+    env = DownwashFollowerEnv(action_mode="acceleration")
+    env.reset(seed=5)
+    obs = env.step(np.array([50.0, -50.0, 0.0]))[0]
+    assert np.array_equal(obs[OBS["last_action"]], [10.0, -10.0, 0.0])
+
+
+def test_invalid_actions_raise_before_stepping():
+    env = DownwashFollowerEnv()
+    env.reset(seed=0)
+    t0 = env.simulator.t.copy()
+    for bad in ([np.nan, 0, 0], [0, np.inf, 0], [0.0, 0.0], [[0.0, 0.0, 0.0]], "up"):
+        with pytest.raises(ValueError, match="action"):
+            env.step(bad)
+    assert np.array_equal(env.simulator.t, t0)
+    envs = DownwashFollowerVectorEnv(2)
+    envs.reset(seed=0)
+    for bad in (np.zeros((2, 2)), np.zeros(3), np.full((2, 3), np.nan)):
+        with pytest.raises(ValueError, match="action"):
+            envs.step(bad)
+    assert np.array_equal(envs.simulator.t, np.zeros(2))
+
+
+def test_bad_options_name_the_allowed_values():
+    with pytest.raises(TypeError, match="allowed: .*separation"):
+        gym.make("DownwashFollower-v0", sepration=0.5)
+    cases = [
+        (dict(separation=0.1), "separation.*0.3"),
+        (dict(separation=(0.5, 2.5)), "separation"),
+        (dict(reference="circle"), "reference.*lemniscate"),
+        (dict(action_mode="torque"), "action_mode.*residual"),
+        (dict(control_hz=30), "control_hz.*10, 20, 25, 50, 100"),
+        (dict(predictor="learned"), "predictor.*oracle"),
+        (dict(predictor="oracle", action_mode="acceleration"), "predictor"),
+        (dict(field_randomization={"colour": (0.9, 1.1)}), "field_randomization.*strength"),
+        (dict(field_randomization={"strength": (1.2, 0.8)}), "strength"),
+        (dict(mass_randomization=(0.2, 1.0)), "mass_randomization.*0.5"),
+        (dict(reference_kwargs={"radius": 1.0}), "reference_kwargs.*half_length"),
+        (dict(reference_kwargs={"period": -1.0}), "period"),
+        (dict(reference_kwargs={"half_length": 8.0}), "allowed up to 5.0 m"),
+        (dict(reference="passes", reference_kwargs={"speed_range": (0.5, 3.0)}), "speed_range"),
+        (dict(leader_position=(0.0, 0.0, 0.5)), "leader_position"),
+        (dict(c4_amplitude=2.0), "c4_amplitude"),
+        (dict(max_tracking_error=0.0), "max_tracking_error"),
+        (dict(swirl=0.5, field=lambda *a: 0.0), "DownwashField"),
+    ]
+    for opts, match in cases:
+        with pytest.raises(ValueError, match=match):
+            DownwashFollowerEnv(**opts)
+    with pytest.raises(ValueError, match="reset options"):
+        DownwashFollowerEnv().reset(seed=0, options={"separation": 1.0})
+    with pytest.raises(ValueError, match="render_mode.*rgb_array"):
+        DownwashFollowerEnv(render_mode="human")
+    with pytest.raises(ValueError, match="num_envs"):
+        DownwashFollowerVectorEnv(0)
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        DownwashFollowerVectorEnv(2, max_episode_steps=0)
+    with pytest.raises(TypeError, match="allowed: .*control_hz"):
+        DownwashFollowerVectorEnv(2, controlhz=25)
+
+
+# ----------------------------------------------------------------------------- episode ends
+
+
+@pytest.mark.parametrize("push, status", [((0.0, 0.0, 10.0), STATUS_VEHICLE), ((0.0, 0.0, -10.0), STATUS_GROUND),
+                                          ((10.0, 0.0, 0.0), STATUS_LEFT_BOX)])
+def test_termination_on_collision_and_leaving_the_box(push, status):
+    box = 1.0 if status == STATUS_LEFT_BOX else 5.0
+    env = gym.make("DownwashFollower-v0", action_mode="acceleration", reference="hover", separation=0.4,
+                   max_tracking_error=box)
+    env.reset(seed=0)
+    for _ in range(150):
+        _, reward, term, trunc, info = env.step(np.array(push, np.float32))
+        if term or trunc:
+            break
+    assert term and not trunc and info["status"] == status
+    assert info["reward_termination"] == -50.0 and info["reward_alive"] == 0.0
+
+
+def test_truncation_at_the_horizon_and_next_step_autoreset():
+    env = gym.make("DownwashFollower-v0", max_episode_steps=5)
+    env.reset(seed=0)
+    truncs = [env.step(np.zeros(3, np.float32))[3] for _ in range(5)]
+    assert truncs == [False] * 4 + [True]
+    envs = gym.make_vec("DownwashFollower-v0", num_envs=2, max_episode_steps=5)
+    first, _ = envs.reset(seed=0)
+    for k in range(5):
+        obs, rew, term, trunc, info = envs.step(np.zeros((2, 3), np.float32))
+        assert trunc.tolist() == [k == 4] * 2 and not term.any()
+    obs, rew, term, trunc, info = envs.step(np.ones((2, 3), np.float32))  # ignored: autoreset
+    assert rew.tolist() == [0.0, 0.0] and "status" not in info and info["_separation"].all()
+    assert not np.array_equal(obs, first)  # a new episode (the generators moved on)
+    assert np.array_equal(envs.simulator.t, np.zeros(2))
+
+
+# ----------------------------------------------------------------------------- options
+
+
+def test_control_rate_option():
+    env = DownwashFollowerEnv(control_hz=25)
+    env.reset(seed=0)
+    env.step(np.zeros(3, np.float32))
+    assert env.dt == pytest.approx(0.04) and env.simulator.t[0] == pytest.approx(0.04)
+    assert env.metadata["render_fps"] == 25
+    assert env.simulator.cfg.rates.physics_per_control == 20
+
+
+def test_domain_randomisation_is_per_world_and_the_controller_keeps_nominal_mass():
+    envs = DownwashFollowerVectorEnv(3, field_randomization={"strength": (0.5, 1.5)}, mass_randomization=(0.6, 1.4))
+    _, info = envs.reset(seed=0)
+    s = envs.simulator
+    strength = s.field.strength.reshape(-1)
+    assert np.allclose(strength, 10.6 * info["field_scale_strength"]) and len(set(strength)) == 3
+    body = s.scene.body_ids[1]
+    masses = s.physics.batch.expand("body_mass")[:, body]
+    assert np.allclose(masses, 0.7 * info["mass_scale"]) and len(set(masses)) == 3
+    assert np.array_equal(s._mass_believed, np.full((3, 2), 0.7))
+    # leader mass untouched
+    assert np.allclose(s.physics.batch.expand("body_mass")[:, s.scene.body_ids[0]], 0.7)
+
+
+def test_evaluate_lqr_oracle_beats_baseline():
+    """The oracle in the loop (predictor='oracle') cancels the wake: smaller tracking error."""
+    opts = dict(reference="hover", separation=0.5, num_envs=2, n_steps=100, seed=0)
+    base, oracle = evaluate_lqr(False, **opts), evaluate_lqr(True, **opts)
+    assert base["terminated"] == oracle["terminated"] == 0 and base["env_steps"] == 200
+    assert oracle["pos_err_3d_mean"] < 0.7 * base["pos_err_3d_mean"], (oracle, base)
+
+
+def test_benchmark_helpers_run():
+    assert env_steps_per_s_single(20, repeats=1) > 0
+    assert env_steps_per_s_vector(num_envs=2, n_steps=5, repeats=1) > 0
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def test_rendering_gives_a_frame_with_both_vehicles():
+    """Offscreen rendering through MuJoCo's EGL backend (a fresh process: MUJOCO_GL is read at
+    `import mujoco`). Needs libEGL and Mesa (see README); a missing backend is a failure here."""
+    out = _run_python("""
+        import json, warnings
+        import numpy as np, gymnasium as gym
+        from gymnasium.utils.env_checker import check_env
+        import sim
+        env = gym.make("DownwashFollower-v0", render_mode="rgb_array", reference="transect", random_phase=False)
+        env.reset(seed=0)
+        for _ in range(5):
+            env.step(np.zeros(3, np.float32))
+        f = env.render()
+        r, g, b = (f[..., i].astype(int) for i in range(3))
+        orange = int(((r > 150) & (g > 60) & (g < 170) & (b < 70)).sum())  # leader hull
+        cyan = int(((r < 80) & (g > 120) & (b > 130)).sum())  # follower hull
+        envs = gym.make_vec("DownwashFollower-v0", num_envs=2, render_mode="rgb_array")
+        envs.reset(seed=0)
+        frames = envs.render()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            check_env(gym.make("DownwashFollower-v0").unwrapped)  # includes the render-mode checks
+        print(json.dumps({"shape": list(f.shape), "dtype": str(f.dtype), "std": float(f.std()),
+                          "orange": orange, "cyan": cyan, "n_frames": len(frames),
+                          "frame_shape": list(frames[1].shape)}))
+    """, env_vars={"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["shape"] == [360, 480, 3] and res["dtype"] == "uint8"
+    assert res["std"] > 10.0  # not blank
+    assert res["orange"] > 20 and res["cyan"] > 20, res
+    assert res["n_frames"] == 2 and res["frame_shape"] == [360, 480, 3]
+
+
+def test_rendering_without_a_backend_names_mujoco_gl():
+    out = _run_python("""
+        import numpy as np
+        from sim.env import DownwashFollowerEnv
+        env = DownwashFollowerEnv(render_mode="rgb_array")
+        env.reset(seed=0)
+        try:
+            env.render()
+        except RuntimeError as e:
+            print("RuntimeError", e)
+    """, env_vars={"MUJOCO_GL": "disable"})
+    assert out.startswith("RuntimeError") and "MUJOCO_GL" in out and "egl" in out and "osmesa" in out
+    with pytest.warns(UserWarning, match="render_mode"):
+        assert DownwashFollowerEnv().render() is None  # no render_mode: a warning, no frame
