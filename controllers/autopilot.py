@@ -13,7 +13,7 @@ import numpy as np
 from sim.jit import njit
 from sim.params import QUAD, QuadParams
 
-__all__ = ["mixer_matrix", "Autopilot"]
+__all__ = ["mixer_matrix", "Autopilot", "rotor_thrusts"]
 
 
 def mixer_matrix(params: QuadParams = QUAD) -> np.ndarray:
@@ -60,7 +60,7 @@ class Autopilot:
         for k, (plus, minus) in enumerate(((7, 5), (2, 6), (3, 1))):
             vee[plus, k], vee[minus, k] = 0.5, -0.5
         torque_rows = mix_inv_t[1:]
-        self._gain = np.concatenate(
+        self.gain = np.concatenate(  # (14, 4), also passed to compiled callers of rotor_thrusts
             [
                 mix_inv_t[:1],  # collective thrust (N)
                 vee @ (-self.kR[:, None] * torque_rows),  # attitude error
@@ -89,7 +89,7 @@ class Autopilot:
             mass = np.broadcast_to(np.asarray(self.mass if mass is None else mass, dtype=float), batch)
         out = _autopilot_kernel(
             rot.reshape(-1, 3, 3), omega.reshape(-1, 3), rot_des.reshape(-1, 3, 3), yaw_rate_des.reshape(-1),
-            thrust_acc.reshape(-1), mass.reshape(-1), self._gain, self.max_thrust,
+            thrust_acc.reshape(-1), mass.reshape(-1), self.gain, self.max_thrust,
         )
         return out.reshape(batch + (4,))
 
@@ -100,17 +100,28 @@ def _autopilot_kernel(rot, omega, rot_des, yaw_rate_des, thrust_acc, mass, gain,
     out = np.empty((rot.shape[0], 4))
     x = np.empty(14)
     for i in range(rot.shape[0]):
-        for a in range(3):
-            for b in range(3):  # E = R_d^T R, flattened row-major
-                x[1 + 3 * a + b] = rot_des[i, 0, a] * rot[i, 0, b] + rot_des[i, 1, a] * rot[i, 1, b] + rot_des[i, 2, a] * rot[i, 2, b]
-        # thrust projected on the current body axis (E[8] = b3_des . b3) keeps the vertical
-        # acceleration right while the attitude converges
-        x[0] = mass[i] * thrust_acc[i] * max(x[9], 0.5)
-        x[10], x[11], x[12] = omega[i, 0], omega[i, 1], omega[i, 2]
-        x[13] = yaw_rate_des[i]
-        for k in range(4):
-            acc = 0.0
-            for j in range(14):
-                acc += x[j] * gain[j, k]
-            out[i, k] = min(max(acc, 0.0), max_thrust)
+        rotor_thrusts(rot[i], omega[i], rot_des[i], yaw_rate_des[i], thrust_acc[i], mass[i], gain, max_thrust, x, out[i])
     return out
+
+
+@njit
+def rotor_thrusts(rot, omega, rot_des, yaw_rate_des, thrust_acc, mass, gain, max_thrust, x, out):
+    """One vehicle of the autopilot, for compiled callers (the simulator's fused kernel).
+
+    rot, rot_des: (3, 3) body-to-world; omega: (3,) rad/s body frame; yaw_rate_des rad/s;
+    thrust_acc m/s^2; mass kg; gain: Autopilot.gain (14, 4); max_thrust N.
+    x: (14,) scratch; out: (4,) receives the rotor thrusts (N), clipped to [0, max_thrust].
+    """
+    for a in range(3):
+        for b in range(3):  # E = R_d^T R, flattened row-major
+            x[1 + 3 * a + b] = rot_des[0, a] * rot[0, b] + rot_des[1, a] * rot[1, b] + rot_des[2, a] * rot[2, b]
+    # thrust projected on the current body axis (E[8] = b3_des . b3) keeps the vertical
+    # acceleration right while the attitude converges
+    x[0] = mass * thrust_acc * max(x[9], 0.5)
+    x[10], x[11], x[12] = omega[0], omega[1], omega[2]
+    x[13] = yaw_rate_des
+    for k in range(4):
+        acc = 0.0
+        for j in range(14):
+            acc += x[j] * gain[j, k]
+        out[k] = min(max(acc, 0.0), max_thrust)

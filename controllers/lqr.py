@@ -11,6 +11,7 @@ and a desired attitude for the autopilot. The controller holds gains, not histor
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import control
@@ -113,6 +114,42 @@ class FeedbackLinearisedLQR:
             acc = acc - f_hat
         return LQRCommand(acc, ref_yaw_rate - fb[..., 3])
 
+    def command_setpoint(
+        self,
+        pos: np.ndarray,
+        vel: np.ndarray,
+        yaw: np.ndarray,
+        ref_pos: np.ndarray,
+        ref_vel: np.ndarray,
+        ref_acc: np.ndarray,
+        ref_yaw: np.ndarray,
+        ref_yaw_rate: np.ndarray,
+        f_hat: np.ndarray,
+        residual: np.ndarray | None,
+        override: np.ndarray | None,
+        lookahead: float,
+        max_tilt: float,
+        acc_out: np.ndarray,
+        yaw_rate_out: np.ndarray,
+        thrust_out: np.ndarray,
+        rot_out: np.ndarray,
+        min_vertical: float = 0.25 * GRAVITY,
+    ) -> None:
+        """The control-rate step in one compiled pass, for (W, V, ...) float64 arrays.
+
+        Same meaning as `__call__` followed by `attitude_setpoint`:
+        u = a_ref - K (x - x_ref) - f_hat, plus `residual` (W, V, 3) m/s^2 when given,
+        replaced by `override` (W, V, 3) m/s^2 where that is finite; then feedback
+        linearisation towards the heading yaw + yaw_rate * lookahead (s).
+        Inputs as in `__call__` with shapes (W, V, 3) / (W, V). Writes
+        acc_out (W, V, 3) m/s^2 (u, the command applied), yaw_rate_out (W, V) rad/s,
+        thrust_out (W, V) m/s^2 and rot_out (W, V, 3, 3) body-to-world (R_d).
+        """
+        _command_setpoint_kernel(
+            pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
+            self._Kt, lookahead, math.tan(max_tilt), min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
+        )
+
 
 def attitude_setpoint(
     acc: np.ndarray, yaw: np.ndarray, max_tilt: float = np.deg2rad(35.0), min_vertical: float = 0.25 * GRAVITY
@@ -138,20 +175,60 @@ def _attitude_setpoint_kernel(acc, yaw, tan_tilt, min_vertical):
     thrust = np.empty(n)
     rot = np.empty((n, 3, 3))
     for i in range(n):
-        fx, fy, fz = acc[i, 0], acc[i, 1], max(acc[i, 2] + GRAVITY, min_vertical)
-        nxy = np.sqrt(fx * fx + fy * fy)
-        limit = tan_tilt * fz
-        if nxy > limit:  # keep the heading of the lateral command, shorten it to the tilt limit
-            fx, fy = fx * limit / nxy, fy * limit / nxy
-        t = np.sqrt(fx * fx + fy * fy + fz * fz)
-        thrust[i] = t
-        b3x, b3y, b3z = fx / t, fy / t, fz / t
-        # b2 = b3 x c1 / |.| with c1 = (cos yaw, sin yaw, 0) the heading; b1 = b2 x b3
-        c, s = np.cos(yaw[i]), np.sin(yaw[i])
-        b2x, b2y, b2z = -b3z * s, b3z * c, b3x * s - b3y * c
-        norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
-        b2x, b2y, b2z = b2x / norm, b2y / norm, b2z / norm
-        rot[i, 0, 0], rot[i, 1, 0], rot[i, 2, 0] = b2y * b3z - b2z * b3y, b2z * b3x - b2x * b3z, b2x * b3y - b2y * b3x
-        rot[i, 0, 1], rot[i, 1, 1], rot[i, 2, 1] = b2x, b2y, b2z
-        rot[i, 0, 2], rot[i, 1, 2], rot[i, 2, 2] = b3x, b3y, b3z
+        thrust[i] = _setpoint_one(acc[i, 0], acc[i, 1], acc[i, 2], yaw[i], tan_tilt, min_vertical, rot[i])
     return thrust, rot
+
+
+@njit
+def _setpoint_one(ax, ay, az, yaw, tan_tilt, min_vertical, rot):
+    """One vehicle of `attitude_setpoint`: writes R_d into rot (3, 3), returns the thrust (m/s^2)."""
+    fx, fy, fz = ax, ay, max(az + GRAVITY, min_vertical)
+    nxy = np.sqrt(fx * fx + fy * fy)
+    limit = tan_tilt * fz
+    if nxy > limit:  # keep the heading of the lateral command, shorten it to the tilt limit
+        fx, fy = fx * limit / nxy, fy * limit / nxy
+    t = np.sqrt(fx * fx + fy * fy + fz * fz)
+    b3x, b3y, b3z = fx / t, fy / t, fz / t
+    # b2 = b3 x c1 / |.| with c1 = (cos yaw, sin yaw, 0) the heading; b1 = b2 x b3
+    c, s = np.cos(yaw), np.sin(yaw)
+    b2x, b2y, b2z = -b3z * s, b3z * c, b3x * s - b3y * c
+    norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
+    b2x, b2y, b2z = b2x / norm, b2y / norm, b2z / norm
+    rot[0, 0], rot[1, 0], rot[2, 0] = b2y * b3z - b2z * b3y, b2z * b3x - b2x * b3z, b2x * b3y - b2y * b3x
+    rot[0, 1], rot[1, 1], rot[2, 1] = b2x, b2y, b2z
+    rot[0, 2], rot[1, 2], rot[2, 2] = b3x, b3y, b3z
+    return t
+
+
+@njit
+def _command_setpoint_kernel(
+    pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
+    Kt, lookahead, tan_tilt, min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
+):
+    """Compiled body of `FeedbackLinearisedLQR.command_setpoint` on (W, V, ...) arrays."""
+    W, V = pos.shape[0], pos.shape[1]
+    err = np.empty(7)
+    for w in range(W):
+        for i in range(V):
+            for k in range(3):
+                err[k] = pos[w, i, k] - ref_pos[w, i, k]
+                err[3 + k] = vel[w, i, k] - ref_vel[w, i, k]
+            d = yaw[w, i] - ref_yaw[w, i]
+            err[6] = (d + np.pi) % (2.0 * np.pi) - np.pi  # wrap_angle
+            for k in range(4):
+                fb = 0.0  # K (x - x_ref), row k
+                for j in range(7):
+                    fb += err[j] * Kt[j, k]
+                if k < 3:
+                    a = ref_acc[w, i, k] - fb - f_hat[w, i, k]
+                    if residual is not None:
+                        a = a + residual[w, i, k]
+                    if override is not None and np.isfinite(override[w, i, k]):
+                        a = override[w, i, k]
+                    acc_out[w, i, k] = a
+                else:
+                    yaw_rate_out[w, i] = ref_yaw_rate[w, i] - fb
+            yaw_des = yaw[w, i] + yaw_rate_out[w, i] * lookahead
+            thrust_out[w, i] = _setpoint_one(
+                acc_out[w, i, 0], acc_out[w, i, 1], acc_out[w, i, 2], yaw_des, tan_tilt, min_vertical, rot_out[w, i]
+            )

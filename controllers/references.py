@@ -25,6 +25,8 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike
 
+from sim.jit import njit
+
 __all__ = [
     "SPEED_RANGE",
     "RefSample",
@@ -158,6 +160,8 @@ def _ordered_range(name: str, r: Sequence[float], unit: str, lo: float, hi: floa
 
 def _times(t: float | ArrayLike, n_worlds: int) -> np.ndarray:
     """Sample times as (W,) float array."""
+    if type(t) is np.ndarray and t.dtype == np.float64 and t.shape == (n_worlds,):
+        return t  # the simulator's clock, sampled at 50 Hz: nothing to convert
     a = np.asarray(t, dtype=float)
     if a.ndim == 0:
         return np.full(n_worlds, float(a))
@@ -172,6 +176,76 @@ def _zero_yaw(n_worlds: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _duration_out(period: np.ndarray) -> np.ndarray | float:
     return float(period) if period.ndim == 0 else period.copy()
+
+
+# Stacked samples are filled in place: vec (3, W, V, 3) holds pos, vel, acc and ang (2, W, V)
+# yaw, yaw_rate, and a reference with `_sample_into(t, vec, ang, v)` writes vehicle v's
+# slots directly (the 50 Hz control path; a copy per field cost more than the sample).
+
+
+def _empty_sample(n_worlds: int, n_vehicles: int) -> tuple[np.ndarray, np.ndarray, RefSample]:
+    """Uninitialised (vec, ang) storage and the RefSample of views into it."""
+    vec, ang = np.empty((3, n_worlds, n_vehicles, 3)), np.empty((2, n_worlds, n_vehicles))
+    return vec, ang, RefSample(vec[0], vec[1], vec[2], ang[0], ang[1])
+
+
+def _single(vec: np.ndarray, ang: np.ndarray) -> RefSample:
+    """The (W, 3) / (W,) RefSample of a one-vehicle (vec, ang)."""
+    return RefSample(vec[0, :, 0], vec[1, :, 0], vec[2, :, 0], ang[0, :, 0], ang[1, :, 0])
+
+
+@njit
+def _hover_into(points, vec, ang, v):
+    """Hover samples (points (W, 3) m) into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(points.shape[0]):
+        for k in range(3):
+            vec[0, w, v, k] = points[w, k]
+            vec[1, w, v, k] = 0.0
+            vec[2, w, v, k] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
+
+
+@njit
+def _lemniscate_into(t, omega, center, a, b, vec, ang, v):
+    """Lemniscate samples at t (W,) s into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(t.shape[0]):
+        om = omega[w]
+        th = om * t[w]
+        c1, s1 = np.cos(th), np.sin(th)
+        c2, s2 = np.cos(2.0 * th), np.sin(2.0 * th)
+        vec[0, w, v, 0] = center[w, 0] + a[w] * c1
+        vec[0, w, v, 1] = center[w, 1] + b[w] * s2
+        vec[0, w, v, 2] = center[w, 2]
+        vec[1, w, v, 0] = -a[w] * om * s1
+        vec[1, w, v, 1] = 2.0 * b[w] * om * c2
+        vec[1, w, v, 2] = 0.0
+        vec[2, w, v, 0] = -a[w] * om * om * c1
+        vec[2, w, v, 1] = -4.0 * b[w] * om * om * s2
+        vec[2, w, v, 2] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
+
+
+@njit
+def _transect_into(t, omega, base, half_length, vec, ang, v):
+    """Transect samples at t (W,) s into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(t.shape[0]):
+        om = omega[w]
+        th = om * t[w]
+        c, s = np.cos(th), np.sin(th)
+        hl = half_length[w]
+        vec[0, w, v, 0] = base[w, 0]
+        vec[0, w, v, 1] = base[w, 1] - hl * c
+        vec[0, w, v, 2] = base[w, 2]
+        vec[1, w, v, 0] = 0.0
+        vec[1, w, v, 1] = hl * om * s
+        vec[1, w, v, 2] = 0.0
+        vec[2, w, v, 0] = 0.0
+        vec[2, w, v, 1] = hl * om * om * c
+        vec[2, w, v, 2] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
 
 
 # ----------------------------------------------------------------------------- simple references
@@ -198,6 +272,9 @@ class Hover:
         w = self.n_worlds
         yaw, yaw_rate = _zero_yaw(w)
         return RefSample(self.points.copy(), np.zeros((w, 3)), np.zeros((w, 3)), yaw, yaw_rate)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _hover_into(self.points, vec, ang, v)
 
 
 class Lemniscate:
@@ -248,23 +325,12 @@ class Lemniscate:
 
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
-        om = self._omega
-        th = om * _times(t, self.n_worlds)
-        a, b = self.half_length, self.half_width
-        c1, s1 = np.cos(th), np.sin(th)
-        c2, s2 = np.cos(2.0 * th), np.sin(2.0 * th)
-        w = self.n_worlds
-        pos = self.center.copy()
-        pos[:, 0] += a * c1
-        pos[:, 1] += b * s2
-        vel = np.zeros((w, 3))
-        vel[:, 0] = -a * om * s1
-        vel[:, 1] = 2.0 * b * om * c2
-        acc = np.zeros((w, 3))
-        acc[:, 0] = -a * om * om * c1
-        acc[:, 1] = -4.0 * b * om * om * s2
-        yaw, yaw_rate = _zero_yaw(w)
-        return RefSample(pos, vel, acc, yaw, yaw_rate)
+        vec, ang, _ = _empty_sample(self.n_worlds, 1)
+        self._sample_into(_times(t, self.n_worlds), vec, ang, 0)
+        return _single(vec, ang)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _lemniscate_into(t, self._omega, self.center, self.half_length, self.half_width, vec, ang, v)
 
 
 class Transect:
@@ -318,19 +384,12 @@ class Transect:
 
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
-        om = self._omega
-        th = om * _times(t, self.n_worlds)
-        hl = self.half_length
-        c, s = np.cos(th), np.sin(th)
-        w = self.n_worlds
-        pos = self._base.copy()
-        pos[:, 1] -= hl * c
-        vel = np.zeros((w, 3))
-        vel[:, 1] = hl * om * s
-        acc = np.zeros((w, 3))
-        acc[:, 1] = hl * om * om * c
-        yaw, yaw_rate = _zero_yaw(w)
-        return RefSample(pos, vel, acc, yaw, yaw_rate)
+        vec, ang, _ = _empty_sample(self.n_worlds, 1)
+        self._sample_into(_times(t, self.n_worlds), vec, ang, 0)
+        return _single(vec, ang)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _transect_into(t, self._omega, self._base, self.half_length, vec, ang, v)
 
 
 # ----------------------------------------------------------------------------- waypoints
@@ -743,6 +802,7 @@ class StackedReference:
         if len(set(counts)) != 1:
             raise ValueError(f"refs: all references must have the same n_worlds, got {counts}")
         self.refs = refs
+        self._into = [getattr(r, "_sample_into", None) for r in refs]
         self.n_worlds = counts[0]
         self.n_vehicles = len(refs)
         self.duration: np.ndarray = np.max(
@@ -752,11 +812,13 @@ class StackedReference:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)): pos/vel/acc (W, V, 3), yaw/yaw_rate (W, V)."""
         t = _times(t, self.n_worlds)
-        W, V = self.n_worlds, self.n_vehicles
-        out = RefSample(np.empty((W, V, 3)), np.empty((W, V, 3)), np.empty((W, V, 3)), np.empty((W, V)), np.empty((W, V)))
-        for v, ref in enumerate(self.refs):  # filling preallocated arrays beats np.stack per field
-            for dst, src in zip(out, ref(t)):
-                dst[:, v] = src
+        vec, ang, out = _empty_sample(self.n_worlds, self.n_vehicles)
+        for v, (ref, into) in enumerate(zip(self.refs, self._into)):
+            if into is not None:  # our references write their slots directly
+                into(t, vec, ang, v)
+            else:  # any other Reference: sample, then copy
+                for dst, src in zip(out, ref(t)):
+                    dst[:, v] = src
         return out
 
 

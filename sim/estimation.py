@@ -15,7 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-__all__ = ["MocapConfig", "steady_state_gain", "kalman_gain_sequence", "MocapKalmanFilter"]
+from sim.jit import njit
+
+__all__ = ["MocapConfig", "steady_state_gain", "kalman_gain_sequence", "MocapKalmanFilter", "kf_predict", "kf_update"]
 
 
 @dataclass(frozen=True)
@@ -83,3 +85,20 @@ class MocapKalmanFilter:
         """Correct (..., 3) prior estimates with a position measurement (m)."""
         innov = measured - pos
         return pos + self.gain[0] * innov, vel + self.gain[1] * innov
+
+
+# Scalar forms of predict/update for compiled loops (the simulator's per-tick kernels);
+# the same arithmetic in the same order, so they agree with the class bit for bit (tested).
+
+
+@njit
+def kf_predict(pos: float, vel: float, acc: float, dt: float) -> tuple[float, float]:
+    """One axis: propagate position (m) and velocity (m/s) by dt (s) with acceleration acc (m/s^2)."""
+    return pos + dt * vel + (0.5 * dt * dt) * acc, vel + dt * acc
+
+
+@njit
+def kf_update(pos: float, vel: float, measured: float, gain_pos: float, gain_vel: float) -> tuple[float, float]:
+    """One axis: correct the prior position (m) and velocity (m/s) with a position measurement (m)."""
+    innov = measured - pos
+    return pos + gain_pos * innov, vel + gain_vel * innov

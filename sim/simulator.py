@@ -8,6 +8,14 @@ Everything is batched over worlds W and vehicles V. Each world draws its noise
 (motion capture, turbulence) from its own generator, so a world's flight does not
 depend on which other worlds share its batch: the batched loop equals a loop of
 single flights bit for bit, which a test checks.
+
+Each autopilot tick is two compiled passes over all worlds and vehicles around the
+pluggable Python calls (predictor, field, reference): `_sense_kernel` (state, motion
+capture, Kalman update) and `_actuate_kernel` (field and turbulence into
+`xfrc_applied`, autopilot into `ctrl`, Kalman prediction, clocks); the 50 Hz command
+is one more (`FeedbackLinearisedLQR.command_setpoint`). The math stays in its module
+(`controllers.autopilot.rotor_thrusts`, `sim.estimation.kf_update` / `kf_predict`);
+tests check the passes against the readable components.
 """
 
 from __future__ import annotations
@@ -17,9 +25,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from controllers.autopilot import Autopilot
-from controllers.lqr import DEFAULT_Q, DEFAULT_R, FeedbackLinearisedLQR, attitude_setpoint
-from sim.estimation import MocapConfig, MocapKalmanFilter
+from controllers.autopilot import Autopilot, rotor_thrusts
+from controllers.lqr import DEFAULT_Q, DEFAULT_R, FeedbackLinearisedLQR
+from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
 from sim.field import DownwashField, pairwise_field
 from sim.jit import njit
 from sim.params import QUAD, RATES, QuadParams, Rates
@@ -73,34 +81,128 @@ def yaw_of(rot: np.ndarray) -> np.ndarray:
 
 
 @njit
+def _quat_to_rot(w, x, y, z, R):
+    """Unit quaternion (w, x, y, z) -> R (3, 3) body to world, in place; returns the heading (rad)."""
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return np.arctan2(R[1, 0], R[0, 0])
+
+
+@njit
 def _attitude_kernel(q):
     """Flat (n, 4) quaternions -> rotation matrices (n, 3, 3) and headings (n,) rad."""
     n = q.shape[0]
     R = np.empty((n, 3, 3))
     yaw = np.empty(n)
     for i in range(n):
-        w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-        R[i, 0, 0], R[i, 0, 1], R[i, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-        R[i, 1, 0], R[i, 1, 1], R[i, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        R[i, 2, 0], R[i, 2, 1], R[i, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-        yaw[i] = np.arctan2(R[i, 1, 0], R[i, 0, 0])
+        yaw[i] = _quat_to_rot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], R[i])
     return R, yaw
 
 
-@njit
-def _wake_force_kernel(mean, turb, xi, decay, diffusion, intensity):
-    """Advance the Ornstein-Uhlenbeck turbulence (in place) and return the applied field.
+# columns of Simulator._layout (V, 7), the per-vehicle address table of the kernels
+_QPOS, _QVEL, _BODY, _ACT = 0, 1, 2, 3  # free joint in qpos, in qvel, body id, 4 actuator ids
 
-    mean, turb, xi: flat (n, 3); applied = mean + intensity |mean| turb, so the
-    turbulence is zero where the wake is and scales with the local mean force.
+# The per-autopilot-tick work is two compiled passes over all worlds and vehicles, one
+# before the (pluggable, Python) predictor and field calls and one after: as NumPy on
+# these small arrays, per-call overhead cost several times MuJoCo's own step.
+
+
+@njit
+def _sense_kernel(
+    qpos, qvel, layout, noise, cursor, sigma_p, sigma_yaw, gain_p, gain_v,
+    pos_est, vel_est, t, next_prediction, due, kin, quat, rot, yaw_meas,
+):
+    """Read the true state, take the motion-capture sample and apply the Kalman update.
+
+    qpos (W, nq), qvel (W, nv): live MuJoCo state; layout (V, 7): see Simulator._layout.
+    noise (W, block, V, 7) standard normals read at each world's `cursor`: mocap xyz, yaw.
+    pos_est, vel_est (W, V, 3): the Kalman prior, updated in place to the posterior.
+    Writes kin (5, W, V, 3) [true position m, true velocity m/s (world), mocap position m,
+    posterior position m, posterior velocity m/s], quat (W, V, 4) (w, x, y, z),
+    rot (W, V, 3, 3) body to world, yaw_meas (W, V) rad (mocap heading), and
+    due (W,) bool: the predictor is due (t >= next_prediction, 1 ns slack).
+    Returns how many worlds are due.
     """
-    applied = np.empty_like(mean)
-    for i in range(mean.shape[0]):
-        mag = np.sqrt(mean[i, 0] ** 2 + mean[i, 1] ** 2 + mean[i, 2] ** 2)
-        for k in range(3):
-            turb[i, k] = decay * turb[i, k] + diffusion * xi[i, k]
-            applied[i, k] = mean[i, k] + intensity * mag * turb[i, k]
-    return applied
+    W, V = pos_est.shape[0], pos_est.shape[1]
+    n_due = 0
+    for w in range(W):
+        c = cursor[w]
+        for i in range(V):
+            a, b = layout[i, _QPOS], layout[i, _QVEL]
+            for k in range(4):
+                quat[w, i, k] = qpos[w, a + 3 + k]
+            yaw = _quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+            yaw_meas[w, i] = yaw + sigma_yaw * noise[w, c, i, 3]
+            for k in range(3):
+                p = qpos[w, a + k]
+                m = p + sigma_p * noise[w, c, i, k]
+                kin[0, w, i, k] = p
+                kin[1, w, i, k] = qvel[w, b + k]
+                kin[2, w, i, k] = m
+                pe, ve = kf_update(pos_est[w, i, k], vel_est[w, i, k], m, gain_p, gain_v)
+                pos_est[w, i, k] = kin[3, w, i, k] = pe
+                vel_est[w, i, k] = kin[4, w, i, k] = ve
+        due[w] = t[w] >= next_prediction[w] - 1e-9
+        n_due += due[w]
+    return n_due
+
+
+@njit
+def _hold_kernel(f_hat, pred, due, next_prediction, period):
+    """Take the new prediction (W, V, 3) m/s^2 where due (W,) and schedule the next (s), in place."""
+    for w in range(f_hat.shape[0]):
+        if due[w]:
+            f_hat[w] = pred[w]
+            next_prediction[w] = next_prediction[w] + period
+
+
+@njit
+def _actuate_kernel(
+    mean, field_on, noise, cursor, turb, decay, diffusion, intensity, mass, applied, xfrc, layout,
+    rot, qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, max_thrust, ctrl,
+    pos_est, vel_est, acc_cmd, dt, t, active,
+):
+    """Apply the field, run the autopilot and the Kalman prediction, advance the clocks.
+
+    mean (W, V, 3) m/s^2: mean field, zeroed in place where field_on (W,) is False.
+    turb (W, V, 3): Ornstein-Uhlenbeck state, advanced in place with noise[w, cursor[w], :, 4:7]:
+    turb = decay turb + diffusion xi; applied = mean + intensity |mean| turb (written to
+    applied (W, V, 3) m/s^2, so the turbulence is zero outside the wake and scales with it),
+    and mass * applied (N, world frame) into xfrc (W, nbody, 6) at each vehicle's body.
+    Autopilot (controllers.autopilot.rotor_thrusts) on rot (W, V, 3, 3), body rates from
+    qvel (W, nv), set-points rot_des (W, V, 3, 3), yaw_rate_des (W, V) rad/s,
+    thrust_acc (W, V) m/s^2, mass_believed (W, V) kg -> rotor thrusts (N) into ctrl (W, nu).
+    Addresses from layout (V, 7), see Simulator._layout. Kalman prediction of pos_est, vel_est (W, V, 3) over dt (s) with
+    acc_cmd (W, V, 3) m/s^2, in place. Then t (W,) s advances by dt where active and
+    every cursor by one.
+    """
+    W, V = mean.shape[0], mean.shape[1]
+    x = np.empty(14)
+    out = np.empty(4)
+    for w in range(W):
+        c = cursor[w]
+        for i in range(V):
+            if not field_on[w]:
+                for k in range(3):
+                    mean[w, i, k] *= 0.0
+            mag = np.sqrt(mean[w, i, 0] ** 2 + mean[w, i, 1] ** 2 + mean[w, i, 2] ** 2)
+            for k in range(3):
+                turb[w, i, k] = decay * turb[w, i, k] + diffusion * noise[w, c, i, 4 + k]
+                applied[w, i, k] = mean[w, i, k] + intensity * mag * turb[w, i, k]
+                xfrc[w, layout[i, _BODY], k] = mass * applied[w, i, k]
+            b = layout[i, _QVEL] + 3
+            rotor_thrusts(
+                rot[w, i], qvel[w, b:b + 3], rot_des[w, i], yaw_rate_des[w, i], thrust_acc[w, i],
+                mass_believed[w, i], ap_gain, max_thrust, x, out,
+            )
+            for k in range(4):
+                ctrl[w, layout[i, _ACT + k]] = out[k]
+            for k in range(3):
+                pos_est[w, i, k], vel_est[w, i, k] = kf_predict(pos_est[w, i, k], vel_est[w, i, k], acc_cmd[w, i, k], dt)
+        if active[w]:
+            t[w] = t[w] + dt
+        cursor[w] += 1
 
 
 class Simulator:
@@ -150,36 +252,54 @@ class Simulator:
 
         # index arrays, resolved once
         qa, va = scene.qpos_adr, scene.qvel_adr
-        self._q_idx = qa[:, None] + np.arange(7)
-        self._dq_idx = va[:, None] + np.arange(6)
         self._pos_idx = qa[:, None] + np.arange(3)
         self._quat_idx = qa[:, None] + 3 + np.arange(4)
         self._vel_idx = va[:, None] + np.arange(3)
-        self._omega_idx = va[:, None] + 3 + np.arange(3)
-        self._act_idx = scene.act_ids.ravel()
-        self._body_ids = scene.body_ids
-        self._ou_a = np.exp(-r.autopilot_dt / cfg.turbulence_time_constant)
-        self._ou_b = np.sqrt(1.0 - self._ou_a**2)
+        # per vehicle: qpos address, qvel address, body id, 4 actuator ids (columns _QPOS.._ACT)
+        self._layout = np.concatenate(
+            [np.stack([qa, va, scene.body_ids], axis=1), scene.act_ids], axis=1
+        ).astype(np.int64)
+        # scalars of the hot loop, as Python floats, looked up once
+        self._ou_a = float(np.exp(-r.autopilot_dt / cfg.turbulence_time_constant))
+        self._ou_b = float(np.sqrt(1.0 - self._ou_a**2))
+        self._prediction_period = 1.0 / r.predictor_hz  # s
+        self._sigma_p, self._sigma_yaw = float(cfg.mocap.position_noise), float(cfg.mocap.yaw_noise)
+        self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
+        self._max_thrust = float(self.autopilot.max_thrust)
+        self._turbulence_intensity = float(cfg.turbulence_intensity)
 
-        # per-world state beyond MuJoCo's
+        # per-world state beyond MuJoCo's; pos_est, vel_est, turb, f_hat, t, tick_index and
+        # next_prediction are updated in place, yaw_meas and mocap_pos replaced each autopilot
+        # tick (copy them to keep a value; the rows tick() returns are copies already)
         self.t = np.zeros(W)  # s, time since each world's reset
         self.tick_index = np.zeros(W, np.int64)
         self.status = np.zeros(W, np.int64)
         self.message = [""] * W
         self.active = np.ones(W, bool)
-        self.pos_est = np.zeros((W, V, 3))
-        self.vel_est = np.zeros((W, V, 3))
-        self.yaw_meas = np.zeros((W, V))
-        self.mocap_pos = np.zeros((W, V, 3))
-        self.turb = np.zeros((W, V, 3))
-        self.f_hat = np.zeros((W, V, 3))
-        self.next_prediction = np.zeros(W)
+        self.pos_est = np.zeros((W, V, 3))  # m, Kalman estimate (prior for the next sample)
+        self.vel_est = np.zeros((W, V, 3))  # m/s
+        self.yaw_meas = np.zeros((W, V))  # rad, latest motion-capture heading
+        self.mocap_pos = np.zeros((W, V, 3))  # m, latest motion-capture position
+        self.turb = np.zeros((W, V, 3))  # -, Ornstein-Uhlenbeck turbulence state
+        self.f_hat = np.zeros((W, V, 3))  # m/s^2, held prediction
+        self.next_prediction = np.zeros(W)  # s
         self._rngs: list[np.random.Generator] = [None] * W  # type: ignore[list-item]
         self._noise = np.zeros((W, cfg.noise_block, V, 7))  # per tick: mocap xyz, yaw, turbulence xyz
-        self._all_fields_on = bool(self.field_enabled.all())
         self._mass_believed = np.full((W, V), cfg.quad.mass)  # kg, the controller's model
         self._cursor = np.zeros(W, np.int64)
-        self._world_index = np.arange(W)
+        self._cursor_max = 0  # max(self._cursor), kept as a Python int (no reduction per tick)
+        # buffers of the second and later autopilot ticks (the first's go into the fresh row)
+        self._due = np.zeros(W, bool)
+        self._kin = np.empty((5, W, V, 3))
+        self._kin_views = tuple(self._kin)
+        self._quat = np.empty((W, V, 4))
+        self._yaw = np.empty((W, V))
+        self._rot = np.empty((W, V, 3, 3))
+        self._applied = np.empty((W, V, 3))
+        self._rot_des = np.empty((W, V, 3, 3))  # body to world, set by the 50 Hz control
+        self._yaw_rate_des = np.empty((W, V))  # rad/s
+        self._thrust_acc = np.empty((W, V))  # m/s^2
+        self._status_new = np.zeros(W, np.int64)
         self.row: dict[str, np.ndarray] = {}
         self.reset(np.arange(W), seeds)
 
@@ -223,19 +343,17 @@ class Simulator:
         self.turb[worlds] = 0.0
         self.f_hat[worlds] = 0.0
         self.next_prediction[worlds] = 0.0
+        self._cursor_max = int(self._cursor.max())
 
     def _refill(self, w: int) -> None:
         self._noise[w] = self._rngs[w].standard_normal(self._noise.shape[1:])
         self._cursor[w] = 0
 
-    def _draw(self) -> np.ndarray:
-        """(W, V, 7) standard normals for this autopilot tick, from each world's own stream."""
-        if self._cursor.max() >= self._noise.shape[1]:
-            for w in np.flatnonzero(self._cursor >= self._noise.shape[1]):
-                self._refill(w)
-        out = self._noise[self._world_index, self._cursor]
-        self._cursor += 1
-        return out
+    def _refill_used(self) -> None:
+        """Refill the noise block of every world whose draws are used up (each from its own stream)."""
+        for w in np.flatnonzero(self._cursor >= self._noise.shape[1]):
+            self._refill(w)
+        self._cursor_max = int(self._cursor.max())
 
     # ------------------------------------------------------------------ one controller tick
     def tick(self, residual: np.ndarray | None = None, override: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -243,81 +361,82 @@ class Simulator:
 
         residual: (W, V, 3) m/s^2 added to the LQR command (e.g. an RL compensation action).
         override: (W, V, 3) m/s^2 replacing the LQR acceleration where finite (NaN keeps LQR).
-        The row describes the state at the start of the tick and the command applied during it.
+        The row describes the state at the start of the tick and the command applied during it;
+        its arrays are fresh each tick and never written to afterwards.
         """
-        cfg, r = self.cfg, self.cfg.rates
+        r = self.cfg.rates
         ph, W, V = self.physics, self.W, self.V
-        sigma_p, sigma_yaw = cfg.mocap.position_noise, cfg.mocap.yaw_noise
+        if residual is not None:
+            residual = _as_batch(residual, (W, V, 3))
+        if override is not None:
+            override = _as_batch(override, (W, V, 3))
         row: dict[str, np.ndarray] = {}
-        dt_active = r.autopilot_dt * self.active
+        t_start = self.t.copy()
         for sub in range(r.autopilot_per_control):
-            q = ph.qpos[:, self._q_idx]  # (W, V, 7): position, quaternion
-            dq = ph.qvel[:, self._dq_idx]  # (W, V, 6): linear velocity (world), angular (body)
-            pos, vel = q[..., :3], dq[..., :3]
-            rot, yaw = _attitude_kernel(q[..., 3:].reshape(-1, 4))
-            rot = rot.reshape(W, V, 3, 3)
-
+            first = sub == 0
+            if self._cursor_max >= self._noise.shape[1]:
+                self._refill_used()
+            if first:  # fresh arrays: they become the row
+                kin = np.empty((5, W, V, 3))
+                pos, vel, mocap, pos_est, vel_est = kin[0], kin[1], kin[2], kin[3], kin[4]
+                quat, yaw, rot, applied = np.empty((W, V, 4)), np.empty((W, V)), np.empty((W, V, 3, 3)), np.empty((W, V, 3))
+            else:
+                kin, quat, yaw, rot, applied = self._kin, self._quat, self._yaw, self._rot, self._applied
+                pos, vel, mocap, pos_est, vel_est = self._kin_views
             # motion capture and Kalman update
-            noise = self._draw()  # (W, V, 7)
-            mocap = pos + sigma_p * noise[..., :3]
-            self.yaw_meas = yaw.reshape(W, V) + sigma_yaw * noise[..., 3]
-            self.pos_est, self.vel_est = self.kf.update(self.pos_est, self.vel_est, mocap)
+            n_due = _sense_kernel(
+                ph.qpos, ph.qvel, self._layout, self._noise, self._cursor,
+                self._sigma_p, self._sigma_yaw, self._kf_gain_p, self._kf_gain_v,
+                self.pos_est, self.vel_est, self.t, self.next_prediction, self._due, kin, quat, rot, yaw,
+            )
+            self.yaw_meas, self.mocap_pos = yaw, mocap
 
             # predictor at 45 Hz, held
-            due = self.t >= self.next_prediction - 1e-9
-            if due.any():
-                est = VehicleStates(self.pos_est, self.vel_est, rot)
-                pred = self.predictor(est, VehicleStates(pos, vel, rot))
-                self.f_hat = np.where(due[:, None, None], pred, self.f_hat)
-                self.next_prediction = np.where(due, self.next_prediction + 1.0 / r.predictor_hz, self.next_prediction)
+            if n_due:
+                pred = self.predictor(VehicleStates(pos_est, vel_est, rot), VehicleStates(pos, vel, rot))
+                _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
 
             # downwash field, applied as an external force until the next autopilot tick
             mean = pairwise_field(self.field, pos, vel, rot)
-            if not self._all_fields_on:
-                mean *= self.field_enabled[:, None, None]
-            applied = _wake_force_kernel(
-                mean.reshape(-1, 3), self.turb.reshape(-1, 3), noise[..., 4:].reshape(-1, 3),
-                self._ou_a, self._ou_b, cfg.turbulence_intensity,
-            ).reshape(W, V, 3)
-            ph.xfrc_applied[:, self._body_ids, :3] = self.mass * applied
 
-            if sub == 0:  # the LQR and feedback linearisation at 50 Hz
+            if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
-                cmd = self.lqr(
-                    self.pos_est, self.vel_est, self.yaw_meas,
-                    ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, self.f_hat,
+                cmd_acc = np.empty((W, V, 3))  # m/s^2, the command applied (row u_cmd)
+                self.lqr.command_setpoint(
+                    pos_est, vel_est, yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, self.f_hat,
+                    residual, override, r.control_dt, self.max_tilt,
+                    cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des,
                 )
-                cmd_acc, yaw_rate = cmd.acc, cmd.yaw_rate
-                if residual is not None:
-                    cmd_acc = cmd_acc + residual
-                if override is not None:
-                    cmd_acc = np.where(np.isfinite(override), override, cmd_acc)
-                thrust, rot_des = attitude_setpoint(cmd_acc, self.yaw_meas + yaw_rate * r.control_dt, self.max_tilt)
                 row = {
-                    "t": self.t, "pos": pos, "vel": vel, "quat": q[..., 3:],
-                    "pos_est": self.pos_est, "vel_est": self.vel_est, "yaw_est": self.yaw_meas,
+                    "t": t_start, "pos": pos, "vel": vel, "quat": quat,
+                    "pos_est": pos_est, "vel_est": vel_est, "yaw_est": yaw,
                     "mocap_pos": mocap, "ref_pos": ref.pos, "ref_vel": ref.vel, "ref_acc": ref.acc,
-                    "u_cmd": cmd_acc, "f_hat": self.f_hat, "field_mean": mean, "field_applied": applied,
+                    "u_cmd": cmd_acc, "f_hat": self.f_hat.copy(), "field_mean": mean, "field_applied": applied,
                 }
 
-            rotors = self.autopilot(rot, dq[..., 3:], rot_des, yaw_rate, thrust, self._mass_believed)
-            ph.ctrl[:, self._act_idx] = rotors.reshape(W, -1)
+            # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
+            _actuate_kernel(
+                mean, self.field_enabled, self._noise, self._cursor, self.turb,
+                self._ou_a, self._ou_b, self._turbulence_intensity, self.mass, applied, ph.xfrc_applied, self._layout,
+                rot, ph.qvel, self._rot_des, self._yaw_rate_des, self._thrust_acc, self._mass_believed,
+                self.autopilot.gain, self._max_thrust, ph.ctrl,
+                self.pos_est, self.vel_est, cmd_acc, r.autopilot_dt, self.t, self.active,
+            )
+            self._cursor_max += 1
             diverged = ph.step(r.physics_per_autopilot, self.active)
-            self.pos_est, self.vel_est = self.kf.predict(self.pos_est, self.vel_est, cmd_acc)
-            self.t = self.t + dt_active
-        self.tick_index += self.active
         self._check(diverged)
         self.row = row
         return row
 
     def _check(self, diverged: np.ndarray) -> None:
-        """End worlds that diverged or collided; they keep their rows and stop stepping."""
+        """Count the tick for active worlds; end those that diverged or collided (they keep their rows)."""
         cfg = self.cfg
-        status = _status_kernel(
-            self.physics.qpos[:, self._pos_idx], self.physics.qvel, diverged, self.active,
-            cfg.max_distance, cfg.ground_clearance, cfg.collision_radius_xy, cfg.collision_radius_z,
+        status = self._status_new
+        n_ended = _status_kernel(
+            self.physics.qpos, self._layout, self.physics.qvel, diverged, self.active, self.tick_index,
+            cfg.max_distance, cfg.ground_clearance, cfg.collision_radius_xy, cfg.collision_radius_z, status,
         )
-        if status.any():
+        if n_ended:
             what = {STATUS_DIVERGED: "diverged (NaN, runaway state or MuJoCo instability warning)",
                     STATUS_GROUND: "hit the ground", STATUS_VEHICLE: "vehicles collided"}
             for w in np.flatnonzero(status):
@@ -326,31 +445,46 @@ class Simulator:
                 self.active[w] = False
 
 
+def _as_batch(x: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """x as a float64 array of exactly `shape` (broadcast, read-only, only when it differs)."""
+    x = np.asarray(x, dtype=np.float64)
+    return x if x.shape == shape else np.broadcast_to(x, shape)
+
+
 @njit
-def _status_kernel(pos, qvel, diverged, active, max_distance, ground, radius_xy, radius_z):
-    """(W,) status codes for active worlds that end now: diverged, ground or vehicle collision."""
-    W, V = pos.shape[0], pos.shape[1]
-    status = np.zeros(W, np.int64)
+def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distance, ground, radius_xy, radius_z, status):
+    """Count the tick of active worlds (tick_index (W,), in place) and write into status (W,)
+    the codes of those that end now (STATUS_OK elsewhere).
+
+    qpos (W, nq): vehicle positions (m) at qpos[w, layout[i, _QPOS] + (0, 1, 2)];
+    diverged (W,) bool from the physics. Returns how many worlds end.
+    """
+    W, V = qpos.shape[0], layout.shape[0]
+    q_adr = layout[:, _QPOS]
+    n_ended = 0
     for w in range(W):
+        status[w] = STATUS_OK
         if not active[w]:
             continue
+        tick_index[w] += 1
         bad = diverged[w]
         for j in range(qvel.shape[1]):
             bad = bad or not np.isfinite(qvel[w, j])
         for i in range(V):
             for k in range(3):
-                bad = bad or not (abs(pos[w, i, k]) <= max_distance)  # NaN fails too
+                bad = bad or not (abs(qpos[w, q_adr[i] + k]) <= max_distance)  # NaN fails too
         if bad:
             status[w] = STATUS_DIVERGED
-            continue
-        for i in range(V):
-            if pos[w, i, 2] < ground:
-                status[w] = STATUS_GROUND
-        if status[w]:
-            continue
-        for i in range(V):
-            for j in range(i + 1, V):
-                dx, dy, dz = pos[w, i, 0] - pos[w, j, 0], pos[w, i, 1] - pos[w, j, 1], pos[w, i, 2] - pos[w, j, 2]
-                if (dx * dx + dy * dy) / radius_xy**2 + dz * dz / radius_z**2 < 1.0:
-                    status[w] = STATUS_VEHICLE
-    return status
+        else:
+            for i in range(V):
+                if qpos[w, q_adr[i] + 2] < ground:
+                    status[w] = STATUS_GROUND
+        if status[w] == STATUS_OK:
+            for i in range(V):
+                for j in range(i + 1, V):
+                    a, b = q_adr[i], q_adr[j]
+                    dx, dy, dz = qpos[w, a] - qpos[w, b], qpos[w, a + 1] - qpos[w, b + 1], qpos[w, a + 2] - qpos[w, b + 2]
+                    if (dx * dx + dy * dy) / radius_xy**2 + dz * dz / radius_z**2 < 1.0:
+                        status[w] = STATUS_VEHICLE
+        n_ended += status[w] != STATUS_OK
+    return n_ended

@@ -97,3 +97,38 @@ def test_attitude_setpoint():
     # a huge lateral command is tilt-limited
     t2, R2 = attitude_setpoint(np.array([[50.0, 0, 0]]), np.zeros(1))
     assert np.degrees(np.arccos(R2[0, 2, 2])) == pytest.approx(35.0)
+
+
+@pytest.mark.parametrize("extra", ["none", "residual", "override"])
+def test_compiled_command_setpoint_equals_command_then_setpoint(extra):
+    """The simulator's one-pass kernel against __call__ followed by attitude_setpoint."""
+    rng = np.random.default_rng(1)
+    W, V = 5, 2
+    lqr = FeedbackLinearisedLQR()
+    pos, vel, ref_pos, ref_vel, ref_acc, f_hat = (rng.normal(size=(W, V, 3)) for _ in range(6))
+    yaw, ref_yaw, ref_yaw_rate = (rng.uniform(-4, 4, size=(W, V)) for _ in range(3))
+    residual = rng.normal(size=(W, V, 3)) if extra == "residual" else None
+    override = None
+    if extra == "override":
+        override = np.where(rng.uniform(size=(W, V, 3)) < 0.5, rng.normal(size=(W, V, 3)), np.nan)
+    lookahead, max_tilt = 0.02, np.deg2rad(35.0)
+
+    cmd = lqr(pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat)
+    acc = cmd.acc
+    if residual is not None:
+        acc = acc + residual
+    if override is not None:
+        acc = np.where(np.isfinite(override), override, acc)
+    thrust, rot = attitude_setpoint(acc, yaw + cmd.yaw_rate * lookahead, max_tilt)
+
+    out = np.empty((W, V, 3)), np.empty((W, V)), np.empty((W, V)), np.empty((W, V, 3, 3))
+    lqr.command_setpoint(
+        pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
+        lookahead, max_tilt, *out,
+    )
+    # K (x - x_ref) may be summed in another order than NumPy's matmul: rounding only
+    for got, want in zip(out, (acc, cmd.yaw_rate, thrust, rot)):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    if override is not None:
+        finite = np.isfinite(override)
+        assert np.array_equal(out[0][finite], override[finite])

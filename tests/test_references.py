@@ -552,3 +552,27 @@ def test_mixed_routes_worlds_to_their_references():
         Mixed([(lem, [0, 1]), (hov, [1])])
     with pytest.raises(ValueError, match="n_worlds=2"):
         Mixed([(lem, [0]), (hov, [1])])
+
+
+def test_stack_fills_in_place_exactly_like_sampling_each_reference():
+    """StackedReference's in-place fill of built-in references equals sampling them one by one."""
+    rng = np.random.default_rng(2)
+    W = 4
+    refs = [
+        Hover(rng.normal(size=(W, 3))),
+        Lemniscate(rng.normal(size=(W, 3)), rng.uniform(0.5, 2, W), rng.uniform(0.2, 1, W), rng.uniform(5, 30, W)),
+        Transect(rng.normal(size=(W, 3)), rng.normal(size=W), rng.uniform(0.5, 2, W), rng.uniform(5, 30, W)),
+    ]
+
+    class Opaque:  # a Reference without the in-place fill: sampled and copied
+        def __init__(self, ref):
+            self.ref, self.n_worlds, self.duration = ref, ref.n_worlds, ref.duration
+
+        def __call__(self, t):
+            return self.ref(t)
+
+    for t in (rng.uniform(-5, 50, W), 3.3):
+        fast, slow = stack(refs)(t), stack([Opaque(r) for r in refs])(t)
+        for v, ref in enumerate(refs):
+            for a, b, c in zip(fast, slow, ref(t)):
+                assert np.array_equal(a[:, v], c) and np.array_equal(b[:, v], c)

@@ -110,3 +110,82 @@ def test_bad_inputs(scene):
         Simulator(scene, _lemniscate(2), [0, 1], field_enabled=np.ones(3, bool))
     with pytest.raises(ValueError, match="seeds"):
         Simulator(scene, _lemniscate(1), [])
+
+
+def test_fused_kernels_equal_the_readable_components(scene):
+    """The compiled sense / actuate passes of one autopilot tick against quat_to_mat,
+    MocapKalmanFilter, the turbulence law and Autopilot, on random states (bit for bit)."""
+    from controllers.lqr import attitude_setpoint
+    from sim.simulator import _actuate_kernel, _sense_kernel, quat_to_mat, yaw_of
+
+    W, V = 3, scene.n_vehicles
+    sim = Simulator(scene, _lemniscate(W), [1, 2, 3], field_enabled=np.array([True, False, True]))
+    rng = np.random.default_rng(5)
+    ph = sim.physics
+    q = rng.normal(size=(W, V, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    ph.qpos[:, sim._pos_idx] = rng.normal(size=(W, V, 3))
+    ph.qpos[:, sim._quat_idx] = q
+    ph.qvel[:] = rng.normal(size=ph.qvel.shape)
+    sim.pos_est[:], sim.vel_est[:] = rng.normal(size=(2, W, V, 3))
+    prior_p, prior_v = sim.pos_est.copy(), sim.vel_est.copy()
+    sim._cursor[:] = [0, 5, 9]
+    cursor = sim._cursor.copy()
+    noise = sim._noise[np.arange(W), cursor]  # (W, V, 7)
+
+    kin, quat, rot, yaw = np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V))
+    sim.t[:], sim.next_prediction[:] = [0.0, 0.1, 0.2], [0.0, 0.2, 0.1]
+    n_due = _sense_kernel(
+        ph.qpos, ph.qvel, sim._layout, sim._noise, sim._cursor, sim._sigma_p, sim._sigma_yaw,
+        sim._kf_gain_p, sim._kf_gain_v, sim.pos_est, sim.vel_est, sim.t, sim.next_prediction, sim._due,
+        kin, quat, rot, yaw,
+    )
+    pos, vel = ph.qpos[:, sim._pos_idx], ph.qvel[:, sim._vel_idx]
+    mocap = pos + sim.cfg.mocap.position_noise * noise[..., :3]
+    est = sim.kf.update(prior_p, prior_v, mocap)
+    assert n_due == 2 and sim._due.tolist() == [True, False, True]
+    assert np.array_equal(quat, q) and np.array_equal(rot, quat_to_mat(q))
+    assert np.array_equal(yaw, yaw_of(rot) + sim.cfg.mocap.yaw_noise * noise[..., 3])
+    for got, want in zip(kin, (pos, vel, mocap, *est)):
+        assert np.array_equal(got, want)
+    assert np.array_equal(sim.pos_est, est[0]) and np.array_equal(sim.vel_est, est[1])
+
+    mean = rng.normal(size=(W, V, 3))
+    mean_in, turb0 = mean.copy(), rng.normal(size=(W, V, 3))
+    sim.turb[:] = turb0
+    cmd_acc = rng.normal(size=(W, V, 3))
+    yaw_rate = rng.normal(size=(W, V))
+    thrust, rot_des = attitude_setpoint(cmd_acc, yaw, sim.max_tilt)
+    applied = np.empty((W, V, 3))
+    sim.active[:] = [True, True, False]
+    t0 = sim.t.copy()
+    _actuate_kernel(
+        mean, sim.field_enabled, sim._noise, sim._cursor, sim.turb, sim._ou_a, sim._ou_b,
+        sim._turbulence_intensity, sim.mass, applied, ph.xfrc_applied, sim._layout,
+        rot, ph.qvel, rot_des, yaw_rate, thrust, sim._mass_believed, sim.autopilot.gain, sim._max_thrust, ph.ctrl,
+        sim.pos_est, sim.vel_est, cmd_acc, sim.cfg.rates.autopilot_dt, sim.t, sim.active,
+    )
+    mean_want = mean_in * sim.field_enabled[:, None, None]
+    turb = sim._ou_a * turb0 + sim._ou_b * noise[..., 4:]
+    applied_want = mean_want + sim.cfg.turbulence_intensity * np.linalg.norm(mean_want, axis=-1, keepdims=True) * turb
+    omega = ph.qvel[:, scene.qvel_adr[:, None] + 3 + np.arange(3)]
+    rotors = sim.autopilot(rot, omega, rot_des, yaw_rate, thrust, sim._mass_believed)
+    assert np.array_equal(mean, mean_want) and np.array_equal(sim.turb, turb)
+    np.testing.assert_allclose(applied, applied_want, rtol=1e-15, atol=1e-15)  # |mean|: sqrt of a sum either way
+    assert np.array_equal(ph.xfrc_applied[:, scene.body_ids, :3], sim.mass * applied)
+    assert np.array_equal(ph.ctrl[:, scene.act_ids], rotors)
+    pred = sim.kf.predict(est[0], est[1], cmd_acc)
+    assert np.array_equal(sim.pos_est, pred[0]) and np.array_equal(sim.vel_est, pred[1])
+    assert np.array_equal(sim.t, t0 + sim.cfg.rates.autopilot_dt * sim.active)
+    assert np.array_equal(sim._cursor, cursor + 1)
+
+
+def test_rows_are_fresh_and_never_written_again(scene):
+    """fly() keeps rows as they come: a row's arrays must not change in later ticks."""
+    sim = Simulator(scene, _lemniscate(2), [1, 2])
+    first = sim.tick()
+    kept = {k: v.copy() for k, v in first.items()}
+    for _ in range(5):
+        sim.tick()
+    for k in ARRAY_SPECS:
+        assert np.array_equal(first[k], kept[k]), k
