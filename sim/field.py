@@ -292,6 +292,13 @@ def pairwise_field(
     diagonal included (dp = 0; its values, even if not finite, are discarded), so
     per-world field constants need shape (W, 1, 1) here.
     """
+    fast = getattr(field, "pairwise", None)
+    if fast is not None and type(pos) is np.ndarray and pos.ndim == 3 and pos.shape[2] == 3:
+        # the loop's hot path (100 Hz): one shape comparison, then the compiled sum
+        if getattr(vel, "shape", None) == pos.shape and getattr(rot, "shape", None) == pos.shape + (3,):
+            result = fast(pos, vel, rot)
+            if result is not None:
+                return result
     pos, vel, rot = np.asarray(pos), np.asarray(vel), np.asarray(rot)
     if pos.ndim < 2 or pos.shape[-1] != 3:
         raise ValueError(f"pos: expected (..., V, 3) but found {pos.shape}")
@@ -305,11 +312,6 @@ def pairwise_field(
             {"pos": pos.shape, "vel": vel.shape, "rot": rot.shape},
             {"pos": (n_veh, 3), "vel": (n_veh, 3), "rot": (n_veh, 3, 3)},
         )
-    fast = getattr(field, "pairwise", None)
-    if fast is not None and pos.ndim == 3:
-        result = fast(pos, vel, rot)
-        if result is not None:
-            return result
     # Leaders i along axis -3, followers j along axis -2 of the (..., i, j, 3) result.
     forces = field(
         pos[..., :, None, :],
