@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
-import json
 import logging
 import sys
 from dataclasses import dataclass, field
@@ -107,10 +106,6 @@ def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
-
-
-def dumps(obj: Any) -> str:
-    return json.dumps(obj, indent=2, default=str)
 
 
 class ProgressBar:
