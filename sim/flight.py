@@ -39,6 +39,9 @@ def fly(
     """
     if not duration > 0:
         raise ValueError(f"duration: must be > 0 s, got {duration}")
+    control_dt = (config if config is not None else SimConfig()).rates.control_dt
+    if round(duration / control_dt) < 1:
+        raise ValueError(f"duration: {duration} s is shorter than one controller period ({control_dt} s)")
     sim = Simulator(
         scene, reference, seeds, config=config, field=field, predictor=predictor,
         field_enabled=field_enabled, n_threads=n_threads,

@@ -106,6 +106,8 @@ def test_failures_end_their_world_only(scene):
 def test_bad_inputs(scene):
     with pytest.raises(ValueError, match="duration"):
         fly(scene, _lemniscate(1), [0], 0.0)
+    with pytest.raises(ValueError, match="shorter than one controller period"):
+        fly(scene, _lemniscate(1), [0], 0.005)
     with pytest.raises(ValueError, match="field_enabled"):
         Simulator(scene, _lemniscate(2), [0, 1], field_enabled=np.ones(3, bool))
     with pytest.raises(ValueError, match="seeds"):
