@@ -11,16 +11,9 @@ from downwash.train import TrainConfig, train_model
 from downwash.datasets import Dataset
 from sim.field import DownwashField
 from sim.predictor import Predictor, VehicleStates
+from test_features import random_rotations  # tests/ is on sys.path under pytest
 
 
-def random_rotations(rng, n, max_tilt):
-    """Body-to-world rotations with random yaw and a random tilt of up to max_tilt rad."""
-    axis = rng.normal(size=(n, 3))
-    axis[:, 2] = 0.0
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    tilt = F.rotation_about_axis(axis, rng.uniform(0, max_tilt, n))
-    yaw = F.rotation_about_axis(np.tile([0.0, 0.0, 1.0], (n, 1)), rng.uniform(-np.pi, np.pi, n))
-    return tilt @ yaw
 
 
 def randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:
