@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -88,12 +88,25 @@ def _stage_reference(rng: np.random.Generator, n: int, separation: tuple[float, 
     return stack([Hover(LEADER, n_worlds=n), follower])
 
 
-def _train_and_save(kind: str, train_dirs: list[Path], path: Path, args: StagedArgs, extra: dict) -> dict:
+class _Logs:
+    """Labelled samples per folder, loaded once per run (a finished stage's logs never change)."""
+
+    def __init__(self):
+        self._cache: dict[Path, Any] = {}
+
+    def __call__(self, dirs: list[Path]):
+        from downwash.datasets import concatenate, load_dataset
+
+        for d in dirs:
+            if d not in self._cache:
+                self._cache[d] = load_dataset(d)
+        return concatenate([self._cache[d] for d in dirs])
+
+
+def _train_and_save(kind: str, data: Any, train_dirs: list[Path], path: Path, args: StagedArgs, extra: dict) -> dict:
     from downwash.checkpoint import save_checkpoint
-    from downwash.datasets import concatenate, load_dataset
     from downwash.train import TrainConfig, train_model
 
-    data = concatenate([load_dataset(d) for d in train_dirs])
     config = TrainConfig(seed=args.seed, **({"max_epochs": 3, "min_steps": 30} if args.quick else {}))
     model, history = train_model(kind, data, None, config)
     save_checkpoint(path, model, {"training": {k: v for k, v in history.items() if k not in ("train_loss", "val_loss")},
@@ -101,13 +114,12 @@ def _train_and_save(kind: str, train_dirs: list[Path], path: Path, args: StagedA
     return history
 
 
-def _val_rmse(checkpoint: Path, val_dirs: list[Path]) -> float:
+def _val_rmse(checkpoint: Path, val_data: Any) -> float:
     from downwash.checkpoint import load_checkpoint
-    from downwash.datasets import concatenate, load_dataset
     from downwash.train import rmse
 
     model, _ = load_checkpoint(checkpoint)
-    return rmse(model, concatenate([load_dataset(d) for d in val_dirs]))[0]
+    return rmse(model, val_data)[0]
 
 
 def run(args: StagedArgs, field: Any | None = None) -> dict:
@@ -130,6 +142,7 @@ def run(args: StagedArgs, field: Any | None = None) -> dict:
     scene = build_scene()
     from downwash.predictor import LearnedPredictor
 
+    labelled = _Logs()
     stage_results = []
     for k, stage in enumerate(STAGES):
         sdir = out / f"stage{k}"
@@ -142,25 +155,23 @@ def run(args: StagedArgs, field: Any | None = None) -> dict:
             seeds = [args.seed * 100_000 + 1000 * k + i for i in range(n)]  # train: i < n_train, val: the rest
             meta = [{"stage": k, "role": "train" if i < n_train else "val", "deployed_model": str(deployed)}
                     for i in range(n)]
-            logs = fly(scene, _stage_reference(rng, n, stage["separation"], flight_seconds), seeds, flight_seconds,
+            flights = fly(scene, _stage_reference(rng, n, stage["separation"], flight_seconds), seeds, flight_seconds,
                        field=field, predictor=predictor, meta=meta, n_threads=args.threads,
                        progress=ProgressBar(f"stage {k}: {n} flights"))
-            for i, L in enumerate(logs):
+            for i, L in enumerate(flights):
                 save_log(sdir / L.meta["role"] / f"flight_{i:03d}.npz", L)
-            entry.update(flights_done=True, seeds=seeds, failed=[L.meta["message"] for L in logs if not L.ok])
+            entry.update(flights_done=True, seeds=seeds, failed=[L.meta["message"] for L in flights if not L.ok])
             _save_manifest(manifest_path, manifest)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]
         if not entry.get("model_done"):  # the stage-k equivariant model, deployed in stage k + 1
-            _train_and_save("equivariant", train_dirs, sdir / "equivariant.pt", args, {"stage": k})
+            _train_and_save("equivariant", labelled(train_dirs), train_dirs, sdir / "equivariant.pt", args, {"stage": k})
             entry["model_done"] = True
             _save_manifest(manifest_path, manifest)
         if "deployed_val_rmse" not in entry:
             entry["deployed_val_rmse"] = (None if deployed is None or n_val == 0
-                                          else _val_rmse(deployed, [sdir / "val"]))
+                                          else _val_rmse(deployed, labelled([sdir / "val"])))
             _save_manifest(manifest_path, manifest)
-        from downwash.datasets import load_dataset
-
-        samples = len(load_dataset(sdir / "train"))
+        samples = len(labelled([sdir / "train"]))
         stage_results.append({"stage": k, "separation": list(stage["separation"]),
                               "minutes": n_train * flight_seconds / 60, "samples": samples,
                               "deployed_model": None if deployed is None else str(deployed),
@@ -174,10 +185,10 @@ def run(args: StagedArgs, field: Any | None = None) -> dict:
         path = models_dir / f"{kind}.pt"
         if not finals.get(kind) or not path.is_file():
             t0 = time.perf_counter()
-            history = _train_and_save(kind, train_dirs, path, args, {"stage": "final"})
+            history = _train_and_save(kind, labelled(train_dirs), train_dirs, path, args, {"stage": "final"})
             finals[kind] = {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"]}
             _save_manifest(manifest_path, manifest)
-        models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, val_dirs) if val_dirs else None,
+        models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
     if val_dirs:
         from downwash.labels import label_noise_floor
