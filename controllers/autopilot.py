@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.jit import njit
-from sim.params import QUAD, QuadParams
+from core.jit import njit
+from core.params import QUAD, QuadParams
 
 __all__ = ["mixer_matrix", "Autopilot", "rotor_thrusts"]
 

@@ -12,20 +12,29 @@ and a desired attitude for the autopilot. The controller holds gains, not histor
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple
 
 import control
 import numpy as np
 
-from sim.jit import njit
-from sim.params import GRAVITY
+from core.errors import ConfigError
+from core.geometry import wrap_angle
+from core.jit import njit
+from core.params import GRAVITY
+from core.state import RefSample
 
 __all__ = [
     "DEFAULT_Q",
     "DEFAULT_R",
+    "MAX_TILT_DEG",
+    "MIN_THRUST_G",
+    "LQRConfig",
+    "ControllerState",
+    "Setpoint",
+    "LQRCommand",
     "double_integrator",
     "lqr_gain",
-    "LQRCommand",
     "FeedbackLinearisedLQR",
     "attitude_setpoint",
     "wrap_angle",
@@ -34,6 +43,59 @@ __all__ = [
 # Weights like the Freyja LQG controller of the paper (DESIGN section 4).
 DEFAULT_Q = np.diag([1.0, 1.0, 8.0, 0.01, 0.01, 0.1, 1.0])
 DEFAULT_R = np.diag([0.8, 0.8, 0.8, 1.0])
+MAX_TILT_DEG = 35.0  # deg, tilt limit of feedback linearisation
+MIN_THRUST_G = 0.25  # g, floor of the commanded vertical specific force (no commanded free fall)
+
+
+@dataclass(frozen=True)
+class LQRConfig:
+    """The outer loop's settings: LQR weights and the feedback-linearisation limits."""
+
+    q: tuple[float, ...] = tuple(np.diag(DEFAULT_Q))  # diagonal of Q: [p (m), v (m/s), psi (rad)] weights
+    r: tuple[float, ...] = tuple(np.diag(DEFAULT_R))  # diagonal of R: [a (m/s^2), psi_dot (rad/s)] weights
+    max_tilt_deg: float = MAX_TILT_DEG  # deg
+    min_thrust_g: float = MIN_THRUST_G  # g
+
+    def __post_init__(self) -> None:
+        if len(self.q) != 7 or len(self.r) != 4:
+            raise ConfigError(f"LQRConfig.q/r: expected 7 and 4 diagonal entries, got {len(self.q)} and {len(self.r)}")
+        if not 0.0 < self.max_tilt_deg < 90.0:
+            raise ConfigError(f"LQRConfig.max_tilt_deg: allowed (0, 90) deg, got {self.max_tilt_deg}")
+        if not 0.0 <= self.min_thrust_g < 1.0:
+            raise ConfigError(f"LQRConfig.min_thrust_g: allowed [0, 1) g, got {self.min_thrust_g}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class ControllerState(NamedTuple):
+    """What the outer loop knows of each vehicle, batched (...): the estimator's output.
+
+    pos: (..., 3) m and vel: (..., 3) m/s, world frame; yaw: (...,) rad (motion capture).
+    """
+
+    pos: np.ndarray
+    vel: np.ndarray
+    yaw: np.ndarray
+
+
+class Setpoint(NamedTuple):
+    """The outer loop's output for the autopilot, batched (W, V, ...); buffers the fast path fills.
+
+    acc: (W, V, 3) m/s^2, the command u applied (gravity excluded, compensation included);
+    yaw_rate: (W, V) rad/s; thrust: (W, V) m/s^2, collective thrust / mass;
+    rot: (W, V, 3, 3) desired attitude R_d, body to world.
+    """
+
+    acc: np.ndarray
+    yaw_rate: np.ndarray
+    thrust: np.ndarray
+    rot: np.ndarray
+
+    @classmethod
+    def empty(cls, n_worlds: int, n_vehicles: int) -> "Setpoint":
+        W, V = n_worlds, n_vehicles
+        return cls(np.empty((W, V, 3)), np.empty((W, V)), np.empty((W, V)), np.empty((W, V, 3, 3)))
 
 
 def double_integrator() -> tuple[np.ndarray, np.ndarray]:
@@ -49,14 +111,14 @@ def double_integrator() -> tuple[np.ndarray, np.ndarray]:
 def _check_weight(M: np.ndarray, n: int, name: str, definite: bool) -> np.ndarray:
     M = np.asarray(M, dtype=float)
     if M.shape != (n, n):
-        raise ValueError(f"{name}: expected ({n}, {n}) but found {M.shape}")
+        raise ConfigError(f"{name}: expected ({n}, {n}) but found {M.shape}")
     if not np.allclose(M, M.T):
-        raise ValueError(f"{name}: must be symmetric")
+        raise ConfigError(f"{name}: must be symmetric")
     eig = np.linalg.eigvalsh(M)
     if definite and eig.min() <= 0:
-        raise ValueError(f"{name}: must be positive definite (smallest eigenvalue {eig.min():.3g})")
+        raise ConfigError(f"{name}: must be positive definite (smallest eigenvalue {eig.min():.3g})")
     if not definite and eig.min() < -1e-12:
-        raise ValueError(f"{name}: must be positive semi-definite (smallest eigenvalue {eig.min():.3g})")
+        raise ConfigError(f"{name}: must be positive semi-definite (smallest eigenvalue {eig.min():.3g})")
     return M
 
 
@@ -67,11 +129,6 @@ def lqr_gain(Q: np.ndarray = DEFAULT_Q, R: np.ndarray = DEFAULT_R) -> np.ndarray
     A, B = double_integrator()
     K, _, _ = control.lqr(A, B, Q, R)
     return np.asarray(K)
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Wrap angles (rad) to [-pi, pi)."""
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 class LQRCommand(NamedTuple):
@@ -86,73 +143,66 @@ class LQRCommand(NamedTuple):
 
 
 class FeedbackLinearisedLQR:
-    """u_f = a_ref - K (x - x_ref) - f_hat, batched over any leading shape."""
+    """u_f = a_ref - K (x - x_ref) - f_hat, then feedback linearisation; batched over any leading shape.
 
-    def __init__(self, Q: np.ndarray = DEFAULT_Q, R: np.ndarray = DEFAULT_R):
-        self.K = lqr_gain(Q, R)
-        # The gain is block diagonal for diagonal weights; keep the full matrix anyway so
-        # that any Q, R the user passes is honoured.
+    Holds gains, not history. `__call__` and `setpoint` are the readable steps;
+    `command_setpoint` is both in one compiled pass over (W, V) arrays (the
+    simulator's 50 Hz path), tested against them.
+    """
+
+    def __init__(self, config: LQRConfig | None = None):
+        self.config = config if config is not None else LQRConfig()
+        self.K = lqr_gain(np.diag(self.config.q), np.diag(self.config.r))
+        # The gain is block diagonal for diagonal weights; keep the full matrix anyway.
         self._Kt = self.K.T.copy()
+        self.max_tilt = float(np.deg2rad(self.config.max_tilt_deg))  # rad
+        self.min_vertical = self.config.min_thrust_g * GRAVITY  # m/s^2
 
-    def __call__(
-        self,
-        pos: np.ndarray,
-        vel: np.ndarray,
-        yaw: np.ndarray,
-        ref_pos: np.ndarray,
-        ref_vel: np.ndarray,
-        ref_acc: np.ndarray,
-        ref_yaw: np.ndarray,
-        ref_yaw_rate: np.ndarray,
-        f_hat: np.ndarray | None = None,
-    ) -> LQRCommand:
-        """All (..., 3) in m, m/s, m/s^2 (world), yaw terms (...,) in rad, rad/s; f_hat (..., 3) m/s^2."""
-        err = np.concatenate([pos - ref_pos, vel - ref_vel, wrap_angle(yaw - ref_yaw)[..., None]], axis=-1)
+    def describe(self) -> dict[str, Any]:
+        """Class and settings (JSON-serialisable), for logs and provenance."""
+        return {"type": type(self).__name__, **self.config.to_dict()}
+
+    def __call__(self, state: ControllerState, ref: RefSample, f_hat: np.ndarray | None = None) -> LQRCommand:
+        """The LQR command for estimated `state` and reference `ref` (same batch shapes);
+        f_hat (..., 3) m/s^2 is the predicted downwash, subtracted."""
+        err = np.concatenate(
+            [state.pos - ref.pos, state.vel - ref.vel, wrap_angle(state.yaw - ref.yaw)[..., None]], axis=-1
+        )
         fb = err @ self._Kt  # (..., 4) = K (x - x_ref)
-        acc = ref_acc - fb[..., :3]
+        acc = ref.acc - fb[..., :3]
         if f_hat is not None:
             acc = acc - f_hat
-        return LQRCommand(acc, ref_yaw_rate - fb[..., 3])
+        return LQRCommand(acc, ref.yaw_rate - fb[..., 3])
+
+    def setpoint(self, acc: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Feedback linearisation with this controller's limits (see `attitude_setpoint`)."""
+        return attitude_setpoint(acc, yaw, self.max_tilt, self.min_vertical)
 
     def command_setpoint(
         self,
-        pos: np.ndarray,
-        vel: np.ndarray,
-        yaw: np.ndarray,
-        ref_pos: np.ndarray,
-        ref_vel: np.ndarray,
-        ref_acc: np.ndarray,
-        ref_yaw: np.ndarray,
-        ref_yaw_rate: np.ndarray,
+        state: ControllerState,
+        ref: RefSample,
         f_hat: np.ndarray,
-        residual: np.ndarray | None,
-        override: np.ndarray | None,
-        lookahead: float,
-        max_tilt: float,
-        acc_out: np.ndarray,
-        yaw_rate_out: np.ndarray,
-        thrust_out: np.ndarray,
-        rot_out: np.ndarray,
-        min_vertical: float = 0.25 * GRAVITY,
+        out: Setpoint,
+        residual: np.ndarray | None = None,
+        override: np.ndarray | None = None,
+        lookahead: float = 0.0,
     ) -> None:
         """The control-rate step in one compiled pass, for (W, V, ...) float64 arrays.
 
-        Same meaning as `__call__` followed by `attitude_setpoint`:
-        u = a_ref - K (x - x_ref) - f_hat, plus `residual` (W, V, 3) m/s^2 when given,
-        replaced by `override` (W, V, 3) m/s^2 where that is finite; then feedback
-        linearisation towards the heading yaw + yaw_rate * lookahead (s).
-        Inputs as in `__call__` with shapes (W, V, 3) / (W, V). Writes
-        acc_out (W, V, 3) m/s^2 (u, the command applied), yaw_rate_out (W, V) rad/s,
-        thrust_out (W, V) m/s^2 and rot_out (W, V, 3, 3) body-to-world (R_d).
+        Same meaning as `__call__` followed by `setpoint`: u = a_ref - K (x - x_ref) - f_hat,
+        plus `residual` (W, V, 3) m/s^2 when given, replaced by `override` (W, V, 3) m/s^2
+        where that is finite; then feedback linearisation towards the heading
+        yaw + yaw_rate * lookahead (s). Writes into the buffers of `out`.
         """
         _command_setpoint_kernel(
-            pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
-            self._Kt, lookahead, math.tan(max_tilt), min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
+            state.pos, state.vel, state.yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat, residual,
+            override, self._Kt, lookahead, math.tan(self.max_tilt), self.min_vertical, *out,
         )
 
 
 def attitude_setpoint(
-    acc: np.ndarray, yaw: np.ndarray, max_tilt: float = np.deg2rad(35.0), min_vertical: float = 0.25 * GRAVITY
+    acc: np.ndarray, yaw: np.ndarray, max_tilt: float = np.deg2rad(MAX_TILT_DEG), min_vertical: float = MIN_THRUST_G * GRAVITY
 ) -> tuple[np.ndarray, np.ndarray]:
     """Feedback linearisation: acceleration command -> (specific thrust, desired attitude).
 

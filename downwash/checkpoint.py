@@ -18,24 +18,19 @@ import json
 import os
 import pickle
 import zipfile
-from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
+from core.errors import CheckpointError
+from core.io import atomic_write_bytes, to_json
 from downwash.models import MODEL_KINDS, DownwashModel, make_model
-from sim.logs import atomic_write_bytes
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint", "sidecar_path"]
 
 CHECKPOINT_FORMAT = "downwash-model"
 CHECKPOINT_VERSION = 1
-
-
-class CheckpointError(ValueError):
-    """A checkpoint is missing, unreadable, unsafe, or does not match what was expected."""
 
 
 def _unpickling_reason(e: Exception) -> str:
@@ -50,18 +45,6 @@ def _unpickling_reason(e: Exception) -> str:
 def sidecar_path(path: str | os.PathLike) -> Path:
     """The JSON metadata copy written beside a checkpoint: ``model.pt`` -> ``model.json``."""
     return Path(path).with_suffix(".json")
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, (np.ndarray, torch.Tensor)):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    if is_dataclass(o) and not isinstance(o, type):
-        return asdict(o)
-    raise TypeError(f"checkpoint metadata: {type(o).__name__} is not JSON serialisable")
 
 
 def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -82,7 +65,10 @@ def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[st
         "normalization": model.normalization(),
         "dtype": str(model.in_mean.dtype).replace("torch.", ""),
     }
-    meta_json = json.dumps(record, sort_keys=True, default=_json_default)
+    try:
+        meta_json = to_json(record)
+    except TypeError as e:
+        raise TypeError(f"checkpoint metadata: {e}") from e
     record = json.loads(meta_json)
     payload = {
         "format": CHECKPOINT_FORMAT,

@@ -16,9 +16,9 @@ from typing import Sequence
 
 import numpy as np
 
-from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, labels_from_log
+from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, MODEL_INPUTS, SAMPLE_SCHEMA, labels_from_log
 from sim.logs import load_log
-from sim.params import RATES
+from core.params import RATES
 
 __all__ = [
     "Dataset",
@@ -31,16 +31,12 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_ARRAYS = {  # name -> trailing shape
-    "dp": (3,),
-    "v_a": (3,),
-    "v_b": (3,),
-    "R_a": (3, 3),
-    "y": (3,),
+# name -> trailing shape: the labelled sample (SAMPLE_SCHEMA) with where it came from
+_ARRAYS = {
+    **{name: SAMPLE_SCHEMA[name][0] for name in (*MODEL_INPUTS, "y")},
     "flight": (),
     "stage": (),
-    "t": (),
-    "field_mean": (3,),
+    **{name: SAMPLE_SCHEMA[name][0] for name in ("t", "field_mean")},
 }
 
 

@@ -43,6 +43,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from core.geometry import dot
+
 __all__ = [
     "R_EPS",
     "V_EPS",
@@ -59,8 +61,6 @@ __all__ = [
     "assemble",
     "project_onto_basis",
     "model_inputs",
-    "rotation_about_axis",
-    "quat_to_rotmat",
 ]
 
 R_EPS = 1e-3  # m, softening of the radial unit vector and of the cosine near the wake axis
@@ -87,11 +87,6 @@ def _namespace(*arrays: Any) -> tuple[ModuleType, list[Any]]:
     ref = tensors[0]
     out = [a if isinstance(a, torch.Tensor) else torch.as_tensor(a, dtype=ref.dtype, device=ref.device) for a in arrays]
     return torch, out
-
-
-def _dot(xp: ModuleType, a, b):
-    """Dot product over the last axis (np.vecdot / torch.linalg.vecdot: one fused call)."""
-    return np.vecdot(a, b) if xp is np else torch.linalg.vecdot(a, b)
 
 
 def _sqrt0(xp: ModuleType, sq):
@@ -122,13 +117,13 @@ def leader_axis(R_a):
 def project_plane(x, n):
     """``P x = x - (x . n) n``: the part of x (..., 3) in the plane normal to n (..., 3)."""
     xp, (x, n) = _namespace(x, n)
-    return x - _dot(xp, x, n)[..., None] * n
+    return x - dot(x, n, xp)[..., None] * n
 
 
 def safe_norm(x):
     """Euclidean norm over the last axis (...,), value 0 and (torch) gradient 0 at x = 0."""
     xp, (x,) = _namespace(x)
-    return _sqrt0(xp, _dot(xp, x, x))
+    return _sqrt0(xp, dot(x, x, xp))
 
 
 def depth(dp, R_a):
@@ -138,7 +133,7 @@ def depth(dp, R_a):
     directly below a level leader, negative above it.
     """
     xp, (dp, R_a) = _namespace(dp, R_a)
-    return -_dot(xp, dp, leader_axis(R_a))
+    return -dot(dp, leader_axis(R_a), xp)
 
 
 def _check_equivariant_set(feature_set: str) -> None:
@@ -151,21 +146,21 @@ def _check_equivariant_set(feature_set: str) -> None:
 def _equivariant_inputs(xp: ModuleType, dp, v_a, v_b, R_a, feature_set: str, want_features: bool = True):
     """Invariant features (..., k) (or None) and output basis (..., 2, 3), sharing intermediates."""
     n = leader_axis(R_a)
-    dp_n = _dot(xp, dp, n)
+    dp_n = dot(dp, n, xp)
     pdp = dp - dp_n[..., None] * n
-    r2 = _dot(xp, pdp, pdp)
+    r2 = dot(pdp, pdp, xp)
     r_soft = xp.sqrt(r2 + R_EPS**2)
     basis = _stack(xp, [pdp / r_soft[..., None], -n], -2)
     if not want_features:
         return None, basis
-    vb_n = _dot(xp, v_b, n)
+    vb_n = dot(v_b, n, xp)
     pvb = v_b - vb_n[..., None] * n
-    q2 = _dot(xp, pvb, pvb)
-    c = _dot(xp, pdp, pvb) / (r_soft * xp.sqrt(q2 + V_EPS**2))
+    q2 = dot(pvb, pvb, xp)
+    c = dot(pdp, pvb, xp) / (r_soft * xp.sqrt(q2 + V_EPS**2))
     cols = [c, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n]
     if feature_set == "6":
-        pva = v_a - _dot(xp, v_a, n)[..., None] * n
-        cols.append(_sqrt0(xp, _dot(xp, pva, pva)))
+        pva = v_a - dot(v_a, n, xp)[..., None] * n
+        cols.append(_sqrt0(xp, dot(pva, pva, xp)))
     return _stack(xp, cols, -1), basis
 
 
@@ -232,33 +227,3 @@ def model_inputs(feature_set: str, dp, v_a, v_b, R_a):
     if feature_set in RAW_FEATURE_SETS:
         return raw_features(dp, v_b), None
     raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {feature_set!r}")
-
-
-def rotation_about_axis(axis, angle):
-    """Rotation matrices (..., 3, 3) by ``angle`` (...,) rad about unit ``axis`` (..., 3) (Rodrigues)."""
-    xp, (axis, angle) = _namespace(axis, angle)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    c, s = xp.cos(angle), xp.sin(angle)
-    C = 1 - c
-    rows = [
-        [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
-        [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
-        [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
-    ]
-    return xp.stack([xp.stack(r, -1) for r in rows], -2)
-
-
-def quat_to_rotmat(quat):
-    """Body-to-world rotation matrices (..., 3, 3) from MuJoCo quaternions (w, x, y, z) (..., 4).
-
-    The quaternion is normalised first, so slightly non-unit input is fine.
-    """
-    xp, (quat,) = _namespace(quat)
-    q = quat / safe_norm(quat)[..., None]
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return xp.stack([xp.stack(r, -1) for r in rows], -2)

@@ -28,14 +28,16 @@ import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from downwash.features import quat_to_rotmat
+from core.errors import ConfigError
+from core.geometry import quat_to_mat
 from sim.logs import FlightLog, load_log
 
 __all__ = [
     "DEFAULT_WINDOW",
     "DEFAULT_POLYORDER",
     "FAIL_MARGIN_S",
-    "LABEL_KEYS",
+    "SAMPLE_SCHEMA",
+    "MODEL_INPUTS",
     "sample_period",
     "follower_acceleration",
     "command_kernel",
@@ -59,25 +61,37 @@ DEFAULT_WINDOW = 19  # samples at 50 Hz (0.38 s)
 DEFAULT_POLYORDER = 4
 FAIL_MARGIN_S = 0.5  # s, dropped before the end of a flight that ended early (collision, divergence)
 
-LABEL_KEYS = ("dp", "v_a", "v_b", "R_a", "y", "t", "row", "field_mean", "field_applied")
+# One labelled sample, the schema every data container follows: name -> (trailing shape, meaning).
+SAMPLE_SCHEMA: dict[str, tuple[tuple[int, ...], str]] = {
+    "dp": ((3,), "m, p_follower - p_leader (estimates), world frame"),
+    "v_a": ((3,), "m/s, leader velocity (estimate), world frame"),
+    "v_b": ((3,), "m/s, follower velocity (estimate), world frame"),
+    "R_a": ((3, 3), "leader body-to-world rotation"),
+    "y": ((3,), "m/s^2, label f = a - u on the follower, world frame"),
+    "t": ((), "s, tick time within the flight"),
+    "row": ((), "row index in the log"),
+    "field_mean": ((3,), "m/s^2, true mean field on the follower (diagnostics only)"),
+    "field_applied": ((3,), "m/s^2, true applied field, mean + turbulence (diagnostics only)"),
+}
+MODEL_INPUTS = ("dp", "v_a", "v_b", "R_a")  # what every model takes, in the order of its call
 
 
 def _check_filter(window: int, polyorder: int) -> None:
     if int(window) != window or window < 3 or window % 2 != 1:
-        raise ValueError(f"window: expected an odd integer >= 3 (samples), got {window!r}")
+        raise ConfigError(f"window: expected an odd integer >= 3 (samples), got {window!r}")
     if int(polyorder) != polyorder or not 2 <= polyorder < window:
-        raise ValueError(f"polyorder: expected an integer in [2, window - 1] = [2, {window - 1}], got {polyorder!r}")
+        raise ConfigError(f"polyorder: expected an integer in [2, window - 1] = [2, {window - 1}], got {polyorder!r}")
 
 
 def sample_period(t: np.ndarray, rtol: float = 1e-3) -> float:
     """The uniform sample period of times t (T,) in s; ValueError if the spacing is not uniform."""
     t = np.asarray(t, dtype=np.float64)
     if t.ndim != 1 or t.size < 2:
-        raise ValueError(f"t: expected a 1-D array of at least 2 times, got shape {t.shape}")
+        raise ConfigError(f"t: expected a 1-D array of at least 2 times, got shape {t.shape}")
     d = np.diff(t)
     dt = float(np.median(d))
     if not dt > 0 or np.max(np.abs(d - dt)) > rtol * dt:
-        raise ValueError(f"t: samples must be uniformly spaced (median step {dt:.6g} s, worst {d.min():.6g}..{d.max():.6g} s)")
+        raise ConfigError(f"t: samples must be uniformly spaced (median step {dt:.6g} s, worst {d.min():.6g}..{d.max():.6g} s)")
     return dt
 
 
@@ -96,9 +110,9 @@ def follower_acceleration(
     _check_filter(window, polyorder)
     mocap_pos = np.asarray(mocap_pos, dtype=np.float64)
     if mocap_pos.shape[0] != np.shape(t)[0] or mocap_pos.shape[-1] != 3:
-        raise ValueError(f"mocap_pos: expected shape ({np.shape(t)[0]}, ..., 3), got {mocap_pos.shape}")
+        raise ConfigError(f"mocap_pos: expected shape ({np.shape(t)[0]}, ..., 3), got {mocap_pos.shape}")
     if mocap_pos.shape[0] < window:
-        raise ValueError(f"mocap_pos: {mocap_pos.shape[0]} samples is shorter than the filter window {window}")
+        raise ConfigError(f"mocap_pos: {mocap_pos.shape[0]} samples is shorter than the filter window {window}")
     dt = sample_period(t)
     return savgol_filter(mocap_pos, window, polyorder, deriv=2, delta=dt, axis=0, mode="interp")
 
@@ -127,11 +141,8 @@ def smooth_command(u: np.ndarray, window: int = DEFAULT_WINDOW, polyorder: int =
 
 
 def _empty_labels() -> dict[str, np.ndarray]:
-    z3 = np.zeros((0, 3))
-    return {
-        "dp": z3, "v_a": z3, "v_b": z3, "R_a": np.zeros((0, 3, 3)), "y": z3, "t": np.zeros(0),
-        "row": np.zeros(0, dtype=np.int64), "field_mean": z3, "field_applied": z3,
-    }  # fmt: skip
+    return {name: np.zeros((0, *shape), dtype=np.int64 if name == "row" else np.float64)
+            for name, (shape, _) in SAMPLE_SCHEMA.items()}
 
 
 def labels_from_log(
@@ -144,7 +155,7 @@ def labels_from_log(
     """Model inputs and labels for the follower of one flight.
 
     Leader and follower are ``log.meta['leader']`` / ``['follower']`` (vehicle
-    indices, default 0 and 1). Returns arrays of N kept rows (see LABEL_KEYS):
+    indices, from the scene's roles). Returns arrays of N kept rows (SAMPLE_SCHEMA):
 
       dp (N, 3) m        pos_est[follower] - pos_est[leader], world frame
       v_a, v_b (N, 3)    m/s, vel_est of leader / follower
@@ -162,10 +173,10 @@ def labels_from_log(
     where = f"{source}: " if source is not None else ""
     arr = log.arrays
     V = arr["pos"].shape[1]
-    leader = int(log.meta.get("leader", 0))
-    follower = int(log.meta.get("follower", 1))
+    leader = int(log.meta["leader"])
+    follower = int(log.meta["follower"])
     if not (0 <= leader < V and 0 <= follower < V and leader != follower):
-        raise ValueError(f"{where}leader/follower: expected two distinct vehicle indices in [0, {V - 1}], got {leader}, {follower}")
+        raise ConfigError(f"{where}leader/follower: expected two distinct vehicle indices in [0, {V - 1}], got {leader}, {follower}")
     T = len(log)
     if T < 2:
         return _empty_labels()
@@ -193,7 +204,7 @@ def labels_from_log(
         "dp": pos[:, follower] - pos[:, leader],
         "v_a": vel[:, leader].astype(np.float64),
         "v_b": vel[:, follower].astype(np.float64),
-        "R_a": quat_to_rotmat(arr["quat"][rows, leader].astype(np.float64)),
+        "R_a": quat_to_mat(arr["quat"][rows, leader].astype(np.float64)),
         "y": acc[rows] - u[rows],
         "t": arr["t"][rows].astype(np.float64),
         "row": rows.astype(np.int64),
@@ -221,7 +232,7 @@ def label_noise_floor(
         errs_applied.append(lab["y"] - lab["field_applied"])
         errs_mean.append(lab["y"] - lab["field_mean"])
     if not errs_applied or sum(len(e) for e in errs_applied) == 0:
-        raise ValueError("label_noise_floor: no labelled samples in the given logs")
+        raise ConfigError("label_noise_floor: no labelled samples in the given logs")
     ea, em = np.concatenate(errs_applied), np.concatenate(errs_mean)
     return {
         "rmse": float(np.sqrt(np.mean(ea**2))),

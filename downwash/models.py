@@ -26,6 +26,8 @@ import torch
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
+from core.errors import ConfigError
+
 from downwash.features import (
     EQUIVARIANT_FEATURE_SETS,
     FEATURE_SETS,
@@ -74,7 +76,7 @@ class DownwashModel(nn.Module):
         super().__init__()
         feature_set = self.DEFAULT_FEATURE_SET if feature_set is None else str(feature_set)
         if feature_set not in self.ALLOWED_FEATURE_SETS:
-            raise ValueError(
+            raise ConfigError(
                 f"feature_set: model kind {self.kind!r} accepts {list(self.ALLOWED_FEATURE_SETS)}, got {feature_set!r}"
             )
         self.feature_set = feature_set
@@ -332,10 +334,12 @@ class DeepSNMLP(DownwashModel):
                 param.train(old_mode)
 
 
+# The one registry of model kinds (the paper's table order): experiments, conditions,
+# checkpoints and training all take their names from here.
 MODEL_KINDS: dict[str, type[DownwashModel]] = {
-    "equivariant": EquivariantModel,
     "shallow": ShallowMLP,
     "deep": DeepSNMLP,
+    "equivariant": EquivariantModel,
 }
 
 
@@ -348,7 +352,7 @@ def make_model(kind: str, feature_set: str | None = None, **architecture: Any) -
     feature sets.
     """
     if kind not in MODEL_KINDS:
-        raise ValueError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
+        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
     cls = MODEL_KINDS[kind]
     try:
         return cls(feature_set, **architecture)

@@ -19,7 +19,7 @@ import torch
 from downwash.checkpoint import load_checkpoint
 from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
 from downwash.models import DownwashModel
-from sim.predictor import VehicleStates
+from core.state import VehicleStates
 
 __all__ = ["LearnedPredictor"]
 

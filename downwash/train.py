@@ -31,13 +31,14 @@ import numpy as np
 import torch
 
 from downwash.datasets import split_by_flight
+from downwash.labels import MODEL_INPUTS, SAMPLE_SCHEMA
 from downwash.models import DeepSNMLP, DownwashModel, make_model
 
 __all__ = ["DEFAULT_LR", "TrainConfig", "train_model", "rmse", "predict"]
 
 logger = logging.getLogger(__name__)
 
-_REQUIRED = {"dp": (3,), "v_a": (3,), "v_b": (3,), "R_a": (3, 3), "y": (3,)}
+_REQUIRED = {name: SAMPLE_SCHEMA[name][0] for name in (*MODEL_INPUTS, "y")}  # name -> trailing shape
 
 
 # Peak learning rate per model kind, picked on synthetic data from the true field
@@ -126,7 +127,7 @@ def train_model(
     progress: bool = False,
     feature_set: str | None = None,
 ) -> tuple[DownwashModel, dict[str, Any]]:
-    """Train a fresh model of ``kind`` ("equivariant", "shallow", "deep").
+    """Train a fresh model of ``kind`` (a name of `downwash.models.MODEL_KINDS`).
 
     train, val: objects with arrays dp, v_a, v_b, R_a, y (see `datasets.Dataset`)
       and, for train when ``val`` is None, flight ids ``flight``: a

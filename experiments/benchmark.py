@@ -19,12 +19,18 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from controllers.references import Hover, Lemniscate, stack
+from core.params import LEADER_POSITION, RATES
+from core.state import VehicleStates
+from downwash.datasets import Dataset
+from downwash.models import make_model
+from downwash.predictor import LearnedPredictor
+from downwash.train import TrainConfig, train_model
+from envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.predictor import OraclePredictor
-from sim.params import LEADER_POSITION, RATES
 from sim.scene import build_scene
 from sim.simulator import Simulator
+from trajectories import Hover, Lemniscate, stack
 
 LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 
@@ -95,8 +101,6 @@ def run(args: BenchmarkArgs) -> dict:
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(1, 50 if args.quick else 2000)
     r["train_seconds_equivariant_full"] = train_seconds_equivariant(0.5 if args.quick else 17.0, field)
-    from sim.env import env_steps_per_s_single, env_steps_per_s_vector
-
     r["env_steps_per_s_single"] = env_steps_per_s_single(100 if args.quick else 2000, repeats=repeats)
     r["env_steps_per_s_vector64"] = env_steps_per_s_vector(worlds, 20 if args.quick else 200, repeats=repeats)
     r["env_vector64_physics_over_bare"] = r["env_steps_per_s_vector64"] * RATES.physics_per_control / r["bare_mj_step_per_s"]
@@ -105,10 +109,6 @@ def run(args: BenchmarkArgs) -> dict:
 
 def predictor_us_per_call(n_worlds: int, n_calls: int) -> float:
     """Microseconds per call of the equivariant model in the predictor slot (untrained weights, same cost)."""
-    from downwash.models import make_model
-    from downwash.predictor import LearnedPredictor
-    from sim.predictor import VehicleStates
-
     rng = np.random.default_rng(0)
     predictor = LearnedPredictor(make_model("equivariant"))
     pos = LEADER + rng.normal(scale=0.3, size=(n_worlds, 2, 3))
@@ -128,9 +128,6 @@ def train_seconds_equivariant(minutes: float, field: Any) -> float:
     with labels = true field + 0.1 m/s^2 noise: training cost depends on the sample count,
     not on where the labels came from.
     """
-    from downwash.datasets import Dataset
-    from downwash.train import TrainConfig, train_model
-
     rng = np.random.default_rng(0)
     n = int(minutes * 60 * 50)
     dp = np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), -rng.uniform(0.4, 1.8, n)], axis=1)

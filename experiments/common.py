@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
+from core.errors import ConfigError
+from core.io import atomic_write_json
 from sim.field import DownwashField
-from sim.logs import atomic_write_json
 
 __all__ = ["CommonArgs", "ProgressBar", "arg", "parse_args", "load_field", "write_results", "format_table", "setup_logging"]
 
@@ -62,18 +63,18 @@ def load_field(spec: str) -> Any:
     if not spec:
         return DownwashField()
     if spec.count(":") != 1:
-        raise ValueError(f"--field: expected MODULE:FACTORY (e.g. mypkg.fields:make_field), got {spec!r}")
+        raise ConfigError(f"--field: expected MODULE:FACTORY (e.g. mypkg.fields:make_field), got {spec!r}")
     module_name, factory_name = spec.split(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as e:
-        raise ValueError(f"--field: cannot import module {module_name!r}: {e}") from e
+        raise ConfigError(f"--field: cannot import module {module_name!r}: {e}") from e
     factory = getattr(module, factory_name, None)
     if not callable(factory):
-        raise ValueError(f"--field: {module_name!r} has no callable {factory_name!r}")
+        raise ConfigError(f"--field: {module_name!r} has no callable {factory_name!r}")
     obj = factory()
     if not callable(obj):
-        raise ValueError(f"--field: {spec} returned {type(obj).__name__}, which is not callable as field(p_a, v_a, R_a, p_b, v_b)")
+        raise ConfigError(f"--field: {spec} returned {type(obj).__name__}, which is not callable as field(p_a, v_a, R_a, p_b, v_b)")
     return obj
 
 

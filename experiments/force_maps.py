@@ -19,11 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
+from core.errors import ConfigError
+from downwash.checkpoint import load_checkpoint
+from downwash.models import MODEL_KINDS
+from downwash.staged import CollectionConfig, ensure_models
+from downwash.train import predict
+from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
 
 __all__ = ["ForceMapArgs", "run", "main"]
-
-MODELS = ("equivariant", "deep", "shallow")
 
 
 @dataclass(frozen=True)
@@ -40,8 +43,6 @@ def _evaluate(fn: Any, dp: np.ndarray, v_b: np.ndarray) -> np.ndarray:
 
 
 def _model_fn(model: Any):
-    from downwash.train import predict
-
     def fn(p_a, v_a, R_a, p_b, v_b):
         data = SimpleNamespace(dp=p_b - p_a, v_a=v_a, v_b=v_b, R_a=np.ascontiguousarray(R_a))
         return predict(model, data)
@@ -55,24 +56,18 @@ def run(args: ForceMapArgs) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from downwash.checkpoint import load_checkpoint
-
     if not 0 <= args.speed <= 1.0:
-        raise ValueError(f"--speed: allowed 0-1.0 m/s, got {args.speed}")
+        raise ConfigError(f"--speed: allowed 0-1.0 m/s, got {args.speed}")
     if not 5 <= args.resolution <= 301:
-        raise ValueError(f"--resolution: allowed 5-301, got {args.resolution}")
+        raise ConfigError(f"--resolution: allowed 5-301, got {args.resolution}")
     field = load_field(args.field)
     models_dir = Path(args.models_dir)
-    if not all((models_dir / f"{m}.pt").is_file() for m in MODELS):
-        from experiments import staged_collection
-
-        staged_collection.run(staged_collection.StagedArgs(
-            out=str(models_dir.parent / "staged_collection"), seed=args.seed, quick=args.quick,
-            field=args.field, models_dir=str(models_dir)), field=field)
+    checkpoints = ensure_models(models_dir, tuple(MODEL_KINDS), models_dir.parent / "staged_collection",
+                                CollectionConfig(seed=args.seed, quick=args.quick), field, ProgressBar)
     sources = {"truth": field}
-    for m in MODELS:
-        model, _ = load_checkpoint(models_dir / f"{m}.pt")
-        sources[m] = _model_fn(model)
+    for kind, path in checkpoints.items():
+        model, _ = load_checkpoint(path)
+        sources[kind] = _model_fn(model)
 
     n = 21 if args.quick else args.resolution
     g = np.linspace(-1.0, 1.0, n)

@@ -17,11 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import CommonArgs, ProgressBar, arg, format_table, parse_args, setup_logging, write_results
+from core.errors import ConfigError
+from downwash.datasets import concatenate, find_logs, load_dataset, shorten_per_stage
+from downwash.labels import label_noise_floor
+from downwash.models import MODEL_KINDS
+from downwash.staged import CollectionConfig, ensure_collection, train_config
+from downwash.train import rmse, train_model
+from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
 
 __all__ = ["EfficiencyArgs", "run", "main"]
 
-MODELS = ("shallow", "deep", "equivariant")
 MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # plus the full set
 
 
@@ -39,46 +44,37 @@ def run(args: EfficiencyArgs) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from downwash.datasets import concatenate, find_logs, load_dataset, shorten_per_stage
-    from downwash.labels import label_noise_floor
-    from downwash.train import TrainConfig, rmse, train_model
-
     try:
         wanted = sorted({float(m) for m in args.minutes.split(",") if m.strip()})
     except ValueError as e:
-        raise ValueError(f"--minutes: expected a comma list of numbers, got {args.minutes!r}") from e
+        raise ConfigError(f"--minutes: expected a comma list of numbers, got {args.minutes!r}") from e
     if any(m <= 0 for m in wanted):
-        raise ValueError(f"--minutes: every value must be > 0, got {wanted}")
+        raise ConfigError(f"--minutes: every value must be > 0, got {wanted}")
     if args.trials < 1:
-        raise ValueError(f"--trials: expected >= 1, got {args.trials}")
-    collection = Path(args.collection)
-    if not (collection / "manifest.json").is_file():
-        from experiments import staged_collection
-
-        staged_collection.run(staged_collection.StagedArgs(
-            out=str(collection), seed=args.seed, quick=args.quick, field=args.field, models_dir=args.models_dir))
+        raise ConfigError(f"--trials: expected >= 1, got {args.trials}")
+    collection = ensure_collection(args.collection, args.models_dir, CollectionConfig(seed=args.seed, quick=args.quick),
+                                   load_field(args.field), ProgressBar)
     t_start = time.perf_counter()
     train_dirs = sorted(collection.glob("stage*/train"))
     val_dirs = sorted(collection.glob("stage*/val"))
     if not train_dirs or not val_dirs:
-        raise ValueError(f"{collection}: expected stage*/train and stage*/val folders of flight logs")
+        raise ConfigError(f"{collection}: expected stage*/train and stage*/val folders of flight logs")
     train_all = concatenate([load_dataset(d) for d in train_dirs])
     val = concatenate([load_dataset(d) for d in val_dirs])
     floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)])
     full = train_all.n_minutes
     minutes = [m for m in wanted if m < full] + [full]
     trials = min(args.trials, 2) if args.quick else args.trials
-    config = {"max_epochs": 3, "min_steps": 30} if args.quick else {}
 
-    rmse_runs = {m: np.zeros((len(minutes), trials)) for m in MODELS}
+    rmse_runs = {m: np.zeros((len(minutes), trials)) for m in MODEL_KINDS}
     bar = ProgressBar("sample efficiency", 30)
-    total, done = len(minutes) * trials * len(MODELS), 0
+    total, done = len(minutes) * trials * len(MODEL_KINDS), 0
     for i, minute in enumerate(minutes):
         for trial in range(trials):
             rng = np.random.default_rng([args.seed, trial, i])
             data = train_all if minute >= full else shorten_per_stage(train_all, minute, rng)
-            for kind in MODELS:
-                model, _ = train_model(kind, data, None, TrainConfig(seed=args.seed + trial, **config))
+            for kind in MODEL_KINDS:
+                model, _ = train_model(kind, data, None, train_config(args.seed + trial, args.quick))
                 rmse_runs[kind][i, trial] = rmse(model, val)[0]
                 done += 1
                 bar(done, total)

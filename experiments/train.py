@@ -17,16 +17,21 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import ConfigError
+from downwash.checkpoint import save_checkpoint
+from downwash.datasets import find_logs, load_dataset, shorten_per_stage
+from downwash.labels import label_noise_floor
+from downwash.models import MODEL_KINDS, count_parameters
+from downwash.staged import train_config
+from downwash.train import rmse, train_model
 from experiments.common import CommonArgs, arg, format_table, parse_args, setup_logging, write_results
 
 __all__ = ["TrainArgs", "run", "main"]
 
-MODELS = ("equivariant", "shallow", "deep")
-
 
 @dataclass(frozen=True)
 class TrainArgs(CommonArgs):
-    model: str = arg("equivariant", "model kind: " + ", ".join(MODELS))
+    model: str = arg("equivariant", "model kind: " + ", ".join(MODEL_KINDS))
     logs: str = arg("", "folder of training flight logs (.npz), searched recursively")
     val_logs: str = arg("", "folder of validation flight logs (.npz), searched recursively")
     minutes: float = arg(0.0, "shorten the training data to this many minutes, each stage proportionally (0: all)")
@@ -35,24 +40,18 @@ class TrainArgs(CommonArgs):
 
 
 def run(args: TrainArgs) -> dict:
-    from downwash.checkpoint import save_checkpoint
-    from downwash.datasets import find_logs, load_dataset, shorten_per_stage
-    from downwash.labels import label_noise_floor
-    from downwash.models import MODEL_KINDS, count_parameters
-    from downwash.train import TrainConfig, rmse, train_model
-
     if args.model not in MODEL_KINDS:
-        raise ValueError(f"--model: unknown {args.model!r}; allowed: {', '.join(MODEL_KINDS)}")
+        raise ConfigError(f"--model: unknown {args.model!r}; allowed: {', '.join(MODEL_KINDS)}")
     if not args.logs or not args.val_logs:
-        raise ValueError("--logs and --val-logs: both folders of flight logs are required")
+        raise ConfigError("--logs and --val-logs: both folders of flight logs are required")
     if args.minutes < 0:
-        raise ValueError(f"--minutes: expected >= 0, got {args.minutes}")
+        raise ConfigError(f"--minutes: expected >= 0, got {args.minutes}")
     train = load_dataset(args.logs, recursive=True)  # raises naming the folder or file when empty/foreign
     val_files = find_logs(args.val_logs, recursive=True)
     val = load_dataset(val_files)
     if args.minutes:
         train = shorten_per_stage(train, args.minutes, np.random.default_rng(args.seed))
-    config = TrainConfig(seed=args.seed, **({"max_epochs": 3, "min_steps": 30} if args.quick else {}))
+    config = train_config(args.seed, args.quick)
     t0 = time.perf_counter()
     model, history = train_model(args.model, train, None, config, progress=True, feature_set=args.feature_set or None)
     seconds = time.perf_counter() - t0

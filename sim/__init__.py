@@ -1,36 +1,28 @@
-"""Simulation: scene, ground-truth downwash field, estimation, the stepping loop, logs, envs.
+"""The integrator: scene, ground-truth field, turbulence, estimation, physics, the loop, logs, metrics.
 
-Importing `sim` registers its Gymnasium environments (entry points are strings, so
-this imports gymnasium's registry only: no MuJoCo, no torch):
+Modules (import them directly):
 
-- ``DownwashFollower-v0``: the follower flies the paper's lemniscate 0.6 m below a
-  hovering leader, in its downwash; 500 steps (10 s at 50 Hz).
-- ``DownwashFollowerPasses-v0``: randomised passes and hovers through and beside
-  the wake, 0.5-1.2 m below the leader; 1000 steps (20 s).
+- `sim.scene`: N quadrotors from `assets/quad.xml` with named roles (`build_scene`)
+- `sim.field`: the ground-truth downwash field (`DownwashField`, `pairwise_field`)
+- `sim.turbulence`: turbulence on the field (`OUTurbulence`)
+- `sim.estimation`: motion capture and the Kalman filter
+- `sim.physics`: one stepping interface over `MjData` and `mujoco.batch.Batch`
+- `sim.simulator`: the multi-rate loop (`Simulator`, `SimConfig`)
+- `sim.flight`: fly a batch to the end (`fly`) -> `sim.logs.FlightLog`
+- `sim.logs`, `sim.metrics`: flight logs on disk, tracking metrics
+- `sim.predictor`: the slot through which a downwash model reaches the loop
 
-Both take every option of `sim.env.FollowerConfig` as a `gymnasium.make` keyword
-(``action_mode="residual"`` by default, or ``"acceleration"``) and have a native
-vector env: ``gymnasium.make_vec(id, num_envs=N)``. Without a prior ``import sim``,
-use the module-qualified id ``gymnasium.make("sim:DownwashFollower-v0")``.
+`import sim` imports neither gymnasium nor torch: the Gymnasium environments live
+in `envs` (`import envs` registers their ids).
 """
 
-from gymnasium.envs.registration import register as _register
-from gymnasium.envs.registration import registry as _registry
+import sys as _sys
 
-ENV_IDS = ("DownwashFollower-v0", "DownwashFollowerPasses-v0")
+if "gymnasium" in _sys.modules and "envs" not in _sys.modules:
+    # Backward compatibility: the env ids used to be registered by `import sim`, and
+    # `gymnasium.make("sim:DownwashFollower-v0")` imports this package to find them. They
+    # now live in `envs`; register them the old way only when gymnasium is already loaded,
+    # so that importing sim never pulls in gymnasium itself.
+    import importlib as _importlib
 
-_ENVS = {
-    "DownwashFollower-v0": ({}, 500),
-    "DownwashFollowerPasses-v0": ({"reference": "passes", "separation": (0.5, 1.2)}, 1000),
-}
-
-for _id, (_kwargs, _steps) in _ENVS.items():
-    if _id not in _registry:  # re-imports (importlib.reload) must not warn about overriding
-        _register(
-            id=_id,
-            entry_point="sim.env:DownwashFollowerEnv",
-            vector_entry_point="sim.env:DownwashFollowerVectorEnv",
-            max_episode_steps=_steps,
-            kwargs=_kwargs,
-        )
-del _id, _kwargs, _steps
+    _importlib.import_module("envs")

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from sim.jit import njit
+from core.errors import ConfigError
+from core.jit import njit
 
 __all__ = ["MocapConfig", "steady_state_gain", "kalman_gain_sequence", "MocapKalmanFilter", "kf_predict", "kf_update"]
 
@@ -31,7 +32,7 @@ class MocapConfig:
     def __post_init__(self):
         for name in ("position_noise", "yaw_noise", "process_accel_noise"):
             if not getattr(self, name) >= 0.0:
-                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
+                raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
 
 
 def _model(dt: float, q_acc: float, r_pos: float):

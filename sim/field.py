@@ -35,7 +35,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sim.jit import njit
+from core.errors import ConfigError
+from core.geometry import dot as _dot
+from core.jit import njit
+from core.validate import check_trailing_shapes
 
 __all__ = ["DownwashField", "pairwise_field"]
 
@@ -45,32 +48,9 @@ _C4_CORE = 0.5  # -, radius (in units of sigma) inside which the c4 modulation t
 _ZERO, _ONE, _THREE, _NEG_HALF = (np.array(x) for x in (0.0, 1.0, 3.0, -0.5))
 _NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[NEXT] b[PREV] - a[PREV] b[NEXT]
 
-# np.vecdot (NumPy >= 2) is a generalised ufunc, about 2.5x cheaper per call than einsum.
-_dot: Callable[[np.ndarray, np.ndarray], np.ndarray] = getattr(
-    np, "vecdot", lambda a, b: np.einsum("...i,...i->...", a, b)
-)
-
-
 def _is_off(value: Any) -> bool:
     """True when a knob is a plain Python number equal to 0 (its code path is skipped)."""
     return isinstance(value, (int, float)) and value == 0
-
-
-def _check_vectors(shapes: dict[str, tuple[int, ...]], tail: dict[str, tuple[int, ...]]) -> None:
-    """Raise ValueError naming the first array whose trailing dims differ from `tail`
-    or whose batch shape does not broadcast against the others."""
-    batches = []
-    for name, shape in shapes.items():
-        want = tail[name]
-        if len(shape) < len(want) or tuple(shape[len(shape) - len(want):]) != want:
-            pretty = "(..., " + ", ".join(str(d) for d in want) + ")"
-            raise ValueError(f"{name}: expected {pretty} but found {tuple(shape)}")
-        batches.append((name, tuple(shape[: len(shape) - len(want)])))
-    try:
-        np.broadcast_shapes(*(b for _, b in batches))
-    except ValueError:
-        found = ", ".join(f"{name} {b}" for name, b in batches)
-        raise ValueError(f"batch shapes do not broadcast: {found}") from None
 
 
 @dataclass(frozen=True)
@@ -204,7 +184,7 @@ class DownwashField:
         """
         if validate:
             p_a, v_a, R_a, p_b, v_b = (np.asarray(x) for x in (p_a, v_a, R_a, p_b, v_b))
-            _check_vectors(
+            check_trailing_shapes(
                 {"p_a": p_a.shape, "v_a": v_a.shape, "R_a": R_a.shape,
                  "p_b": p_b.shape, "v_b": v_b.shape},
                 {"p_a": (3,), "v_a": (3,), "R_a": (3, 3), "p_b": (3,), "v_b": (3,)},
@@ -301,14 +281,14 @@ def pairwise_field(
                 return result
     pos, vel, rot = np.asarray(pos), np.asarray(vel), np.asarray(rot)
     if pos.ndim < 2 or pos.shape[-1] != 3:
-        raise ValueError(f"pos: expected (..., V, 3) but found {pos.shape}")
+        raise ConfigError(f"pos: expected (..., V, 3) but found {pos.shape}")
     n_veh = pos.shape[-2]
     if vel.shape[-2:] != (n_veh, 3):
-        raise ValueError(f"vel: expected (..., {n_veh}, 3) like pos but found {vel.shape}")
+        raise ConfigError(f"vel: expected (..., {n_veh}, 3) like pos but found {vel.shape}")
     if rot.shape[-3:] != (n_veh, 3, 3):
-        raise ValueError(f"rot: expected (..., {n_veh}, 3, 3) like pos but found {rot.shape}")
+        raise ConfigError(f"rot: expected (..., {n_veh}, 3, 3) like pos but found {rot.shape}")
     if not (pos.shape[:-2] == vel.shape[:-2] == rot.shape[:-3]):
-        _check_vectors(
+        check_trailing_shapes(
             {"pos": pos.shape, "vel": vel.shape, "rot": rot.shape},
             {"pos": (n_veh, 3), "vel": (n_veh, 3), "rot": (n_veh, 3, 3)},
         )

@@ -7,8 +7,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from sim.logs import ARRAY_SPECS, STATUS_CODES, FlightLog
-from sim.predictor import Predictor
+from core.errors import ConfigError
+from core.status import Status
+from sim.logs import ARRAY_SPECS, FlightLog
 from sim.scene import Scene
 from sim.simulator import SimConfig, Simulator
 
@@ -23,29 +24,26 @@ def fly(
     seeds: Sequence[int],
     duration: float,
     *,
-    config: SimConfig | None = None,
-    field: Any | None = None,
-    predictor: Predictor | None = None,
-    field_enabled: np.ndarray | None = None,
     meta: Sequence[dict] | dict | None = None,
-    n_threads: int = 0,
     progress: Callable[[int, int], None] | None = None,
+    **components: Any,
 ) -> list[FlightLog]:
     """Fly W = len(seeds) worlds for `duration` seconds; returns their logs.
 
+    components: the `Simulator` keywords (config, controller, autopilot, turbulence,
+      field, predictor, field_enabled, n_threads).
     meta: extra metadata per world (a list) or shared (a dict), merged into each log.
+    progress: called as progress(ticks done, ticks in all) after each controller tick.
     A world that diverges or collides ends early with its status and message in the
     log's metadata; the others fly on.
     """
     if not duration > 0:
-        raise ValueError(f"duration: must be > 0 s, got {duration}")
+        raise ConfigError(f"duration: must be > 0 s, got {duration}")
+    config = components.get("config")
     control_dt = (config if config is not None else SimConfig()).rates.control_dt
     if round(duration / control_dt) < 1:
-        raise ValueError(f"duration: {duration} s is shorter than one controller period ({control_dt} s)")
-    sim = Simulator(
-        scene, reference, seeds, config=config, field=field, predictor=predictor,
-        field_enabled=field_enabled, n_threads=n_threads,
-    )
+        raise ConfigError(f"duration: {duration} s is shorter than one controller period ({control_dt} s)")
+    sim = Simulator(scene, reference, seeds, **components)
     W = sim.W
     n_ticks = int(round(duration / sim.cfg.rates.control_dt))
     # The simulator's rows are fresh arrays it never writes again, so they are kept as
@@ -66,7 +64,7 @@ def fly(
     if isinstance(meta, dict) or meta is None:
         meta = [dict(meta or {}) for _ in range(W)]
     if len(meta) != W:
-        raise ValueError(f"meta: expected {W} entries (one per world), got {len(meta)}")
+        raise ConfigError(f"meta: expected {W} entries (one per world), got {len(meta)}")
     logs = []
     for w in range(W):
         n = int(sim.tick_index[w])
@@ -75,18 +73,21 @@ def fly(
             "seed": sim.seeds[w],
             "config": sim.cfg.to_dict(),
             "vehicles": list(scene.vehicles),
-            "leader": 0,
-            "follower": 1,
+            "roles": [r.value for r in scene.roles],
+            "leader": scene.leader,
+            "follower": scene.follower,
+            "controller": _describe(sim.controller),
+            "turbulence": _describe(sim.turbulence),
             "field": _describe(sim.field),
             "field_enabled": bool(sim.field_enabled[w]),
-            "predictor": _describe(predictor),
+            "predictor": _describe(components.get("predictor")),
             "duration": duration,
             "status": int(sim.status[w]),
-            "status_name": STATUS_CODES[int(sim.status[w])],
+            "status_name": Status(int(sim.status[w])).label,
             "message": sim.message[w],
         }
         info.update(meta[w])
-        if info["status"] != 0:
+        if info["status"] != Status.OK:
             log.warning("%s", info["message"])
         logs.append(FlightLog(arrays, info))
     return logs

@@ -1,21 +1,9 @@
-"""The one place that configures compiled kernels (numba).
+"""Deprecated: the compiled-kernel helper moved to `core.jit`."""
 
-The per-autopilot-tick work (field, autopilot, attitude set-points) runs at 100 Hz
-on every world; as NumPy on small arrays its cost is dominated by per-call
-overhead (about 1 us per operation), which made a single flight run at only a few
-tens of times real time. These few kernels are compiled with numba instead:
-explicit loops over the flattened batch, the same code for one world or many.
-`cache=True` keeps the machine code on disk, so only the first import compiles.
-Strict IEEE arithmetic (no fastmath) keeps results bit-identical run to run.
-"""
+import warnings
 
-from __future__ import annotations
-
-import numba
+from core.jit import njit  # noqa: F401
 
 __all__ = ["njit"]
 
-
-def njit(fn):
-    """Compile `fn` in nopython mode, cached on disk, without fast-math reassociation."""
-    return numba.njit(cache=True, fastmath=False, nogil=True)(fn)
+warnings.warn("sim.jit is deprecated; import from core.jit instead", DeprecationWarning, stacklevel=2)

@@ -8,9 +8,9 @@ training silently.
 
 from __future__ import annotations
 
+import io
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,16 +18,17 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import LogError
+from core.io import atomic_write_bytes, to_json
+from core.status import Status
+
 __all__ = [
     "SCHEMA_VERSION",
     "ARRAY_SPECS",
-    "STATUS_CODES",
     "FlightLog",
     "LogError",
     "save_log",
     "load_log",
-    "atomic_write_bytes",
-    "atomic_write_json",
 ]
 
 SCHEMA_VERSION = 1
@@ -51,21 +52,14 @@ ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "field_applied": (("V", 3), "m/s^2, downwash actually applied at the tick (mean + turbulence)"),
 }
 
-# status code -> meaning; a flight that ends early keeps its rows up to the end.
-STATUS_CODES = {0: "ok", 1: "diverged", 2: "ground collision", 3: "vehicle collision"}
-
-
-class LogError(ValueError):
-    """A log file is missing, truncated, foreign or of another schema version."""
-
-
 @dataclass
 class FlightLog:
     """One flight of one world.
 
     arrays: name -> (T, ...) array, see ARRAY_SPECS.
     meta: JSON-serialisable dict; always holds schema_version, seed, config,
-      vehicles (names), status (code), message.
+      vehicles (names), roles, leader and follower (indices), status (a `Status`
+      code; a flight that ends early keeps its rows up to the end), message.
     """
 
     arrays: dict[str, np.ndarray]
@@ -79,39 +73,7 @@ class FlightLog:
 
     @property
     def ok(self) -> bool:
-        return self.meta.get("status", 0) == 0
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write to a temporary file in the same folder, then rename: never a half file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Atomically write `obj` as indented JSON."""
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+        return self.meta.get("status", Status.OK) == Status.OK
 
 
 def save_log(path: str | os.PathLike, log: FlightLog) -> None:
@@ -119,10 +81,8 @@ def save_log(path: str | os.PathLike, log: FlightLog) -> None:
     _check_arrays(log.arrays, where=str(path))
     meta = dict(log.meta)
     meta["schema_version"] = SCHEMA_VERSION
-    import io
-
     buf = io.BytesIO()
-    meta_bytes = np.frombuffer(json.dumps(meta, sort_keys=True, default=_json_default).encode(), dtype=np.uint8)
+    meta_bytes = np.frombuffer(to_json(meta).encode(), dtype=np.uint8)
     np.savez_compressed(buf, __meta__=meta_bytes, **log.arrays)
     atomic_write_bytes(path, buf.getvalue())
 

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import ConfigError
 from sim.logs import FlightLog
 
-__all__ = ["TRACKING_METRICS", "IMPROVEMENT_METRICS", "tracking_errors", "tracking_metrics", "improvement"]
+__all__ = [
+    "TRACKING_METRICS", "IMPROVEMENT_METRICS", "tracking_errors", "tracking_metrics", "improvement",
+    "aggregate_conditions",
+]
 
 TRACKING_METRICS = (
     "pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak",
@@ -21,7 +25,7 @@ def tracking_errors(log: FlightLog, vehicle: int | None = None) -> dict[str, np.
 
     Returns pos_3d, pos_xy, pos_z (m) and vel_3d, vel_xy, vel_z (m/s), each (T,).
     """
-    v = log.meta.get("follower", 1) if vehicle is None else vehicle
+    v = log.meta["follower"] if vehicle is None else vehicle
     dp = log["pos"][:, v] - log["ref_pos"][:, v]
     dv = log["vel"][:, v] - log["ref_vel"][:, v]
     return {
@@ -33,7 +37,7 @@ def tracking_errors(log: FlightLog, vehicle: int | None = None) -> dict[str, np.
 def tracking_metrics(log: FlightLog, vehicle: int | None = None) -> dict[str, float]:
     """The scalar metrics of TRACKING_METRICS for one flight."""
     if len(log) == 0:
-        raise ValueError("tracking_metrics: the log has no rows")
+        raise ConfigError("tracking_metrics: the log has no rows")
     e = tracking_errors(log, vehicle)
     out = {}
     for key, x in e.items():  # "pos_3d" -> "pos_err_3d_mean"
@@ -46,3 +50,40 @@ def tracking_metrics(log: FlightLog, vehicle: int | None = None) -> dict[str, fl
 def improvement(metrics: dict[str, float], baseline: dict[str, float]) -> dict[str, float]:
     """Fractions by which `metrics` improve on `baseline` (0.36: 36 % smaller error)."""
     return {name: 1.0 - metrics[m] / baseline[m] for name, m in IMPROVEMENT_METRICS.items()}
+
+
+def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: str = "baseline",
+                         oracle: str = "oracle", unmodelled: tuple[str, ...] = ("no_downwash",)) -> dict[str, dict]:
+    """Metrics per condition from logs flown on the same seeds (seed k is the k-th log of each).
+
+    Each condition gets the mean over seeds of every TRACKING_METRICS entry, the per-seed
+    values under `per_seed`, and `failed_flights` (messages). With a `baseline`
+    condition, every other condition but the `unmodelled` ones gets the paired
+    IMPROVEMENT_METRICS (per seed, then their mean); with an `oracle` too, every
+    compensating condition gets `gap_to_oracle_pos_3d` (m): how much larger its mean 3D
+    position error is than the oracle's.
+    """
+    out: dict[str, dict] = {}
+    for c, logs in per_condition.items():
+        per_seed = [tracking_metrics(L) for L in logs]
+        entry: dict = {m: float(np.mean([p[m] for p in per_seed])) for m in TRACKING_METRICS}
+        entry["per_seed"] = {m: [p[m] for p in per_seed] for m in TRACKING_METRICS}
+        entry["failed_flights"] = [L.meta["message"] for L in logs if not L.ok]
+        out[c] = entry
+    if baseline not in out:
+        return out
+    base = out[baseline]["per_seed"]
+    n = len(base[TRACKING_METRICS[0]])
+    for c, entry in out.items():
+        if c == baseline or c in unmodelled:
+            continue
+        imps = [improvement({m: entry["per_seed"][m][k] for m in TRACKING_METRICS},
+                            {m: base[m][k] for m in TRACKING_METRICS}) for k in range(n)]
+        for key in IMPROVEMENT_METRICS:
+            entry["per_seed"][key] = [i[key] for i in imps]
+            entry[key] = float(np.mean(entry["per_seed"][key]))
+    if oracle in out:
+        for c, entry in out.items():
+            if c not in (baseline, oracle) and c not in unmodelled:
+                entry["gap_to_oracle_pos_3d"] = entry["pos_err_3d_mean"] - out[oracle]["pos_err_3d_mean"]
+    return out

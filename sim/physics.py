@@ -13,7 +13,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from sim.jit import njit
+from core.jit import njit
 
 __all__ = ["Physics", "make_physics"]
 

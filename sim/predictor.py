@@ -7,10 +7,13 @@ between calls; the controller subtracts it: `u = a_ref - K (x - x_ref) - f_hat`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
+
+from core.errors import ConfigError
+from core.state import VehicleStates
+from sim.field import pairwise_field
 
 __all__ = [
     "VehicleStates",
@@ -19,24 +22,6 @@ __all__ = [
     "OraclePredictor",
     "PerWorldPredictor",
 ]
-
-
-@dataclass(frozen=True)
-class VehicleStates:
-    """States of every vehicle in every world.
-
-    pos: (W, V, 3) m, world frame (z up).
-    vel: (W, V, 3) m/s, world frame.
-    rot: (W, V, 3, 3) body-to-world rotation; column 2 is the body's up axis.
-    """
-
-    pos: np.ndarray
-    vel: np.ndarray
-    rot: np.ndarray
-
-    def select(self, worlds: np.ndarray) -> "VehicleStates":
-        """The states of a subset of worlds (index array or boolean mask)."""
-        return VehicleStates(self.pos[worlds], self.vel[worlds], self.rot[worlds])
 
 
 @runtime_checkable
@@ -62,13 +47,10 @@ class OraclePredictor:
     """The true mean field (no turbulence) at the true state: the best any model can do."""
 
     def __init__(self, field):
-        from sim.field import pairwise_field  # local: the field module is the source of the law
-
-        self._pairwise = pairwise_field
         self.field = field
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates) -> np.ndarray:
-        return self._pairwise(self.field, true.pos, true.vel, true.rot)
+        return pairwise_field(self.field, true.pos, true.vel, true.rot)
 
 
 class PerWorldPredictor:
@@ -80,9 +62,9 @@ class PerWorldPredictor:
     def __init__(self, predictors: Sequence[Predictor], assignment: np.ndarray):
         assignment = np.asarray(assignment)
         if assignment.ndim != 1:
-            raise ValueError(f"assignment: expected a 1-D array of predictor indices, got shape {assignment.shape}")
+            raise ConfigError(f"assignment: expected a 1-D array of predictor indices, got shape {assignment.shape}")
         if assignment.size and (assignment.min() < 0 or assignment.max() >= len(predictors)):
-            raise ValueError(
+            raise ConfigError(
                 f"assignment: indices must lie in [0, {len(predictors) - 1}], "
                 f"got [{assignment.min()}, {assignment.max()}]"
             )

@@ -13,12 +13,13 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from sim.params import GRAVITY, RATES, Rates
+from core.errors import ConfigError, DataError
+from core.params import GRAVITY, RATES, Rates
+from core.roles import DEFAULT_VEHICLES, Role
 
 __all__ = ["QUAD_XML", "DEFAULT_VEHICLES", "Scene", "build_scene", "load_quad_spec"]
 
 QUAD_XML = Path(__file__).resolve().parent.parent / "assets" / "quad.xml"
-DEFAULT_VEHICLES = ("alpha", "bravo")  # leader, follower
 
 # Names inside assets/quad.xml (one place).
 _BODY = "quad"
@@ -38,6 +39,7 @@ class Scene:
 
     model: mujoco.MjModel
     vehicles: tuple[str, ...]
+    roles: tuple[Role, ...]
     body_ids: np.ndarray
     qpos_adr: np.ndarray
     qvel_adr: np.ndarray
@@ -47,33 +49,57 @@ class Scene:
     def n_vehicles(self) -> int:
         return len(self.vehicles)
 
+    def index(self, role: Role) -> int:
+        """The index of the first vehicle with `role`; ConfigError when the scene has none."""
+        for i, r in enumerate(self.roles):
+            if r == role:
+                return i
+        raise ConfigError(f"the scene {dict(zip(self.vehicles, self.roles))} has no {Role(role).value}")
+
+    @property
+    def leader(self) -> int:
+        """Index of the (first) leader, Alpha in the paper."""
+        return self.index(Role.LEADER)
+
+    @property
+    def follower(self) -> int:
+        """Index of the (first) follower, Bravo in the paper."""
+        return self.index(Role.FOLLOWER)
+
 
 def load_quad_spec(path: str | Path = QUAD_XML) -> mujoco.MjSpec:
     """Parse the vehicle MJCF; a missing or malformed file raises a clear error naming it."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"quadrotor model not found: {path}")
+        raise DataError(f"quadrotor model not found: {path}")
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except ValueError as e:  # mujoco reports XML parse errors as ValueError
-        raise ValueError(f"{path}: malformed quadrotor MJCF: {e}") from e
+        raise DataError(f"{path}: malformed quadrotor MJCF: {e}") from e
     if spec.body(_BODY) is None:
-        raise ValueError(f"{path}: expected a body named '{_BODY}' (the vehicle root)")
+        raise DataError(f"{path}: expected a body named '{_BODY}' (the vehicle root)")
     for name in _ROTORS:
         if spec.actuator(name) is None:
-            raise ValueError(f"{path}: expected actuator '{name}' (one per rotor: {', '.join(_ROTORS)})")
+            raise DataError(f"{path}: expected actuator '{name}' (one per rotor: {', '.join(_ROTORS)})")
     return spec
 
 
 def build_scene(
-    vehicles: Sequence[str] = DEFAULT_VEHICLES,
+    vehicles: Sequence[tuple[str, Role] | str] = DEFAULT_VEHICLES,
     quad_xml: str | Path = QUAD_XML,
     rates: Rates = RATES,
 ) -> Scene:
-    """Compile a scene with one quadrotor per name (prefix `name/`), a ground plane and cameras."""
-    vehicles = tuple(vehicles)
+    """Compile a scene with one quadrotor per vehicle (prefix `name/`), a ground plane and cameras.
+
+    vehicles: (name, role) pairs in scene order, or plain names (the first is then the
+    leader, the others followers).
+    """
+    pairs = [(v, Role.LEADER if i == 0 else Role.FOLLOWER) if isinstance(v, str) else (v[0], Role(v[1]))
+             for i, v in enumerate(vehicles)]
+    roles = tuple(r for _, r in pairs)
+    vehicles = tuple(n for n, _ in pairs)
     if len(vehicles) < 1 or len(set(vehicles)) != len(vehicles):
-        raise ValueError(f"vehicles: expected one or more distinct names, got {vehicles}")
+        raise ConfigError(f"vehicles: expected one or more distinct names, got {vehicles}")
     quad = load_quad_spec(quad_xml)
 
     spec = mujoco.MjSpec()
@@ -102,7 +128,7 @@ def build_scene(
     try:
         model = spec.compile()
     except ValueError as e:
-        raise ValueError(f"{quad_xml}: the scene does not compile: {e}") from e
+        raise DataError(f"{quad_xml}: the scene does not compile: {e}") from e
 
     body_ids = np.array([model.body(f"{v}/{_BODY}").id for v in vehicles])
     joint_ids = [model.joint(f"{v}/{_JOINT}").id for v in vehicles]
@@ -110,6 +136,7 @@ def build_scene(
     return Scene(
         model=model,
         vehicles=vehicles,
+        roles=roles,
         body_ids=body_ids,
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joint_ids]),
         qvel_adr=np.array([model.jnt_dofadr[j] for j in joint_ids]),

@@ -1,6 +1,6 @@
 """The multi-rate stepping loop: physics, autopilot, field, motion capture, controller, predictor.
 
-Rates (sim.params.Rates): physics 500 Hz; autopilot, downwash field and motion
+Rates (core.params.Rates): physics 500 Hz; autopilot, downwash field and motion
 capture on the 100 Hz autopilot grid; the LQR at 50 Hz; the predictor at 45 Hz,
 evaluated at the first autopilot tick after each 1/45 s and held in between.
 
@@ -9,13 +9,19 @@ Everything is batched over worlds W and vehicles V. Each world draws its noise
 depend on which other worlds share its batch: the batched loop equals a loop of
 single flights bit for bit, which a test checks.
 
+The loop is assembled from components, each injected and each with its config in
+its own module: the outer-loop `controller` (`controllers.lqr.FeedbackLinearisedLQR`),
+the `autopilot` (`controllers.autopilot.Autopilot`), the `turbulence`
+(`sim.turbulence.OUTurbulence`), the downwash `field` (`sim.field.DownwashField` or
+any object with its call signature) and the `predictor` (`sim.predictor`).
+
 Each autopilot tick is two compiled passes over all worlds and vehicles around the
 pluggable Python calls (predictor, field, reference): `_sense_kernel` (state, motion
 capture, Kalman update) and `_actuate_kernel` (field and turbulence into
 `xfrc_applied`, autopilot into `ctrl`, Kalman prediction, clocks); the 50 Hz command
-is one more (`FeedbackLinearisedLQR.command_setpoint`). The math stays in its module
-(`controllers.autopilot.rotor_thrusts`, `sim.estimation.kf_update` / `kf_predict`);
-tests check the passes against the readable components.
+is one more (the controller's `command_setpoint`). The math stays in its module
+(`controllers.autopilot.rotor_thrusts`, `sim.estimation.kf_update` / `kf_predict`,
+`sim.turbulence.OUTurbulence`); tests check the passes against the readable components.
 """
 
 from __future__ import annotations
@@ -26,78 +32,45 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from controllers.autopilot import Autopilot, rotor_thrusts
-from controllers.lqr import DEFAULT_Q, DEFAULT_R, FeedbackLinearisedLQR
+from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint
+from core.errors import ConfigError
+from core.geometry import quat_to_mat_fast, quat_to_rot
+from core.jit import njit
+from core.params import QUAD, RATES, QuadParams, Rates
+from core.state import VehicleStates
+from core.status import Status
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
 from sim.field import DownwashField, pairwise_field
-from sim.jit import njit
-from sim.params import QUAD, RATES, QuadParams, Rates
 from sim.physics import make_physics
-from sim.predictor import Predictor, VehicleStates, ZeroPredictor
+from sim.predictor import Predictor, ZeroPredictor
 from sim.scene import Scene
+from sim.turbulence import OUTurbulence
 
-__all__ = ["SimConfig", "Simulator", "quat_to_mat", "yaw_of", "STATUS_OK", "STATUS_DIVERGED", "STATUS_GROUND", "STATUS_VEHICLE"]
+__all__ = ["SimConfig", "Simulator"]
 
-STATUS_OK, STATUS_DIVERGED, STATUS_GROUND, STATUS_VEHICLE = 0, 1, 2, 3
+# Status codes as plain ints for the compiled status pass (numba freezes globals).
+_OK, _DIVERGED, _GROUND, _VEHICLE = (int(s) for s in (Status.OK, Status.DIVERGED, Status.GROUND, Status.VEHICLE))
 
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Everything about a flight but its reference, field object, predictor and seed."""
+    """The vehicle, the rates, the motion capture and the failure checks of a flight.
+
+    The controller, autopilot, turbulence, field and predictor are components of the
+    `Simulator`, each with its own settings.
+    """
 
     rates: Rates = field(default_factory=lambda: RATES)
     quad: QuadParams = field(default_factory=lambda: QUAD)
     mocap: MocapConfig = field(default_factory=MocapConfig)
-    turbulence_intensity: float = 0.10  # -, turbulence std as a fraction of the local mean force
-    turbulence_time_constant: float = 0.05  # s, Ornstein-Uhlenbeck correlation time
-    lqr_q: tuple[float, ...] = tuple(np.diag(DEFAULT_Q))  # diagonal of Q
-    lqr_r: tuple[float, ...] = tuple(np.diag(DEFAULT_R))  # diagonal of R
-    max_tilt_deg: float = 35.0  # deg, tilt limit of feedback linearisation
     ground_clearance: float = 0.03  # m, a vehicle centre below this height has hit the ground
     collision_radius_xy: float = 0.26  # m, vehicles closer than this laterally ...
     collision_radius_z: float = 0.08  # m, ... and vertically (ellipsoid) have collided
     max_distance: float = 100.0  # m, beyond this from the origin the flight has diverged
     noise_block: int = 256  # autopilot ticks of noise drawn per generator call
 
-    def __post_init__(self):
-        if len(self.lqr_q) != 7 or len(self.lqr_r) != 4:
-            raise ValueError(f"lqr_q/lqr_r: expected 7 and 4 diagonal entries, got {len(self.lqr_q)} and {len(self.lqr_r)}")
-        if not 0.0 <= self.turbulence_intensity <= 1.0:
-            raise ValueError(f"turbulence_intensity: allowed 0-1, got {self.turbulence_intensity}")
-        if self.turbulence_time_constant <= 0:
-            raise ValueError(f"turbulence_time_constant: must be > 0 s, got {self.turbulence_time_constant}")
-
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices (body to world)."""
-    return _attitude_kernel(q.reshape(-1, 4).astype(float, copy=False))[0].reshape(q.shape[:-1] + (3, 3))
-
-
-def yaw_of(rot: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) body-to-world rotations -> (...,) heading (rad), Z-Y-X convention."""
-    return np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
-
-
-@njit
-def _quat_to_rot(w, x, y, z, R):
-    """Unit quaternion (w, x, y, z) -> R (3, 3) body to world, in place; returns the heading (rad)."""
-    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-    return np.arctan2(R[1, 0], R[0, 0])
-
-
-@njit
-def _attitude_kernel(q):
-    """Flat (n, 4) quaternions -> rotation matrices (n, 3, 3) and headings (n,) rad."""
-    n = q.shape[0]
-    R = np.empty((n, 3, 3))
-    yaw = np.empty(n)
-    for i in range(n):
-        yaw[i] = _quat_to_rot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], R[i])
-    return R, yaw
 
 
 # columns of Simulator._layout (V, 7), the per-vehicle address table of the kernels
@@ -114,6 +87,9 @@ def _sense_kernel(
     pos_est, vel_est, t, next_prediction, due, kin, quat, rot, yaw_meas,
 ):
     """Read the true state, take the motion-capture sample and apply the Kalman update.
+
+    The arguments before `kin` are the simulator's persistent buffers and constants,
+    bound once (`Simulator._sense_args`); the last four are fresh each tick.
 
     qpos (W, nq), qvel (W, nv): live MuJoCo state; layout (V, 7): see Simulator._layout.
     noise (W, block, V, 7) standard normals read at each world's `cursor`: mocap xyz, yaw.
@@ -132,7 +108,7 @@ def _sense_kernel(
             a, b = layout[i, _QPOS], layout[i, _QVEL]
             for k in range(4):
                 quat[w, i, k] = qpos[w, a + 3 + k]
-            yaw = _quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+            yaw = quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
             yaw_meas[w, i] = yaw + sigma_yaw * noise[w, c, i, 3]
             for k in range(3):
                 p = qpos[w, a + k]
@@ -159,9 +135,10 @@ def _hold_kernel(f_hat, pred, due, next_prediction, period):
 
 @njit
 def _actuate_kernel(
-    mean, field_on, noise, cursor, turb, decay, diffusion, intensity, mass, applied, xfrc, layout,
-    rot, qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, max_thrust, ctrl,
-    pos_est, vel_est, acc_cmd, dt, t, active,
+    field_on, noise, cursor, turb, decay, diffusion, intensity, mass, xfrc, layout,
+    qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, max_thrust, ctrl,
+    pos_est, vel_est, dt, t, active,
+    mean, applied, rot, acc_cmd,
 ):
     """Apply the field, run the autopilot and the Kalman prediction, advance the clocks.
 
@@ -176,6 +153,9 @@ def _actuate_kernel(
     Addresses from layout (V, 7), see Simulator._layout. Kalman prediction of pos_est, vel_est (W, V, 3) over dt (s) with
     acc_cmd (W, V, 3) m/s^2, in place. Then t (W,) s advances by dt where active and
     every cursor by one.
+
+    The arguments before `mean` are the simulator's persistent buffers and constants,
+    bound once (`Simulator._actuate_args`); the last four are fresh each tick.
     """
     W, V = mean.shape[0], mean.shape[1]
     x = np.empty(14)
@@ -208,10 +188,16 @@ def _actuate_kernel(
 class Simulator:
     """W worlds of V vehicles flying the full stack; advance one controller tick at a time.
 
-    reference: callable t (W,) -> RefSample with (W, V, ...) arrays (controllers.references.stack).
-    field: any object with the DownwashField call signature.
-    predictor: sim.predictor.Predictor, evaluated at 45 Hz and held.
+    reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`trajectories.stack`).
     seeds: one int per world; a world's noise comes only from its own generator.
+    config: `SimConfig` (vehicle, rates, motion capture, failure checks).
+    Components (each defaults to the paper's):
+      controller: the outer loop, `FeedbackLinearisedLQR(LQRConfig(...))` or any object
+        with its `command_setpoint(state, ref, f_hat, out, residual, override, lookahead)`;
+      autopilot: `Autopilot(quad, ...)` (its `gain` and `max_thrust` run compiled);
+      turbulence: `OUTurbulence(intensity, time_constant)`;
+      field: any object with the `DownwashField` call signature;
+      predictor: `sim.predictor.Predictor`, evaluated at 45 Hz and held.
     field_enabled: (W,) bool, False for worlds flown without downwash.
     """
 
@@ -222,6 +208,9 @@ class Simulator:
         seeds: Sequence[int],
         *,
         config: SimConfig | None = None,
+        controller: Any | None = None,
+        autopilot: Autopilot | None = None,
+        turbulence: OUTurbulence | None = None,
         field: Any | None = None,
         predictor: Predictor | None = None,
         field_enabled: np.ndarray | None = None,
@@ -230,24 +219,24 @@ class Simulator:
         self.scene = scene
         self.cfg = cfg = config if config is not None else SimConfig()
         self.reference = reference
+        self.controller = controller if controller is not None else FeedbackLinearisedLQR()
+        self.autopilot = autopilot if autopilot is not None else Autopilot(cfg.quad)
+        self.turbulence = turbulence if turbulence is not None else OUTurbulence()
         self.field = field if field is not None else DownwashField()
         self.predictor = predictor if predictor is not None else ZeroPredictor()
         seeds = [int(s) for s in seeds]
         W, V = len(seeds), scene.n_vehicles
         if W < 1:
-            raise ValueError("seeds: expected one seed per world, got none")
+            raise ConfigError("seeds: expected one seed per world, got none")
         self.W, self.V = W, V
         self.seeds = seeds
         self.field_enabled = np.ones(W, bool) if field_enabled is None else np.asarray(field_enabled, bool)
         if self.field_enabled.shape != (W,):
-            raise ValueError(f"field_enabled: expected shape ({W},), got {self.field_enabled.shape}")
+            raise ConfigError(f"field_enabled: expected shape ({W},), got {self.field_enabled.shape}")
 
         r = cfg.rates
         self.physics = make_physics(scene.model, W, n_threads)
-        self.lqr = FeedbackLinearisedLQR(np.diag(cfg.lqr_q), np.diag(cfg.lqr_r))
-        self.autopilot = Autopilot(cfg.quad)
         self.kf = MocapKalmanFilter(r.autopilot_dt, cfg.mocap)
-        self.max_tilt = np.deg2rad(cfg.max_tilt_deg)
         self.mass = cfg.quad.mass
 
         # index arrays, resolved once
@@ -260,13 +249,12 @@ class Simulator:
             [np.stack([qa, va, scene.body_ids], axis=1), scene.act_ids], axis=1
         ).astype(np.int64)
         # scalars of the hot loop, as Python floats, looked up once
-        self._ou_a = float(np.exp(-r.autopilot_dt / cfg.turbulence_time_constant))
-        self._ou_b = float(np.sqrt(1.0 - self._ou_a**2))
+        self._ou_a, self._ou_b = self.turbulence.coefficients(r.autopilot_dt)
         self._prediction_period = 1.0 / r.predictor_hz  # s
         self._sigma_p, self._sigma_yaw = float(cfg.mocap.position_noise), float(cfg.mocap.yaw_noise)
         self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
         self._max_thrust = float(self.autopilot.max_thrust)
-        self._turbulence_intensity = float(cfg.turbulence_intensity)
+        self._turbulence_intensity = float(self.turbulence.intensity)
 
         # per-world state beyond MuJoCo's; pos_est, vel_est, turb, f_hat, t, tick_index and
         # next_prediction are updated in place, yaw_meas and mocap_pos replaced each autopilot
@@ -301,12 +289,26 @@ class Simulator:
         self._thrust_acc = np.empty((W, V))  # m/s^2
         self._status_new = np.zeros(W, np.int64)
         self.row: dict[str, np.ndarray] = {}
+        # The compiled passes' persistent arguments, bound once: every array here is only
+        # ever updated in place, so each tick passes just the arrays that are fresh.
+        self._sense_args = (
+            self.physics.qpos, self.physics.qvel, self._layout, self._noise, self._cursor,
+            self._sigma_p, self._sigma_yaw, self._kf_gain_p, self._kf_gain_v,
+            self.pos_est, self.vel_est, self.t, self.next_prediction, self._due,
+        )
+        self._actuate_args = (
+            self.field_enabled, self._noise, self._cursor, self.turb,
+            self._ou_a, self._ou_b, self._turbulence_intensity, self.mass, self.physics.xfrc_applied, self._layout,
+            self.physics.qvel, self._rot_des, self._yaw_rate_des, self._thrust_acc, self._mass_believed,
+            self.autopilot.gain, self._max_thrust, self.physics.ctrl,
+            self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
+        )
         self.reset(np.arange(W), seeds)
 
     # ------------------------------------------------------------------ state access
     def true_states(self) -> VehicleStates:
         qpos, qvel = self.physics.qpos, self.physics.qvel
-        return VehicleStates(qpos[:, self._pos_idx], qvel[:, self._vel_idx], quat_to_mat(qpos[:, self._quat_idx]))
+        return VehicleStates(qpos[:, self._pos_idx], qvel[:, self._vel_idx], quat_to_mat_fast(qpos[:, self._quat_idx]))
 
     # ------------------------------------------------------------------ reset
     def reset(self, worlds: np.ndarray, seeds: Sequence[int] | None = None, reference: Callable | None = None) -> None:
@@ -334,7 +336,7 @@ class Simulator:
             self._refill(w)
         self.t[worlds] = 0.0
         self.tick_index[worlds] = 0
-        self.status[worlds] = STATUS_OK
+        self.status[worlds] = Status.OK
         for w in worlds:
             self.message[w] = ""
         self.active[worlds] = True
@@ -384,11 +386,7 @@ class Simulator:
                 kin, quat, yaw, rot, applied = self._kin, self._quat, self._yaw, self._rot, self._applied
                 pos, vel, mocap, pos_est, vel_est = self._kin_views
             # motion capture and Kalman update
-            n_due = _sense_kernel(
-                ph.qpos, ph.qvel, self._layout, self._noise, self._cursor,
-                self._sigma_p, self._sigma_yaw, self._kf_gain_p, self._kf_gain_v,
-                self.pos_est, self.vel_est, self.t, self.next_prediction, self._due, kin, quat, rot, yaw,
-            )
+            n_due = _sense_kernel(*self._sense_args, kin, quat, rot, yaw)
             self.yaw_meas, self.mocap_pos = yaw, mocap
 
             # predictor at 45 Hz, held
@@ -402,10 +400,10 @@ class Simulator:
             if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
                 cmd_acc = np.empty((W, V, 3))  # m/s^2, the command applied (row u_cmd)
-                self.lqr.command_setpoint(
-                    pos_est, vel_est, yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, self.f_hat,
-                    residual, override, r.control_dt, self.max_tilt,
-                    cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des,
+                self.controller.command_setpoint(
+                    ControllerState(pos_est, vel_est, yaw), ref, self.f_hat,
+                    Setpoint(cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des),
+                    residual, override, r.control_dt,
                 )
                 row = {
                     "t": t_start, "pos": pos, "vel": vel, "quat": quat,
@@ -415,13 +413,7 @@ class Simulator:
                 }
 
             # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
-            _actuate_kernel(
-                mean, self.field_enabled, self._noise, self._cursor, self.turb,
-                self._ou_a, self._ou_b, self._turbulence_intensity, self.mass, applied, ph.xfrc_applied, self._layout,
-                rot, ph.qvel, self._rot_des, self._yaw_rate_des, self._thrust_acc, self._mass_believed,
-                self.autopilot.gain, self._max_thrust, ph.ctrl,
-                self.pos_est, self.vel_est, cmd_acc, r.autopilot_dt, self.t, self.active,
-            )
+            _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
             self._cursor_max += 1
             diverged = ph.step(r.physics_per_autopilot, self.active)
         self._check(diverged)
@@ -437,11 +429,10 @@ class Simulator:
             cfg.max_distance, cfg.ground_clearance, cfg.collision_radius_xy, cfg.collision_radius_z, status,
         )
         if n_ended:
-            what = {STATUS_DIVERGED: "diverged (NaN, runaway state or MuJoCo instability warning)",
-                    STATUS_GROUND: "hit the ground", STATUS_VEHICLE: "vehicles collided"}
             for w in np.flatnonzero(status):
                 self.status[w] = status[w]
-                self.message[w] = f"world {w} (seed {self.seeds[w]}): {what[status[w]]} at t = {self.t[w]:.2f} s"
+                what = Status(int(status[w])).description
+                self.message[w] = f"world {w} (seed {self.seeds[w]}): {what} at t = {self.t[w]:.2f} s"
                 self.active[w] = False
 
 
@@ -454,7 +445,7 @@ def _as_batch(x: Any, shape: tuple[int, ...]) -> np.ndarray:
 @njit
 def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distance, ground, radius_xy, radius_z, status):
     """Count the tick of active worlds (tick_index (W,), in place) and write into status (W,)
-    the codes of those that end now (STATUS_OK elsewhere).
+    the `Status` codes of those that end now (OK elsewhere).
 
     qpos (W, nq): vehicle positions (m) at qpos[w, layout[i, _QPOS] + (0, 1, 2)];
     diverged (W,) bool from the physics. Returns how many worlds end.
@@ -463,7 +454,7 @@ def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distanc
     q_adr = layout[:, _QPOS]
     n_ended = 0
     for w in range(W):
-        status[w] = STATUS_OK
+        status[w] = _OK
         if not active[w]:
             continue
         tick_index[w] += 1
@@ -474,17 +465,17 @@ def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distanc
             for k in range(3):
                 bad = bad or not (abs(qpos[w, q_adr[i] + k]) <= max_distance)  # NaN fails too
         if bad:
-            status[w] = STATUS_DIVERGED
+            status[w] = _DIVERGED
         else:
             for i in range(V):
                 if qpos[w, q_adr[i] + 2] < ground:
-                    status[w] = STATUS_GROUND
-        if status[w] == STATUS_OK:
+                    status[w] = _GROUND
+        if status[w] == _OK:
             for i in range(V):
                 for j in range(i + 1, V):
                     a, b = q_adr[i], q_adr[j]
                     dx, dy, dz = qpos[w, a] - qpos[w, b], qpos[w, a + 1] - qpos[w, b + 1], qpos[w, a + 2] - qpos[w, b + 2]
                     if (dx * dx + dy * dy) / radius_xy**2 + dz * dz / radius_z**2 < 1.0:
-                        status[w] = STATUS_VEHICLE
-        n_ended += status[w] != STATUS_OK
+                        status[w] = _VEHICLE
+        n_ended += status[w] != _OK
     return n_ended

@@ -1,5 +1,8 @@
-"""The Gymnasium envs: API contracts, vector == sync, determinism, reward terms, episode ends, rendering."""
+"""The Gymnasium envs: registration, API contracts, vector == sync, determinism and bit identity with the
+pre-refactor code, reward terms, episode ends, the documented observation table, rendering."""
 
+import hashlib
+import inspect
 import json
 import os
 import subprocess
@@ -13,27 +16,30 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
-import sim
-from sim.env import (
+import envs
+from core.status import Status
+from envs import (
     OBS_DIM,
     REWARD_TERMS,
-    STATUS_LEFT_BOX,
     DownwashFollowerEnv,
     DownwashFollowerVectorEnv,
     env_steps_per_s_single,
     env_steps_per_s_vector,
     evaluate_lqr,
 )
-from sim.simulator import STATUS_GROUND, STATUS_VEHICLE
+from envs.observation import OBS_SLICES, markdown_table
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OBS = {"dp": slice(0, 3), "pos_error": slice(9, 12), "vel_error": slice(12, 15),
        "follower_z_axis": slice(21, 24), "leader_z_axis": slice(24, 27), "last_action": slice(27, 30)}
+assert all(OBS_SLICES[k] == v for k, v in OBS.items())  # the documented indices are the layout's
 
 
-def _run_python(code: str, env_vars: dict[str, str] | None = None, timeout: float = 180) -> str:
-    """Run `code` in a fresh interpreter at the repo root; returns stdout (fails with stderr)."""
-    env = {**os.environ, **(env_vars or {})}
+def _run_python(code: str, env_vars: dict[str, str] | None = None, timeout: float = 180,
+                unset: tuple[str, ...] = ()) -> str:
+    """Run `code` in a fresh interpreter at the repo root, with `env_vars` set and the `unset`
+    variables removed; returns stdout (fails with stderr)."""
+    env = {k: v for k, v in {**os.environ, **(env_vars or {})}.items() if k not in unset}
     out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, out.stderr[-4000:]
@@ -50,23 +56,35 @@ def _same_info(a: dict, b: dict) -> None:
 # ----------------------------------------------------------------------------- registration
 
 
-def test_import_is_light_and_module_qualified_id_works():
+def test_import_is_light_and_module_qualified_ids_work():
     out = _run_python("""
-        import json, sys, sim, gymnasium as gym
-        heavy = [m for m in ("torch", "mujoco", "sim.env") if m in sys.modules]
-        print(json.dumps([heavy, sorted(i for i in gym.registry if i.startswith("DownwashFollower"))]))
+        import json, sys
+        import sim
+        sim_pulls_gym = "gymnasium" in sys.modules
+        import envs, gymnasium as gym
+        heavy = [m for m in ("torch", "mujoco", "envs.follower", "sim.env") if m in sys.modules]
+        print(json.dumps([sim_pulls_gym, heavy, sorted(i for i in gym.registry if i.startswith("DownwashFollower"))]))
     """)
-    heavy, ids = json.loads(out)
+    sim_pulls_gym, heavy, ids = json.loads(out)
+    assert not sim_pulls_gym  # `import sim` does not import gymnasium
     assert heavy == []  # registration imports gymnasium's registry only
-    assert ids == sorted(sim.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
-    out = _run_python("""
-        import sys, gymnasium as gym
-        assert "sim" not in sys.modules
-        env = gym.make("sim:DownwashFollower-v0")
-        obs, _ = env.reset(seed=0)
-        print(obs.shape, env.spec.max_episode_steps, "torch" in sys.modules)
-    """)
-    assert out.strip() == "(30,) 500 False", out
+    assert ids == sorted(envs.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
+    for module in ("envs", "sim"):  # "sim:" is the former id, kept for compatibility
+        out = _run_python(f"""
+            import sys, gymnasium as gym
+            assert "{module}" not in sys.modules
+            env = gym.make("{module}:DownwashFollower-v0")
+            obs, _ = env.reset(seed=0)
+            print(obs.shape, env.spec.max_episode_steps, type(env.unwrapped).__module__, "torch" in sys.modules)
+        """)
+        assert out.strip() == "(30,) 500 envs.follower False", (module, out)
+
+
+def test_sim_env_is_a_deprecated_alias():
+    sys.modules.pop("sim.env", None)  # the warning is issued when the module is first imported
+    with pytest.warns(DeprecationWarning, match="envs"):
+        from sim.env import DownwashFollowerEnv as Old, evaluate_lqr as old_evaluate_lqr
+    assert Old is DownwashFollowerEnv and old_evaluate_lqr is evaluate_lqr
 
 
 def test_make_and_make_vec_give_the_documented_spaces():
@@ -85,7 +103,7 @@ def test_make_and_make_vec_give_the_documented_spaces():
     assert gym.spec("DownwashFollowerPasses-v0").max_episode_steps == 1000
 
 
-@pytest.mark.parametrize("env_id", sim.ENV_IDS)
+@pytest.mark.parametrize("env_id", envs.ENV_IDS)
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_check_env(env_id, mode):
     env = gym.make(env_id, action_mode=mode)
@@ -190,6 +208,63 @@ def test_same_seed_same_actions_bit_identical():
     assert not all(np.array_equal(x, y) for x, y in zip(a, c))
 
 
+# Digests of observations, rewards, flags and infos, recorded from the pre-refactor code
+# (sim/env.py at commit fe45b63, run in a separate git worktree) before envs/ existed: the
+# re-layering must not change a number. Each case: reset(seed=7), 50 steps of uniform random
+# actions from default_rng(1); the single env resets when an episode ends, the vector env
+# autoresets (3 worlds).
+PRE_REFACTOR_DIGESTS = {
+    "lemniscate": ("DownwashFollower-v0", {}, False,
+                   "ef587068ec59feb0e028e631c2eb1ae436e6f76a4eaa32ae5bcf9f3cafc7ddd9"),
+    "passes": ("DownwashFollowerPasses-v0", {}, False,
+               "858363c26b5826c2cbe8ce7b0e73e9399aae767c4b109f1136baa67824043820"),
+    "acceleration_hover_randomised": ("DownwashFollower-v0", dict(
+        action_mode="acceleration", reference="hover", separation=(0.4, 0.8), max_tracking_error=0.5,
+        field_randomization="default", mass_randomization=(0.8, 1.2)), False,
+        "f071a76bb574cc93bff0b17ad117e2cd83fa8b64b088ea3084a3892a96d5cb9e"),
+    "vector_transect_oracle_25hz": ("DownwashFollower-v0", dict(
+        reference="transect", predictor="oracle", control_hz=25, max_episode_steps=20), True,
+        "008b19c2cd7f01688687594308f196190f528b7a8427957915fb8d2c28dfabb5"),
+}
+
+
+def _digest(env_id: str, opts: dict, vector: bool, steps: int = 50) -> str:
+    def add_info(info):
+        for k in sorted(info):
+            h.update(k.encode())
+            h.update(np.asarray(info[k]).astype(np.float64).tobytes())
+
+    h = hashlib.sha256()
+    rng = np.random.default_rng(1)
+    if vector:
+        env = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point", **opts)
+        high, shape = env.single_action_space.high, (3, 3)
+    else:
+        env = gym.make(env_id, **opts)
+        high, shape = env.action_space.high, (3,)
+    obs, info = env.reset(seed=7)
+    h.update(obs.tobytes())
+    add_info(info)
+    for _ in range(steps):
+        obs, reward, term, trunc, info = env.step(rng.uniform(-high, high, shape).astype(np.float32))
+        h.update(obs.tobytes())
+        h.update(np.asarray([reward], np.float64).tobytes())
+        h.update(np.asarray([term, trunc], bool).tobytes())
+        add_info(info)
+        if not vector and (term or trunc):
+            obs, info = env.reset()
+            h.update(obs.tobytes())
+            add_info(info)
+    env.close()
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("case", sorted(PRE_REFACTOR_DIGESTS))
+def test_bit_identical_to_the_pre_refactor_envs(case):
+    env_id, opts, vector, expected = PRE_REFACTOR_DIGESTS[case]
+    assert _digest(env_id, opts, vector) == expected
+
+
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
     env = gym.make("DownwashFollower-v0", action_mode=mode, reference="lemniscate", separation=0.4,
@@ -229,6 +304,17 @@ def test_reset_observation_matches_the_table():
     obs = env.step(np.zeros(3, np.float32))[0]
     true = env.simulator.true_states()
     assert np.allclose(obs[OBS["dp"]], true.pos[0, 1] - true.pos[0, 0], atol=5e-3)
+
+
+def test_docstring_observation_table_is_the_layout():
+    """The table in DownwashFollowerEnv's docstring is the one generated from envs.observation.OBSERVATION."""
+    doc = inspect.getdoc(DownwashFollowerEnv)
+    lines = doc.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| index |"))
+    end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
+    assert "\n".join(lines[start:end]) == markdown_table()
+    assert markdown_table().count("\n") == 1 + len(envs.OBSERVATION)  # header, rule, one row per entry
+    assert f"({OBS_DIM},)" in doc
 
 
 def test_actions_reach_the_controller():
@@ -308,10 +394,10 @@ def test_bad_options_name_the_allowed_values():
 # ----------------------------------------------------------------------------- episode ends
 
 
-@pytest.mark.parametrize("push, status", [((0.0, 0.0, 10.0), STATUS_VEHICLE), ((0.0, 0.0, -10.0), STATUS_GROUND),
-                                          ((10.0, 0.0, 0.0), STATUS_LEFT_BOX)])
+@pytest.mark.parametrize("push, status", [((0.0, 0.0, 10.0), Status.VEHICLE), ((0.0, 0.0, -10.0), Status.GROUND),
+                                          ((10.0, 0.0, 0.0), Status.LEFT_BOX)])
 def test_termination_on_collision_and_leaving_the_box(push, status):
-    box = 1.0 if status == STATUS_LEFT_BOX else 5.0
+    box = 1.0 if status == Status.LEFT_BOX else 5.0
     env = gym.make("DownwashFollower-v0", action_mode="acceleration", reference="hover", separation=0.4,
                    max_tracking_error=box)
     env.reset(seed=0)
@@ -388,7 +474,7 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         import json, warnings
         import numpy as np, gymnasium as gym
         from gymnasium.utils.env_checker import check_env
-        import sim
+        import envs
         env = gym.make("DownwashFollower-v0", render_mode="rgb_array", reference="transect", random_phase=False)
         env.reset(seed=0)
         for _ in range(5):
@@ -414,10 +500,30 @@ def test_rendering_gives_a_frame_with_both_vehicles():
     assert res["n_frames"] == 2 and res["frame_shape"] == [360, 480, 3]
 
 
+def test_rendering_chooses_egl_on_a_headless_machine():
+    """With MUJOCO_GL, DISPLAY and WAYLAND_DISPLAY unset, render() works without any setting:
+    EGL is chosen even though mujoco (imported first) has already read MUJOCO_GL."""
+    out = _run_python("""
+        import json, os
+        import mujoco  # reads MUJOCO_GL (unset) now
+        import numpy as np
+        from envs import DownwashFollowerEnv
+        env = DownwashFollowerEnv(render_mode="rgb_array", render_width=160, render_height=120)
+        env.reset(seed=0)
+        env.step(np.zeros(3, np.float32))
+        f = env.render()
+        env.close()
+        print(json.dumps({"gl": os.environ.get("MUJOCO_GL"), "shape": list(f.shape), "std": float(f.std())}))
+    """, unset=("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY"))
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["gl"] == "egl" and res["shape"] == [120, 160, 3]
+    assert res["std"] > 10.0  # not blank
+
+
 def test_rendering_without_a_backend_names_mujoco_gl():
     out = _run_python("""
         import numpy as np
-        from sim.env import DownwashFollowerEnv
+        from envs import DownwashFollowerEnv
         env = DownwashFollowerEnv(render_mode="rgb_array")
         env.reset(seed=0)
         try:
@@ -428,3 +534,23 @@ def test_rendering_without_a_backend_names_mujoco_gl():
     assert out.startswith("RuntimeError") and "MUJOCO_GL" in out and "egl" in out and "osmesa" in out
     with pytest.warns(UserWarning, match="render_mode"):
         assert DownwashFollowerEnv().render() is None  # no render_mode: a warning, no frame
+
+
+def test_lqr_and_turbulence_options_reach_the_simulator():
+    """The component options change the flight: no turbulence, or softer position weights."""
+    from controllers.lqr import LQRConfig
+    from sim.turbulence import OUTurbulence
+
+    def run(**options):
+        env = DownwashFollowerEnv(**options)
+        env.reset(seed=3)
+        for _ in range(60):
+            obs, *_ = env.step(np.zeros(3, np.float32))
+        assert env.simulator.turbulence == options.get("turbulence", OUTurbulence())
+        return obs
+
+    base = run()
+    assert not np.array_equal(base, run(turbulence=OUTurbulence(intensity=0.0)))
+    assert not np.array_equal(base, run(lqr=LQRConfig(q=(0.2, 0.2, 2.0, 0.01, 0.01, 0.1, 1.0))))
+    with pytest.raises(ValueError, match="turbulence: expected a sim.turbulence.OUTurbulence"):
+        DownwashFollowerEnv(turbulence=0.1)

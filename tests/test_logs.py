@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from sim.logs import ARRAY_SPECS, SCHEMA_VERSION, FlightLog, LogError, atomic_write_json, load_log, save_log
+from core.io import atomic_write_json
+from sim.logs import ARRAY_SPECS, SCHEMA_VERSION, FlightLog, LogError, load_log, save_log
 
 
 def _log(T=20, V=2):

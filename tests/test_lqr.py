@@ -6,9 +6,11 @@ import pytest
 import scipy.linalg
 
 from controllers.lqr import (
-    DEFAULT_Q, DEFAULT_R, FeedbackLinearisedLQR, attitude_setpoint, double_integrator, lqr_gain, wrap_angle,
+    DEFAULT_Q, DEFAULT_R, ControllerState, FeedbackLinearisedLQR, Setpoint, attitude_setpoint, double_integrator,
+    lqr_gain, wrap_angle,
 )
-from sim.params import GRAVITY
+from core.params import GRAVITY
+from core.state import RefSample
 
 
 def test_scalar_integrator_gain_is_sqrt_q_over_r():
@@ -62,7 +64,7 @@ def test_command_law_batched():
     shape = (4, 2)
     p, v, pr, vr, ar, fh = (rng.normal(size=shape + (3,)) for _ in range(6))
     yaw, yr, yrr = (rng.normal(size=shape) for _ in range(3))
-    cmd = lqr(p, v, yaw, pr, vr, ar, yr, yrr, fh)
+    cmd = lqr(ControllerState(p, v, yaw), RefSample(pr, vr, ar, yr, yrr), fh)
     x = np.concatenate([p - pr, v - vr, wrap_angle(yaw - yr)[..., None]], -1)
     fb = np.einsum("ij,...j->...i", lqr.K, x)
     np.testing.assert_allclose(cmd.acc, ar - fb[..., :3] - fh, atol=1e-12)
@@ -111,21 +113,20 @@ def test_compiled_command_setpoint_equals_command_then_setpoint(extra):
     override = None
     if extra == "override":
         override = np.where(rng.uniform(size=(W, V, 3)) < 0.5, rng.normal(size=(W, V, 3)), np.nan)
-    lookahead, max_tilt = 0.02, np.deg2rad(35.0)
+    lookahead, max_tilt = 0.02, lqr.max_tilt
 
-    cmd = lqr(pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat)
+    ref = RefSample(ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate)
+    cmd = lqr(ControllerState(pos, vel, yaw), ref, f_hat)
     acc = cmd.acc
     if residual is not None:
         acc = acc + residual
     if override is not None:
         acc = np.where(np.isfinite(override), override, acc)
-    thrust, rot = attitude_setpoint(acc, yaw + cmd.yaw_rate * lookahead, max_tilt)
+    thrust, rot = lqr.setpoint(acc, yaw + cmd.yaw_rate * lookahead)
+    assert max_tilt == np.deg2rad(35.0)
 
-    out = np.empty((W, V, 3)), np.empty((W, V)), np.empty((W, V)), np.empty((W, V, 3, 3))
-    lqr.command_setpoint(
-        pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
-        lookahead, max_tilt, *out,
-    )
+    out = Setpoint.empty(W, V)
+    lqr.command_setpoint(ControllerState(pos, vel, yaw), ref, f_hat, out, residual, override, lookahead)
     # K (x - x_ref) may be summed in another order than NumPy's matmul: rounding only
     for got, want in zip(out, (acc, cmd.yaw_rate, thrust, rot)):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from core import geometry
 from downwash import features as F
 from downwash.models import MODEL_KINDS, DeepSNMLP, EquivariantModel, ShallowMLP, count_parameters, make_model
 from downwash.predictor import LearnedPredictor
@@ -39,7 +40,7 @@ def equivariance_error(model, rng, n=256, max_tilt=0.0):
     v_a = rng.normal(size=(n, 3)) * 0.3
     v_b = rng.normal(size=(n, 3)) * 0.6
     R_a = random_rotations(rng, n, max_tilt)
-    H = F.rotation_about_axis(R_a[:, :, 2], rng.uniform(-np.pi, np.pi, n))
+    H = geometry.rotation_about_axis(R_a[:, :, 2], rng.uniform(-np.pi, np.pi, n))
     rot = lambda v: np.einsum("nij,nj->ni", H, v)  # noqa: E731
     t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
     with torch.no_grad():

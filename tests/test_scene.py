@@ -4,7 +4,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.params import GRAVITY, QUAD, RATES
+from core.errors import DataError
+from core.params import GRAVITY, QUAD, RATES
 from sim.scene import QUAD_XML, build_scene
 
 
@@ -61,7 +62,7 @@ def test_n_vehicles_scene():
 
 
 def test_missing_and_malformed_xml(tmp_path):
-    with pytest.raises(FileNotFoundError, match="not found"):
+    with pytest.raises(DataError, match="not found"):
         build_scene(quad_xml=tmp_path / "nope.xml")
     bad = tmp_path / "bad.xml"
     bad.write_text("<mujoco><worldbody><body name='quad'>")

@@ -3,14 +3,17 @@
 import numpy as np
 import pytest
 
-from controllers.references import Hover, Lemniscate, stack
+from trajectories import Hover, Lemniscate, stack
 from sim.field import DownwashField
 from sim.flight import fly
 from sim.logs import ARRAY_SPECS, load_log, save_log
 from sim.metrics import tracking_metrics
 from sim.predictor import OraclePredictor
 from sim.scene import build_scene
-from sim.simulator import STATUS_DIVERGED, STATUS_GROUND, STATUS_OK, STATUS_VEHICLE, Simulator
+from core.status import Status
+from sim.simulator import Simulator
+
+STATUS_OK, STATUS_DIVERGED, STATUS_GROUND, STATUS_VEHICLE = Status.OK, Status.DIVERGED, Status.GROUND, Status.VEHICLE
 
 LEADER = np.array([0.0, 0.0, 2.5])
 
@@ -117,8 +120,8 @@ def test_bad_inputs(scene):
 def test_fused_kernels_equal_the_readable_components(scene):
     """The compiled sense / actuate passes of one autopilot tick against quat_to_mat,
     MocapKalmanFilter, the turbulence law and Autopilot, on random states (bit for bit)."""
-    from controllers.lqr import attitude_setpoint
-    from sim.simulator import _actuate_kernel, _sense_kernel, quat_to_mat, yaw_of
+    from core.geometry import quat_to_mat_fast as quat_to_mat, yaw_of
+    from sim.simulator import _actuate_kernel, _sense_kernel
 
     W, V = 3, scene.n_vehicles
     sim = Simulator(scene, _lemniscate(W), [1, 2, 3], field_enabled=np.array([True, False, True]))
@@ -137,11 +140,7 @@ def test_fused_kernels_equal_the_readable_components(scene):
 
     kin, quat, rot, yaw = np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V))
     sim.t[:], sim.next_prediction[:] = [0.0, 0.1, 0.2], [0.0, 0.2, 0.1]
-    n_due = _sense_kernel(
-        ph.qpos, ph.qvel, sim._layout, sim._noise, sim._cursor, sim._sigma_p, sim._sigma_yaw,
-        sim._kf_gain_p, sim._kf_gain_v, sim.pos_est, sim.vel_est, sim.t, sim.next_prediction, sim._due,
-        kin, quat, rot, yaw,
-    )
+    n_due = _sense_kernel(*sim._sense_args, kin, quat, rot, yaw)
     pos, vel = ph.qpos[:, sim._pos_idx], ph.qvel[:, sim._vel_idx]
     mocap = pos + sim.cfg.mocap.position_noise * noise[..., :3]
     est = sim.kf.update(prior_p, prior_v, mocap)
@@ -157,19 +156,15 @@ def test_fused_kernels_equal_the_readable_components(scene):
     sim.turb[:] = turb0
     cmd_acc = rng.normal(size=(W, V, 3))
     yaw_rate = rng.normal(size=(W, V))
-    thrust, rot_des = attitude_setpoint(cmd_acc, yaw, sim.max_tilt)
+    thrust, rot_des = sim.controller.setpoint(cmd_acc, yaw)
     applied = np.empty((W, V, 3))
     sim.active[:] = [True, True, False]
     t0 = sim.t.copy()
-    _actuate_kernel(
-        mean, sim.field_enabled, sim._noise, sim._cursor, sim.turb, sim._ou_a, sim._ou_b,
-        sim._turbulence_intensity, sim.mass, applied, ph.xfrc_applied, sim._layout,
-        rot, ph.qvel, rot_des, yaw_rate, thrust, sim._mass_believed, sim.autopilot.gain, sim._max_thrust, ph.ctrl,
-        sim.pos_est, sim.vel_est, cmd_acc, sim.cfg.rates.autopilot_dt, sim.t, sim.active,
-    )
+    sim._rot_des[:], sim._yaw_rate_des[:], sim._thrust_acc[:] = rot_des, yaw_rate, thrust
+    _actuate_kernel(*sim._actuate_args, mean, applied, rot, cmd_acc)
     mean_want = mean_in * sim.field_enabled[:, None, None]
-    turb = sim._ou_a * turb0 + sim._ou_b * noise[..., 4:]
-    applied_want = mean_want + sim.cfg.turbulence_intensity * np.linalg.norm(mean_want, axis=-1, keepdims=True) * turb
+    turb = sim.turbulence.step(turb0, noise[..., 4:], sim.cfg.rates.autopilot_dt)
+    applied_want = sim.turbulence.apply(mean_want, turb)
     omega = ph.qvel[:, scene.qvel_adr[:, None] + 3 + np.arange(3)]
     rotors = sim.autopilot(rot, omega, rot_des, yaw_rate, thrust, sim._mass_believed)
     assert np.array_equal(mean, mean_want) and np.array_equal(sim.turb, turb)

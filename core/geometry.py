@@ -1,0 +1,96 @@
+"""Small geometry helpers: dot products, quaternions, rotations, headings.
+
+Readable functions take an array namespace `xp` (NumPy by default; `torch` works too,
+which `downwash.features` uses for differentiable inputs) and broadcast over leading
+axes. `quat_to_rot` is the compiled form for numba kernels (the simulator's per-tick
+passes), and `quat_to_mat_fast` the batched call of it; a test checks it against
+`quat_to_mat`.
+
+Conventions: MuJoCo quaternions (w, x, y, z); rotation matrices body to world, so
+column 2 is the body's up axis; headings in the Z-Y-X convention.
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import numpy as np
+
+from core.jit import njit
+
+__all__ = [
+    "dot",
+    "quat_to_mat",
+    "quat_to_mat_fast",
+    "quat_to_rot",
+    "rotation_about_axis",
+    "yaw_of",
+    "wrap_angle",
+]
+
+
+def dot(a, b, xp: ModuleType = np):
+    """Dot product over the last axis (...,): one generalised-ufunc call (np.vecdot,
+    torch.linalg.vecdot), whose per-row sum has the same order whatever the batch size."""
+    return np.vecdot(a, b) if xp is np else xp.linalg.vecdot(a, b)
+
+
+def quat_to_mat(quat, xp: ModuleType = np):
+    """Body-to-world rotations (..., 3, 3) from quaternions (w, x, y, z) (..., 4).
+
+    The quaternion is normalised first, so slightly non-unit input is fine.
+    """
+    q = quat / xp.sqrt(dot(quat, quat, xp))[..., None]
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)
+
+
+@njit
+def quat_to_rot(w, x, y, z, R):
+    """Compiled: unit quaternion (w, x, y, z) -> R (3, 3) body to world, in place; returns the heading (rad)."""
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return np.arctan2(R[1, 0], R[0, 0])
+
+
+@njit
+def _quat_to_mat_kernel(q):
+    n = q.shape[0]
+    R = np.empty((n, 3, 3))
+    for i in range(n):
+        quat_to_rot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], R[i])
+    return R
+
+
+def quat_to_mat_fast(q: np.ndarray) -> np.ndarray:
+    """`quat_to_mat` for unit quaternions (..., 4) float64 NumPy, compiled (no normalisation)."""
+    return _quat_to_mat_kernel(q.reshape(-1, 4).astype(float, copy=False)).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotation_about_axis(axis, angle, xp: ModuleType = np):
+    """Rotation matrices (..., 3, 3) by `angle` (...,) rad about unit `axis` (..., 3) (Rodrigues)."""
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    c, s = xp.cos(angle), xp.sin(angle)
+    C = 1 - c
+    rows = [
+        [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+        [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+        [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+    ]
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)
+
+
+def yaw_of(rot: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) body-to-world rotations -> (...,) heading (rad), Z-Y-X convention."""
+    return np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Wrap angles (rad) to [-pi, pi)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi

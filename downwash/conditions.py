@@ -1,0 +1,84 @@
+"""Conditions of the tracking experiments: what compensates the downwash in each batch of worlds.
+
+Every condition flies the same seeds, so the same motion-capture noise and
+turbulence draws: worlds differ only in the predictor (and, for `no_downwash`, in
+the field being off).
+
+    no_downwash   the field is off: the controller's own tracking error
+    baseline      the LQR with no model (the paper's baseline)
+    oracle        the LQR compensating with the true mean field (the best any model can do)
+    <model kind>  the LQR compensating with that trained model (`downwash.models.MODEL_KINDS`)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from core.errors import ConfigError
+from downwash.models import MODEL_KINDS
+from downwash.predictor import LearnedPredictor
+from sim.flight import fly
+from sim.logs import FlightLog
+from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
+from sim.scene import Scene
+from trajectories import Reference
+
+__all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
+
+REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
+CONDITIONS = REFERENCE_CONDITIONS + tuple(MODEL_KINDS)
+
+
+def parse_conditions(text: str) -> list[str]:
+    """Condition names from a comma list; ConfigError naming unknown or duplicate ones."""
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    if not names:
+        raise ConfigError(f"--conditions: expected a comma list of {', '.join(CONDITIONS)}, got {text!r}")
+    unknown = [c for c in names if c not in CONDITIONS]
+    if unknown:
+        raise ConfigError(f"--conditions: unknown {unknown}; allowed: {', '.join(CONDITIONS)}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--conditions: duplicate names in {names}")
+    return names
+
+
+def learned(conditions: Sequence[str]) -> list[str]:
+    """The conditions that fly a trained model."""
+    return [c for c in conditions if c in MODEL_KINDS]
+
+
+def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> Predictor:
+    """The predictor a condition flies with; learned ones load from `checkpoints[condition]`."""
+    if condition in ("no_downwash", "baseline"):
+        return ZeroPredictor()
+    if condition == "oracle":
+        return OraclePredictor(field)
+    return LearnedPredictor.from_checkpoint(checkpoints[condition])
+
+
+def fly_conditions(
+    scene: Scene,
+    conditions: Sequence[str],
+    reference: Reference,
+    seeds: Sequence[int],
+    duration: float,
+    field: Any,
+    checkpoints: dict[str, Path],
+    meta: dict | None = None,
+) -> dict[str, list[FlightLog]]:
+    """Fly every condition on every seed as one batch of worlds; returns the logs per condition.
+
+    reference: a stacked (leader, follower) reference over len(conditions) x len(seeds)
+    worlds, condition-major (world i * K + k is condition i, seed k).
+    """
+    K = len(seeds)
+    predictor = PerWorldPredictor([make_predictor(c, field, checkpoints) for c in conditions],
+                                  np.repeat(np.arange(len(conditions)), K))
+    field_enabled = np.array([c != "no_downwash" for c in conditions for _ in range(K)])
+    world_meta = [{"condition": c, **(meta or {})} for c in conditions for _ in range(K)]
+    logs = fly(scene, reference, [s for _ in conditions for s in seeds], duration, field=field,
+               predictor=predictor, field_enabled=field_enabled, meta=world_meta)
+    return {c: logs[i * K:(i + 1) * K] for i, c in enumerate(conditions)}

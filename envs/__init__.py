@@ -1,0 +1,111 @@
+"""Gymnasium environments: a follower quadrotor in a hovering leader's downwash.
+
+The leader ("alpha") hovers; the follower ("bravo") tracks a reference below it,
+through or beside the leader's wake, flying the full stack of `sim.simulator`
+(motors, autopilot, Kalman-filtered motion capture, 500 Hz physics, the
+ground-truth downwash field with turbulence). The agent commands the follower's
+acceleration once per controller period.
+
+Importing `envs` registers the ids with gymnasium and imports nothing else (no
+MuJoCo, no torch: the entry points are strings). Without a prior import, use the
+module-qualified id ``gymnasium.make("envs:DownwashFollower-v0")``; the former
+``"sim:DownwashFollower-v0"`` still works.
+
+- ``DownwashFollower-v0``: the paper's lemniscate beneath the leader, 0.6 m below
+  it, 500 steps (10 s at 50 Hz).
+- ``DownwashFollowerPasses-v0``: randomised passes and hovers through and beside
+  the wake (the staged data collection's patterns), 0.5-1.2 m below, 1000 steps.
+
+Every option of `envs.config.FollowerConfig` is a `make` keyword; `action_mode` is
+``"residual"`` (default) or ``"acceleration"``. Example::
+
+    import gymnasium as gym
+    import envs  # registers the ids
+
+    env = gym.make("DownwashFollower-v0", action_mode="residual", separation=0.5)
+    obs, info = env.reset(seed=0)
+    for _ in range(500):
+        action = env.action_space.sample()  # (3,) m/s^2, added to the LQR command
+        obs, reward, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            obs, info = env.reset()
+
+    vec = gym.make_vec("DownwashFollower-v0", num_envs=64)   # native batched env
+    obs, infos = vec.reset(seed=0)                           # (64, 30)
+    obs, rewards, terminations, truncations, infos = vec.step(vec.action_space.sample())
+
+The built-in LQR with and without the oracle (action 0 in residual mode; the
+oracle is the env option ``predictor="oracle"``)::
+
+    from envs import evaluate_lqr
+    base = evaluate_lqr(oracle=False, seed=0)
+    oracle = evaluate_lqr(oracle=True, seed=0)
+    print(base["pos_err_3d_mean"], oracle["pos_err_3d_mean"])
+
+Modules (one role each):
+
+- `envs.config`: `FollowerConfig` (the options), `make_config`, allowed values
+- `envs.observation`: the observation layout, its bounds and its markdown table
+- `envs.task`: episodes, the batched task (`FollowerWorlds`): observation, reward, termination
+- `envs.rendering`: offscreen frames (EGL chosen automatically when headless)
+- `envs.base`: what the single and the vector env share
+- `envs.follower`: `DownwashFollowerEnv` and `DownwashFollowerVectorEnv`
+- `envs.evaluation`: `evaluate_lqr` and the env speed benchmarks
+
+The public names of these modules are also attributes of `envs`, imported on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from gymnasium.envs.registration import register as _register
+from gymnasium.envs.registration import registry as _registry
+
+ENV_IDS = ("DownwashFollower-v0", "DownwashFollowerPasses-v0")
+
+# id -> (make kwargs, max_episode_steps)
+_SPECS = {
+    "DownwashFollower-v0": ({}, 500),
+    "DownwashFollowerPasses-v0": ({"reference": "passes", "separation": (0.5, 1.2)}, 1000),
+}
+
+for _id, (_kwargs, _steps) in _SPECS.items():
+    if _id not in _registry:  # re-imports (importlib.reload) must not warn about overriding
+        _register(
+            id=_id,
+            entry_point="envs.follower:DownwashFollowerEnv",
+            vector_entry_point="envs.follower:DownwashFollowerVectorEnv",
+            max_episode_steps=_steps,
+            kwargs=_kwargs,
+        )
+del _id, _kwargs, _steps
+
+# public name -> the module that defines it; imported on first access (PEP 562), so that
+# `import envs` stays light
+_LAZY = {
+    **dict.fromkeys(("DownwashFollowerEnv", "DownwashFollowerVectorEnv"), "envs.follower"),
+    **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "envs.evaluation"),
+    **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "envs.observation"),
+    **dict.fromkeys(("REWARD_TERMS",), "envs.task"),
+    **dict.fromkeys((
+        "FollowerConfig", "make_config", "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS",
+        "CONTROL_HZ_ALLOWED", "DEFAULT_MAX_EPISODE_STEPS", "DEFAULT_FIELD_RANDOMIZATION", "FIELD_RANDOMIZABLE",
+    ), "envs.config"),
+}  # fmt: skip
+
+__all__ = ["ENV_IDS", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'envs' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,0 +1,85 @@
+"""What the single and the vector follower env share: construction, spaces, timing, rendering.
+
+`FollowerEnvBase` is a mixin placed before `gymnasium.Env` / `gymnasium.vector.VectorEnv`
+in the env classes' bases; it owns the config, the batched task (`FollowerWorlds`)
+and the lazily made renderer.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from envs.config import FollowerConfig, make_config
+from envs.observation import obs_bounds
+from envs.rendering import Renderer
+from envs.task import FollowerWorlds
+from sim.simulator import Simulator
+
+__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options"]
+
+RENDER_MODES = ("rgb_array",)
+
+
+def make_spaces(cfg: FollowerConfig) -> tuple[spaces.Box, spaces.Box]:
+    """(observation Box (OBS_DIM,) float64, action Box (3,) float32 m/s^2) of one world."""
+    low, high = obs_bounds(cfg.bound)
+    obs = spaces.Box(low, high, dtype=np.float64)
+    act = spaces.Box(-cfg.bound, cfg.bound, shape=(3,), dtype=np.float32)
+    return obs, act
+
+
+def check_reset_options(options: Mapping[str, Any] | None, allowed: tuple[str, ...]) -> None:
+    """ValueError naming the allowed reset options when `options` has others."""
+    if options:
+        unknown = sorted(set(options) - set(allowed))
+        if unknown:
+            what = ", ".join(allowed) if allowed else "none (configure episodes through the env's options)"
+            raise ValueError(f"reset options: unknown {unknown}; allowed: {what}")
+
+
+class FollowerEnvBase:
+    """Shared state: `config`, `render_mode`, `metadata["render_fps"]`, `_worlds`, `_renderer`.
+
+    The env class defines `metadata` (with ``"render_modes": RENDER_MODES``).
+    """
+
+    config: FollowerConfig
+    _worlds: FollowerWorlds
+
+    def _setup(self, options: Mapping[str, Any], render_mode: str | None, n_worlds: int, n_threads: int = 0) -> None:
+        """Validate the options and the render mode, build the task; the spaces are the caller's."""
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode: got {render_mode!r}; allowed: None, {', '.join(RENDER_MODES)}")
+        self.config = cfg = make_config(options)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": cfg.control_hz}  # one frame per env step
+        self._worlds = FollowerWorlds(cfg, n_worlds, n_threads)
+        self._renderer: Renderer | None = None
+
+    @property
+    def dt(self) -> float:
+        """s, one env step (the controller period)."""
+        return self._worlds.sim_config.rates.control_dt
+
+    @property
+    def simulator(self) -> Simulator:
+        """The underlying `sim.simulator.Simulator` (batched over the env's worlds), for diagnostics."""
+        return self._worlds.sim
+
+    def _frames(self, worlds: Sequence[int]) -> list[np.ndarray] | None:
+        """One (height, width, 3) uint8 frame per world; None (and a warning) without a render_mode."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
+            return None
+        if self._renderer is None:
+            self._renderer = Renderer(self._worlds.scene, self.config.render_width, self.config.render_height)
+        return [self._renderer.render_world(self._worlds.sim, w) for w in worlds]
+
+    def _close_renderer(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -1,0 +1,112 @@
+"""Evaluating the built-in LQR through the envs, and the envs' speed (for experiments.benchmark)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+
+from envs.config import DEFAULT_MAX_EPISODE_STEPS
+from envs.follower import DownwashFollowerVectorEnv
+
+__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"]
+
+
+def evaluate_lqr(
+    oracle: bool,
+    *,
+    num_envs: int = 4,
+    n_steps: int | None = None,
+    seed: int = 0,
+    **options: Any,
+) -> dict[str, float]:
+    """Fly the built-in LQR (residual action 0) for one episode per world; returns error statistics.
+
+    oracle: True -> the LQR subtracts the true mean field (env option predictor="oracle").
+    num_envs: worlds (seeds seed .. seed + num_envs - 1); the same seeds give the same
+        episodes and noise with and without the oracle.
+    n_steps: env steps per episode (default: DEFAULT_MAX_EPISODE_STEPS).
+    options: further env options (reference, separation, control_hz, field knobs, ...).
+
+    Returns pos_err_3d_mean (m), vel_err_3d_mean (m/s), pos_err_3d_peak (m),
+    return_mean (episode reward), terminated (episodes ended early), env_steps.
+    """
+    options = {**options, "action_mode": "residual", "predictor": "oracle" if oracle else "none"}
+    n_steps = DEFAULT_MAX_EPISODE_STEPS if n_steps is None else int(n_steps)
+    env = DownwashFollowerVectorEnv(num_envs, max_episode_steps=n_steps, **options)
+    env.reset(seed=seed)
+    zeros = np.zeros((num_envs, 3), np.float32)
+    alive = np.ones(num_envs, bool)
+    pos, vel, peak, ret = [], [], np.zeros(num_envs), np.zeros(num_envs)
+    terminated_any = np.zeros(num_envs, bool)
+    for _ in range(n_steps):
+        _, reward, term, trunc, info = env.step(zeros)
+        pos.append(info["position_error"][alive])
+        vel.append(info["velocity_error"][alive])
+        peak = np.where(alive, np.maximum(peak, info["position_error"]), peak)
+        ret += np.where(alive, reward, 0.0)
+        terminated_any |= alive & term
+        alive &= ~(term | trunc)  # each world's first episode only (the next step would autoreset it)
+        if not alive.any():
+            break
+    env.close()
+    return {
+        "pos_err_3d_mean": float(np.concatenate(pos).mean()),
+        "vel_err_3d_mean": float(np.concatenate(vel).mean()),
+        "pos_err_3d_peak": float(peak.max()),
+        "return_mean": float(ret.mean()),
+        "terminated": int(terminated_any.sum()),
+        "env_steps": int(sum(len(p) for p in pos)),
+    }
+
+
+def _best_rate(fn: Callable[[], int], repeats: int) -> float:
+    """The best of `repeats` runs of `fn` (which returns how many steps it took), in steps per second."""
+    best = 0.0
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        n = fn()
+        best = max(best, n / (time.perf_counter() - t0))
+    return best
+
+
+def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int = 0, **options: Any) -> float:
+    """Env steps per wall second of one `gymnasium.make("DownwashFollower-v0")` (with its
+    wrappers), random actions, resets included; the best of `repeats` runs."""
+    env = gym.make("DownwashFollower-v0", **options)
+    env.action_space.seed(seed)
+    env.reset(seed=seed)
+    env.step(env.action_space.sample())  # warm-up
+
+    def run() -> int:
+        for _ in range(n_steps):
+            _, _, term, trunc, _ = env.step(env.action_space.sample())
+            if term or trunc:
+                env.reset()
+        return n_steps
+
+    rate = _best_rate(run, repeats)
+    env.close()
+    return rate
+
+
+def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: int = 3, seed: int = 0,
+                           **options: Any) -> float:
+    """Env steps (summed over worlds) per wall second of the native vector env
+    (`gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`), random actions,
+    autoresets included; the best of `repeats` runs."""
+    envs = gym.make_vec("DownwashFollower-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
+    envs.action_space.seed(seed)
+    envs.reset(seed=seed)
+    envs.step(envs.action_space.sample())  # warm-up
+
+    def run() -> int:
+        for _ in range(n_steps):
+            envs.step(envs.action_space.sample())
+        return n_steps * num_envs
+
+    rate = _best_rate(run, repeats)
+    envs.close()
+    return rate

@@ -1,0 +1,281 @@
+"""The follower envs: `DownwashFollowerEnv` (gymnasium.Env) and `DownwashFollowerVectorEnv`.
+
+Two thin classes on one engine (`envs.task.FollowerWorlds`, shared through
+`envs.base.FollowerEnvBase`):
+
+- `DownwashFollowerEnv`: a `gymnasium.Env` (one world, plain `MjData`).
+- `DownwashFollowerVectorEnv`: a native `gymnasium.vector.VectorEnv` whose worlds
+  share one `mujoco.batch.Batch` (next-step autoreset, Gymnasium 1.x's default).
+  Step for step it equals `gymnasium.vector.SyncVectorEnv` of single envs made
+  with the same options and seeds (world i of `reset(seed=s)` uses seed s + i).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from core.validate import count
+from envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces
+from envs.config import DEFAULT_MAX_EPISODE_STEPS
+from envs.task import draw_episode, episode_info
+
+__all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
+
+
+class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
+    """The follower tracks a reference below a hovering leader, in the leader's downwash.
+
+    ## Actions
+    Box(-b, b, (3,), float32), m/s^2, world frame (z up), b = `action_bound`
+    (default 5 in residual mode, 10 in acceleration mode); clipped to the box; NaN,
+    inf or a wrong shape raise ValueError before any stepping.
+
+    - ``residual``: added to the follower's LQR acceleration command
+      `u = a_ref - K (x - x_ref) - f_hat`; action 0 is the plain LQR (the
+      compensation task: the ideal action cancels the downwash, -f).
+    - ``acceleration``: the follower's whole acceleration command (gravity
+      excluded; its feedback linearisation still turns it into thrust and tilt,
+      tilt limited to 35 deg, vertical specific force >= 0.25 g).
+
+    ## Observation
+    Box, float64, (30,); the vehicle's own knowledge: positions and velocities are
+    the Kalman-filtered motion-capture estimates at the observation time, attitudes
+    the onboard (true) ones; the reference is sampled at the same time. The layout
+    is `envs.observation.OBSERVATION` (this table is `envs.observation.markdown_table()`,
+    which a test checks):
+
+    | index | name            | meaning                                           | unit  | frame | bound |
+    |-------|-----------------|---------------------------------------------------|-------|-------|-------|
+    | 0-2   | dp              | p_follower - p_leader                             | m     | world | 10    |
+    | 3-5   | v_follower      | follower velocity                                 | m/s   | world | 20    |
+    | 6-8   | v_leader        | leader velocity                                   | m/s   | world | 20    |
+    | 9-11  | pos_error       | p_follower - p_ref                                | m     | world | 10    |
+    | 12-14 | vel_error       | v_follower - v_ref                                | m/s   | world | 25    |
+    | 15-17 | ref_acc         | reference acceleration a_ref                      | m/s^2 | world | 25    |
+    | 18-20 | follower_x_axis | follower body x axis R_b[:, 0] (heading)          | -     | world | 1     |
+    | 21-23 | follower_z_axis | follower body z axis R_b[:, 2] (thrust direction) | -     | world | 1     |
+    | 24-26 | leader_z_axis   | leader body z axis R_a[:, 2] (the wake's axis)    | -     | world | 1     |
+    | 27-29 | last_action     | previous action as applied (0 after reset)        | m/s^2 | world | b     |
+
+    Entries are clipped to their bound (never reached in a live episode: the
+    tracking box ends it first).
+
+    ## Reward
+    reward = sum of six terms, each in ``info["reward_<name>"]`` (REWARD_TERMS order),
+    from the true state at the end of the step, e_p = p - p_ref, e_v = v - v_ref:
+
+    | term        | value                                                   | default weight |
+    |-------------|---------------------------------------------------------|----------------|
+    | alive       | +alive_reward while the episode goes on                 | 1.0            |
+    | position    | -position_cost_weight * norm(e_p)  (m)                  | 2.0            |
+    | velocity    | -velocity_cost_weight * norm(e_v)  (m/s)                | 0.5            |
+    | action      | -action_cost_weight * norm(a)^2 / b^2                   | 0.05           |
+    | action_rate | -action_rate_cost_weight * norm(a - a_prev)^2 / b^2     | 0.05           |
+    | termination | -termination_penalty on the terminating step            | 50.0           |
+
+    The alive bonus and the termination penalty keep crashing from paying off;
+    the action-rate term discourages chattering that the motors (30 ms lag) cannot
+    follow. norm(e_p) and norm(e_v) are capped at 10 (a diverged state is not finite).
+
+    ## Episode end
+    terminated: collision with the ground or the leader, divergence (NaN, MuJoCo
+    instability), or the follower farther than `max_tracking_error` (default 1 m)
+    from its reference (the tracking box). ``info["status"]`` is a `core.status.Status`
+    code: 0 ok, 1 diverged, 2 ground collision, 3 vehicle collision, 4 left the box
+    (`Status(code).label` gives the name).
+    truncated: by gymnasium's TimeLimit at the registered max_episode_steps.
+
+    ## Info
+    reset: the drawn episode parameters: ``separation`` (m; passes: the first
+    waypoint's depth), ``mass_scale``, and ``field_scale_<constant>`` per randomised
+    field constant. step: the reward terms ``reward_<name>``, ``position_error`` (m)
+    and ``velocity_error`` (m/s) (true state, capped), ``status``.
+
+    ## Options
+    See `envs.config.FollowerConfig` (every field is a keyword); unknown names raise
+    TypeError naming the allowed ones, bad values ValueError naming the allowed range.
+    `reset(options=...)` takes no options. Randomness: every episode draws its
+    parameters and its noise seed from `self.np_random`.
+
+    ## Rendering
+    ``render_mode="rgb_array"``: `render()` returns a (render_height, render_width, 3)
+    uint8 frame; on a headless Linux machine EGL is chosen automatically (see
+    `envs.rendering`).
+    """
+
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}
+
+    def __init__(self, render_mode: str | None = None, **options: Any):
+        self._setup(options, render_mode, n_worlds=1)
+        self.observation_space, self.action_space = make_spaces(self.config)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        check_reset_options(options, allowed=())
+        ep = draw_episode(self.np_random, self.config)
+        self._worlds.reset_worlds([0], [ep])
+        return self._worlds.observe()[0], episode_info(self.config, ep)
+
+    def step(self, action: Any):
+        a = self._worlds.check_actions(action, (3,))
+        reward, terminated, infos = self._worlds.step(a[None], None)
+        obs = self._worlds.observe(fresh=False)[0]
+        info = {k: v[0].item() for k, v in infos.items()}  # plain Python floats and ints
+        return obs, float(reward[0]), bool(terminated[0]), False, info
+
+    def render(self):
+        frames = self._frames((0,))
+        return None if frames is None else frames[0]
+
+    def close(self) -> None:
+        self._close_renderer()
+
+
+class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
+    """`num_envs` follower worlds on one `mujoco.batch.Batch`: Gymnasium's VectorEnv API.
+
+    Observations (num_envs, 30), actions (num_envs, 3), rewards/terminations/
+    truncations (num_envs,), infos a dict of arrays with ``_key`` masks, as
+    `SyncVectorEnv` builds them. Autoreset: next step (`metadata["autoreset_mode"]`):
+    the step after a world terminates or truncates resets it (its action is
+    ignored, reward 0, the reset's observation and info). Step for step identical
+    to `SyncVectorEnv` of `DownwashFollowerEnv`s with the same options and seeds:
+    world i of `reset(seed=s)` uses seed s + i; `reset(seed=[...])` one per world.
+
+    num_envs: worlds. max_episode_steps: truncation horizon (None or -1: none;
+    `make_vec` passes the registered one). n_threads: Batch threads (0: all cores).
+    Other keywords: `FollowerConfig` (see `DownwashFollowerEnv` for the spaces,
+    reward and termination). `reset(options={"reset_mask": mask})` resets only
+    the masked worlds. `render()` returns one frame per world.
+    """
+
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50, "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self,
+        num_envs: int = 8,
+        render_mode: str | None = None,
+        max_episode_steps: int | None = DEFAULT_MAX_EPISODE_STEPS,
+        n_threads: int = 0,
+        **options: Any,
+    ):
+        N = count("num_envs", num_envs, 1)
+        if max_episode_steps is not None and (
+            isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer))
+            or (max_episode_steps < 1 and max_episode_steps != -1)
+        ):
+            raise ValueError(
+                f"max_episode_steps: expected None, -1 (no limit) or an integer >= 1, got {max_episode_steps!r}"
+            )
+        self._setup(options, render_mode, n_worlds=N, n_threads=n_threads)
+        self.num_envs = N
+        self.max_episode_steps = None if max_episode_steps in (None, -1) else int(max_episode_steps)
+        self.single_observation_space, self.single_action_space = make_spaces(self.config)
+        self.observation_space = batch_space(self.single_observation_space, N)
+        self.action_space = batch_space(self.single_action_space, N)
+        self._rngs: list[np.random.Generator | None] = [None] * N  # one per world, as SyncVectorEnv's envs
+        self._autoreset = np.zeros(N, bool)
+        self._elapsed = np.zeros(N, np.int64)
+
+    def _rng(self, w: int) -> np.random.Generator:
+        if self._rngs[w] is None:
+            self._rngs[w], _ = seeding.np_random()
+        return self._rngs[w]
+
+    def _reset_worlds(self, worlds: np.ndarray) -> dict[str, np.ndarray]:
+        """Draw episodes for `worlds` from their generators, reset them; returns their infos (W,)."""
+        episodes = [draw_episode(self._rng(int(w)), self.config) for w in worlds]
+        self._worlds.reset_worlds(worlds, episodes)
+        self._elapsed[worlds] = 0
+        infos = [episode_info(self.config, ep) for ep in episodes]
+        out = {}
+        for key in infos[0] if infos else ():
+            arr = np.zeros(self.num_envs, dtype=type(infos[0][key]))
+            arr[worlds] = [i[key] for i in infos]
+            out[key] = arr
+        return out
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
+        N = self.num_envs
+        if seed is None:
+            seeds: list[int | None] = [None] * N
+        elif isinstance(seed, (int, np.integer)):
+            super().reset(seed=int(seed))
+            seeds = [int(seed) + i for i in range(N)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != N:
+                raise ValueError(f"seed: a list of seeds needs one per world ({N}), got {len(seeds)}")
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
+        check_reset_options(options, allowed=("reset_mask",))
+        if mask is None:
+            mask = np.ones(N, bool)
+        else:
+            mask = np.asarray(mask)
+            if mask.shape != (N,) or mask.dtype != np.bool_ or not mask.any():
+                raise ValueError(f"reset options['reset_mask']: expected a bool array ({N},) with a True, got {mask!r}")
+        worlds = np.flatnonzero(mask)
+        for w in worlds:
+            if seeds[w] is not None:
+                self._rngs[w], _ = seeding.np_random(int(seeds[w]))
+        reset_info = self._reset_worlds(worlds)
+        self._autoreset[worlds] = False
+        obs = self._worlds.observe()
+        infos = _vector_infos(N, {}, np.zeros(N, bool), reset_info, mask)
+        return obs, infos
+
+    def step(self, actions: Any):
+        N = self.num_envs
+        a = self._worlds.check_actions(actions, (N, 3))
+        resetting = self._autoreset
+        stepping = ~resetting
+        any_reset = bool(resetting.any())
+        reward, terminated, step_info = self._worlds.step(a, stepping if any_reset else None)
+        self._elapsed += stepping
+        truncated = self._elapsed >= self.max_episode_steps if self.max_episode_steps is not None else np.zeros(N, bool)
+        reset_info: dict[str, np.ndarray] = {}
+        if any_reset:
+            reset_info = self._reset_worlds(np.flatnonzero(resetting))
+            reward[resetting] = 0.0
+            terminated = terminated & stepping
+            truncated = truncated & stepping
+            obs = self._worlds.observe()
+        else:
+            obs = self._worlds.observe(fresh=False)
+        infos = _vector_infos(N, step_info, stepping, reset_info, resetting)
+        self._autoreset = terminated | truncated
+        return obs, reward, terminated, truncated, infos
+
+    def render(self):
+        frames = self._frames(range(self.num_envs))
+        return None if frames is None else tuple(frames)
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._close_renderer()
+
+
+def _vector_infos(
+    n: int, step_info: dict[str, np.ndarray], step_mask: np.ndarray,
+    reset_info: dict[str, np.ndarray], reset_mask: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Infos as SyncVectorEnv assembles them: per key the values (0 where absent) and a `_key` mask."""
+    out: dict[str, np.ndarray] = {}
+    for info, mask in ((step_info, step_mask), (reset_info, reset_mask)):
+        if not mask.any():
+            continue
+        for key, value in info.items():
+            value = np.asarray(value)
+            if key in out:
+                out[key] = np.where(mask, value, out[key])
+                out[f"_{key}"] = out[f"_{key}"] | mask
+            else:
+                out[key] = np.where(mask, value, np.zeros((), value.dtype)).astype(value.dtype)
+                out[f"_{key}"] = mask.copy()
+    return out

@@ -1,0 +1,77 @@
+"""The layers of DESIGN section 2 hold: the import contract, and light imports of the lower layers."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_import_contract_is_kept():
+    """`lint-imports` checks the contracts in pyproject.toml: layers that point one way, and
+    no torch, gymnasium or matplotlib below downwash and envs."""
+    proc = subprocess.run(["lint-imports"], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "0 broken" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    "module, banned",
+    [
+        ("core.geometry", ("torch", "gymnasium", "matplotlib")),
+        ("core.validate", ("torch", "gymnasium", "matplotlib")),
+        ("trajectories", ("torch", "gymnasium", "matplotlib")),
+        # python-control itself imports matplotlib, so the controller and the loop load it
+        ("controllers.lqr", ("torch", "gymnasium")),
+        ("sim.flight", ("torch", "gymnasium")),
+        ("sim", ("torch", "gymnasium")),
+    ],
+)
+def test_lower_layers_import_no_learning_or_rl_library(module, banned):
+    """Importing a module of the simulation stack loads neither torch nor gymnasium (`import sim`
+    included: the envs moved out of it); the foundation and the trajectories not even matplotlib."""
+    code = (f"import sys, {module}; heavy = sorted(m for m in {banned!r} if m in sys.modules);"
+            "print(heavy); sys.exit(1 if heavy else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"{module} imported {proc.stdout.strip()} {proc.stderr[-2000:]}"
+
+
+def test_no_experiment_imports_another():
+    """Experiments share only `experiments.common` and the tracking table (lemniscate and transect are its entries)."""
+    shared = {"common", "tracking"}
+    for path in (ROOT / "experiments").glob("*.py"):
+        text = path.read_text()
+        for line in text.splitlines():
+            if line.startswith(("from experiments", "import experiments")):
+                target = line.split()[1].split(".")[1] if "." in line.split()[1] else ""
+                assert target in shared, f"{path.name}: {line}"
+
+
+def test_readme_architecture_table_lists_every_module():
+    """The README's module table names exactly the modules of the seven packages (deprecated shims aside)."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("### Architecture"):]
+    section = section[: section.index("\n## ")] if "\n## " in section else section
+    listed = set()
+    for line in section.splitlines():
+        if line.startswith("| `"):
+            listed.add(line.split("`")[1])
+    packages = ("core", "trajectories", "controllers", "sim", "downwash", "envs")
+    modules = set()
+    for pkg in packages:
+        for path in (ROOT / pkg).glob("*.py"):
+            text = path.read_text()
+            if path.name == "__init__.py" or text.lstrip('"').startswith("Deprecated"):
+                continue
+            modules.add(f"{pkg}.{path.stem}")
+    modules |= {"experiments.common", "experiments.tracking"}
+    assert listed == modules, f"missing from the README: {sorted(modules - listed)}; stale: {sorted(listed - modules)}"
+
+
+def test_readme_observation_table_is_the_generated_one():
+    from envs.observation import markdown_table
+
+    assert markdown_table() in (ROOT / "README.md").read_text()

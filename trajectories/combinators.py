@@ -1,0 +1,131 @@
+"""Combinators: references made of references.
+
+- `stack`: one reference per vehicle, sampled together as (W, V, ...) arrays.
+- `Mixed`: different references for different worlds of one batch.
+- `TimeShifted`: a reference sampled at t + t0 (a per-world start phase).
+- `Cached`: returns its last sample again when asked for the same times.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from core.errors import ConfigError
+from trajectories.base import RefSample, Reference, empty_sample, sample_times
+
+__all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached"]
+
+
+class Mixed:
+    """Different references for different worlds of one batch.
+
+    parts: (reference, worlds) pairs; `worlds` (index array) are the batch worlds that
+    `reference` (built with n_worlds = len(worlds)) serves. Every world must be served
+    exactly once. Sampling calls each part once on its worlds' times.
+    """
+
+    def __init__(self, parts: Sequence[tuple[Reference, ArrayLike]]) -> None:
+        parts = [(ref, np.asarray(worlds, dtype=np.int64).reshape(-1)) for ref, worlds in parts]
+        if not parts:
+            raise ConfigError("parts: expected at least one (reference, worlds) pair")
+        for ref, worlds in parts:
+            if int(ref.n_worlds) != worlds.size:
+                raise ConfigError(f"parts: a reference with n_worlds={ref.n_worlds} was given {worlds.size} worlds")
+        all_worlds = np.sort(np.concatenate([w for _, w in parts]))
+        if not np.array_equal(all_worlds, np.arange(all_worlds.size)):
+            raise ConfigError("parts: the worlds must be 0..W-1, each served by exactly one reference")
+        self.parts = parts
+        self.n_worlds = int(all_worlds.size)
+        self.duration = np.zeros(self.n_worlds)
+        for ref, worlds in parts:
+            self.duration[worlds] = np.broadcast_to(np.asarray(ref.duration, dtype=float), (worlds.size,))
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)): the fields of RefSample, (W, 3) and (W,)."""
+        t = sample_times(t, self.n_worlds)
+        W = self.n_worlds
+        out = RefSample(np.empty((W, 3)), np.empty((W, 3)), np.empty((W, 3)), np.empty(W), np.empty(W))
+        for ref, worlds in self.parts:
+            for dst, src in zip(out, ref(t[worlds])):
+                dst[worlds] = src
+        return out
+
+
+class StackedReference:
+    """One reference per vehicle, sampled together: `(W, V, ...)` arrays.
+
+    refs: V references with the same `n_worlds`. `duration` (s, (W,)) is the
+    longest natural length over the vehicles.
+    """
+
+    def __init__(self, refs: Sequence[Reference]) -> None:
+        refs = list(refs)
+        if not refs:
+            raise ConfigError("refs: expected at least one reference")
+        counts = [int(r.n_worlds) for r in refs]
+        if len(set(counts)) != 1:
+            raise ConfigError(f"refs: all references must have the same n_worlds, got {counts}")
+        self.refs = refs
+        self._into = [getattr(r, "_sample_into", None) for r in refs]
+        self.n_worlds = counts[0]
+        self.n_vehicles = len(refs)
+        self.duration: np.ndarray = np.max(
+            [np.broadcast_to(np.asarray(r.duration, dtype=float), (self.n_worlds,)) for r in refs], axis=0
+        )
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)): pos/vel/acc (W, V, 3), yaw/yaw_rate (W, V)."""
+        t = sample_times(t, self.n_worlds)
+        vec, ang, out = empty_sample(self.n_worlds, self.n_vehicles)
+        for v, (ref, into) in enumerate(zip(self.refs, self._into)):
+            if into is not None:  # our references write their slots directly
+                into(t, vec, ang, v)
+            else:  # any other Reference: sample, then copy
+                for dst, src in zip(out, ref(t)):
+                    dst[:, v] = src
+        return out
+
+
+def stack(refs: Sequence[Reference]) -> StackedReference:
+    """Stack one reference per vehicle: `stack([Hover(leader), Lemniscate(c)])(t)`
+    gives pos (W, 2, 3) etc. All refs must have the same `n_worlds` (ValueError)."""
+    return StackedReference(refs)
+
+
+class TimeShifted:
+    """A batched reference sampled at t + t0 (per-world start phase t0 (W,) s)."""
+
+    def __init__(self, ref: Reference, t0: np.ndarray):
+        self.ref, self.t0 = ref, t0
+        self.n_worlds = ref.n_worlds
+        self.duration = ref.duration
+
+    def __call__(self, t: Any) -> RefSample:
+        return self.ref(np.asarray(t, dtype=float) + self.t0)
+
+
+class Cached:
+    """A reference that returns its last sample again when asked for the same times.
+
+    An env samples the reference at the end of a step (observation, reward) and the
+    next controller tick samples it at the same times: one evaluation serves both.
+    Samples are shared between callers, which only read them.
+    """
+
+    def __init__(self, ref: Reference):
+        self.ref = ref
+        self.n_worlds = ref.n_worlds
+        self.duration = ref.duration
+        self._t: np.ndarray | None = None
+        self._sample: RefSample | None = None
+
+    def __call__(self, t: Any) -> RefSample:
+        t = np.asarray(t, dtype=float)
+        if self._t is None or t.shape != self._t.shape or not np.array_equal(t, self._t):
+            self._sample = self.ref(t)
+            self._t = t.copy()  # the simulator updates its clock in place at reset
+        return self._sample

@@ -1,0 +1,50 @@
+"""One name -> reference factory, for experiments and envs alike.
+
+`make_reference("lemniscate", center, n_worlds, half_length=0.8)` builds the named
+reference around `center` (the point the follower flies about: for the paper's
+experiments, the point `separation` below the leader). Unknown names and unknown
+shape parameters raise ConfigError naming what is allowed.
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from core.errors import ConfigError
+from core.validate import choice
+from trajectories.base import Reference
+from trajectories.primitives import Hover, Lemniscate, Transect
+
+__all__ = ["REFERENCES", "REFERENCE_KWARGS", "make_reference"]
+
+# name -> the shape parameters it accepts (keywords of its class; hover: `offset`, (3,) m from center)
+REFERENCE_KWARGS = MappingProxyType({
+    "hover": ("offset",),
+    "lemniscate": ("half_length", "half_width", "period"),
+    "transect": ("x_offset", "half_length", "period"),
+})
+REFERENCES = tuple(REFERENCE_KWARGS)
+
+
+def make_reference(name: str, center: ArrayLike, n_worlds: int | None = None, **kwargs: Any) -> Reference:
+    """The reference `name` around `center` ((3,) or (W, 3) m, world frame) for `n_worlds` worlds.
+
+    kwargs: the shape parameters of REFERENCE_KWARGS[name] (each a float or (W,) array).
+    """
+    choice("reference", name, REFERENCES)
+    unknown = sorted(set(kwargs) - set(REFERENCE_KWARGS[name]))
+    if unknown:
+        raise ConfigError(
+            f"reference_kwargs: unknown {unknown} for reference {name!r}; allowed: {', '.join(REFERENCE_KWARGS[name])}"
+        )
+    if name == "hover":
+        offset = np.array(kwargs.get("offset", (0.0, 0.0, 0.0)), dtype=float)
+        if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+            raise ConfigError(f"reference_kwargs['offset']: expected 3 finite numbers (m), got {kwargs.get('offset')!r}")
+        return Hover(np.asarray(center, dtype=float) + offset, n_worlds=n_worlds)
+    cls = Lemniscate if name == "lemniscate" else Transect
+    return cls(center, n_worlds=n_worlds, **kwargs)

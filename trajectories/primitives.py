@@ -1,0 +1,433 @@
+"""The built-in references: hover points, the paper's lemniscate and transect, waypoint patterns.
+
+- `Hover`: fixed points.
+- `Lemniscate`: the paper's figure-eight (lemniscate of Gerono) beneath the leader.
+- `Transect`: the paper's back-and-forth pass along world y, offset in x.
+- `Waypoints`: piecewise minimum-jerk moves between waypoints with dwells, padded
+  so that every world can fly its own pattern; evaluated without Python loops.
+
+Each serves W worlds (each world may have its own parameters) and has a compiled
+`_sample_into` for stacking (see `trajectories.base`); the tests check every
+derivative against finite differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from core.errors import ConfigError
+from core.jit import njit
+from core.validate import positive_float, scalar_or_world, vec3
+from trajectories.base import (
+    RefSample,
+    duration_of,
+    empty_sample,
+    leading_sizes,
+    resolve_n_worlds,
+    sample_times,
+    single,
+    zero_yaw,
+)
+
+__all__ = ["Hover", "Lemniscate", "Transect", "Waypoints", "MIN_JERK_PEAK"]
+
+MIN_JERK_PEAK = 1.875  # -, peak speed of a min-jerk move over its mean speed (distance / duration)
+
+
+@njit
+def _hover_into(points, vec, ang, v):
+    """Hover samples (points (W, 3) m) into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(points.shape[0]):
+        for k in range(3):
+            vec[0, w, v, k] = points[w, k]
+            vec[1, w, v, k] = 0.0
+            vec[2, w, v, k] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
+
+
+@njit
+def _lemniscate_into(t, omega, center, a, b, vec, ang, v):
+    """Lemniscate samples at t (W,) s into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(t.shape[0]):
+        om = omega[w]
+        th = om * t[w]
+        c1, s1 = np.cos(th), np.sin(th)
+        c2, s2 = np.cos(2.0 * th), np.sin(2.0 * th)
+        vec[0, w, v, 0] = center[w, 0] + a[w] * c1
+        vec[0, w, v, 1] = center[w, 1] + b[w] * s2
+        vec[0, w, v, 2] = center[w, 2]
+        vec[1, w, v, 0] = -a[w] * om * s1
+        vec[1, w, v, 1] = 2.0 * b[w] * om * c2
+        vec[1, w, v, 2] = 0.0
+        vec[2, w, v, 0] = -a[w] * om * om * c1
+        vec[2, w, v, 1] = -4.0 * b[w] * om * om * s2
+        vec[2, w, v, 2] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
+
+
+@njit
+def _transect_into(t, omega, base, half_length, vec, ang, v):
+    """Transect samples at t (W,) s into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
+    for w in range(t.shape[0]):
+        om = omega[w]
+        th = om * t[w]
+        c, s = np.cos(th), np.sin(th)
+        hl = half_length[w]
+        vec[0, w, v, 0] = base[w, 0]
+        vec[0, w, v, 1] = base[w, 1] - hl * c
+        vec[0, w, v, 2] = base[w, 2]
+        vec[1, w, v, 0] = 0.0
+        vec[1, w, v, 1] = hl * om * s
+        vec[1, w, v, 2] = 0.0
+        vec[2, w, v, 0] = 0.0
+        vec[2, w, v, 1] = hl * om * om * c
+        vec[2, w, v, 2] = 0.0
+        ang[0, w, v] = 0.0
+        ang[1, w, v] = 0.0
+
+
+# ----------------------------------------------------------------------------- simple references
+
+
+class Hover:
+    """Hold fixed points: zero velocity and acceleration, yaw 0.
+
+    points: (W, 3) or (3,) m, world frame (z up); (3,) is shared by `n_worlds` worlds.
+    n_worlds: number of worlds (inferred from `points` when batched).
+    duration: s, the length a caller should fly it for (a hover has no natural
+        end; default 0.0). Sampling at any time returns the points.
+    """
+
+    def __init__(self, points: ArrayLike, n_worlds: int | None = None, duration: float = 0.0) -> None:
+        p = vec3("points", points)
+        self.n_worlds = resolve_n_worlds(n_worlds, {"points": p.shape[0]} if p.ndim == 2 else {})
+        self.points = np.broadcast_to(p, (self.n_worlds, 3)).copy()  # (W, 3) m
+        self.duration: float = positive_float("duration", duration, "s", allow_zero=True)
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)): the points, zeros elsewhere."""
+        sample_times(t, self.n_worlds)
+        w = self.n_worlds
+        yaw, yaw_rate = zero_yaw(w)
+        return RefSample(self.points.copy(), np.zeros((w, 3)), np.zeros((w, 3)), yaw, yaw_rate)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _hover_into(self.points, vec, ang, v)
+
+
+class Lemniscate:
+    """Horizontal figure-eight (lemniscate of Gerono) around `center`, constant z.
+
+    With theta = 2 pi t / period::
+
+        x = cx + half_length * cos(theta)
+        y = cy + half_width  * sin(2 theta)
+        z = cz
+
+    t = 0 is at a tip (x = cx + half_length, y = cy); the crossing point
+    (cx, cy) -- which the experiments put directly beneath the leader -- is passed
+    at t = period / 4 and 3 period / 4 (mod period). `half_width` is the largest
+    |y - cy| (the classic Gerono curve is half_width = half_length / 2).
+    Velocity and acceleration are analytic; yaw is 0.
+
+    center: (W, 3) or (3,) m, world frame (z up).
+    half_length: m, float or (W,), > 0; half the extent along world x.
+    half_width: m, float or (W,), > 0; half the extent along world y.
+    period: s, float or (W,), > 0.
+    n_worlds: number of worlds (inferred from batched arguments when given).
+    """
+
+    def __init__(
+        self,
+        center: ArrayLike,
+        half_length: float | ArrayLike = 1.0,
+        half_width: float | ArrayLike = 0.5,
+        period: float | ArrayLike = 20.0,
+        n_worlds: int | None = None,
+    ) -> None:
+        c = vec3("center", center)
+        a = scalar_or_world("half_length", half_length, "m")
+        b = scalar_or_world("half_width", half_width, "m")
+        per = scalar_or_world("period", period, "s")
+        args = {"center": c, "half_length": a, "half_width": b, "period": per}
+        self.n_worlds = resolve_n_worlds(
+            n_worlds, leading_sizes(args, {"center": 1, "half_length": 0, "half_width": 0, "period": 0})
+        )
+        w = self.n_worlds
+        self.center = np.broadcast_to(c, (w, 3)).copy()  # (W, 3) m
+        self.half_length = np.broadcast_to(a, (w,)).copy()  # (W,) m
+        self.half_width = np.broadcast_to(b, (w,)).copy()  # (W,) m
+        self.period = np.broadcast_to(per, (w,)).copy()  # (W,) s
+        self.duration: np.ndarray | float = duration_of(per)
+        self._omega = 2.0 * np.pi / self.period  # (W,) rad/s
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
+        vec, ang, _ = empty_sample(self.n_worlds, 1)
+        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        return single(vec, ang)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _lemniscate_into(t, self._omega, self.center, self.half_length, self.half_width, vec, ang, v)
+
+
+class Transect:
+    """Back and forth along world y at a fixed x offset, constant z (paper 5.D).
+
+    With theta = 2 pi t / period::
+
+        x = cx + x_offset
+        y = cy - half_length * cos(theta)
+        z = cz
+
+    so t = 0 is at the y = cy - half_length end, the centre is crossed at peak
+    speed (2 pi half_length / period) at period / 4 and 3 period / 4, and the
+    far end is reached at period / 2. The paper's transect: `center` the point
+    0.6 m directly below the leader, x_offset 0.2 m. Yaw is 0.
+
+    center: (W, 3) or (3,) m, world frame (z up).
+    x_offset: m, float or (W,) (any sign).
+    half_length: m, float or (W,), > 0.
+    period: s, float or (W,), > 0.
+    n_worlds: number of worlds (inferred from batched arguments when given).
+    """
+
+    def __init__(
+        self,
+        center: ArrayLike,
+        x_offset: float | ArrayLike = 0.2,
+        half_length: float | ArrayLike = 1.2,
+        period: float | ArrayLike = 12.0,
+        n_worlds: int | None = None,
+    ) -> None:
+        c = vec3("center", center)
+        xo = np.array(x_offset, dtype=float)
+        if xo.ndim > 1 or (xo.ndim == 1 and xo.shape[0] < 1) or not np.all(np.isfinite(xo)):
+            raise ConfigError(f"x_offset: expected a finite float or shape (W,) in m, got {x_offset!r}")
+        hl = scalar_or_world("half_length", half_length, "m")
+        per = scalar_or_world("period", period, "s")
+        args = {"center": c, "x_offset": xo, "half_length": hl, "period": per}
+        self.n_worlds = resolve_n_worlds(
+            n_worlds, leading_sizes(args, {"center": 1, "x_offset": 0, "half_length": 0, "period": 0})
+        )
+        w = self.n_worlds
+        self.center = np.broadcast_to(c, (w, 3)).copy()  # (W, 3) m
+        self.x_offset = np.broadcast_to(xo, (w,)).copy()  # (W,) m
+        self.half_length = np.broadcast_to(hl, (w,)).copy()  # (W,) m
+        self.period = np.broadcast_to(per, (w,)).copy()  # (W,) s
+        self.duration: np.ndarray | float = duration_of(per)
+        self._omega = 2.0 * np.pi / self.period  # (W,) rad/s
+        self._base = self.center.copy()
+        self._base[:, 0] += self.x_offset
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
+        vec, ang, _ = empty_sample(self.n_worlds, 1)
+        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        return single(vec, ang)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _transect_into(t, self._omega, self._base, self.half_length, vec, ang, v)
+
+
+# ----------------------------------------------------------------------------- waypoints
+
+
+class Waypoints:
+    """Piecewise minimum-jerk moves between waypoints, with a dwell at each.
+
+    World w starts at its waypoint 0, dwells `dwell[w, 0]` there, moves to
+    waypoint 1 in `durations[w, 0]` along a straight line with the quintic
+    minimum-jerk profile s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 (zero velocity and
+    acceleration at both ends, so the reference is C2 everywhere), dwells
+    `dwell[w, 1]`, and so on; after the last dwell it holds the last waypoint
+    (and before t = 0 it holds the first). A move's peak speed is
+    1.875 * distance / duration. Yaw is 0.
+
+    Worlds may fly different patterns: arrays are padded to K waypoints, and a
+    world with fewer fills its trailing rows of `points` with NaN (its padded
+    `durations` / `dwell` entries are ignored and may be NaN).
+    `Waypoints.from_patterns` does the padding from per-world lists.
+
+    points: (W, K, 3) or (K, 3) m, world frame (z up); (K, 3) is shared by
+        `n_worlds` worlds.
+    durations: (W, K - 1) or (K - 1,) s, > 0, the duration of each move.
+    dwell: float, (K,) or (W, K) s, >= 0, the hover time at each waypoint.
+    n_worlds: number of worlds (inferred when any argument is batched).
+    move_tags: optional (W, K - 1) or (K - 1,) strings naming each move (for
+        example "pass" / "reposition"; padded entries are "").
+
+    Attributes: `points` (W, K, 3) m NaN-padded, `n_points` (W,), `durations`
+    (W, K - 1) s and `dwell` (W, K) s (NaN where padded), `arrival_times`
+    (W, K) s (when each waypoint is reached, NaN where padded), `move_tags`
+    (W, K - 1) str, `duration` (W,) s (end of the last dwell).
+    """
+
+    def __init__(
+        self,
+        points: ArrayLike,
+        durations: ArrayLike,
+        dwell: float | ArrayLike = 0.0,
+        n_worlds: int | None = None,
+        *,
+        move_tags: ArrayLike | None = None,
+    ) -> None:
+        p = np.array(points, dtype=float)
+        if not (p.ndim in (2, 3) and p.shape[-1] == 3 and p.shape[-2] >= 1 and (p.ndim == 2 or p.shape[0] >= 1)):
+            raise ConfigError(f"points: expected shape (W, K, 3) or (K, 3) with K >= 1, got {p.shape}")
+        k = p.shape[-2]
+        d = np.array(durations, dtype=float)
+        if d.shape == () and k == 2:
+            d = d.reshape(1)
+        if not (d.ndim in (1, 2) and d.shape[-1] == k - 1):
+            raise ConfigError(f"durations: expected shape (W, {k - 1}) or ({k - 1},) for K = {k} points, got {d.shape}")
+        dw = np.array(dwell, dtype=float)
+        if not (dw.ndim == 0 or (dw.ndim in (1, 2) and dw.shape[-1] == k)):
+            raise ConfigError(f"dwell: expected a float or shape (W, {k}) or ({k},) for K = {k} points, got {dw.shape}")
+        tags = None
+        if move_tags is not None:
+            tags = np.array(move_tags, dtype=str)
+            if tags.size == 0 and k == 1:
+                tags = tags.reshape(k - 1)
+            if not (tags.ndim in (1, 2) and tags.shape[-1] == k - 1):
+                raise ConfigError(f"move_tags: expected shape (W, {k - 1}) or ({k - 1},), got {tags.shape}")
+        batched = {"points": p.shape[0]} if p.ndim == 3 else {}
+        if d.ndim == 2:
+            batched["durations"] = d.shape[0]
+        if dw.ndim == 2:
+            batched["dwell"] = dw.shape[0]
+        if tags is not None and tags.ndim == 2:
+            batched["move_tags"] = tags.shape[0]
+        w = self.n_worlds = resolve_n_worlds(n_worlds, batched)
+
+        p = np.broadcast_to(p, (w, k, 3)).copy()
+        d = np.broadcast_to(d, (w, k - 1)).copy()
+        dw = np.broadcast_to(dw, (w, k)).copy()
+        tags = np.full((w, k - 1), "", dtype="<U16") if tags is None else np.broadcast_to(tags, (w, k - 1)).copy()
+
+        finite = np.isfinite(p)
+        valid = finite.all(axis=-1)  # (W, K) real waypoints
+        if np.any(finite.any(axis=-1) & ~valid):
+            raise ConfigError("points: a waypoint has some but not all coordinates NaN")
+        if np.any(valid[:, 1:] & ~valid[:, :-1]) or not np.all(valid[:, 0]):
+            raise ConfigError("points: NaN padding must be trailing, and every world needs at least one waypoint")
+        n_pts = valid.sum(axis=1)
+        move_ok = valid[:, 1:]  # (W, K - 1) real moves
+        if np.any(move_ok & ~(np.isfinite(d) & (d > 0.0))):
+            raise ConfigError("durations: every move needs a finite duration > 0 s")
+        if np.any(valid & ~(np.isfinite(dw) & (dw >= 0.0))):
+            raise ConfigError("dwell: every dwell must be finite and >= 0 s")
+        d[~move_ok] = np.nan
+        dw[~valid] = np.nan
+        tags[~move_ok] = ""
+
+        # Segment slots: 2k = dwell at point k, 2k + 1 = move k -> k + 1.
+        n_slots = 2 * k - 1
+        last = p[np.arange(w), n_pts - 1]  # (W, 3)
+        pp = np.where(valid[..., None], p, last[:, None, :])  # padded rows hold the last point
+        p0 = np.repeat(pp, 2, axis=1)[:, :n_slots]
+        p1 = np.repeat(pp, 2, axis=1)[:, 1 : n_slots + 1]
+        seg_dur = np.empty((w, n_slots))
+        seg_dur[:, 0::2] = np.where(valid, dw, 0.0)
+        seg_dur[:, 1::2] = np.where(move_ok, d, 0.0)
+        seg_ok = np.empty((w, n_slots), dtype=bool)
+        seg_ok[:, 0::2] = valid
+        seg_ok[:, 1::2] = move_ok
+        ends = np.cumsum(seg_dur, axis=1)
+        starts = ends - seg_dur
+        starts[~seg_ok] = np.inf  # never selected
+        safe_dur = np.where(seg_dur > 0.0, seg_dur, 1.0)  # zero-length dwells have p1 == p0
+
+        self.points = np.where(valid[..., None], p, np.nan)  # (W, K, 3) m
+        self.n_points = n_pts  # (W,)
+        self.durations = d  # (W, K - 1) s
+        self.dwell = dw  # (W, K) s
+        self.move_tags = tags  # (W, K - 1)
+        self.arrival_times = np.where(valid, starts[:, 0::2], np.nan)  # (W, K) s
+        self.duration: np.ndarray = ends[:, -1].copy()  # (W,) s
+
+        # Segment search: one searchsorted over every world's slot start times,
+        # made globally increasing by giving world i the offset i * span (and
+        # padded slots a start just after their world's end).
+        span = float(self.duration.max()) + 2.0
+        self._row_offset = np.arange(w) * span  # (W,) s
+        keys = np.where(seg_ok, starts, self.duration[:, None] + 1.0) + self._row_offset[:, None]
+        self._keys = keys.ravel()  # (W * S,) s, increasing
+        self._start_flat = starts.ravel()
+        self._inv_dur = (1.0 / safe_dur).ravel()
+        self._p0 = p0.reshape(-1, 3)
+        self._dp = (p1 - p0).reshape(-1, 3)
+
+    @classmethod
+    def from_patterns(
+        cls,
+        points: Sequence[ArrayLike],
+        durations: Sequence[ArrayLike],
+        dwell: float | Sequence[float | ArrayLike] = 0.0,
+        *,
+        move_tags: Sequence[Sequence[str]] | None = None,
+    ) -> "Waypoints":
+        """Pad one pattern per world into a batched `Waypoints`.
+
+        points: W arrays (K_w, 3) m; durations: W arrays (K_w - 1,) s;
+        dwell: a float, or W floats / arrays (K_w,) s; move_tags: W sequences of
+        K_w - 1 strings.
+        """
+        n = len(points)
+        if n < 1:
+            raise ConfigError("points: expected at least one world's pattern")
+        if len(durations) != n:
+            raise ConfigError(f"durations: expected {n} per-world arrays, got {len(durations)}")
+        pts = []
+        for i, pw in enumerate(points):
+            a = np.array(pw, dtype=float)
+            if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
+                raise ConfigError(f"points[{i}]: expected shape (K, 3) with K >= 1, got {a.shape}")
+            pts.append(a)
+        k = max(a.shape[0] for a in pts)
+        p = np.full((n, k, 3), np.nan)
+        d = np.full((n, max(k - 1, 0)), np.nan)
+        dw = np.full((n, k), np.nan)
+        tg = np.full((n, max(k - 1, 0)), "", dtype="<U16")
+        if np.isscalar(dwell) or (isinstance(dwell, np.ndarray) and dwell.ndim == 0):
+            dwells = [dwell] * n
+        else:
+            dwells = list(dwell)  # type: ignore[arg-type]
+            if len(dwells) != n:
+                raise ConfigError(f"dwell: expected a float or {n} per-world values, got {len(dwells)}")
+        for i, a in enumerate(pts):
+            kw = a.shape[0]
+            dd = np.array(durations[i], dtype=float).reshape(-1)
+            if dd.shape != (kw - 1,):
+                raise ConfigError(f"durations[{i}]: expected shape ({kw - 1},) for {kw} points, got {dd.shape}")
+            ddw = np.array(dwells[i], dtype=float)
+            if ddw.shape not in ((), (kw,)):
+                raise ConfigError(f"dwell[{i}]: expected a float or shape ({kw},) for {kw} points, got {ddw.shape}")
+            p[i, :kw] = a
+            d[i, : kw - 1] = dd
+            dw[i, :kw] = ddw
+            if move_tags is not None:
+                tg[i, : kw - 1] = np.array(list(move_tags[i]), dtype=str).reshape(kw - 1)
+        return cls(p, d, dw, n, move_tags=tg)
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
+        t = sample_times(t, self.n_worlds)
+        # Last slot starting at or before t (t clipped to [0, end]: outside it the
+        # first / last slot is selected and tau saturates at 0 / 1).
+        key = np.minimum(np.maximum(t, 0.0), self.duration) + self._row_offset
+        flat = np.searchsorted(self._keys, key, side="right") - 1
+        inv = self._inv_dur[flat]
+        tau = np.minimum(np.maximum((t - self._start_flat[flat]) * inv, 0.0), 1.0)
+        # s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 and its time derivatives.
+        tau2 = tau * tau
+        s = tau2 * tau * (10.0 + tau * (-15.0 + 6.0 * tau))
+        ds = tau2 * (30.0 + tau * (-60.0 + 30.0 * tau)) * inv
+        dds = tau * (60.0 + tau * (-180.0 + 120.0 * tau)) * (inv * inv)
+        dp = self._dp.take(flat, axis=0)
+        pos = self._p0.take(flat, axis=0) + s[:, None] * dp
+        yaw, yaw_rate = zero_yaw(self.n_worlds)
+        return RefSample(pos, ds[:, None] * dp, dds[:, None] * dp, yaw, yaw_rate)
