@@ -30,10 +30,20 @@ from sim.scene import Scene, build_scene
 from sim.simulator import Simulator
 from trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
 
-__all__ = ["REWARD_TERMS", "ERROR_CAP", "Episode", "draw_episode", "nominal_episode", "episode_info", "FollowerWorlds"]
+__all__ = ["REWARD_TERMS", "total_reward", "ERROR_CAP", "Episode", "draw_episode", "nominal_episode", "episode_info", "FollowerWorlds"]
 
 # Reward terms, summed in this order: reward = sum(info["reward_" + name] for name in REWARD_TERMS).
 REWARD_TERMS = ("alive", "position", "velocity", "action", "action_rate", "termination")
+_OK, _LEFT_BOX = int(Status.OK), int(Status.LEFT_BOX)  # plain ints: no enum conversion per step
+
+
+def total_reward(info: dict) -> Any:
+    """The reward: the sum of ``info["reward_<term>"]`` in REWARD_TERMS order (floats or (W,) arrays alike,
+    so that every env class sums the same way, bit for bit)."""
+    reward = 0.0
+    for k in REWARD_TERMS:
+        reward = reward + info[f"reward_{k}"]
+    return reward
 ERROR_CAP = 10.0  # m and m/s: position/velocity errors in the reward are capped (a diverged state is not finite)
 
 
@@ -200,13 +210,12 @@ class FollowerWorlds:
             raise ValueError(f"action: must be finite (m/s^2), got {a.tolist()}")
         return np.clip(a, -self.bound, self.bound, out=a)
 
-    def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """Advance the `stepping` worlds (default all) one controller period with (W, 3) actions (m/s^2).
 
-        Worlds not stepping must be reset before their next step. Returns (reward (W,),
-        terminated (W,) bool, info), from the true state at the end of the step; info holds
-        (W,) arrays: ``reward_<term>`` for each of REWARD_TERMS (reward is their sum, in that
-        order), ``position_error`` (m), ``velocity_error`` (m/s), both capped, and ``status``
+        Worlds not stepping must be reset before their next step. Returns (terminated (W,)
+        bool, info), from the true state at the end of the step; info holds (W,) arrays:
+        ``reward_<term>`` for each of REWARD_TERMS (the reward is their `total_reward`), ``position_error`` (m), ``velocity_error`` (m/s), both capped, and ``status``
         (int64 `Status` codes).
         """
         sim, F = self.sim, self.i_follower
@@ -224,9 +233,8 @@ class FollowerWorlds:
         pos_err = _capped_norm(true.pos[:, F] - ref.pos[:, F])
         vel_err = _capped_norm(true.vel[:, F] - ref.vel[:, F])
         left = ~(pos_err <= self.cfg.max_tracking_error)
-        ok = int(Status.OK)
-        status = np.where(sim.status != ok, sim.status, np.where(left, int(Status.LEFT_BOX), ok))
-        terminated = status != ok
+        status = np.where(sim.status != _OK, sim.status, np.where(left, _LEFT_BOX, _OK))
+        terminated = status != _OK
 
         c, b2 = self.cfg, self.bound * self.bound
         da = actions - self.last_action
@@ -243,12 +251,9 @@ class FollowerWorlds:
         else:
             self.last_action[stepping] = actions[stepping]
         self._obs_cache = (true.rot, ref)
-        reward = np.zeros(self.W)
-        for k in REWARD_TERMS:  # one order for every env class: the same sums bit for bit
-            reward = reward + terms[k]
         info = {f"reward_{k}": terms[k] for k in REWARD_TERMS}
         info.update(position_error=pos_err, velocity_error=vel_err, status=status.astype(np.int64))
-        return reward, terminated, info
+        return terminated, info
 
     # ---------------------------------------------------------------- observation
     def observe(self, fresh: bool = True) -> np.ndarray:
