@@ -23,6 +23,10 @@ __all__ = [
     "quat_to_mat",
     "quat_to_mat_fast",
     "quat_to_rot",
+    "quat_multiply",
+    "quat_from_rotvec",
+    "perturb_quat",
+    "perturb_quat_into",
     "rotation_about_axis",
     "yaw_of",
     "wrap_angle",
@@ -71,6 +75,46 @@ def _quat_to_mat_kernel(q):
 def quat_to_mat_fast(q: np.ndarray) -> np.ndarray:
     """`quat_to_mat` for unit quaternions (..., 4) float64 NumPy, compiled (no normalisation)."""
     return _quat_to_mat_kernel(q.reshape(-1, 4).astype(float, copy=False)).reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_multiply(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Hamilton product q1 q2 (..., 4) of quaternions (w, x, y, z): rotate by q2, then by q1."""
+    w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
+    return np.stack([
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    ], axis=-1)
+
+
+def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) of rotation vectors v (..., 3) rad (axis times angle)."""
+    angle = np.linalg.norm(v, axis=-1)
+    half = 0.5 * angle
+    scale = np.where(angle > 0.0, np.sin(half) / np.where(angle > 0.0, angle, 1.0), 0.5)
+    return np.concatenate([np.cos(half)[..., None], scale[..., None] * v], axis=-1)
+
+
+def perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """The attitude `quat` (..., 4) turned by the small body-frame rotation `rotvec` (..., 3) rad:
+    q exp(rotvec / 2), how a motion-capture attitude error is modelled."""
+    return quat_multiply(quat, quat_from_rotvec(rotvec))
+
+
+@njit
+def perturb_quat_into(w, x, y, z, dx, dy, dz, out):
+    """Compiled `perturb_quat` for one quaternion (w, x, y, z) and rotation vector (dx, dy, dz) rad;
+    writes the result into out (4,)."""
+    angle = np.sqrt(dx * dx + dy * dy + dz * dz)
+    c = np.cos(0.5 * angle)
+    s = np.sin(0.5 * angle) / angle if angle > 0.0 else 0.5
+    ew, ex, ey, ez = c, s * dx, s * dy, s * dz
+    out[0] = w * ew - x * ex - y * ey - z * ez
+    out[1] = w * ex + x * ew + y * ez - z * ey
+    out[2] = w * ey - x * ez + y * ew + z * ex
+    out[3] = w * ez + x * ey - y * ex + z * ew
 
 
 def rotation_about_axis(axis, angle, xp: ModuleType = np):

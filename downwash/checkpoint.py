@@ -17,6 +17,7 @@ import io
 import json
 import os
 import pickle
+import struct
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,10 @@ from core.errors import CheckpointError
 from core.io import atomic_write_bytes, to_json
 from downwash.models import MODEL_KINDS, DownwashModel, make_model
 
-__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint", "sidecar_path"]
+__all__ = [
+    "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint",
+    "read_metadata", "sidecar_path",
+]
 
 CHECKPOINT_FORMAT = "downwash-model"
 CHECKPOINT_VERSION = 1
@@ -84,6 +88,72 @@ def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[st
     return record
 
 
+# What torch's weights-only unpickler raises on corrupt bytes besides UnpicklingError (found by the
+# property tests: an empty pickle stack, an unknown memo key, a bad zip record, ...).
+_CORRUPT_PICKLE_ERRORS = (
+    RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, IndexError, KeyError, TypeError, AttributeError,
+    struct.error, UnicodeDecodeError, OverflowError, MemoryError,
+)
+MAX_WIDTH = 4096  # the widest layer a checkpoint may ask for: a larger one is corrupt, not a model
+
+
+def _check_payload(path: Path, desc: Any, state: Any) -> tuple[str, str, dict]:
+    """(kind, feature set, architecture) of well-typed metadata and a state dict of tensors; else CheckpointError."""
+    if not isinstance(desc, dict):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: 'model' is not a record")
+    kind, feature_set, architecture = desc.get("kind"), desc.get("feature_set"), desc.get("architecture", {})
+    if not isinstance(kind, str) or not isinstance(feature_set, str) or not isinstance(architecture, dict):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: kind {kind!r}, feature set {feature_set!r}, "
+                              f"architecture {architecture!r}")
+    widths = [v for v in architecture.values() for v in (v if isinstance(v, list) else [v])
+              if isinstance(v, int) and not isinstance(v, bool)]
+    if any(not 1 <= w <= MAX_WIDTH for w in widths):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: architecture {architecture} "
+                              f"(layer widths must lie in 1-{MAX_WIDTH})")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
+        raise CheckpointError(f"{path}: corrupt checkpoint: the state dict must map names to tensors")
+    return kind, feature_set, architecture
+
+
+def _read(path: Path) -> tuple[dict, dict]:
+    """(payload, metadata record) of a checkpoint, through the safe loader; CheckpointError naming the file."""
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        is_zip = zipfile.is_zipfile(path)  # torch.save writes a zip archive
+    except (zipfile.BadZipFile, OSError, ValueError) as e:  # e.g. a zip64 record naming a second disk
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): {e}") from e
+    if not is_zip:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(
+            f"{path}: refused by the safe loader (weights_only=True): it holds objects other than tensors "
+            f"and plain containers ({_unpickling_reason(e)})"
+        ) from e
+    except _CORRUPT_PICKLE_ERRORS as e:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): "
+                              f"{type(e).__name__}: {e}") from e
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {CHECKPOINT_VERSION}")
+    try:
+        record = json.loads(payload["meta_json"])
+    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
+    if not isinstance(record, dict):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: not a record")
+    return payload, record
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """The metadata record of a checkpoint (kind, feature set, provenance, training), read safely
+    without rebuilding the model; CheckpointError naming the file when it is not a checkpoint."""
+    return _read(Path(path))[1]
+
+
 def load_checkpoint(
     path: str | os.PathLike,
     expect_kind: str | None = None,
@@ -97,31 +167,10 @@ def load_checkpoint(
     was expected (each difference is named).
     """
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive
-        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file)")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise CheckpointError(
-            f"{path}: refused by the safe loader (weights_only=True): it holds objects other than tensors "
-            f"and plain containers ({_unpickling_reason(e)})"
-        ) from e
-    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as e:
-        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): {e}") from e
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {CHECKPOINT_VERSION}")
-    try:
-        record = json.loads(payload["meta_json"])
-        desc = record["model"]
-        kind, feature_set = desc["kind"], desc["feature_set"]
-        architecture = desc.get("architecture", {})
-        state = payload["state_dict"]
-    except (KeyError, TypeError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
+    payload, record = _read(path)
+    kind, feature_set, architecture = _check_payload(path, record.get("model"), payload.get("state_dict"))
+    state = payload["state_dict"]
+    desc = record["model"]
 
     if expect_kind is not None and kind != expect_kind:
         raise CheckpointError(f"{path}: model kind is {kind!r}, expected {expect_kind!r}")
@@ -131,7 +180,7 @@ def load_checkpoint(
         raise CheckpointError(f"{path}: unknown model kind {kind!r} (known: {sorted(MODEL_KINDS)})")
     try:
         model = make_model(kind, feature_set, **architecture)
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, RuntimeError) as e:
         raise CheckpointError(f"{path}: cannot rebuild the model: {e}") from e
     if desc.get("dtype") == "float64":
         model = model.double()

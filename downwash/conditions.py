@@ -56,7 +56,7 @@ def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> 
         return ZeroPredictor()
     if condition == "oracle":
         return OraclePredictor(field)
-    return LearnedPredictor.from_checkpoint(checkpoints[condition])
+    return LearnedPredictor.from_checkpoint(checkpoints[condition], expect_kind=condition)
 
 
 def fly_conditions(

@@ -16,11 +16,17 @@ from typing import Sequence
 
 import numpy as np
 
+from core.errors import DataError
+from core.provenance import differences
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, MODEL_INPUTS, SAMPLE_SCHEMA, labels_from_log
 from sim.logs import load_log
 from core.params import RATES
 
+# The log metadata every flight of one data set must share: what the labels mean depends on it.
+FLIGHT_PROVENANCE = ("field", "scene", "config", "controller", "turbulence")
+
 __all__ = [
+    "FLIGHT_PROVENANCE",
     "Dataset",
     "concatenate",
     "load_dataset",
@@ -62,6 +68,7 @@ class Dataset:
     t: np.ndarray
     field_mean: np.ndarray
     sources: tuple[str, ...] = ()
+    provenance: dict | None = None  # what every flight was flown with (FLIGHT_PROVENANCE of the logs' meta)
 
     def __post_init__(self) -> None:
         n = np.shape(self.dp)[0] if np.ndim(self.dp) else -1
@@ -96,7 +103,8 @@ class Dataset:
 
     def subset(self, index: np.ndarray) -> "Dataset":
         """The samples at an index array or boolean mask (flight ids and sources unchanged)."""
-        return Dataset(**{name: getattr(self, name)[index] for name in _ARRAYS}, sources=self.sources)
+        return Dataset(**{name: getattr(self, name)[index] for name in _ARRAYS}, sources=self.sources,
+                       provenance=self.provenance)
 
     def select_flights(self, flights: Sequence[int] | np.ndarray) -> "Dataset":
         """The samples of the given flight ids."""
@@ -113,7 +121,8 @@ class Dataset:
         }
 
     @staticmethod
-    def from_labels(labels: dict[str, np.ndarray], flight: int, stage: int, source: str = "") -> "Dataset":
+    def from_labels(labels: dict[str, np.ndarray], flight: int, stage: int, source: str = "",
+                    provenance: dict | None = None) -> "Dataset":
         """One flight's `labels_from_log` output as a Dataset with the given flight id and stage."""
         n = len(labels["y"])
         sources = [""] * (flight + 1)
@@ -122,6 +131,7 @@ class Dataset:
             dp=labels["dp"], v_a=labels["v_a"], v_b=labels["v_b"], R_a=labels["R_a"], y=labels["y"],
             flight=np.full(n, flight), stage=np.full(n, stage), t=labels["t"],
             field_mean=labels.get("field_mean", np.full((n, 3), np.nan)), sources=tuple(sources),
+            provenance=provenance,
         )  # fmt: skip
 
 
@@ -136,14 +146,21 @@ def concatenate(datasets: Sequence[Dataset]) -> Dataset:
         raise ValueError("concatenate: need at least one Dataset")
     parts: dict[str, list[np.ndarray]] = {name: [] for name in _ARRAYS}
     sources: list[str] = []
+    provenance = datasets[0].provenance
     for ds in datasets:
+        if ds.provenance != provenance:
+            where = next((s for s in ds.sources if s), "a data set")
+            raise DataError(f"{where}: flown with other settings than {next((s for s in datasets[0].sources if s), 'the first')}:"
+                            "\n  " + "\n  ".join(differences(ds.provenance, provenance))
+                            + "\nTrain only on logs of one field and configuration.")
         offset = len(sources)
         for name in _ARRAYS:
             a = getattr(ds, name)
             parts[name].append(a + offset if name == "flight" else a)
         slots = _n_flight_slots(ds)
         sources.extend(list(ds.sources) + [""] * (slots - len(ds.sources)))
-    return Dataset(**{name: np.concatenate(v) for name, v in parts.items()}, sources=tuple(sources))
+    return Dataset(**{name: np.concatenate(v) for name, v in parts.items()}, sources=tuple(sources),
+                   provenance=provenance)
 
 
 def find_logs(location: str | os.PathLike | Sequence[str | os.PathLike], recursive: bool = False) -> list[Path]:
@@ -196,7 +213,8 @@ def load_dataset(
         if len(labels["y"]) == 0:
             logger.warning("%s: no labelled samples (only %d rows, status %s), skipped", path, len(log), log.meta.get("status"))
         st = int(log.meta.get("stage", 0)) if stage is None else int(stage)
-        parts.append(Dataset.from_labels(labels, flight=0, stage=st, source=str(path)))
+        record = {k: log.meta.get(k) for k in FLIGHT_PROVENANCE}
+        parts.append(Dataset.from_labels(labels, flight=0, stage=st, source=str(path), provenance=record))
     ds = concatenate(parts)  # flight id i <-> files[i], also for skipped (empty) flights
     if len(ds) == 0:
         raise ValueError(f"{location}: none of the {len(files)} logs has labelled samples")

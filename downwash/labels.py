@@ -16,7 +16,8 @@ smoothed acceleration minus a raw command.
 
 Inputs paired with each label are what the vehicles know: the Kalman-filtered
 positions and velocities (``pos_est``, ``vel_est``) and the leader's attitude
-(``quat``; the attitude estimate of a real vehicle is close to the truth).
+(``quat_est``): what a lab measures. The truth (``quat``, ``field_*``) is only
+carried along for diagnostics.
 """
 
 from __future__ import annotations
@@ -159,7 +160,7 @@ def labels_from_log(
 
       dp (N, 3) m        pos_est[follower] - pos_est[leader], world frame
       v_a, v_b (N, 3)    m/s, vel_est of leader / follower
-      R_a (N, 3, 3)      leader body-to-world rotation (from quat)
+      R_a (N, 3, 3)      leader body-to-world rotation (from the motion-capture quat_est)
       y (N, 3) m/s^2     label f = a - u on the follower (see module doc), world frame
       t (N,) s, row (N,) the tick time and row index in the log
       field_mean, field_applied (N, 3) m/s^2   the true field on the follower
@@ -186,7 +187,7 @@ def labels_from_log(
         end -= int(round(fail_margin_s / dt))
     used = (
         arr["mocap_pos"][:, follower], arr["u_cmd"][:, follower], arr["pos_est"][:, [leader, follower]],
-        arr["vel_est"][:, [leader, follower]], arr["quat"][:, leader],
+        arr["vel_est"][:, [leader, follower]], arr["quat_est"][:, leader],
     )  # fmt: skip
     bad = np.zeros(T, dtype=bool)
     for a in used:
@@ -204,7 +205,7 @@ def labels_from_log(
         "dp": pos[:, follower] - pos[:, leader],
         "v_a": vel[:, leader].astype(np.float64),
         "v_b": vel[:, follower].astype(np.float64),
-        "R_a": quat_to_mat(arr["quat"][rows, leader].astype(np.float64)),
+        "R_a": quat_to_mat(arr["quat_est"][rows, leader].astype(np.float64)),
         "y": acc[rows] - u[rows],
         "t": arr["t"][rows].astype(np.float64),
         "row": rows.astype(np.int64),

@@ -1,4 +1,4 @@
-"""The paper's staged data collection (section 5.A) as a library: batched and resumable.
+"""The paper's staged data collection (section 5.A) as a library: provenance-checked and resumable.
 
 Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
@@ -9,9 +9,18 @@ separate seeds. Labels are always the full downwash (f = a - u with u the comman
 actually applied). After the last stage the final model of every kind in
 `MODEL_KINDS` is trained on all training data into the models folder.
 
-A manifest records the config, the seeds and what is complete; `collect` skips
-finished work, so an interrupted run loses at most the flights in progress.
-`ensure_models` is what every experiment that needs trained models calls.
+Provenance. A collection is defined by its `provenance` record: the field, the
+scene, the simulator and its components, the collection settings, the training
+settings and the seed base (the code version is recorded beside it). The manifest and
+every checkpoint carry it, and nothing is reused unless it matches what was asked
+for: `pipeline_dirs` gives the default folders, keyed by its fingerprint, so another
+field or config collects afresh into its own folder; an explicit folder that holds
+something else stops with an error that lists the differences.
+
+Resuming. Flights fly in batches of `batch_flights` and each log is written as soon
+as its batch lands; every flight draws its reference and noise from its own seeds,
+so a rerun flies only the missing flights and gets the same results as an
+uninterrupted run. A kill loses at most the batch in flight.
 """
 
 from __future__ import annotations
@@ -22,27 +31,33 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from controllers.lqr import FeedbackLinearisedLQR
 from core.errors import ConfigError, DataError
 from core.io import atomic_write_json
 from core.params import LEADER_POSITION
-from downwash.checkpoint import load_checkpoint, save_checkpoint
+from core.provenance import code_version, describe, differences, fingerprint
+from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
 from downwash.datasets import Dataset, concatenate, find_logs, load_dataset
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.flight import fly
-from sim.logs import save_log
+from sim.logs import SCHEMA_VERSION, load_log, save_log
 from sim.predictor import ZeroPredictor
 from sim.scene import build_scene
-from trajectories import collection_reference
+from sim.simulator import SimConfig
+from sim.turbulence import OUTurbulence
+from trajectories import LEMNISCATE_SHARE, collection_reference
 
-__all__ = ["STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "collect", "ensure_models",
-           "ensure_collection"]
+__all__ = [
+    "STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "provenance", "pipeline_dirs", "collect",
+    "ensure_models", "ensure_collection", "check_checkpoint",
+]  # fmt: skip
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +68,9 @@ STAGES = (
     {"separation": (0.45, 0.65)},  # stage 2: ~0.5 m (two body lengths), stage-1 model
 )
 DEPLOYED_KIND = "equivariant"  # the model each stage trains and the next stage flies with
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2  # 2: provenance record and flight-grain resume
 _QUICK_TRAINING = {"max_epochs": 3, "min_steps": 30}  # --quick: a few steps, enough to exercise the code
+ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
 
 
 @dataclass(frozen=True)
@@ -68,6 +84,7 @@ class CollectionConfig:
     seed: int = 0  # base seed of flights, patterns and training
     quick: bool = False  # a tiny budget (0.1 min per stage of 4 s flights, a few training steps)
     threads: int = 0  # worker threads for batched flights (0: all cores); training uses one
+    batch_flights: int = 12  # flights flown as one batch; a kill loses at most one batch
 
     def __post_init__(self) -> None:
         if not 0 < self.stage_minutes <= 60:
@@ -78,6 +95,8 @@ class CollectionConfig:
             raise ConfigError(f"--flight-seconds: allowed 2-600 s, got {self.flight_seconds}")
         if not self.clamp > 0:
             raise ConfigError(f"--clamp: must be > 0 m/s^2, got {self.clamp}")
+        if isinstance(self.batch_flights, bool) or not isinstance(self.batch_flights, int) or not 1 <= self.batch_flights <= 256:
+            raise ConfigError(f"--batch-flights: allowed integers 1-256, got {self.batch_flights!r}")
 
     @property
     def effective_stage_minutes(self) -> float:
@@ -103,6 +122,33 @@ def train_config(seed: int, quick: bool) -> TrainConfig:
     return TrainConfig(seed=seed, **(_QUICK_TRAINING if quick else {}))
 
 
+def provenance(cfg: CollectionConfig, field: Any) -> dict[str, Any]:
+    """What defines a collection and the models trained on it (see the module docstring)."""
+    return {
+        "field": describe(field),
+        "scene": build_scene().describe(),
+        "sim": describe(SimConfig()),
+        "controller": describe(FeedbackLinearisedLQR()),
+        "turbulence": describe(OUTurbulence()),
+        "collection": {
+            "stages": describe(STAGES), "stage_minutes": cfg.effective_stage_minutes,
+            "flight_seconds": cfg.effective_flight_seconds, "n_train": cfg.n_train, "n_val": cfg.n_val,
+            "clamp": cfg.clamp, "deployed_kind": DEPLOYED_KIND, "lemniscate_share": LEMNISCATE_SHARE,
+            "log_schema": SCHEMA_VERSION, "training": train_config(cfg.seed, cfg.quick).to_dict(),
+        },
+        "seed": cfg.seed,
+        "code": code_version(),
+    }
+
+
+def pipeline_dirs(record: dict[str, Any], root: str | Path = "runs/pipeline") -> tuple[Path, Path]:
+    """The default (collection, models) folders of a provenance record: root/<field>-<fingerprint>/..."""
+    field = record["field"]
+    name = field.get("type", "field").rsplit(".", 1)[-1] if isinstance(field, dict) else "field"
+    base = Path(root) / f"{name}-{fingerprint(record)}"
+    return base / "collection", base / "models"
+
+
 class _Labelled:
     """Labelled samples per folder, loaded once per run (a finished stage's logs never change)."""
 
@@ -117,44 +163,72 @@ class _Labelled:
 
 
 def _train_and_save(kind: str, data: Dataset, train_dirs: list[Path], path: Path, cfg: CollectionConfig,
-                    extra: dict) -> dict:
+                    record: dict, extra: dict) -> dict:
     model, history = train_model(kind, data, None, train_config(cfg.seed, cfg.quick))
     save_checkpoint(path, model, {"training": {k: v for k, v in history.items() if k not in ("train_loss", "val_loss")},
-                                  "data": data.summary(), "train_dirs": [str(d) for d in train_dirs], **extra})
+                                  "data": data.summary(), "train_dirs": [str(d) for d in train_dirs],
+                                  "provenance": record, "provenance_key": fingerprint(record), **extra})
     return history
 
 
-def _val_rmse(checkpoint: Path, val_data: Dataset) -> float:
-    model, _ = load_checkpoint(checkpoint)
+def _val_rmse(checkpoint: Path, kind: str, val_data: Dataset) -> float:
+    model, _ = load_checkpoint(checkpoint, expect_kind=kind)
     return rmse(model, val_data)[0]
+
+
+def _fly_stage(k: int, sdir: Path, cfg: CollectionConfig, field: Any, deployed: Path | None,
+               progress: ProgressFactory) -> None:
+    """Fly the stage's missing flights in batches, writing each log as soon as its batch lands."""
+    n_train, n_val, seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
+    paths = [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + n_val)]
+    todo = [i for i, p in enumerate(paths) if not p.is_file()]
+    if not todo:
+        return
+    predictor = (ZeroPredictor() if deployed is None
+                 else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
+    scene = build_scene()
+    for start in range(0, len(todo), cfg.batch_flights):
+        batch = todo[start:start + cfg.batch_flights]
+        reference = collection_reference((cfg.seed, k), batch, n_train, n_val, LEADER, STAGES[k]["separation"], seconds)
+        seeds = [cfg.seed * 100_000 + 1000 * k + i for i in batch]  # train: i < n_train, val: the rest
+        meta = [{"stage": k, "index": i, "role": "train" if i < n_train else "val", "deployed_model": str(deployed)}
+                for i in batch]
+        label = f"stage {k}: flights {batch[0]}-{batch[-1]} of {len(paths)}"
+        flights = fly(scene, reference, seeds, seconds, field=field, predictor=predictor, meta=meta,
+                      n_threads=cfg.threads, progress=progress(label))
+        for i, L in zip(batch, flights):
+            save_log(paths[i], L)
 
 
 def collect(
     cfg: CollectionConfig,
-    out: str | Path,
+    collection_dir: str | Path,
     models_dir: str | Path,
     field: Any,
-    progress: Callable[[str], Callable[[int, int], None] | None] = lambda label: None,
+    progress: ProgressFactory = lambda label: None,
 ) -> dict:
-    """Collect all stages into `out` (resuming), train the final models into `models_dir`.
+    """Collect all stages into `collection_dir` (resuming), train the final models into `models_dir`.
 
-    progress(label) may return a callback progress(done, total) for each stage's flights.
-    Returns the results: per stage (separation, minutes, samples, deployed model and its
-    validation RMSE on that stage, failed flights), per final model (path, validation
-    RMSE, training seconds), the label-noise floor and the wall time.
+    progress(label) may return a callback progress(done, total) for each batch of flights.
+    Raises DataError before any flight when `collection_dir` holds a collection of
+    another provenance. Returns the results: per stage (separation, minutes, samples,
+    deployed model and its validation RMSE on that stage, failed flights), per final
+    model (path, validation RMSE, training seconds), the label-noise floor, the
+    provenance and the wall time.
     """
     t_start = time.perf_counter()
-    out, models_dir = Path(out), Path(models_dir)
+    out, models_dir = Path(collection_dir), Path(models_dir)
+    record = provenance(cfg, field)
+    manifest_path = out / "manifest.json"
+    manifest = _load_manifest(manifest_path, record)
+    for kind in MODEL_KINDS:  # never overwrite models of another provenance
+        if (models_dir / f"{kind}.pt").is_file():
+            check_checkpoint(models_dir / f"{kind}.pt", kind, record)
     out.mkdir(parents=True, exist_ok=True)
     models_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(manifest_path, manifest)
     n_train, n_val, flight_seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
-    config = {"stage_minutes": cfg.effective_stage_minutes, "flight_seconds": flight_seconds, "n_train": n_train,
-              "n_val": n_val, "seed": cfg.seed, "stages": STAGES, "field": repr(field), "clamp": cfg.clamp,
-              "quick": cfg.quick}
 
-    manifest_path = out / "manifest.json"
-    manifest = _load_manifest(manifest_path, config)
-    scene = build_scene()
     labelled = _Labelled()
     stage_results = []
     for k, stage in enumerate(STAGES):
@@ -162,29 +236,19 @@ def collect(
         entry = manifest["stages"].setdefault(str(k), {})
         deployed = None if k == 0 else out / f"stage{k - 1}" / f"{DEPLOYED_KIND}.pt"
         if not entry.get("flights_done"):
-            predictor = (ZeroPredictor() if deployed is None
-                         else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp))
-            n = n_train + n_val
-            rng = np.random.default_rng([cfg.seed, k])
-            seeds = [cfg.seed * 100_000 + 1000 * k + i for i in range(n)]  # train: i < n_train, val: the rest
-            meta = [{"stage": k, "role": "train" if i < n_train else "val", "deployed_model": str(deployed)}
-                    for i in range(n)]
-            reference = collection_reference(rng, n, LEADER, stage["separation"], flight_seconds)
-            flights = fly(scene, reference, seeds, flight_seconds, field=field, predictor=predictor, meta=meta,
-                          n_threads=cfg.threads, progress=progress(f"stage {k}: {n} flights"))
-            for i, L in enumerate(flights):
-                save_log(sdir / L.meta["role"] / f"flight_{i:03d}.npz", L)
-            entry.update(flights_done=True, seeds=seeds, failed=[L.meta["message"] for L in flights if not L.ok])
+            _fly_stage(k, sdir, cfg, field, deployed, progress)
+            entry["flights_done"] = True
+            entry["failed"] = [m for p in sorted(sdir.glob("*/flight_*.npz")) if (m := load_log(p).meta["message"])]
             atomic_write_json(manifest_path, manifest)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]
         if not entry.get("model_done"):  # the stage-k model, deployed in stage k + 1
             _train_and_save(DEPLOYED_KIND, labelled(train_dirs), train_dirs, sdir / f"{DEPLOYED_KIND}.pt", cfg,
-                            {"stage": k})
+                            record, {"stage": k})
             entry["model_done"] = True
             atomic_write_json(manifest_path, manifest)
         if "deployed_val_rmse" not in entry:
             entry["deployed_val_rmse"] = (None if deployed is None or n_val == 0
-                                          else _val_rmse(deployed, labelled([sdir / "val"])))
+                                          else _val_rmse(deployed, DEPLOYED_KIND, labelled([sdir / "val"])))
             atomic_write_json(manifest_path, manifest)
         samples = len(labelled([sdir / "train"]))
         stage_results.append({"stage": k, "separation": list(stage["separation"]),
@@ -200,30 +264,61 @@ def collect(
         path = models_dir / f"{kind}.pt"
         if not finals.get(kind) or not path.is_file():
             t0 = time.perf_counter()
-            history = _train_and_save(kind, labelled(train_dirs), train_dirs, path, cfg, {"stage": "final"})
+            history = _train_and_save(kind, labelled(train_dirs), train_dirs, path, cfg, record, {"stage": "final"})
             finals[kind] = {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"]}
             atomic_write_json(manifest_path, manifest)
-        models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, labelled(val_dirs)) if val_dirs else None,
+        models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
     floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)]) if val_dirs else None
     manifest["complete"] = True
     atomic_write_json(manifest_path, manifest)
     return {"stages": stage_results, "training_minutes": len(STAGES) * n_train * flight_seconds / 60,
             "validation_minutes": len(STAGES) * n_val * flight_seconds / 60, "models": models,
-            "noise_floor": floor, "wall_seconds": time.perf_counter() - t_start}
+            "noise_floor": floor, "collection_dir": str(out), "models_dir": str(models_dir),
+            "provenance": record, "provenance_key": fingerprint(record), "wall_seconds": time.perf_counter() - t_start}
+
+
+def check_checkpoint(path: str | Path, kind: str, record: dict[str, Any]) -> None:
+    """DataError unless the checkpoint at `path` is a `kind` model trained on data of provenance `record`."""
+    meta = read_metadata(path)
+    found = meta.get("model", {}).get("kind")
+    if found != kind:
+        raise DataError(f"{path}: holds a {found!r} model, not the {kind!r} model expected under that name; "
+                        "delete it or point --models-dir elsewhere")
+    have = meta.get("provenance")
+    if have is None or fingerprint(have) != fingerprint(record):
+        diffs = differences(have, record) if have is not None else ["no provenance record (made by older code)"]
+        raise DataError(
+            f"{path}: this {kind} model was trained on data other than what was asked for:\n  "
+            + "\n  ".join(diffs)
+            + f"\nLeave out --models-dir (and --collection-dir) to use the folders keyed by this setup, "
+            f"{pipeline_dirs(record)[1].parent}/, or delete {Path(path).parent} to train afresh there."
+        )
+    _warn_code(have, path)
 
 
 def ensure_models(
     models_dir: str | Path,
-    kinds: tuple[str, ...] | list[str],
+    kinds: Sequence[str],
     collection_dir: str | Path,
     cfg: CollectionConfig,
     field: Any,
-    progress: Callable[[str], Callable[[int, int], None] | None] = lambda label: None,
+    progress: ProgressFactory = lambda label: None,
 ) -> dict[str, Path]:
-    """Checkpoint paths of `kinds` in `models_dir`, running the staged collection first when any is missing."""
+    """Checkpoint paths of `kinds` in `models_dir`, collecting and training first when any is missing.
+
+    Every checkpoint already there must be of its kind and of this collection's
+    provenance (else DataError, before any flight, naming the differences).
+    """
     models_dir = Path(models_dir)
-    missing = [k for k in kinds if not (models_dir / f"{k}.pt").is_file()]
+    record = provenance(cfg, field)
+    missing = []
+    for kind in kinds:
+        path = models_dir / f"{kind}.pt"
+        if path.is_file():
+            check_checkpoint(path, kind, record)
+        else:
+            missing.append(kind)
     if missing:
         log.info("models %s missing in %s: running the staged collection into %s first", missing, models_dir,
                  collection_dir)
@@ -236,25 +331,45 @@ def ensure_collection(
     models_dir: str | Path,
     cfg: CollectionConfig,
     field: Any,
-    progress: Callable[[str], Callable[[int, int], None] | None] = lambda label: None,
+    progress: ProgressFactory = lambda label: None,
 ) -> Path:
-    """The staged collection folder, collected first (with its models) when it has no manifest."""
+    """The staged collection folder, collected first (with its models) unless complete;
+    DataError when it holds a collection of another provenance."""
     collection_dir = Path(collection_dir)
-    if not (collection_dir / "manifest.json").is_file():
+    manifest = collection_dir / "manifest.json"
+    if manifest.is_file():
+        _load_manifest(manifest, provenance(cfg, field))  # raises on a mismatch
+    if not (manifest.is_file() and json.loads(manifest.read_text()).get("complete")):
         collect(cfg, collection_dir, models_dir, field, progress)
     return collection_dir
 
 
-def _load_manifest(path: Path, config: dict) -> dict:
-    if path.is_file():
+def _load_manifest(path: Path, record: dict) -> dict:
+    if not path.is_file():
+        return {"version": MANIFEST_VERSION, "provenance": record, "key": fingerprint(record), "stages": {}}
+    try:
         manifest = json.loads(path.read_text())
-        if manifest.get("version") != MANIFEST_VERSION or manifest.get("config") != json.loads(json.dumps(config)):
-            raise DataError(
-                f"{path}: this folder holds a staged collection with another config; "
-                f"use another --out or delete the folder to start afresh"
-            )
-        if manifest.get("complete"):
-            log.info("%s: collection complete; re-checking models only", path)
-        return manifest
-    return {"version": MANIFEST_VERSION, "config": config, "stages": {}}
+    except json.JSONDecodeError as e:
+        raise DataError(f"{path}: unreadable collection manifest ({e}); delete the folder to start afresh") from e
+    if manifest.get("version") != MANIFEST_VERSION or "provenance" not in manifest:
+        raise DataError(f"{path}: a collection of an older format (manifest version {manifest.get('version')!r}); "
+                        "delete the folder or use another --collection-dir")
+    have = manifest["provenance"]
+    if fingerprint(have) != fingerprint(record):
+        raise DataError(
+            f"{path.parent}: this folder holds a staged collection made with other settings:\n  "
+            + "\n  ".join(differences(have, record))
+            + f"\nLeave out --collection-dir (and --models-dir) to use the folders keyed by this setup, "
+            f"{pipeline_dirs(record)[0].parent}/, use another folder, or delete this one to start afresh."
+        )
+    _warn_code(have, path)
+    if manifest.get("complete"):
+        log.info("%s: collection complete; re-checking models only", path)
+    return manifest
 
+
+def _warn_code(have: dict, where: Path | str) -> None:
+    now = code_version()
+    if have.get("code") != now:
+        log.warning("%s was made by code %s; reusing it with code %s (the provenance key matches)",
+                    where, have.get("code"), now)

@@ -20,7 +20,7 @@ from controllers.lqr import LQRConfig
 from core.errors import ConfigError
 from core.params import LEADER_POSITION, SEPARATION_RANGE
 from core.validate import choice, count, number, pair
-from sim.field import DownwashField
+from sim.field import DownwashField, check_field
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
 from trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
@@ -302,6 +302,7 @@ def _validate_field(c: FollowerConfig) -> None:
             raise ConfigError(
                 f"field: expected a callable field(p_a, v_a, R_a, p_b, v_b), got {type(c.field).__name__}"
             )
+        check_field(c.field, name="field")  # shape and finiteness, once, before any episode
         if (knobs or fr is not None) and not isinstance(c.field, DownwashField):
             raise ConfigError(
                 "field: c4_amplitude/swirl/skew and field_randomization need a sim.field.DownwashField, "

@@ -18,9 +18,14 @@ from typing import Any, Sequence, TypeVar
 
 from core.errors import ConfigError
 from core.io import atomic_write_json
-from sim.field import DownwashField
+from core.provenance import code_version, describe, fingerprint
+from downwash.staged import CollectionConfig, pipeline_dirs, provenance
+from sim.field import DownwashField, check_field
 
-__all__ = ["CommonArgs", "ProgressBar", "arg", "parse_args", "load_field", "write_results", "format_table", "setup_logging"]
+__all__ = [
+    "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field", "resolve_pipeline",
+    "write_results", "format_table", "setup_logging",
+]
 
 A = TypeVar("A")
 
@@ -38,6 +43,43 @@ class CommonArgs:
     seed: int = arg(0, "base seed; world k of a run uses seed + k")
     quick: bool = arg(False, "tiny budget for smoke tests")
     field: str = arg("", "MODULE:FACTORY returning a field object with DownwashField's call signature (default: built-in)")
+
+
+@dataclass(frozen=True)
+class PipelineArgs(CommonArgs):
+    """Options of the experiments that use the staged collection and its trained models."""
+
+    collection_dir: str = arg("", "staged collection folder (default: runs/pipeline/<field>-<key>/collection, "
+                                  "keyed by the field, config and seed)")
+    models_dir: str = arg("", "trained models folder (default: runs/pipeline/<field>-<key>/models); "
+                              "collected and trained first when missing")
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """The resolved collection an experiment uses: its settings, field, provenance and folders."""
+
+    config: CollectionConfig
+    field: Any
+    record: dict
+    collection_dir: Path
+    models_dir: Path
+
+    def provenance(self) -> dict:
+        """For results.json: what the numbers came from."""
+        return {"pipeline_key": fingerprint(self.record), "collection_dir": str(self.collection_dir),
+                "models_dir": str(self.models_dir), "pipeline": self.record}
+
+
+def resolve_pipeline(args: PipelineArgs, **settings: Any) -> Pipeline:
+    """The field (checked), the collection settings (seed and --quick from args, plus `settings`)
+    and the folders: the ones given, or those keyed by the provenance."""
+    field = load_field(args.field)
+    config = CollectionConfig(seed=args.seed, quick=args.quick, **settings)
+    record = provenance(config, field)
+    collection_dir, models_dir = pipeline_dirs(record)
+    return Pipeline(config, field, record, Path(args.collection_dir or collection_dir),
+                    Path(args.models_dir or models_dir))
 
 
 def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, description: str = "") -> A:
@@ -75,14 +117,18 @@ def load_field(spec: str) -> Any:
     obj = factory()
     if not callable(obj):
         raise ConfigError(f"--field: {spec} returned {type(obj).__name__}, which is not callable as field(p_a, v_a, R_a, p_b, v_b)")
+    check_field(obj, name=f"--field {spec}")
+    describe(obj)  # a field that cannot be fingerprinted stops here, before any work
     return obj
 
 
-def write_results(out: str | Path, results: dict, args: Any) -> Path:
-    """Atomically write results.json (with the parsed arguments) into `out`."""
+def write_results(out: str | Path, results: dict, args: Any, provenance: dict | None = None) -> Path:
+    """Atomically write results.json into `out`: the parsed arguments, the provenance (code
+    version, field, seed base, plus `provenance`) and the results."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    payload = {"args": dataclasses.asdict(args), **results}
+    record = {"code": code_version(), "seed": args.seed, "field_spec": args.field or "built-in", **(provenance or {})}
+    payload = {"args": dataclasses.asdict(args), **results, "provenance": {**results.get("provenance", {}), **record}}
     path = out / "results.json"
     atomic_write_json(path, payload)
     return path

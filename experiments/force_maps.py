@@ -1,6 +1,6 @@
 """Force maps like the paper's figures 4 and 5: the true field beside each trained model.
 
-    python -m experiments.force_maps [--models-dir runs/models] [--quick]
+    python -m experiments.force_maps [--models-dir DIR] [--quick]
 
 Figure 4 (force_maps_down.png): the downward force (m/s^2, positive pushes toward
 the ground, the paper's +e3) on a follower moving at v = [0.5, 0, 0] m/s, top-down
@@ -22,16 +22,15 @@ import numpy as np
 from core.errors import ConfigError
 from downwash.checkpoint import load_checkpoint
 from downwash.models import MODEL_KINDS
-from downwash.staged import CollectionConfig, ensure_models
+from downwash.staged import ensure_models
 from downwash.train import predict
-from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 
 __all__ = ["ForceMapArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
-class ForceMapArgs(CommonArgs):
-    models_dir: str = arg("runs/models", "where trained models are read (staged collection runs first if missing)")
+class ForceMapArgs(PipelineArgs):
     speed: float = arg(0.5, "follower speed along x, m/s (paper: 0.5)")
     resolution: int = arg(61, "grid points per axis")
 
@@ -60,13 +59,12 @@ def run(args: ForceMapArgs) -> dict:
         raise ConfigError(f"--speed: allowed 0-1.0 m/s, got {args.speed}")
     if not 5 <= args.resolution <= 301:
         raise ConfigError(f"--resolution: allowed 5-301, got {args.resolution}")
-    field = load_field(args.field)
-    models_dir = Path(args.models_dir)
-    checkpoints = ensure_models(models_dir, tuple(MODEL_KINDS), models_dir.parent / "staged_collection",
-                                CollectionConfig(seed=args.seed, quick=args.quick), field, ProgressBar)
+    p = resolve_pipeline(args)
+    field = p.field
+    checkpoints = ensure_models(p.models_dir, tuple(MODEL_KINDS), p.collection_dir, p.config, field, ProgressBar)
     sources = {"truth": field}
     for kind, path in checkpoints.items():
-        model, _ = load_checkpoint(path)
+        model, _ = load_checkpoint(path, expect_kind=kind)
         sources[kind] = _model_fn(model)
 
     n = 21 if args.quick else args.resolution
@@ -86,12 +84,14 @@ def run(args: ForceMapArgs) -> dict:
         down_side = -_evaluate(fn, side, v)[:, 2].reshape(n, n)
         if truth_top is None:
             truth_top, truth_side = down_top, down_side
+            results["truth"] = {"down_top_max": float(np.abs(down_top).max()),
+                                "down_side_max": float(np.abs(down_side).max())}
         else:
             results["maps"][name] = {
                 "down_top_rmse_vs_truth": float(np.sqrt(np.mean((down_top - truth_top) ** 2))),
                 "down_side_rmse_vs_truth": float(np.sqrt(np.mean((down_side - truth_side) ** 2))),
             }
-        lim = max(np.abs(truth_top).max(), np.abs(truth_side).max())
+        lim = max(np.abs(truth_top).max(), np.abs(truth_side).max(), 1e-6)  # a zero field still plots
         for ax, data, extent, labels in (
             (axes[row, 0], down_top, (-1, 1, -1, 1), ("x (m)", "y (m)")),
             (axes[row, 1], down_side, (-1, 1, -1.8, -0.2), ("x (m)", "z below leader (m)")),
@@ -132,7 +132,7 @@ def run(args: ForceMapArgs) -> dict:
     fig.savefig(out / "force_maps_lateral.png", dpi=100)
     plt.close(fig)
 
-    path = write_results(out, results, args)
+    path = write_results(out, results, args, p.provenance())
     rows = [[m, r["down_top_rmse_vs_truth"], r["down_side_rmse_vs_truth"], r["lateral_rmse_vs_truth_pos"],
              r["lateral_rmse_vs_truth_neg"]] for m, r in results["maps"].items()]
     print(format_table(rows, ["model", "down top RMSE", "down side RMSE", "lateral +v RMSE", "lateral -v RMSE"]))

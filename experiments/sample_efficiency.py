@@ -1,6 +1,6 @@
 """Validation RMSE against minutes of training data (the paper's figure 3 and table).
 
-    python -m experiments.sample_efficiency [--collection runs/staged_collection] [--quick]
+    python -m experiments.sample_efficiency [--collection-dir DIR] [--quick]
 
 For each training length (each stage shortened proportionally, whole flights or
 flight prefixes) and each of several trials (different subsets and seeds), the
@@ -21,9 +21,9 @@ from core.errors import ConfigError
 from downwash.datasets import concatenate, find_logs, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS
-from downwash.staged import CollectionConfig, ensure_collection, train_config
+from downwash.staged import ensure_collection, train_config
 from downwash.train import rmse, train_model
-from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 
 __all__ = ["EfficiencyArgs", "run", "main"]
 
@@ -31,9 +31,7 @@ MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # plus the full set
 
 
 @dataclass(frozen=True)
-class EfficiencyArgs(CommonArgs):
-    collection: str = arg("runs/staged_collection", "staged collection folder (stage*/train and stage*/val logs)")
-    models_dir: str = arg("runs/models", "models folder used if the staged collection has to run first")
+class EfficiencyArgs(PipelineArgs):
     trials: int = arg(5, "trials per point (different data subsets and seeds)")
     minutes: str = arg(",".join(str(m) for m in MINUTES), "comma list of training minutes; the full set is always added")
 
@@ -52,8 +50,8 @@ def run(args: EfficiencyArgs) -> dict:
         raise ConfigError(f"--minutes: every value must be > 0, got {wanted}")
     if args.trials < 1:
         raise ConfigError(f"--trials: expected >= 1, got {args.trials}")
-    collection = ensure_collection(args.collection, args.models_dir, CollectionConfig(seed=args.seed, quick=args.quick),
-                                   load_field(args.field), ProgressBar)
+    p = resolve_pipeline(args)
+    collection = ensure_collection(p.collection_dir, p.models_dir, p.config, p.field, ProgressBar)
     t_start = time.perf_counter()
     train_dirs = sorted(collection.glob("stage*/train"))
     val_dirs = sorted(collection.glob("stage*/val"))
@@ -87,7 +85,7 @@ def run(args: EfficiencyArgs) -> dict:
         "wall_seconds": time.perf_counter() - t_start,
     }
     out = Path(args.out)
-    path = write_results(out, results, args)
+    path = write_results(out, results, args, p.provenance())
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     colors = {"shallow": "tab:orange", "deep": "tab:blue", "equivariant": "tab:green"}

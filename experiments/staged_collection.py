@@ -1,42 +1,44 @@
 """The paper's staged data collection (section 5.A), batched and resumable.
 
-    python -m experiments.staged_collection [--models-dir runs/models] [--quick]
+    python -m experiments.staged_collection [--collection-dir DIR] [--models-dir DIR] [--quick]
 
 Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
 0.5 m with the stage-1 model. After the last stage the final shallow, deep and
 equivariant models are trained on all training data into --models-dir. A rerun
 skips finished work; an interrupted run loses at most the flights in progress.
-The pipeline is `downwash.staged`.
+Both folders default to runs/pipeline/<field>-<key>/, keyed by the provenance
+(field, config, seed), so another field collects afresh. The pipeline is
+`downwash.staged`; results.json goes to --out.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from downwash.staged import CollectionConfig, collect
-from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
+from downwash.staged import collect
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 
 __all__ = ["StagedArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
-class StagedArgs(CommonArgs):
-    models_dir: str = arg("runs/models", "where the final shallow/deep/equivariant models are written")
+class StagedArgs(PipelineArgs):
     stage_minutes: float = arg(5.7, "training flight minutes per stage (paper: ~5.7, ~17 in all)")
     val_ratio: float = arg(1.0, "validation minutes per training minute (paper: similar size)")
     flight_seconds: float = arg(28.5, "length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)")
     clamp: float = arg(6.0, "magnitude bound of the deployed model's prediction, m/s^2")
     threads: int = arg(0, "worker threads for batched flights (0: all cores); training uses one")
+    batch_flights: int = arg(12, "flights flown as one batch, each log written when its batch lands (a kill loses at most one batch)")
 
 
 def run(args: StagedArgs) -> dict:
     """Collect all stages (resuming), train the final models; print and write the results."""
-    cfg = CollectionConfig(stage_minutes=args.stage_minutes, val_ratio=args.val_ratio,
-                           flight_seconds=args.flight_seconds, clamp=args.clamp, seed=args.seed, quick=args.quick,
-                           threads=args.threads)
-    results = collect(cfg, args.out, args.models_dir, load_field(args.field), ProgressBar)
-    path = write_results(args.out, results, args)
+    p = resolve_pipeline(args, stage_minutes=args.stage_minutes, val_ratio=args.val_ratio,
+                         flight_seconds=args.flight_seconds, clamp=args.clamp, threads=args.threads,
+                         batch_flights=args.batch_flights)
+    results = collect(p.config, p.collection_dir, p.models_dir, p.field, ProgressBar)
+    path = write_results(args.out, results, args, p.provenance())
     rows = [[s["stage"], f"{s['separation'][0]}-{s['separation'][1]}", s["minutes"], s["samples"],
              s["deployed_val_rmse"] if s["deployed_val_rmse"] is not None else "-"] for s in results["stages"]]
     print(format_table(rows, ["stage", "separation m", "minutes", "samples", "deployed val RMSE"]))
@@ -45,7 +47,7 @@ def run(args: StagedArgs) -> dict:
     print(format_table(rows, ["model", "val RMSE m/s^2", "train s"]))
     if results["noise_floor"]:
         print(f"label noise floor (labels vs true mean field): {results['noise_floor']['rmse_mean']:.4f} m/s^2")
-    print(f"\nwrote {path}; models in {args.models_dir}/ ({results['wall_seconds']:.1f} s)")
+    print(f"\nwrote {path}; logs in {p.collection_dir}/, models in {p.models_dir}/ ({results['wall_seconds']:.1f} s)")
     return results
 
 

@@ -22,8 +22,8 @@ import numpy as np
 from core.errors import ConfigError
 from core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
-from downwash.staged import CollectionConfig, ensure_models
-from experiments.common import CommonArgs, ProgressBar, arg, format_table, load_field, parse_args, setup_logging, write_results
+from downwash.staged import ensure_models
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 from sim.metrics import aggregate_conditions, tracking_errors
 from sim.scene import build_scene
 from trajectories import Hover, make_reference, stack
@@ -62,11 +62,10 @@ TRACKS = {
 
 
 @dataclass(frozen=True)
-class TrackingArgs(CommonArgs):
+class TrackingArgs(PipelineArgs):
     conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS))
     seeds: int = arg(5, "number of seeds (flights per condition)")
     separation: float = arg(0.6, f"vertical separation below the leader, m ({SEPARATION_RANGE[0]}-{SEPARATION_RANGE[1]})")
-    models_dir: str = arg("runs/models", "where trained models are read (staged collection runs first if missing)")
     duration: float = arg(0.0, "flight length, s (0: one period of the reference)")
 
 
@@ -93,10 +92,9 @@ def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
     spec = TRACKS[track]
     conditions = _validate(args)
-    field = load_field(args.field)
-    models_dir = Path(args.models_dir)
-    checkpoints = ensure_models(models_dir, learned(conditions), models_dir.parent / "staged_collection",
-                                CollectionConfig(seed=args.seed, quick=args.quick), field, ProgressBar)
+    p = resolve_pipeline(args)
+    field = p.field
+    checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, field, ProgressBar)
     t_start = time.perf_counter()
     K = args.seeds
     W = len(conditions) * K
@@ -115,7 +113,7 @@ def run(track: str, args: Any) -> dict:
     results["wall_seconds"] = time.perf_counter() - t_start
     results["flight_wall_seconds"] = flight_seconds
     out = Path(args.out)
-    path = write_results(out, results, args)
+    path = write_results(out, results, args, p.provenance() if checkpoints else None)
     _figures(out, track, per_condition)
     print(_table(track, results))
     print(f"\nwrote {path} and figures in {out}/")
@@ -138,8 +136,10 @@ def _table(name: str, results: dict) -> str:
             f"{100 * e['improvement_pos_3d']:.1f}%" if "improvement_pos_3d" in e else "-",
             f"{100 * e['improvement_pos_z']:.1f}%" if "improvement_pos_z" in e else "-",
             f"{e['gap_to_oracle_pos_3d']:+.4f}" if "gap_to_oracle_pos_3d" in e else "-",
+            f"{100 * e['crash_rate']:.0f}%",
         ])
-    header = ["condition", "pos3d m", "posxy m", "posz m", "peak3d m", "vel3d m/s", "impr 3d", "impr z", "gap oracle m"]
+    header = ["condition", "pos3d m", "posxy m", "posz m", "peak3d m", "vel3d m/s", "impr 3d", "impr z", "gap oracle m",
+              "crashed"]
     sep = results["separation"]
     return f"\n{name}: {len(results['seeds'])} seeds, separation {sep} m, {results['duration']:.1f} s\n" + format_table(rows, header)
 

@@ -17,14 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import ConfigError
+from core.errors import ConfigError, DataError
 from downwash.checkpoint import save_checkpoint
 from downwash.datasets import find_logs, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS, count_parameters
 from downwash.staged import train_config
 from downwash.train import rmse, train_model
-from experiments.common import CommonArgs, arg, format_table, parse_args, setup_logging, write_results
+from core.provenance import describe, differences
+from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 
 __all__ = ["TrainArgs", "run", "main"]
 
@@ -49,6 +50,15 @@ def run(args: TrainArgs) -> dict:
     train = load_dataset(args.logs, recursive=True)  # raises naming the folder or file when empty/foreign
     val_files = find_logs(args.val_logs, recursive=True)
     val = load_dataset(val_files)
+    if val.provenance != train.provenance:
+        raise DataError(f"--val-logs {args.val_logs}: flown with other settings than --logs {args.logs}:\n  "
+                        + "\n  ".join(differences(val.provenance, train.provenance)))
+    if args.field:  # the logs must have been flown on the field the user names
+        want = describe(load_field(args.field))
+        have = (train.provenance or {}).get("field")
+        if have != want:
+            raise DataError(f"--logs {args.logs}: flown on another field than --field {args.field}:\n  "
+                            + "\n  ".join(differences(have, want)))
     if args.minutes:
         train = shorten_per_stage(train, args.minutes, np.random.default_rng(args.seed))
     config = train_config(args.seed, args.quick)
@@ -60,7 +70,8 @@ def run(args: TrainArgs) -> dict:
     val_rmse, val_axis = rmse(model, val)
     floor = label_noise_floor(val_files)
     save_checkpoint(ckpt, model, {"training": {k: v for k, v in history.items() if k not in ("train_loss", "val_loss")},
-                                  "data": train.summary(), "logs": args.logs, "val_logs": args.val_logs})
+                                  "data": train.summary(), "logs": args.logs, "val_logs": args.val_logs,
+                                  "provenance": {"flights": train.provenance, "seed": args.seed}})
     results = {
         "model": args.model, "feature_set": model.feature_set, "n_params": count_parameters(model),
         "train_rmse": train_rmse, "val_rmse": val_rmse, "val_rmse_axis": list(map(float, val_axis)),
@@ -69,7 +80,7 @@ def run(args: TrainArgs) -> dict:
         "epochs": history["epochs"], "best_epoch": history["best_epoch"], "train_seconds": seconds,
         "checkpoint": str(ckpt),
     }
-    path = write_results(args.out, results, args)
+    path = write_results(args.out, results, args, {"flights": train.provenance})
     rows = [[k, v] for k, v in results.items() if isinstance(v, (int, float, str)) and k not in ("checkpoint",)]
     print(format_table(rows, ["key", "value"]))
     print(f"\nwrote {ckpt} and {path}")

@@ -1,5 +1,12 @@
 """Motion capture and the Kalman filter that turns it into position/velocity estimates.
 
+Motion capture measures every vehicle's position (white noise per axis) and attitude
+(the true attitude turned by a small random body-frame rotation, white per sample:
+`core.geometry.perturb_quat`) at the autopilot rate (100 Hz, DESIGN: 100-120 Hz).
+The controller's heading, the learned models and the labels use the measured
+attitude; the true one is for the field, the oracle and diagnostics only (the
+autopilot flies on its own onboard attitude, which we take as exact).
+
 Each axis is an independent double integrator driven by the commanded acceleration,
 with the unmodelled part (downwash, lag) as white process noise. All axes and
 vehicles share the same noise model, so the filter's covariance converges to one
@@ -26,11 +33,11 @@ class MocapConfig:
     """Motion capture and estimator settings."""
 
     position_noise: float = 0.0005  # m, std of each motion-capture position axis
-    yaw_noise: float = 0.002  # rad, std of the motion-capture heading
+    attitude_noise: float = 0.002  # rad, std of each axis of the attitude error (body-frame rotation vector)
     process_accel_noise: float = 2.0  # m/s^2, std of unmodelled acceleration (downwash is ~1-3)
 
     def __post_init__(self):
-        for name in ("position_noise", "yaw_noise", "process_accel_noise"):
+        for name in ("position_noise", "attitude_noise", "process_accel_noise"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
 

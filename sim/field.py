@@ -40,7 +40,7 @@ from core.geometry import dot as _dot
 from core.jit import njit
 from core.validate import check_trailing_shapes
 
-__all__ = ["DownwashField", "pairwise_field"]
+__all__ = ["DownwashField", "pairwise_field", "check_field"]
 
 _EPS = np.array(1e-12)  # m, guards the division by r in v_r (at r = 0, r_vec = 0 so v_r = 0)
 _C4_CORE = 0.5  # -, radius (in units of sigma) inside which the c4 modulation tapers to 0
@@ -370,3 +370,34 @@ def _pairwise_kernel(pos, vel, rot, c):
                     out[w, j, 1] += g * (nz * rx - nx * rz)
                     out[w, j, 2] += g * (nx * ry - ny * rx)
     return out
+
+
+def check_field(field: Any, pos: np.ndarray | None = None, vel: np.ndarray | None = None,
+                rot: np.ndarray | None = None, name: str | None = None, finite: bool = True) -> None:
+    """ConfigError unless `field` returns (W, V, 3) accelerations through `pairwise_field`, finite
+    unless `finite` is False.
+
+    Called once before any flight: by `--field` and the envs' `field=` on two small scenes
+    (a follower 0.6 m below a level leader, at rest and moving, one slightly off the
+    axis), and by the `Simulator` on its own starting states for the shape (a NaN that
+    appears in flight ends that world as diverged). So a field of the wrong signature,
+    shape or with NaN output is named before it can corrupt a batch of flights.
+    pos, vel (W, V, 3) m, m/s and rot (W, V, 3, 3), world frame.
+    """
+    label = name or type(field).__name__
+    if pos is None:
+        pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9]], [[0.1, -0.2, 2.4], [0.25, 0.0, 1.7]]])
+        vel = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0], [0.0, 0.5, -0.1]]])
+        rot = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
+    if not callable(field):
+        raise ConfigError(f"{label}: a field must be callable as field(p_a, v_a, R_a, p_b, v_b), got {type(field).__name__}")
+    try:
+        out = np.asarray(pairwise_field(field, pos, vel, rot))
+    except (TypeError, ValueError, IndexError) as e:
+        raise ConfigError(f"{label}: calling it as field(p_a, v_a, R_a, p_b, v_b) on (..., 3) arrays failed: "
+                          f"{type(e).__name__}: {e}") from e
+    if out.shape != pos.shape:
+        raise ConfigError(f"{label}: expected accelerations of shape (..., 3) broadcast over the inputs, got "
+                          f"{out.shape} from pairwise_field for inputs of shape {pos.shape}")
+    if finite and not np.all(np.isfinite(out)):
+        raise ConfigError(f"{label}: returned non-finite accelerations (m/s^2) for followers near a leader: {out.tolist()}")

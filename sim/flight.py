@@ -8,6 +8,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from core.errors import ConfigError
+from core.provenance import code_version, describe
 from core.status import Status
 from sim.logs import ARRAY_SPECS, FlightLog
 from sim.scene import Scene
@@ -76,11 +77,13 @@ def fly(
             "roles": [r.value for r in scene.roles],
             "leader": scene.leader,
             "follower": scene.follower,
-            "controller": _describe(sim.controller),
-            "turbulence": _describe(sim.turbulence),
-            "field": _describe(sim.field),
+            "scene": scene.describe(),
+            "controller": describe(sim.controller),
+            "turbulence": describe(sim.turbulence),
+            "field": describe(sim.field),
             "field_enabled": bool(sim.field_enabled[w]),
-            "predictor": _describe(components.get("predictor")),
+            "predictor": _predictor_name(components.get("predictor")),
+            "code": code_version(),
             "duration": duration,
             "status": int(sim.status[w]),
             "status_name": Status(int(sim.status[w])).label,
@@ -93,16 +96,6 @@ def fly(
     return logs
 
 
-def _describe(obj: Any) -> Any:
-    if obj is None:
-        return None
-    if hasattr(obj, "describe"):
-        return obj.describe()
-    try:
-        from dataclasses import asdict, is_dataclass
-
-        if is_dataclass(obj):
-            return {"type": type(obj).__name__, **asdict(obj)}
-    except TypeError:
-        pass
-    return {"type": type(obj).__name__}
+def _predictor_name(predictor: Any) -> str | None:
+    """The predictor's class (a learned model's provenance travels with its checkpoint, named in `meta`)."""
+    return None if predictor is None else type(predictor).__name__

@@ -31,7 +31,7 @@ __all__ = [
     "load_log",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: quat_est (the motion-capture attitude) added
 
 # name -> (trailing shape after (T,), meaning). V is the number of vehicles.
 ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -41,7 +41,8 @@ ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "quat": (("V", 4), "true attitude, MuJoCo (w, x, y, z), body to world"),
     "pos_est": (("V", 3), "m, Kalman-filter position estimate used by the controller"),
     "vel_est": (("V", 3), "m/s, Kalman-filter velocity estimate"),
-    "yaw_est": (("V",), "rad, yaw used by the controller (motion capture)"),
+    "quat_est": (("V", 4), "motion-capture attitude (w, x, y, z), body to world: what predictors and labels use"),
+    "yaw_est": (("V",), "rad, heading used by the controller (of the motion-capture attitude)"),
     "mocap_pos": (("V", 3), "m, latest motion-capture position (noisy)"),
     "ref_pos": (("V", 3), "m, reference position"),
     "ref_vel": (("V", 3), "m/s, reference velocity"),

@@ -1,14 +1,25 @@
-"""Tracking metrics of a flight (DESIGN section 10), in SI units."""
+"""Tracking metrics of a flight (DESIGN section 10), in SI units, and their aggregation over conditions.
+
+Crashed flights. A flight that ends early (collision, divergence) must not make its
+condition look better by being averaged over its shorter life. The rule: a metric is
+always taken over the flight's planned duration, and every tick after the crash
+counts with the crash penalty, max(CRASH_PENALTY, the largest error before the
+crash) per error quantity (1 m for position, 1 m/s for velocity: the size of the
+envs' tracking box). Each condition also reports its `crash_rate` and which seeds
+crashed.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 from core.errors import ConfigError
+from core.status import Status
 from sim.logs import FlightLog
 
 __all__ = [
-    "TRACKING_METRICS", "IMPROVEMENT_METRICS", "tracking_errors", "tracking_metrics", "improvement",
+    "TRACKING_METRICS", "IMPROVEMENT_METRICS", "CRASH_PENALTY", "tracking_errors", "planned_ticks",
+    "tracking_metrics", "improvement",
     "aggregate_conditions",
 ]
 
@@ -18,6 +29,7 @@ TRACKING_METRICS = (
 )
 # improvement_<name>: fraction by which a condition's metric is smaller than the baseline's
 IMPROVEMENT_METRICS = {"improvement_pos_3d": "pos_err_3d_mean", "improvement_pos_z": "pos_err_z_mean", "improvement_vel_3d": "vel_err_3d_mean"}
+CRASH_PENALTY = {"pos": 1.0, "vel": 1.0}  # m, m/s: the least error counted for each tick after a crash
 
 
 def tracking_errors(log: FlightLog, vehicle: int | None = None) -> dict[str, np.ndarray]:
@@ -34,14 +46,31 @@ def tracking_errors(log: FlightLog, vehicle: int | None = None) -> dict[str, np.
     }
 
 
+def planned_ticks(log: FlightLog) -> int:
+    """Controller ticks the flight was meant to last (its `duration` meta), at least its rows."""
+    rates = log.meta.get("config", {}).get("rates", {})
+    if len(log) >= 2:
+        dt = float(np.median(np.diff(log["t"])))
+    else:
+        dt = rates["physics_dt"] * rates["physics_per_autopilot"] * rates["autopilot_per_control"]
+    duration = log.meta.get("duration")
+    return max(len(log), int(round(duration / dt))) if duration else len(log)
+
+
 def tracking_metrics(log: FlightLog, vehicle: int | None = None) -> dict[str, float]:
-    """The scalar metrics of TRACKING_METRICS for one flight."""
+    """The scalar metrics of TRACKING_METRICS for one flight, over its planned duration: the
+    ticks after a crash count with the crash penalty (see the module docstring)."""
     if len(log) == 0:
         raise ConfigError("tracking_metrics: the log has no rows")
     e = tracking_errors(log, vehicle)
+    missing = planned_ticks(log) - len(log) if log.meta.get("status", Status.OK) != Status.OK else 0
     out = {}
     for key, x in e.items():  # "pos_3d" -> "pos_err_3d_mean"
         quantity, axes = key.split("_")
+        if missing:
+            penalty = max(CRASH_PENALTY[quantity], float(np.nan_to_num(x, nan=np.inf).max()))
+            x = np.concatenate([np.nan_to_num(x, nan=penalty), np.full(missing, penalty)])
+            e[key] = x
         out[f"{quantity}_err_{axes}_mean"] = float(x.mean())
     out["pos_err_3d_peak"] = float(e["pos_3d"].max())
     return {k: out[k] for k in TRACKING_METRICS}
@@ -56,8 +85,10 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
                          oracle: str = "oracle", unmodelled: tuple[str, ...] = ("no_downwash",)) -> dict[str, dict]:
     """Metrics per condition from logs flown on the same seeds (seed k is the k-th log of each).
 
-    Each condition gets the mean over seeds of every TRACKING_METRICS entry, the per-seed
-    values under `per_seed`, and `failed_flights` (messages). With a `baseline`
+    Each condition gets the mean over seeds of every TRACKING_METRICS entry (crashed
+    flights counted by the crash rule of the module docstring), the per-seed values
+    under `per_seed` (with `crashed`, bool), `crash_rate` (the fraction of seeds that
+    crashed) and `failed_flights` (messages). With a `baseline`
     condition, every other condition but the `unmodelled` ones gets the paired
     IMPROVEMENT_METRICS (per seed, then their mean); with an `oracle` too, every
     compensating condition gets `gap_to_oracle_pos_3d` (m): how much larger its mean 3D
@@ -68,6 +99,8 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
         per_seed = [tracking_metrics(L) for L in logs]
         entry: dict = {m: float(np.mean([p[m] for p in per_seed])) for m in TRACKING_METRICS}
         entry["per_seed"] = {m: [p[m] for p in per_seed] for m in TRACKING_METRICS}
+        entry["per_seed"]["crashed"] = [not L.ok for L in logs]
+        entry["crash_rate"] = float(np.mean(entry["per_seed"]["crashed"]))
         entry["failed_flights"] = [L.meta["message"] for L in logs if not L.ok]
         out[c] = entry
     if baseline not in out:

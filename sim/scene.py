@@ -6,6 +6,7 @@ Names are resolved to indices once, here; everything downstream uses the
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -44,6 +45,12 @@ class Scene:
     qpos_adr: np.ndarray
     qvel_adr: np.ndarray
     act_ids: np.ndarray
+    quad_xml_sha256: str = ""  # of the vehicle MJCF the scene was built from (provenance)
+
+    def describe(self) -> dict:
+        """Vehicles, roles and the vehicle model's digest (provenance)."""
+        return {"vehicles": list(self.vehicles), "roles": [r.value for r in self.roles],
+                "quad_xml_sha256": self.quad_xml_sha256, "timestep": float(self.model.opt.timestep)}
 
     @property
     def n_vehicles(self) -> int:
@@ -141,4 +148,5 @@ def build_scene(
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joint_ids]),
         qvel_adr=np.array([model.jnt_dofadr[j] for j in joint_ids]),
         act_ids=act_ids,
+        quad_xml_sha256=hashlib.sha256(Path(quad_xml).read_bytes()).hexdigest(),
     )

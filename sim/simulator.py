@@ -27,20 +27,20 @@ is one more (the controller's `command_setpoint`). The math stays in its module
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from controllers.autopilot import Autopilot, rotor_thrusts
 from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint
 from core.errors import ConfigError
-from core.geometry import quat_to_mat_fast, quat_to_rot
+from core.geometry import perturb_quat_into, quat_to_mat_fast, quat_to_rot
 from core.jit import njit
 from core.params import QUAD, RATES, QuadParams, Rates
 from core.state import VehicleStates
 from core.status import Status
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
-from sim.field import DownwashField, pairwise_field
+from sim.field import DownwashField, check_field, pairwise_field
 from sim.physics import make_physics
 from sim.predictor import Predictor, ZeroPredictor
 from sim.scene import Scene
@@ -73,6 +73,24 @@ class SimConfig:
         return asdict(self)
 
 
+class _Sensed(NamedTuple):
+    """What one autopilot tick senses and applies, batched (W, V, ...); the first tick of a
+    controller period writes into fresh arrays (they become the log row), later ones reuse."""
+
+    kin: np.ndarray  # (5, W, V, 3): true position m, true velocity m/s, mocap position m, KF position m, KF velocity m/s
+    quat: np.ndarray  # (W, V, 4) true attitude (w, x, y, z)
+    rot: np.ndarray  # (W, V, 3, 3) true attitude, body to world
+    quat_est: np.ndarray  # (W, V, 4) motion-capture attitude
+    rot_est: np.ndarray  # (W, V, 3, 3) motion-capture attitude, body to world
+    yaw: np.ndarray  # (W, V) rad, motion-capture heading
+    applied: np.ndarray  # (W, V, 3) m/s^2, the field applied (mean + turbulence)
+
+    @classmethod
+    def empty(cls, W: int, V: int) -> "_Sensed":
+        return cls(np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V, 4)),
+                   np.empty((W, V, 3, 3)), np.empty((W, V)), np.empty((W, V, 3)))
+
+
 # columns of Simulator._layout (V, 7), the per-vehicle address table of the kernels
 _QPOS, _QVEL, _BODY, _ACT = 0, 1, 2, 3  # free joint in qpos, in qvel, body id, 4 actuator ids
 
@@ -83,22 +101,24 @@ _QPOS, _QVEL, _BODY, _ACT = 0, 1, 2, 3  # free joint in qpos, in qvel, body id, 
 
 @njit
 def _sense_kernel(
-    qpos, qvel, layout, noise, cursor, sigma_p, sigma_yaw, gain_p, gain_v,
-    pos_est, vel_est, t, next_prediction, due, kin, quat, rot, yaw_meas,
+    qpos, qvel, layout, noise, cursor, sigma_p, sigma_att, gain_p, gain_v,
+    pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw_meas,
 ):
     """Read the true state, take the motion-capture sample and apply the Kalman update.
 
     The arguments before `kin` are the simulator's persistent buffers and constants,
-    bound once (`Simulator._sense_args`); the last four are fresh each tick.
+    bound once (`Simulator._sense_args`); the last six are fresh each tick.
 
     qpos (W, nq), qvel (W, nv): live MuJoCo state; layout (V, 7): see Simulator._layout.
-    noise (W, block, V, 7) standard normals read at each world's `cursor`: mocap xyz, yaw.
+    noise (W, block, V, 9) standard normals read at each world's `cursor`: [0:3] mocap
+    position, [3:6] mocap attitude (body-frame rotation vector), [6:9] turbulence.
     pos_est, vel_est (W, V, 3): the Kalman prior, updated in place to the posterior.
     Writes kin (5, W, V, 3) [true position m, true velocity m/s (world), mocap position m,
-    posterior position m, posterior velocity m/s], quat (W, V, 4) (w, x, y, z),
-    rot (W, V, 3, 3) body to world, yaw_meas (W, V) rad (mocap heading), and
-    due (W,) bool: the predictor is due (t >= next_prediction, 1 ns slack).
-    Returns how many worlds are due.
+    posterior position m, posterior velocity m/s], quat (W, V, 4) (w, x, y, z) and
+    rot (W, V, 3, 3) body to world (true), quat_est and rot_est (the mocap attitude,
+    `core.geometry.perturb_quat` of the truth by sigma_att * noise), yaw_meas (W, V) rad
+    (its heading), and due (W,) bool: the predictor is due (t >= next_prediction, 1 ns
+    slack). Returns how many worlds are due.
     """
     W, V = pos_est.shape[0], pos_est.shape[1]
     n_due = 0
@@ -108,8 +128,13 @@ def _sense_kernel(
             a, b = layout[i, _QPOS], layout[i, _QVEL]
             for k in range(4):
                 quat[w, i, k] = qpos[w, a + 3 + k]
-            yaw = quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
-            yaw_meas[w, i] = yaw + sigma_yaw * noise[w, c, i, 3]
+            quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+            q = quat_est[w, i]
+            perturb_quat_into(
+                quat[w, i, 0], quat[w, i, 1], quat[w, i, 2], quat[w, i, 3],
+                sigma_att * noise[w, c, i, 3], sigma_att * noise[w, c, i, 4], sigma_att * noise[w, c, i, 5], q,
+            )
+            yaw_meas[w, i] = quat_to_rot(q[0], q[1], q[2], q[3], rot_est[w, i])
             for k in range(3):
                 p = qpos[w, a + k]
                 m = p + sigma_p * noise[w, c, i, k]
@@ -143,7 +168,7 @@ def _actuate_kernel(
     """Apply the field, run the autopilot and the Kalman prediction, advance the clocks.
 
     mean (W, V, 3) m/s^2: mean field, zeroed in place where field_on (W,) is False.
-    turb (W, V, 3): Ornstein-Uhlenbeck state, advanced in place with noise[w, cursor[w], :, 4:7]:
+    turb (W, V, 3): Ornstein-Uhlenbeck state, advanced in place with noise[w, cursor[w], :, 6:9]:
     turb = decay turb + diffusion xi; applied = mean + intensity |mean| turb (written to
     applied (W, V, 3) m/s^2, so the turbulence is zero outside the wake and scales with it),
     and mass * applied (N, world frame) into xfrc (W, nbody, 6) at each vehicle's body.
@@ -168,7 +193,7 @@ def _actuate_kernel(
                     mean[w, i, k] *= 0.0
             mag = np.sqrt(mean[w, i, 0] ** 2 + mean[w, i, 1] ** 2 + mean[w, i, 2] ** 2)
             for k in range(3):
-                turb[w, i, k] = decay * turb[w, i, k] + diffusion * noise[w, c, i, 4 + k]
+                turb[w, i, k] = decay * turb[w, i, k] + diffusion * noise[w, c, i, 6 + k]
                 applied[w, i, k] = mean[w, i, k] + intensity * mag * turb[w, i, k]
                 xfrc[w, layout[i, _BODY], k] = mass * applied[w, i, k]
             b = layout[i, _QVEL] + 3
@@ -251,14 +276,14 @@ class Simulator:
         # scalars of the hot loop, as Python floats, looked up once
         self._ou_a, self._ou_b = self.turbulence.coefficients(r.autopilot_dt)
         self._prediction_period = 1.0 / r.predictor_hz  # s
-        self._sigma_p, self._sigma_yaw = float(cfg.mocap.position_noise), float(cfg.mocap.yaw_noise)
+        self._sigma_p, self._sigma_att = float(cfg.mocap.position_noise), float(cfg.mocap.attitude_noise)
         self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
         self._max_thrust = float(self.autopilot.max_thrust)
         self._turbulence_intensity = float(self.turbulence.intensity)
 
         # per-world state beyond MuJoCo's; pos_est, vel_est, turb, f_hat, t, tick_index and
-        # next_prediction are updated in place, yaw_meas and mocap_pos replaced each autopilot
-        # tick (copy them to keep a value; the rows tick() returns are copies already)
+        # next_prediction are updated in place, `sensed` replaced each autopilot tick (copy
+        # its arrays to keep a value; the rows tick() returns are fresh already)
         self.t = np.zeros(W)  # s, time since each world's reset
         self.tick_index = np.zeros(W, np.int64)
         self.status = np.zeros(W, np.int64)
@@ -266,24 +291,17 @@ class Simulator:
         self.active = np.ones(W, bool)
         self.pos_est = np.zeros((W, V, 3))  # m, Kalman estimate (prior for the next sample)
         self.vel_est = np.zeros((W, V, 3))  # m/s
-        self.yaw_meas = np.zeros((W, V))  # rad, latest motion-capture heading
-        self.mocap_pos = np.zeros((W, V, 3))  # m, latest motion-capture position
+        self.sensed = _Sensed.empty(W, V)  # the latest autopilot tick's measurements and truth
         self.turb = np.zeros((W, V, 3))  # -, Ornstein-Uhlenbeck turbulence state
         self.f_hat = np.zeros((W, V, 3))  # m/s^2, held prediction
         self.next_prediction = np.zeros(W)  # s
         self._rngs: list[np.random.Generator] = [None] * W  # type: ignore[list-item]
-        self._noise = np.zeros((W, cfg.noise_block, V, 7))  # per tick: mocap xyz, yaw, turbulence xyz
+        self._noise = np.zeros((W, cfg.noise_block, V, 9))  # per tick: mocap position, attitude, turbulence
         self._mass_believed = np.full((W, V), cfg.quad.mass)  # kg, the controller's model
         self._cursor = np.zeros(W, np.int64)
         self._cursor_max = 0  # max(self._cursor), kept as a Python int (no reduction per tick)
-        # buffers of the second and later autopilot ticks (the first's go into the fresh row)
         self._due = np.zeros(W, bool)
-        self._kin = np.empty((5, W, V, 3))
-        self._kin_views = tuple(self._kin)
-        self._quat = np.empty((W, V, 4))
-        self._yaw = np.empty((W, V))
-        self._rot = np.empty((W, V, 3, 3))
-        self._applied = np.empty((W, V, 3))
+        self._reused = _Sensed.empty(W, V)  # buffers of the second and later autopilot ticks
         self._rot_des = np.empty((W, V, 3, 3))  # body to world, set by the 50 Hz control
         self._yaw_rate_des = np.empty((W, V))  # rad/s
         self._thrust_acc = np.empty((W, V))  # m/s^2
@@ -293,7 +311,7 @@ class Simulator:
         # ever updated in place, so each tick passes just the arrays that are fresh.
         self._sense_args = (
             self.physics.qpos, self.physics.qvel, self._layout, self._noise, self._cursor,
-            self._sigma_p, self._sigma_yaw, self._kf_gain_p, self._kf_gain_v,
+            self._sigma_p, self._sigma_att, self._kf_gain_p, self._kf_gain_v,
             self.pos_est, self.vel_est, self.t, self.next_prediction, self._due,
         )
         self._actuate_args = (
@@ -304,6 +322,9 @@ class Simulator:
             self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
         )
         self.reset(np.arange(W), seeds)
+        if field is not None:  # once, before any step: a bad field is named, not found mid-batch
+            start = self.true_states()
+            check_field(field, start.pos, start.vel, start.rot, finite=False)
 
     # ------------------------------------------------------------------ state access
     def true_states(self) -> VehicleStates:
@@ -378,20 +399,16 @@ class Simulator:
             first = sub == 0
             if self._cursor_max >= self._noise.shape[1]:
                 self._refill_used()
-            if first:  # fresh arrays: they become the row
-                kin = np.empty((5, W, V, 3))
-                pos, vel, mocap, pos_est, vel_est = kin[0], kin[1], kin[2], kin[3], kin[4]
-                quat, yaw, rot, applied = np.empty((W, V, 4)), np.empty((W, V)), np.empty((W, V, 3, 3)), np.empty((W, V, 3))
-            else:
-                kin, quat, yaw, rot, applied = self._kin, self._quat, self._yaw, self._rot, self._applied
-                pos, vel, mocap, pos_est, vel_est = self._kin_views
+            sensed = _Sensed.empty(W, V) if first else self._reused  # the first tick's arrays become the row
+            kin, quat, rot, quat_est, rot_est, yaw, applied = sensed
+            pos, vel, mocap, pos_est, vel_est = kin
             # motion capture and Kalman update
-            n_due = _sense_kernel(*self._sense_args, kin, quat, rot, yaw)
-            self.yaw_meas, self.mocap_pos = yaw, mocap
+            n_due = _sense_kernel(*self._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
+            self.sensed = sensed
 
-            # predictor at 45 Hz, held
+            # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
             if n_due:
-                pred = self.predictor(VehicleStates(pos_est, vel_est, rot), VehicleStates(pos, vel, rot))
+                pred = self.predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel, rot))
                 _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
 
             # downwash field, applied as an external force until the next autopilot tick
@@ -407,7 +424,7 @@ class Simulator:
                 )
                 row = {
                     "t": t_start, "pos": pos, "vel": vel, "quat": quat,
-                    "pos_est": pos_est, "vel_est": vel_est, "yaw_est": yaw,
+                    "pos_est": pos_est, "vel_est": vel_est, "quat_est": quat_est, "yaw_est": yaw,
                     "mocap_pos": mocap, "ref_pos": ref.pos, "ref_vel": ref.vel, "ref_acc": ref.acc,
                     "u_cmd": cmd_acc, "f_hat": self.f_hat.copy(), "field_mean": mean, "field_applied": applied,
                 }

@@ -70,8 +70,10 @@ def test_predictor_from_checkpoint(tmp_path):
     save_checkpoint(tmp_path / "m.pt", model, {})
     pred = LearnedPredictor.from_checkpoint(tmp_path / "m.pt", clamp=5.0, expect_kind="equivariant")
     states = VehicleStates(np.array([[[0, 0, 2.0], [0.1, 0, 1.2]]]), np.zeros((1, 2, 3)), np.broadcast_to(np.eye(3), (1, 2, 3, 3)))
-    ref = LearnedPredictor(model, clamp=5.0)(states, states)
-    np.testing.assert_array_equal(pred(states, states), ref)
+    true = VehicleStates(states.pos + [0.3, 0.0, 0.1], states.vel + 0.2, states.rot)  # what it must not see
+    ref = LearnedPredictor(model, clamp=5.0)(states, true)
+    np.testing.assert_array_equal(pred(states, true), ref)
+    assert np.abs(ref).max() > 0 and not np.allclose(ref, LearnedPredictor(model, clamp=5.0)(true, states))
     with pytest.raises(CheckpointError, match="model kind is 'equivariant', expected 'deep'"):
         LearnedPredictor.from_checkpoint(tmp_path / "m.pt", expect_kind="deep")
 

@@ -31,13 +31,14 @@ def workdir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def collection(workdir):
-    """A quick staged collection: models in workdir/models, logs in workdir/staged."""
-    _run(["experiments.staged_collection", "--quick", "--out", "staged", "--models-dir", "models"], workdir)
+    """A quick staged collection: models in workdir/models, logs in workdir/staged, results in workdir/sc."""
+    _run(["experiments.staged_collection", "--quick", "--out", "sc", "--collection-dir", "staged",
+          "--models-dir", "models"], workdir)
     return workdir
 
 
 def test_staged_collection_results(collection):
-    r = json.loads((collection / "staged" / "results.json").read_text())
+    r = json.loads((collection / "sc" / "results.json").read_text())
     assert [s["stage"] for s in r["stages"]] == [0, 1, 2]
     assert r["stages"][0]["separation"] == [1.35, 1.75] and r["stages"][2]["separation"][0] < 0.6
     assert r["stages"][0]["deployed_val_rmse"] is None and r["stages"][1]["deployed_val_rmse"] > 0
@@ -50,23 +51,57 @@ def test_staged_collection_results(collection):
 
 
 def test_lemniscate_all_conditions(collection):
-    _run(["experiments.lemniscate", "--quick", "--out", "lem", "--models-dir", "models"], collection)
+    _run(["experiments.lemniscate", "--quick", "--out", "lem", "--collection-dir", "staged", "--models-dir", "models"],
+         collection)
     r = json.loads((collection / "lem" / "results.json").read_text())
     assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant"}
     for name, c in r["conditions"].items():
         assert c["pos_err_3d_mean"] >= 0 and len(c["per_seed"]["pos_err_3d_mean"]) == 1
+        assert c["crash_rate"] == 0.0 and c["per_seed"]["crashed"] == [False]
         assert ("improvement_pos_3d" in c) == (name not in ("baseline", "no_downwash"))
+    assert r["provenance"]["models_dir"] == "models" and r["provenance"]["code"]["version"]
     for fig in ("errors_over_time.png", "error_distributions.png", "paths.png"):
         assert (collection / "lem" / fig).stat().st_size > 1000
 
 
-def test_transect_and_custom_field(workdir):
-    field_mod = workdir / "my_field.py"
-    field_mod.write_text("from sim.field import DownwashField\n\ndef make():\n    return DownwashField(strength=5.0, swirl=0.2)\n")
-    _run(["experiments.transect", "--quick", "--out", "tr", "--conditions", "baseline,oracle",
-          "--field", "my_field:make"], workdir)
-    r = json.loads((workdir / "tr" / "results.json").read_text())
-    assert r["args"]["field"] == "my_field:make" and set(r["conditions"]) == {"baseline", "oracle"}
+def _tracking(workdir, field_spec, out, experiment="transect"):
+    args = [f"experiments.{experiment}", "--quick", "--duration", "6", "--out", out,
+            "--conditions", "no_downwash,baseline,oracle"]
+    _run(args + (["--field", field_spec] if field_spec else []), workdir)
+    return json.loads((workdir / out / "results.json").read_text())["conditions"]
+
+
+def test_a_custom_field_changes_the_tracking_outcome(workdir):
+    """The --field object is the one that flies: a zero field makes baseline equal no_downwash
+    exactly, and a stronger field raises the baseline error."""
+    (workdir / "my_fields.py").write_text(
+        "import numpy as np\nfrom sim.field import DownwashField\n\n"
+        "def zero():\n    return lambda p_a, v_a, R_a, p_b, v_b: np.zeros(np.broadcast_shapes(p_a.shape, p_b.shape))\n\n"
+        "def strong():\n    return DownwashField(strength=30.0)\n"
+    )
+    default = _tracking(workdir, "", "tr_default")
+    zero = _tracking(workdir, "my_fields:zero", "tr_zero")
+    strong = _tracking(workdir, "my_fields:strong", "tr_strong")
+    assert zero["baseline"]["per_seed"] == {**zero["no_downwash"]["per_seed"]}
+    assert default["baseline"]["pos_err_3d_mean"] > 2 * default["no_downwash"]["pos_err_3d_mean"]
+    assert strong["baseline"]["pos_err_3d_mean"] > 1.5 * default["baseline"]["pos_err_3d_mean"]
+    # the field the oracle compensates is the custom one too: it removes most of the strong field's error
+    assert strong["oracle"]["pos_err_3d_mean"] < 0.5 * strong["baseline"]["pos_err_3d_mean"]
+
+
+def test_a_custom_field_changes_the_staged_collection_and_force_maps(workdir):
+    """The collection's labels and the force maps' truth come from the --field object."""
+    _run(["experiments.force_maps", "--quick", "--field", "my_fields:zero", "--out", "fm_zero"], workdir)
+    _run(["experiments.force_maps", "--quick", "--field", "my_fields:strong", "--out", "fm_strong"], workdir)
+    zero = json.loads((workdir / "fm_zero" / "results.json").read_text())
+    strong = json.loads((workdir / "fm_strong" / "results.json").read_text())
+    assert zero["truth"]["down_top_max"] == 0.0 and strong["truth"]["down_top_max"] > 5.0
+    z_floor = zero["provenance"]["pipeline"]["field"]
+    assert z_floor["type"] == "callable" or "lambda" in json.dumps(z_floor)
+    # each field got its own collection, keyed by its provenance
+    assert zero["provenance"]["models_dir"] != strong["provenance"]["models_dir"]
+    sc_zero = json.loads((Path(workdir / zero["provenance"]["collection_dir"]) / "manifest.json").read_text())
+    assert sc_zero["complete"] and sc_zero["provenance"]["field"] == zero["provenance"]["pipeline"]["field"]
 
 
 def test_train_sample_efficiency_force_maps(collection):
@@ -75,12 +110,13 @@ def test_train_sample_efficiency_force_maps(collection):
     r = json.loads((collection / "train" / "results.json").read_text())
     assert r["model"] == "equivariant" and r["n_params"] == 258
     assert r["val_rmse"] > 0 and len(r["val_rmse_axis"]) == 3 and r["noise_floor"] > 0
-    _run(["experiments.sample_efficiency", "--quick", "--collection", "staged", "--out", "se", "--minutes", "0.1"],
-         collection)
+    _run(["experiments.sample_efficiency", "--quick", "--collection-dir", "staged", "--models-dir", "models",
+          "--out", "se", "--minutes", "0.1"], collection)
     r = json.loads((collection / "se" / "results.json").read_text())
     assert len(r["minutes"]) == 2 and set(r["models"]) == {"shallow", "deep", "equivariant"}
     assert all(len(m["rmse_mean"]) == 2 for m in r["models"].values())
-    _run(["experiments.force_maps", "--quick", "--models-dir", "models", "--out", "fm"], collection)
+    _run(["experiments.force_maps", "--quick", "--collection-dir", "staged", "--models-dir", "models", "--out", "fm"],
+         collection)
     assert (collection / "fm" / "force_maps_down.png").is_file()
     assert set(json.loads((collection / "fm" / "results.json").read_text())["maps"]) == {"equivariant", "deep", "shallow"}
 
@@ -125,30 +161,95 @@ def test_train_rejects_empty_and_foreign_logs(tmp_path):
     assert proc.returncode != 0 and "x.npz" in proc.stderr
 
 
-def test_staged_collection_resumes_after_kill(tmp_path):
-    """Kill the collection mid-stage 1; the rerun keeps stage 0 untouched and completes."""
+def _digests(folder):
+    """SHA-256 of every flight log's arrays and every checkpoint's tensors under `folder`, by relative path."""
+    import hashlib
+
+    import numpy as np
+    import torch
+
+    out = {}
+    for path in sorted(folder.rglob("*.npz")):
+        with np.load(path, allow_pickle=False) as z:
+            out[str(path.relative_to(folder))] = hashlib.sha256(
+                b"".join(z[k].tobytes() for k in sorted(z.files) if k != "__meta__")).hexdigest()
+    for path in sorted(folder.rglob("*.pt")):
+        state = torch.load(path, weights_only=True)["state_dict"]
+        out[str(path.relative_to(folder))] = hashlib.sha256(
+            b"".join(state[k].numpy().tobytes() for k in sorted(state))).hexdigest()
+    return out
+
+
+def test_staged_collection_resumes_after_a_kill_mid_stage(collection, tmp_path):
+    """SIGKILL the collection at a random moment in the middle of a random stage (flights in batches
+    of one), rerun it: no finished flight is redone or lost, and every log and model equals those
+    of the uninterrupted run (the `collection` fixture, flown in batches of twelve)."""
+    import random
+
+    rng = random.Random()  # a different moment each run; the choice is in every failure message
+    stage, after = rng.randrange(3), rng.randrange(1, 4)  # kill once `after` of the stage's 4 flights are on disk
+    where = f"killed in stage {stage} after {after} flights"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "experiments.staged_collection", "--quick", "--out", "s", "--models-dir", "m"]
+    cmd = [sys.executable, "-m", "experiments.staged_collection", "--quick", "--batch-flights", "1", "--out", "o",
+           "--collection-dir", "s", "--models-dir", "m"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    manifest = tmp_path / "s" / "manifest.json"
+    stage_dir = tmp_path / "s" / f"stage{stage}"
     deadline = time.time() + 300
-    while time.time() < deadline:
-        if manifest.is_file() and json.loads(manifest.read_text()).get("stages", {}).get("0", {}).get("model_done"):
+    while time.time() < deadline and proc.poll() is None:
+        if len(list(stage_dir.glob("*/flight_*.npz"))) >= after:
             break
-        if proc.poll() is not None:
-            break
-        time.sleep(0.05)
+        time.sleep(0.005)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    state = json.loads(manifest.read_text())
-    assert state["stages"]["0"]["model_done"] and not state.get("complete")
-    stage0 = {p: p.stat().st_mtime_ns for p in (tmp_path / "s" / "stage0").rglob("*") if p.is_file()}
-    _run(["experiments.staged_collection", "--quick", "--out", "s", "--models-dir", "m"], tmp_path)
-    assert json.loads(manifest.read_text())["complete"] is True
-    for p, mtime in stage0.items():
-        assert p.stat().st_mtime_ns == mtime, f"{p} was redone"
-    from sim.logs import load_log
+    done = {p: p.stat().st_mtime_ns for p in (tmp_path / "s").rglob("*.npz")}
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    assert not manifest.get("complete"), where
+    assert not manifest["stages"].get(str(stage), {}).get("flights_done"), f"{where}: the stage had already finished"
+    assert len(list(stage_dir.glob("*/flight_*.npz"))) < 4, where
+    _run(cmd[2:], tmp_path)
+    assert json.loads((tmp_path / "s" / "manifest.json").read_text())["complete"] is True
+    for p, mtime in done.items():
+        assert p.stat().st_mtime_ns == mtime, f"{where}: {p} was flown again"
+    resumed, uninterrupted = _digests(tmp_path / "s"), _digests(collection / "staged")
+    assert resumed == uninterrupted, f"{where}: results differ from the uninterrupted run"
+    assert _digests(tmp_path / "m") == _digests(collection / "models"), where
 
-    for p in (tmp_path / "s").rglob("*.npz"):
-        load_log(p)  # every log on disk is whole
-    assert all((tmp_path / "m" / f"{k}.pt").is_file() for k in ("shallow", "deep", "equivariant"))
+
+@pytest.mark.parametrize(
+    "case, extra, message",
+    [
+        ("another field", ["--field", "my_fields:strong"], r"field\.strength: 10\.6 here, 30\.0 asked for"),
+        ("another seed base", ["--seed", "1"], r"seed: 0 here, 1 asked for"),
+        ("another config", [], r"collection\.clamp: 5\.0 here, 6\.0 asked for"),
+        ("another kind under the name", [], r"holds a 'shallow' model, not the 'equivariant' model"),
+    ],
+)
+def test_stale_models_are_never_reused(collection, workdir, tmp_path, case, extra, message):
+    """Models trained on the default field (seed 0, default config) are refused, before any flight,
+    for a run that asks for something else, with an error that names the difference and how to
+    proceed. (Leaving the folders out collects afresh into a folder keyed by the new setup:
+    test_a_custom_field_changes_the_staged_collection_and_force_maps.)"""
+    import shutil
+
+    (tmp_path / "my_fields.py").write_text(
+        "from sim.field import DownwashField\n\ndef strong():\n    return DownwashField(strength=30.0)\n")
+    models = tmp_path / "models"
+    if case == "another config":
+        _run(["experiments.staged_collection", "--quick", "--clamp", "5.0", "--out", "sc", "--collection-dir", "staged",
+              "--models-dir", "models"], tmp_path)
+    else:
+        shutil.copytree(collection / "models", models)
+    if case == "another kind under the name":
+        shutil.copy(models / "shallow.pt", models / "equivariant.pt")
+    args = ["experiments.lemniscate", "--quick", "--conditions", "baseline,equivariant", "--models-dir", "models",
+            "--collection-dir", "staged", "--out", "lem", *extra]
+    proc = _run(args, tmp_path, check=False, timeout=300)
+    assert proc.returncode != 0
+    import re
+
+    assert re.search(message, proc.stderr), proc.stderr[-3000:]
+    assert "DataError" in proc.stderr and not (tmp_path / "lem" / "results.json").exists()
+    if case == "another kind under the name":
+        assert "delete it or point --models-dir elsewhere" in proc.stderr
+    else:
+        assert "Leave out --models-dir" in proc.stderr and "runs/pipeline/" in proc.stderr

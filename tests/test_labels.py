@@ -53,7 +53,9 @@ def make_log(T=3000, noise=MOCAP_NOISE, seed=0, status=0, stage=0, leader_quat=(
     zeros = np.zeros((T, 2, 3))
     arrays = {
         "t": t, "pos": pos, "vel": vel,
-        "quat": np.tile(np.array(leader_quat, dtype=float), (T, 2, 1)),
+        # the truth is level; the motion-capture attitude is `leader_quat`: labels must use the estimate
+        "quat": np.tile([1.0, 0.0, 0.0, 0.0], (T, 2, 1)),
+        "quat_est": np.tile(np.array(leader_quat, dtype=float), (T, 2, 1)),
         "pos_est": pos + 1e-4 * rng.normal(size=pos.shape), "vel_est": vel + 1e-3 * rng.normal(size=vel.shape),
         "yaw_est": np.zeros((T, 2)), "mocap_pos": pos + noise * rng.normal(size=pos.shape),
         "ref_pos": pos, "ref_vel": vel, "ref_acc": zeros,
@@ -168,7 +170,8 @@ def test_labels_recover_the_force_with_mocap_noise():
     assert len(floor["rmse_axis"]) == 3 and floor["n_samples"] == err.shape[0]
 
 
-def test_tilted_leader_attitude_is_used():
+def test_labels_use_the_motion_capture_leader_attitude_not_the_truth():
+    """R_a comes from quat_est (tilted here), never from the true quat (level here)."""
     q = np.array([np.cos(0.2), np.sin(0.2), 0.0, 0.0])  # 0.4 rad roll
     lab = labels_from_log(make_log(T=200, leader_quat=q))
     np.testing.assert_allclose(lab["R_a"], np.broadcast_to(quat_to_rotmat(q), lab["R_a"].shape))

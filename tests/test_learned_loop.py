@@ -23,11 +23,19 @@ def scene():
 
 @pytest.fixture(scope="module")
 def passes_logs(scene):
-    """Two 24 s transects 0.6 m below the leader, 0.1 m beside its axis (the baseline controller)."""
-    ref = stack([Hover(LEADER, n_worlds=2), Transect(LEADER - [0, 0, 0.6], x_offset=0.1, n_worlds=2)])
-    logs = fly(scene, ref, [11, 12], 24.0)
+    """Three 24 s transects 0.6 m below the leader (baseline controller): two 0.1 m beside its
+    axis (different noise), one right through it."""
+    ref = stack([Hover(LEADER, n_worlds=3), Transect(LEADER - [0, 0, 0.6], x_offset=[0.1, 0.1, 0.0], n_worlds=3)])
+    logs = fly(scene, ref, [11, 12, 13], 24.0)
     assert all(L.ok for L in logs)
     return logs
+
+
+def _flight_labels(logs):
+    """The labelled samples of simulated flights, one flight id each: nothing synthetic."""
+    from downwash.datasets import concatenate
+
+    return concatenate([Dataset.from_labels(labels_from_log(L), flight=i, stage=0) for i, L in enumerate(logs)])
 
 
 def test_labels_equal_the_true_field_within_the_noise_floor(passes_logs):
@@ -37,7 +45,7 @@ def test_labels_equal_the_true_field_within_the_noise_floor(passes_logs):
     err = lab["y"] - truth
     rms_truth = np.sqrt(np.mean(truth**2))
     rms_err = np.sqrt(np.mean(err**2))
-    assert rms_truth > 0.4  # the flight did pass through the wake
+    assert rms_truth > 0.3  # the flight did pass through the wake (RMS over the whole flight, ~0.4)
     assert rms_err < 0.15 and rms_err < 0.3 * rms_truth  # labels carry the field, not noise
     floor = label_noise_floor(passes_logs)
     all_err = np.concatenate([labels_from_log(L)["y"] - labels_from_log(L)["field_mean"] for L in passes_logs])
@@ -61,21 +69,20 @@ def test_labels_are_the_full_downwash_when_a_model_compensates(scene):
     assert rms(lab["y"] - residual) > 2 * rms(lab["y"] - truth)
 
 
-def _synthetic_dataset(n=20000, seed=0):
-    """Samples of the true field where flights go (below the leader, speeds up to 1 m/s)."""
-    rng = np.random.default_rng(seed)
-    dp = np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), -rng.uniform(0.4, 1.8, n)], axis=1)
-    v_b = rng.uniform(-1, 1, (n, 3)) * [1, 1, 0.3]
-    v_a, R_a = np.zeros((n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
-    y = DownwashField()(np.zeros((n, 3)), v_a, R_a, dp, v_b)
-    flight = np.arange(n) // 1000
-    return Dataset(dp, v_a, v_b, R_a, y + 0.05 * rng.normal(size=y.shape), flight, np.zeros(n, int),
-                   (np.arange(n) % 1000) * RATES.control_dt, y)
+def test_hover_under_the_leader_with_the_model_compensating_stays_bounded(scene, passes_logs):
+    """An equivariant model trained on flight labels only, in the 45 Hz slot: a hover 0.6 m below
+    the leader, at a spot none of the training flights held, stays close and bounded.
 
+    The training flights: the transects, and hovers near the axis at 0.55-0.7 m flown with
+    the oracle compensating (as the staged collection flies with a model), whose labels
+    are the full downwash."""
+    from sim.predictor import OraclePredictor
 
-def test_hover_under_the_leader_with_the_model_compensating_stays_bounded(scene):
-    """A trained equivariant model in the 45 Hz slot: hover 0.6 m below stays close and bounded."""
-    model, _ = train_model("equivariant", _synthetic_dataset(), None, TrainConfig(seed=0, max_epochs=20, min_steps=400))
+    spots = np.array([[0.0, 0.0, 0.55], [0.1, 0.0, 0.6], [0.0, -0.1, 0.65], [-0.1, 0.05, 0.7]])
+    hovers = fly(scene, stack([Hover(LEADER, n_worlds=4), Hover(LEADER - spots * [-1, -1, 1], n_worlds=4)]),
+                 [21, 22, 23, 24], 10.0, predictor=OraclePredictor(DownwashField()))
+    model, _ = train_model("equivariant", _flight_labels([*passes_logs, *hovers]), None,
+                           TrainConfig(seed=0, max_epochs=20, min_steps=400))
     W = 2
     ref = stack([Hover(LEADER, n_worlds=W), Hover(LEADER - [0.05, 0.0, 0.6], n_worlds=W)])
     from sim.predictor import PerWorldPredictor, ZeroPredictor
@@ -92,12 +99,13 @@ def test_hover_under_the_leader_with_the_model_compensating_stays_bounded(scene)
 
 
 def test_trained_model_fits_real_flight_labels(passes_logs):
-    """The equivariant model trained on one simulated flight predicts the other within a small margin."""
-    from downwash.datasets import concatenate
-
-    parts = [Dataset.from_labels(labels_from_log(L), flight=i, stage=0) for i, L in enumerate(passes_logs)]
-    train = concatenate([parts[0], _synthetic_dataset(4000, seed=1)])
+    """The equivariant model trained on two simulated flights' labels (and nothing else) predicts a
+    third flight, flown with other noise, within a small margin of that flight's label-noise floor."""
+    train = _flight_labels([passes_logs[0], passes_logs[2]])
+    val = _flight_labels([passes_logs[1]])
     model, _ = train_model("equivariant", train, None, TrainConfig(seed=0, max_epochs=20, min_steps=400))
-    val_rmse, _ = rmse(model, parts[1])
-    floor = label_noise_floor(passes_logs[1:])["rmse_mean"]
+    val_rmse, _ = rmse(model, val)
+    floor = label_noise_floor(passes_logs[1:2])["rmse_mean"]
     assert val_rmse < 2.0 * floor + 0.05
+    untrained_rmse = float(np.sqrt(np.mean(val.y**2)))  # predicting zero
+    assert val_rmse < 0.3 * untrained_rmse

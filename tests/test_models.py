@@ -228,13 +228,17 @@ def test_predictor_matches_a_per_pair_loop(kind, backend):
     predictor = LearnedPredictor(model, backend=backend)
     assert isinstance(predictor, Predictor)
     for W, V in [(3, 3), (4, 2), (1, 2), (2, 1)]:
-        states = random_vehicle_states(rng, W, V)
-        out = predictor(states, states)
+        # the estimates differ from the truth: a learned model must see only the estimates
+        estimated, true = random_vehicle_states(rng, W, V), random_vehicle_states(rng, W, V)
+        out = predictor(estimated, true)
         assert out.shape == (W, V, 3) and out.dtype == np.float64
-        np.testing.assert_allclose(out, reference_prediction(model, states), rtol=1e-4, atol=1e-4)
-    # a follower above its leader gets nothing from it; the original model is untouched
+        np.testing.assert_allclose(out, reference_prediction(model, estimated), rtol=1e-4, atol=1e-4)
+        if V > 1:
+            assert not np.allclose(out, reference_prediction(model, true), rtol=1e-4, atol=1e-4)
+    # a follower above its leader gets nothing from it (estimated above, true below); the original model is untouched
     states = VehicleStates(np.array([[[0, 0, 1.0], [0, 0, 2.0]]]), np.zeros((1, 2, 3)), np.broadcast_to(np.eye(3), (1, 2, 3, 3)))
-    out = predictor(states, states)
+    true = VehicleStates(states.pos[:, ::-1].copy(), states.vel, states.rot)
+    out = predictor(states, true)
     assert np.all(out[0, 1] == 0.0) and np.any(out[0, 0] != 0.0)
     # the predictor froze a copy: the original is still in training mode with gradients on
     assert model.training and all(p.requires_grad for p in model.parameters())
@@ -244,9 +248,9 @@ def test_predictor_matches_a_per_pair_loop(kind, backend):
 def test_predictor_clamp_and_errors():
     rng = np.random.default_rng(6)
     model = randomise(make_model("shallow"), 2).float()
-    states = random_vehicle_states(rng, 8, 3)
-    free = LearnedPredictor(model)(states, states)
-    clamped = LearnedPredictor(model, clamp=0.1)(states, states)
+    states, true = random_vehicle_states(rng, 8, 3), random_vehicle_states(rng, 8, 3)
+    free = LearnedPredictor(model)(states, true)
+    clamped = LearnedPredictor(model, clamp=0.1)(states, true)
     norm_free, norm_clamped = np.linalg.norm(free, axis=-1), np.linalg.norm(clamped, axis=-1)
     assert np.all(norm_clamped <= 0.1 + 1e-12) and np.any(norm_free > 0.1)
     small = norm_free <= 0.1

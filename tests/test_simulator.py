@@ -82,8 +82,15 @@ def test_predictor_runs_at_45_hz_and_is_held(scene):
     assert len(calls) == pytest.approx(90, abs=2)  # 45 Hz over 2 s
     changes = np.count_nonzero(np.diff(L["f_hat"][:, 1, 0]))
     assert 80 <= changes <= 90  # held between updates; 50 Hz ticks see ~45 new values per s
-    # compensation enters the command: u = a_ref - K e - f_hat
-    assert all(L.ok for L in [L])
+    # compensation enters the command: u = a_ref - K (x_est - x_ref) - f_hat, row by row
+    from controllers.lqr import ControllerState, FeedbackLinearisedLQR
+    from core.state import RefSample
+
+    zeros = np.zeros(L["yaw_est"].shape)  # the lemniscate's yaw and yaw rate
+    ref = RefSample(L["ref_pos"], L["ref_vel"], L["ref_acc"], zeros, zeros)
+    want = FeedbackLinearisedLQR()(ControllerState(L["pos_est"], L["vel_est"], L["yaw_est"]), ref, L["f_hat"])
+    np.testing.assert_allclose(L["u_cmd"], want.acc, rtol=0, atol=1e-12)
+    assert np.abs(L["f_hat"][:, 1]).max() > 0.05  # so the check above would see a missing - f_hat
 
 
 def test_failures_end_their_world_only(scene):
@@ -119,9 +126,10 @@ def test_bad_inputs(scene):
 
 def test_fused_kernels_equal_the_readable_components(scene):
     """The compiled sense / actuate passes of one autopilot tick against quat_to_mat,
-    MocapKalmanFilter, the turbulence law and Autopilot, on random states (bit for bit)."""
-    from core.geometry import quat_to_mat_fast as quat_to_mat, yaw_of
-    from sim.simulator import _actuate_kernel, _sense_kernel
+    perturb_quat (the motion-capture attitude), MocapKalmanFilter, the turbulence law and
+    Autopilot, on random states (bit for bit where the arithmetic is the same)."""
+    from core.geometry import perturb_quat, quat_to_mat, yaw_of
+    from sim.simulator import _actuate_kernel, _Sensed, _sense_kernel
 
     W, V = 3, scene.n_vehicles
     sim = Simulator(scene, _lemniscate(W), [1, 2, 3], field_enabled=np.array([True, False, True]))
@@ -136,17 +144,24 @@ def test_fused_kernels_equal_the_readable_components(scene):
     prior_p, prior_v = sim.pos_est.copy(), sim.vel_est.copy()
     sim._cursor[:] = [0, 5, 9]
     cursor = sim._cursor.copy()
-    noise = sim._noise[np.arange(W), cursor]  # (W, V, 7)
+    noise = sim._noise[np.arange(W), cursor]  # (W, V, 9)
 
-    kin, quat, rot, yaw = np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V))
+    kin, quat, rot, quat_est, rot_est, yaw, _ = _Sensed.empty(W, V)
     sim.t[:], sim.next_prediction[:] = [0.0, 0.1, 0.2], [0.0, 0.2, 0.1]
-    n_due = _sense_kernel(*sim._sense_args, kin, quat, rot, yaw)
+    n_due = _sense_kernel(*sim._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
     pos, vel = ph.qpos[:, sim._pos_idx], ph.qvel[:, sim._vel_idx]
     mocap = pos + sim.cfg.mocap.position_noise * noise[..., :3]
     est = sim.kf.update(prior_p, prior_v, mocap)
     assert n_due == 2 and sim._due.tolist() == [True, False, True]
-    assert np.array_equal(quat, q) and np.array_equal(rot, quat_to_mat(q))
-    assert np.array_equal(yaw, yaw_of(rot) + sim.cfg.mocap.yaw_noise * noise[..., 3])
+    assert np.array_equal(quat, q)
+    np.testing.assert_allclose(rot, quat_to_mat(q), rtol=0, atol=1e-15)  # the readable one normalises first
+    q_meas = perturb_quat(q, sim.cfg.mocap.attitude_noise * noise[..., 3:6])
+    np.testing.assert_allclose(quat_est, q_meas, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rot_est, quat_to_mat(q_meas), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(yaw, yaw_of(rot_est), rtol=0, atol=1e-14)
+    # the measured attitude differs from the truth by the motion-capture noise, ~0.002 rad
+    angle = 2 * np.arccos(np.clip(np.abs(np.sum(quat_est * q, axis=-1)), 0, 1))
+    assert np.all(angle > 0) and np.all(angle < 10 * sim.cfg.mocap.attitude_noise)
     for got, want in zip(kin, (pos, vel, mocap, *est)):
         assert np.array_equal(got, want)
     assert np.array_equal(sim.pos_est, est[0]) and np.array_equal(sim.vel_est, est[1])
@@ -163,7 +178,7 @@ def test_fused_kernels_equal_the_readable_components(scene):
     sim._rot_des[:], sim._yaw_rate_des[:], sim._thrust_acc[:] = rot_des, yaw_rate, thrust
     _actuate_kernel(*sim._actuate_args, mean, applied, rot, cmd_acc)
     mean_want = mean_in * sim.field_enabled[:, None, None]
-    turb = sim.turbulence.step(turb0, noise[..., 4:], sim.cfg.rates.autopilot_dt)
+    turb = sim.turbulence.step(turb0, noise[..., 6:9], sim.cfg.rates.autopilot_dt)
     applied_want = sim.turbulence.apply(mean_want, turb)
     omega = ph.qvel[:, scene.qvel_adr[:, None] + 3 + np.arange(3)]
     rotors = sim.autopilot(rot, omega, rot_des, yaw_rate, thrust, sim._mass_believed)
@@ -186,3 +201,33 @@ def test_rows_are_fresh_and_never_written_again(scene):
         sim.tick()
     for k in ARRAY_SPECS:
         assert np.array_equal(first[k], kept[k]), k
+
+
+def test_oracle_sees_the_truth_and_per_world_routing_keeps_each_predictor_to_its_worlds():
+    """The oracle evaluates the field at the TRUE states whatever the estimates say; PerWorldPredictor
+    hands each predictor only its own worlds, estimates and truth alike."""
+    from core.state import VehicleStates
+    from sim.field import pairwise_field
+    from sim.predictor import PerWorldPredictor, ZeroPredictor
+
+    rng = np.random.default_rng(2)
+    W = 4
+    true = VehicleStates(np.stack([np.tile(LEADER, (W, 1)), LEADER - [0.1, 0.0, 0.6] + 0.05 * rng.normal(size=(W, 3))], 1),
+                         0.3 * rng.normal(size=(W, 2, 3)), np.broadcast_to(np.eye(3), (W, 2, 3, 3)).copy())
+    estimated = VehicleStates(true.pos + [0.2, -0.1, 0.05], true.vel + 0.1, true.rot)
+    field = DownwashField()
+    want = pairwise_field(field, true.pos, true.vel, true.rot)
+    assert np.abs(want).max() > 0.5 and not np.allclose(want, pairwise_field(field, estimated.pos, estimated.vel, estimated.rot))
+    np.testing.assert_array_equal(OraclePredictor(field)(estimated, true), want)
+
+    seen = []
+
+    class Recording:
+        def __call__(self, est, tru):
+            seen.append((est.pos.copy(), tru.pos.copy()))
+            return np.ones_like(est.pos)
+
+    routed = PerWorldPredictor([ZeroPredictor(), Recording()], np.array([0, 1, 0, 1]))(estimated, true)
+    assert np.array_equal(routed[[0, 2]], np.zeros((2, 2, 3))) and np.array_equal(routed[[1, 3]], np.ones((2, 2, 3)))
+    (est_seen, true_seen), = seen
+    assert np.array_equal(est_seen, estimated.pos[[1, 3]]) and np.array_equal(true_seen, true.pos[[1, 3]])

@@ -2,11 +2,14 @@
 
 `random_passes` draws one pattern per world (passes through and beside the wake
 at random headings, offsets and speeds, hovers at offsets); `collection_reference`
-mixes them with lemniscates as every stage of the staged collection does.
+mixes them with lemniscates as every stage of the staged collection does, one
+generator per flight.
 Randomness only through the `numpy.random.Generator` passed in.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -172,24 +175,45 @@ def random_passes(
 
 
 def collection_reference(
-    rng: np.random.Generator, n: int, leader: ArrayLike, separation: tuple[float, float], seconds: float
+    seed: Sequence[int],
+    flights: Sequence[int],
+    n_train: int,
+    n_val: int,
+    leader: ArrayLike,
+    separation: tuple[float, float],
+    seconds: float,
 ) -> StackedReference:
-    """Leader hover and follower references for n flights of one collection stage.
+    """Leader hover and follower references for some flights of one collection stage.
 
-    Mostly `random_passes` (depth uniform in `separation`, m), and a
-    LEMNISCATE_SHARE of lemniscates with random centres, sizes and periods.
-    Returns the (leader, follower) stack over n worlds.
+    A stage has n_train training flights (indices 0..n_train-1) and n_val validation
+    flights (the rest); `flights` picks which to build, in that order, as the worlds of
+    one batch. Each flight draws from its own generator, `default_rng([*seed, index])`,
+    so a flight's reference does not depend on which others share its batch (the
+    collection can resume flight by flight). Of each role, the last LEMNISCATE_SHARE
+    (rounded; none in a role of fewer than 3 flights) are lemniscates with random
+    centres, sizes and periods; the others are `random_passes` (depth uniform in
+    `separation`, m). Returns the (leader, follower) stack over len(flights) worlds.
     """
     leader = np.asarray(leader, dtype=float)
-    n_lem = int(round(LEMNISCATE_SHARE * n)) if n >= 3 else 0
+    n_all = n_train + n_val
+    passes: list[tuple[int, Waypoints]] = []  # (world, one-world pattern)
+    lems: list[tuple[int, np.ndarray]] = []  # (world, [cx, cy, cz, half_length, half_width, period])
+    for world, i in enumerate(flights):
+        if not 0 <= i < n_all:
+            raise ConfigError(f"flights: index {i} outside the stage's {n_all} flights")
+        j, n_role = (i, n_train) if i < n_train else (i - n_train, n_val)
+        rng = np.random.default_rng([*seed, i])
+        n_lem = int(round(LEMNISCATE_SHARE * n_role)) if n_role >= 3 else 0
+        if j >= n_role - n_lem:
+            c = leader - [rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(*separation)]
+            lems.append((world, np.array([*c, rng.uniform(0.6, 1.2), rng.uniform(0.3, 0.7), rng.uniform(10.0, 24.0)])))
+        else:
+            passes.append((world, random_passes(rng, 1, leader, depth_range=separation, duration=seconds)))
     parts = []
-    if n - n_lem:
-        passes = random_passes(rng, n - n_lem, leader, depth_range=separation, duration=seconds)
-        parts.append((passes, np.arange(n - n_lem)))
-    if n_lem:
-        depth = rng.uniform(*separation, n_lem)
-        center = leader - np.stack([rng.uniform(-0.2, 0.2, n_lem), rng.uniform(-0.2, 0.2, n_lem), depth], axis=1)
-        lem = Lemniscate(center, half_length=rng.uniform(0.6, 1.2, n_lem), half_width=rng.uniform(0.3, 0.7, n_lem),
-                         period=rng.uniform(10.0, 24.0, n_lem), n_worlds=n_lem)
-        parts.append((lem, np.arange(n - n_lem, n)))
-    return stack([Hover(leader, n_worlds=n), Mixed(parts)])
+    if passes:
+        parts.append((Waypoints.concatenate([wp for _, wp in passes]), [w for w, _ in passes]))
+    if lems:
+        p = np.array([v for _, v in lems])
+        parts.append((Lemniscate(p[:, :3], half_length=p[:, 3], half_width=p[:, 4], period=p[:, 5],
+                                 n_worlds=len(lems)), [w for w, _ in lems]))
+    return stack([Hover(leader, n_worlds=len(flights)), Mixed(parts)])

@@ -362,6 +362,19 @@ class Waypoints:
         self._dp = (p1 - p0).reshape(-1, 3)
 
     @classmethod
+    def concatenate(cls, parts: "list[Waypoints]") -> "Waypoints":
+        """The worlds of several `Waypoints` as one batch, in order (padded to the longest pattern)."""
+        points, durations, dwell, tags = [], [], [], []
+        for wp in parts:
+            for w in range(wp.n_worlds):
+                k = int(wp.n_points[w])
+                points.append(wp.points[w, :k])
+                durations.append(wp.durations[w, : k - 1])
+                dwell.append(wp.dwell[w, :k])
+                tags.append(list(wp.move_tags[w, : k - 1]))
+        return cls.from_patterns(points, durations, dwell, move_tags=tags)
+
+    @classmethod
     def from_patterns(
         cls,
         points: Sequence[ArrayLike],

@@ -9,6 +9,9 @@ per-seed metrics of its results.json, exact floats; 6 s, so that the follower
 passes beneath the leader), both run through the public
 command lines. Re-record only when a change is MEANT to move numbers, and say so
 in the commit message: the file is the proof that a refactor changed none.
+Re-recorded so far: once, for issue 9 (motion capture measures the attitude with
+noise; each collection flight draws from its own generator; lemniscates in both the
+training and the validation flights of a stage).
 
 Digests of floating-point results are specific to the CPU's instruction set
 (numba, torch and NumPy pick kernels per ISA); a failure on a new kind of machine
@@ -30,8 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).resolve().parent / "pipeline.json"
 LOG_ARRAYS = (
-    "t", "pos", "vel", "quat", "pos_est", "vel_est", "yaw_est", "mocap_pos", "ref_pos", "ref_vel", "ref_acc",
-    "u_cmd", "f_hat", "field_mean", "field_applied",
+    "t", "pos", "vel", "quat", "pos_est", "vel_est", "quat_est", "yaw_est", "mocap_pos", "ref_pos", "ref_vel",
+    "ref_acc", "u_cmd", "f_hat", "field_mean", "field_applied",
 )  # fmt: skip
 
 
@@ -47,8 +50,10 @@ def run_pipeline(workdir: Path) -> None:
     """The two command lines whose results are golden (run in `workdir`)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     for args in (
-        ["experiments.staged_collection", "--quick", "--out", "staged", "--models-dir", "models"],
-        ["experiments.lemniscate", "--quick", "--duration", "6", "--out", "lem", "--models-dir", "models"],
+        ["experiments.staged_collection", "--quick", "--out", "staged", "--collection-dir", "staged",
+         "--models-dir", "models"],
+        ["experiments.lemniscate", "--quick", "--duration", "6", "--out", "lem", "--collection-dir", "staged",
+         "--models-dir", "models"],
     ):
         proc = subprocess.run([sys.executable, "-m", *args], cwd=workdir, env=env, capture_output=True, text=True)
         if proc.returncode != 0:
