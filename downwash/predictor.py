@@ -18,12 +18,18 @@ import torch
 
 from downwash.checkpoint import load_checkpoint
 from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
+from downwash.fused import feature_code, pack_layers, predict_into
 from downwash.models import DownwashModel
 from core.state import VehicleStates
 
 __all__ = ["LearnedPredictor"]
 
 _ZERO = np.zeros(())  # 0-d: cheaper per NumPy call than a Python float
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    """float64 as is (numba takes strided views), else converted."""
+    return a if isinstance(a, np.ndarray) and a.dtype == np.float64 else np.asarray(a, dtype=np.float64)
 
 
 def _frozen(model: DownwashModel) -> DownwashModel:
@@ -43,16 +49,19 @@ class LearnedPredictor:
 
     model: a `DownwashModel` (copied and frozen; the original is untouched).
     clamp: optional bound (m/s^2) on the magnitude of each vehicle's summed prediction.
-    backend: "numpy" (default) evaluates the same features (`downwash.features`,
-      NumPy namespace) and the model's float64 `folded_layers` in NumPy: per call
-      it costs a fraction of torch's dispatch overhead on these tiny batches.
-      "torch" calls the frozen torch model once under ``torch.inference_mode``
-      (float32 unless the model is float64). Both agree to float32 rounding.
+    backend: "compiled" (default) runs features, network, basis, depth gate and
+      clamp in one compiled pass (`downwash.fused`, float64): a few microseconds a
+      call. "numpy" is its readable reference: the same features (`downwash.features`,
+      NumPy namespace) and the model's float64 `folded_layers` in NumPy (~55 us a call
+      at one world, mostly per-operation overhead); the two agree to float64
+      rounding (a test). "torch" calls the frozen torch model once under
+      ``torch.inference_mode`` (float32 unless the model is float64), agreeing to
+      float32 rounding.
     """
 
-    BACKENDS = ("numpy", "torch")
+    BACKENDS = ("compiled", "numpy", "torch")
 
-    def __init__(self, model: DownwashModel, clamp: float | None = None, backend: str = "numpy"):
+    def __init__(self, model: DownwashModel, clamp: float | None = None, backend: str = "compiled"):
         if not isinstance(model, DownwashModel):
             raise TypeError(f"model: expected a DownwashModel, got {type(model).__name__}")
         if clamp is not None and not clamp > 0:
@@ -68,13 +77,16 @@ class LearnedPredictor:
         names = FEATURE_SETS[self.feature_set]
         self._depth_col = names.index("depth") if "depth" in names else None
         self._pairs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._packed = pack_layers(layers)
+        self._code = feature_code(self.feature_set)
+        self._clamp_kernel = 0.0 if self.clamp is None else self.clamp  # <= 0: no bound
 
     @classmethod
     def from_checkpoint(
         cls,
         path: str | os.PathLike,
         clamp: float | None = None,
-        backend: str = "numpy",
+        backend: str = "compiled",
         expect_kind: str | None = None,
         expect_feature_set: str | None = None,
     ) -> "LearnedPredictor":
@@ -126,6 +138,10 @@ class LearnedPredictor:
         n_worlds, n_veh = pos.shape[:2]
         if n_veh < 2:
             return np.zeros(pos.shape, dtype=np.float64)
+        if self.backend == "compiled":
+            out = np.empty((n_worlds, n_veh, 3))
+            predict_into(_f64(pos), _f64(vel), _f64(rot), *self._packed, self._code, self._clamp_kernel, out)
+            return out
         leaders, followers = self._pair_index(n_veh)
         n_pairs = n_veh * (n_veh - 1)
         f = self.predict_pairs(

@@ -217,7 +217,7 @@ def random_vehicle_states(rng, W, V):
     return VehicleStates(pos, vel, rot)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("backend", ["compiled", "numpy", "torch"])
 @pytest.mark.parametrize("kind", ["equivariant", "shallow", "deep"])
 def test_predictor_matches_a_per_pair_loop(kind, backend):
     rng = np.random.default_rng(5)
@@ -257,7 +257,30 @@ def test_predictor_clamp_and_errors():
     np.testing.assert_allclose(clamped[small], free[small])
     with pytest.raises(ValueError, match="clamp: expected None or a magnitude > 0"):
         LearnedPredictor(model, clamp=-1.0)
-    with pytest.raises(ValueError, match=r"backend: expected one of \['numpy', 'torch'\], got 'jax'"):
+    with pytest.raises(ValueError, match=r"backend: expected one of \['compiled', 'numpy', 'torch'\], got 'jax'"):
         LearnedPredictor(model, backend="jax")
     with pytest.raises(TypeError, match="model: expected a DownwashModel"):
         LearnedPredictor(torch.nn.Linear(3, 3))
+
+
+@pytest.mark.parametrize("feature_set", ["5", "6", "raw"])
+@pytest.mark.parametrize("clamp", [None, 0.2])
+def test_compiled_predictor_equals_the_readable_one(feature_set, clamp):
+    """The one-pass compiled predictor against the NumPy path (features, folded layers, basis,
+    depth gate, clamp) to float64 rounding, for every feature set, with followers above and
+    below their leaders, tilted leaders and 2-5 vehicles."""
+    rng = np.random.default_rng(8)
+    kind = "shallow" if feature_set == "raw" else "equivariant"
+    models = [randomise(make_model(kind, feature_set), 4)]
+    if feature_set == "raw":
+        deep = randomise(make_model("deep"), 5)
+        deep.settle_spectral_norm()
+        models.append(deep)
+    for model in models:
+        fast = LearnedPredictor(model, clamp=clamp, backend="compiled")
+        slow = LearnedPredictor(model, clamp=clamp, backend="numpy")
+        for W, V in [(1, 2), (3, 2), (2, 3), (2, 5)]:
+            states = random_vehicle_states(rng, W, V)
+            got, want = fast(states), slow(states)
+            assert np.abs(want).max() > 0
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
