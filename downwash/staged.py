@@ -214,7 +214,8 @@ def collect(
     another provenance. Returns the results: per stage (separation, minutes, samples,
     deployed model and its validation RMSE on that stage, failed flights), per final
     model (path, validation RMSE, training seconds), the label-noise floor, the
-    provenance and the wall time.
+    provenance, this run's wall time and `collection_seconds`, the time the whole
+    collection took (summed over the runs that worked on it; a killed run cannot record its part).
     """
     t_start = time.perf_counter()
     out, models_dir = Path(collection_dir), Path(models_dir)
@@ -270,12 +271,15 @@ def collect(
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
     floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)]) if val_dirs else None
+    if not manifest.get("complete"):  # the time this collection took, over every run that worked on it
+        manifest["collection_seconds"] = manifest.get("collection_seconds", 0.0) + time.perf_counter() - t_start
     manifest["complete"] = True
     atomic_write_json(manifest_path, manifest)
     return {"stages": stage_results, "training_minutes": len(STAGES) * n_train * flight_seconds / 60,
             "validation_minutes": len(STAGES) * n_val * flight_seconds / 60, "models": models,
             "noise_floor": floor, "collection_dir": str(out), "models_dir": str(models_dir),
-            "provenance": record, "provenance_key": fingerprint(record), "wall_seconds": time.perf_counter() - t_start}
+            "provenance": record, "provenance_key": fingerprint(record), "wall_seconds": time.perf_counter() - t_start,
+            "collection_seconds": manifest["collection_seconds"]}
 
 
 def check_checkpoint(path: str | Path, kind: str, record: dict[str, Any]) -> None:

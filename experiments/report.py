@@ -1,0 +1,354 @@
+"""The README's measured results, generated from the experiments' results files, never typed.
+
+    python -m experiments.report [--runs runs] [--results results] [--readme README.md] [--check]
+
+Copies every `runs/<name>/results.json` that exists (for the names in EXPERIMENTS) to
+`results/<name>.json`, records the machine and the dates in `results/report.json`,
+then renders the README's "Measured results" section from `results/` alone and
+rewrites it between the markers BEGIN and END. Rendering reads only `results/`, so
+the committed files always regenerate the committed README (a test checks this).
+`--check` writes nothing and exits 1 when the README differs from what `results/`
+renders; `--runs ''` skips the copy and only re-renders. The common options (--out,
+--seed, --quick, --field) are accepted for the shared contract and not used.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import platform
+import stat
+import sys
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from core.errors import ConfigError
+from core.io import atomic_write_bytes, atomic_write_json, to_json
+from experiments.common import CommonArgs, arg, parse_args
+
+__all__ = [
+    "EXPERIMENTS", "BEGIN", "END", "PAPER_RMSE", "ReportArgs", "load_results", "machine", "copy_results", "render",
+    "render_machine", "render_staged", "render_efficiency", "render_tracking", "render_force_maps",
+    "render_benchmark", "render_provenance", "rewrite_readme", "section_of", "fmt", "short", "pct", "main",
+]
+
+# name -> (title, keys its results.json must hold)
+EXPERIMENTS = {
+    "staged_collection": ("Staged collection", ("stages", "models", "noise_floor")),
+    "sample_efficiency": ("Validation RMSE against minutes of training data", ("minutes", "models", "noise_floor")),
+    "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
+    "transect": ("Tracking: transect", ("conditions", "seeds")),
+    "force_maps": ("Force maps", ("maps",)),
+    "benchmark": ("Speed", ("cpu_count",)),
+}
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+HEADING = "## Measured results"
+TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
+ORDER = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")  # conditions and models, as the paper
+PAPER_RMSE = {5.0: {"shallow": 0.263, "deep": 0.255, "equivariant": 0.222},  # the paper's figure 3 table, m/s^2
+              15.0: {"shallow": 0.243, "deep": 0.229, "equivariant": 0.218}}
+PAPER_TRACKING = ("Paper (real flights, section 5.E): with the equivariant model, 3D position improves about 36 % "
+                  "and vertical position about 56 % over no model; the deep model falls in between. The baseline 3D "
+                  "errors are 0.181 m (lemniscate) and 0.154 m (transect).")
+
+
+@dataclass(frozen=True)
+class ReportArgs(CommonArgs):
+    runs: str = arg("runs", "folder where the experiments wrote <name>/results.json ('' : copy nothing, only render)")
+    results: str = arg("results", "folder of the committed copies, <name>.json, which the section is rendered from")
+    readme: str = arg("README.md", "the README whose section between the results markers is rewritten")
+    check: bool = arg(False, "write nothing; exit 1 when the README section differs from what --results renders")
+
+
+def fmt(x: Any, sig: int = 3) -> str:
+    """A number with `sig` significant digits (thousands grouped, no exponent above 1e-4); None as '-'."""
+    if x is None:
+        return "-"
+    if isinstance(x, (bool, int)):
+        return str(x)
+    x = float(x)
+    if not math.isfinite(x) or x == 0:
+        return "0" if x == 0 else str(x)
+    mag = math.floor(math.log10(abs(x)))
+    if mag < -4:
+        return f"{x:.{sig - 1}e}"
+    if mag >= sig - 1:
+        return f"{round(x, sig - 1 - mag):,.0f}"
+    return f"{x:.{sig - 1 - mag}f}"
+
+
+def short(x: float) -> str:
+    """Minutes, metres and seconds of a setting: two decimals at most (5, 7.5, 16.93)."""
+    return f"{round(float(x), 2):g}"
+
+
+def pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f} %"
+
+
+def _ordered(d: dict) -> list[tuple[str, Any]]:
+    """The items of `d` in ORDER, unknown names after, alphabetically (the files hold sorted keys)."""
+    return sorted(d.items(), key=lambda kv: (ORDER.index(kv[0]) if kv[0] in ORDER else len(ORDER), kv[0]))
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def _read(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"{path}: not a readable JSON results file: {e}") from e
+
+
+def load_results(results_dir: str | Path) -> tuple[dict[str, dict], dict]:
+    """({name: results} for the files present in results_dir, the report.json record or {})."""
+    found = {n: _read(p) for n in [*EXPERIMENTS, "report"] if (p := Path(results_dir) / f"{n}.json").is_file()}
+    return found, found.pop("report", {})
+
+
+def machine() -> dict[str, Any]:
+    """The machine this runs on: CPU model, cores, OS, Python and package versions."""
+    cpu = [platform.processor() or platform.machine()]
+    with contextlib.suppress(OSError):
+        cpu = [ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+               if ln.startswith("model name")] + cpu
+    versions = {}
+    for pkg in ("mujoco", "torch"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            versions[pkg] = metadata.version(pkg)
+    return {"cpu": cpu[0], "cores": os.cpu_count(), "os": f"{platform.system()} {platform.machine()}",
+            "python": platform.python_version(), **versions}
+
+
+def _utc(timestamp: float) -> str:
+    return datetime.fromtimestamp(timestamp, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def copy_results(runs: str | Path, results_dir: str | Path) -> list[str]:
+    """Copy runs/<name>/results.json to results/<name>.json (all checked before any write) and record
+    the source, its date and the machine in results/report.json. Returns the names copied."""
+    runs, results_dir = Path(runs), Path(results_dir)
+    if not runs.is_dir():
+        raise ConfigError(f"--runs: {runs} is not a folder (expected {runs}/<name>/results.json for name in "
+                          f"{', '.join(EXPERIMENTS)}; pass --runs '' to only render from {results_dir}/)")
+    loaded = {}
+    for name, (_, keys) in EXPERIMENTS.items():
+        if not (path := runs / name / "results.json").is_file():
+            continue
+        data = _read(path)
+        missing = [k for k in keys if not isinstance(data, dict) or k not in data]
+        if missing:
+            raise ConfigError(f"{path}: not a {name} results file (missing {', '.join(missing)})")
+        _render_one(name, data, {}, str(path))  # a file the report cannot render stops here, before any write
+        loaded[name] = (path, data)
+    if not loaded:
+        raise ConfigError(f"--runs: {runs} holds no <name>/results.json for any of {', '.join(EXPERIMENTS)}; "
+                          f"pass --runs '' to only render from {results_dir}/")
+    files, here, now = load_results(results_dir)[1].get("files", {}), machine(), _utc(datetime.now().timestamp())
+    for name, (path, data) in loaded.items():
+        target = results_dir / f"{name}.json"
+        if name in files and target.is_file() and target.read_bytes() == (to_json(data, indent=2) + "\n").encode():
+            continue  # unchanged: keep its record, so a rerun changes nothing
+        atomic_write_json(target, data)
+        files[name] = {"source": str(path), "written": _utc(path.stat().st_mtime), "copied": now, "machine": here}
+    atomic_write_json(results_dir / "report.json", {"files": files})
+    return list(loaded)
+
+
+def render_machine(record: dict) -> str:
+    files = record.get("files", {})
+    if not files:
+        return "No results have been copied yet: run the experiments, then `python -m experiments.report`."
+
+    def line(m: dict) -> str:
+        return (f"{m.get('cpu')}, {m.get('cores')} cores, {m.get('os')}, Python {m.get('python')}, "
+                f"mujoco {m.get('mujoco')}, torch {m.get('torch')}")
+
+    dates = sorted(f.get("written", "?") for f in files.values())
+    when = f"The results were written {dates[0]}" + (f" to {dates[-1]}" if dates[-1] != dates[0] else "") + "."
+    machines = {line(f.get("machine", {})) for f in files.values()}
+    if len(machines) == 1:
+        return f"{when} Machine (recorded when the report copied them from `runs/`): {machines.pop()}."
+    return f"{when} Machines (recorded when the report copied each file from `runs/`):\n\n" + "\n".join(
+        f"- `{n}`: {line(f.get('machine', {}))}" for n, f in sorted(files.items()))
+
+
+def render_provenance(name: str, data: dict, record: dict, label: str) -> str:
+    """One line: what made the file (code, seed, field, pipeline key) and when."""
+    p, a = data.get("provenance", {}), data.get("args", {})
+    code = p.get("code") or {}
+    parts = [f"code {code.get('version')} at {(code.get('commit') or 'unknown commit')[:12]}"
+             + (" with uncommitted changes" if code.get("dirty") else ""),
+             f"seed {p.get('seed', a.get('seed'))}", f"field {p.get('field_spec', a.get('field') or 'built-in')}"]
+    if p.get("pipeline_key"):
+        parts.append(f"pipeline key `{p['pipeline_key']}`")
+    entry = record.get("files", {}).get(name)
+    if entry:
+        parts.append(f"written {entry.get('written')}, copied {entry.get('copied')}")
+    quick = " **A `--quick` smoke run: not a measurement.**" if a.get("quick") else ""
+    return f"Provenance of `{label}`: " + ", ".join(parts) + "." + quick
+
+
+def render_staged(r: dict, label: str) -> str:
+    rows, failed = [], []
+    for s in r["stages"]:
+        dep = s.get("deployed_model")
+        rows.append([str(s["stage"]), "-".join(short(x) for x in s["separation"]), fmt(s["minutes"]),
+                     str(s["samples"]), "none" if dep is None else f"{Path(dep).parent.name} {Path(dep).stem}",
+                     fmt(s["deployed_val_rmse"])])
+        failed += s.get("failed_flights", [])
+    floor = (r.get("noise_floor") or {}).get("rmse_mean")
+    models = [[k, fmt(m["val_rmse"]), pct(m["val_rmse"] / floor - 1) if floor and m["val_rmse"] is not None else "-",
+               fmt(m.get("train_seconds"))] for k, m in _ordered(r["models"])]
+    return "\n\n".join([
+        f"Stages (`{label}`):",
+        _table(["stage", "separation (m)", "training min", "samples", "deployed model",
+                "its val RMSE on this stage (m/s^2)"], rows),
+        f"Final models (`{label}`), validation RMSE in m/s^2:",
+        _table(["model", "val RMSE", "above the noise floor", "train s"], models),
+        f"{fmt(r.get('training_minutes'))} min of training data, {fmt(r.get('validation_minutes'))} min of validation "
+        f"data. Label-noise floor (labels against the true mean field): {fmt(floor)} m/s^2. "
+        + (f"Failed flights ({len(failed)}): " + "; ".join(failed) + "." if failed else "No flight failed.")
+        + (f" The collection and its training took {fmt(r['collection_seconds'])} s"
+           f" (this run: {fmt(r.get('wall_seconds'))} s)." if r.get("collection_seconds") is not None
+           else f" Wall time {fmt(r.get('wall_seconds'))} s.")])
+
+
+def render_efficiency(r: dict, label: str) -> str:
+    minutes = r["minutes"]
+    models = r["models"]
+
+    def cell(k: str, i: int) -> str:
+        return f"{fmt(models[k]['rmse_mean'][i])} ± {fmt(models[k]['rmse_std'][i], 2)}" if k in models else "-"
+
+    header = ["model"] + [f"{short(m)} min" for m in minutes[:-1]] + [f"{short(minutes[-1])} min (full)"]
+    rows = [[k] + [cell(k, i) for i in range(len(minutes))] for k, _ in _ordered(models)]
+    nearest = {t: min(range(len(minutes)), key=lambda i: abs(minutes[i] - t)) for t in PAPER_RMSE}
+    said = ", ".join(f"{short(t)} min: ours at {short(minutes[i])} min" for t, i in nearest.items())
+    paper_rows = [[k] + [c for t, i in nearest.items() for c in (cell(k, i), fmt(PAPER_RMSE[t][k]))]
+                  for k in PAPER_RMSE[5.0]]
+    paper_header = ["model"] + [c for t, i in nearest.items() for c in (f"ours {short(minutes[i])} min",
+                                                                          f"paper {short(t)} min")]
+    return "\n\n".join([
+        f"Validation RMSE (m/s^2), mean ± std over {r.get('trials')} trials (`{label}`):",
+        _table(header, rows),
+        f"Label-noise floor: {fmt(r['noise_floor'])} m/s^2; validation set {fmt(r.get('validation_minutes'))} min.",
+        f"Beside the paper's table (its means; nearest point present, {said}; `{label}`):",
+        _table(paper_header, paper_rows)])
+
+
+def render_tracking(r: dict, label: str) -> str:
+    rows = []
+    for c, e in _ordered(r["conditions"]):
+        gap = e.get("gap_to_oracle_pos_3d")
+        rows.append([c] + [fmt(e[k]) for k in TRACKED] + [pct(e.get(f"improvement_pos_{k}")) for k in ("3d", "z")]
+                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)), pct(e["crash_rate"])])
+    header = ["condition", "pos 3D (m)", "pos xy", "pos z", "peak 3D", "vel 3D (m/s)", "improvement 3D",
+              "improvement z", "gap to oracle (m)", "crash rate"]
+    return "\n\n".join([f"{len(r['seeds'])} seeds, {short(r['separation'])} m below the leader, "
+                        f"{short(r['duration'])} s (`{label}`):", _table(header, rows)])
+
+
+def render_force_maps(r: dict, label: str) -> str:
+    keys = ("down_top_rmse_vs_truth", "down_side_rmse_vs_truth", "lateral_rmse_vs_truth_pos",
+            "lateral_rmse_vs_truth_neg")
+    rows = [[k] + [fmt(m.get(key)) for key in keys] for k, m in _ordered(r["maps"])]
+    header = ["model", "downward, top view", "downward, side view", "lateral, +v", "lateral, -v"]
+    return "\n\n".join([f"RMSE of each model's maps against the truth, m/s^2, follower speed {short(r['speed'])} "
+                        f"m/s (`{label}`):", _table(header, rows)])
+
+
+def render_benchmark(r: dict, label: str) -> str:
+    rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
+    return "\n\n".join([f"{r.get('cpu_count')} cores, mujoco {r.get('mujoco')}, {r.get('batched_worlds')} batched "
+                        f"worlds (`{label}`):", _table(["key", "value"], rows)])
+
+
+RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
+             "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps,
+             "benchmark": render_benchmark}
+
+
+def _render_one(name: str, data: dict, record: dict, label: str) -> list[str]:
+    try:
+        return [RENDERERS[name](data, label), render_provenance(name, data, record, label)]
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        raise ConfigError(f"{label}: cannot render this {name} results file ({type(e).__name__}: {e})") from e
+
+
+def render(results_dir: str | Path) -> str:
+    """The README section (without markers) from results_dir/*.json alone."""
+    found, record = load_results(results_dir)
+    parts = ["<!-- Generated by `python -m experiments.report` from the files in results/: do not edit by hand. -->",
+             render_machine(record),
+             "Paper numbers come from real flights and are not expected to match the simulation in absolute terms."]
+    for name, (title, _) in EXPERIMENTS.items():
+        parts.append(f"### {title}")
+        if name not in found:
+            parts.append(f"No results yet for `{name}` (`python -m experiments.{name}`, then "
+                         "`python -m experiments.report`).")
+            continue
+        parts += _render_one(name, found[name], record, f"{Path(results_dir).resolve().name}/{name}.json")
+        if name == "transect" or (name == "lemniscate" and "transect" not in found):
+            parts.append(PAPER_TRACKING)
+    return "\n\n".join(parts) + "\n"
+
+
+def rewrite_readme(text: str, section: str) -> str:
+    """`text` with `section` between the markers; without markers, they replace the body of the
+    HEADING section (up to the next '## ' heading). Everything outside the markers is kept."""
+    if text.count(BEGIN) == 1 and text.count(END) == 1 and text.index(BEGIN) < text.index(END):
+        return text[:text.index(BEGIN)] + f"{BEGIN}\n{section}" + text[text.index(END):]
+    if BEGIN in text or END in text:
+        raise ConfigError(f"README: expected one {BEGIN} before one {END}")
+    lines = text.splitlines(keepends=True)
+    starts = [i for i, line in enumerate(lines) if line.rstrip("\n") == HEADING]
+    if len(starts) != 1:
+        raise ConfigError(f"README: expected the markers or one {HEADING!r} heading, found {len(starts)} headings")
+    nxt = next((j for j in range(starts[0] + 1, len(lines)) if lines[j].startswith("## ")), len(lines))
+    tail = "".join(lines[nxt:])
+    return "".join(lines[:starts[0] + 1]) + f"\n{BEGIN}\n{section}{END}\n" + ("\n" + tail if tail else "")
+
+
+def section_of(text: str) -> str | None:
+    """The text between the markers (after BEGIN's line break), or None without them."""
+    if text.count(BEGIN) != 1 or text.count(END) != 1:
+        return None
+    return text[text.index(BEGIN) + len(BEGIN) + 1:text.index(END)]
+
+
+def main(argv=None) -> str:
+    args = parse_args(ReportArgs, "report", argv, __doc__)
+    readme = Path(args.readme)
+    if not readme.is_file():
+        raise ConfigError(f"--readme: {readme} is not a file")
+    text = readme.read_text()
+    rewrite_readme(text, "")  # a README that cannot take the section fails here, before any write
+    if args.check:
+        if rewrite_readme(text, render(args.results)) != text:
+            print(f"{readme}: the results section differs from what {args.results}/ renders; run "
+                  f"`python -m experiments.report --runs ''` to regenerate it", file=sys.stderr)
+            raise SystemExit(1)
+        print(f"{readme}: the results section matches {args.results}/")
+        return text
+    copied = copy_results(args.runs, args.results) if args.runs else []
+    new = rewrite_readme(text, render(args.results))
+    if new != text:
+        mode = readme.stat().st_mode
+        atomic_write_bytes(readme, new.encode())
+        os.chmod(readme, stat.S_IMODE(mode))  # the temporary file's 0600 would replace the README's mode
+    print(f"copied {', '.join(copied) or 'nothing'} into {args.results}/; {readme} "
+          + ("rewritten" if new != text else "unchanged"))
+    return new
+
+
+if __name__ == "__main__":
+    main()

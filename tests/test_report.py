@@ -1,0 +1,267 @@
+"""`python -m experiments.report`: the README's measured results come from results files, never typed.
+
+Fake results files are written through `experiments.common.write_results` with each
+experiment's own argument class, in the shapes the experiments write; one real quick
+transect run catches drift between the experiment's keys and the report.
+"""
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from core.errors import ConfigError
+from core.io import atomic_write_json
+from experiments import report
+from experiments.common import parse_args, write_results
+from experiments.report import BEGIN, END, fmt, pct, render, rewrite_readme, section_of
+
+ROOT = Path(__file__).resolve().parent.parent
+MODELS = ("shallow", "deep", "equivariant")
+
+
+def _conditions(names, base=0.09461):
+    out = {}
+    for i, c in enumerate(names):
+        e = {"pos_err_3d_mean": base / (i + 1), "pos_err_xy_mean": 0.04791 / (i + 1),
+             "pos_err_z_mean": 0.07412 / (i + 1), "pos_err_3d_peak": 0.5103 / (i + 1),
+             "vel_err_3d_mean": 0.1213 / (i + 1), "vel_err_xy_mean": 0.08,
+             "vel_err_z_mean": 0.05, "crash_rate": 0.2 if c == "shallow" else 0.0, "failed_flights": []}
+        e["per_seed"] = {k: [v] for k, v in e.items() if isinstance(v, float)} | {"crashed": [False]}
+        if c not in ("baseline", "no_downwash"):
+            e.update(improvement_pos_3d=0.7834 - 0.1 * i, improvement_pos_z=0.9031 - 0.1 * i, improvement_vel_3d=0.5)
+        if c not in ("baseline", "no_downwash", "oracle"):
+            e["gap_to_oracle_pos_3d"] = 0.04412 / i
+        out[c] = e
+    return out
+
+
+def _fakes():
+    """name -> (module, args class name, results) mirroring what each experiment writes."""
+    floor = {"rmse": 0.1204, "rmse_axis": [0.1, 0.1, 0.1], "rmse_mean": 0.09312, "rmse_axis_mean": [0.09, 0.09, 0.09],
+             "n_samples": 50652}
+    stages = [{"stage": k, "separation": sep, "minutes": 5.7, "samples": 16884 + k, "failed_flights": fails,
+               "deployed_model": None if k == 0 else f"runs/pipeline/x/collection/stage{k - 1}/equivariant.pt",
+               "deployed_val_rmse": rmse}
+              for k, sep, rmse, fails in ((0, [1.35, 1.75], None, []), (1, [0.85, 1.35], 0.1351, []),
+                                          (2, [0.45, 0.65], 0.2054, ["flight 7: ground collision at t = 3.1 s"]))]
+    staged = {"stages": stages, "training_minutes": 17.1, "validation_minutes": 17.05, "noise_floor": floor,
+              "models": {k: {"path": f"m/{k}.pt", "val_rmse": v, "train_seconds": t}
+                         for k, v, t in zip(MODELS, (0.1603, 0.1331, 0.1052), (3.1, 21.7, 8.04))},
+              "collection_dir": "c", "models_dir": "m", "provenance": {"field": {"type": "sim.field.DownwashField"}},
+              "provenance_key": "0123456789ab", "wall_seconds": 95.27}
+    minutes = [1.0, 3.0, 4.0, 10.0, 14.0, 16.93]
+    efficiency = {"minutes": minutes, "trials": 5, "noise_floor": 0.09312, "noise_floor_applied": 0.1204,
+                  "validation_minutes": 17.05, "wall_seconds": 300.0,
+                  "models": {k: {"rmse_mean": [0.3 - 0.01 * j - 0.02 * i for i in range(6)],
+                                 "rmse_std": [0.011 + 0.001 * i for i in range(6)], "rmse_runs": [[0.3]] * 6}
+                             for j, k in enumerate(MODELS)}}
+    maps = {"speed": 0.5, "truth": {"down_top_max": 9.1, "down_side_max": 12.2},
+            "maps": {k: {"down_top_rmse_vs_truth": 0.0521 * (j + 1), "down_side_rmse_vs_truth": 0.2361 * (j + 1),
+                         "lateral_rmse_vs_truth_pos": 0.04313 * (j + 1), "lateral_rmse_vs_truth_neg": 0.04297 * (j + 1)}
+                     for j, k in enumerate(MODELS)}}
+    bench = {"cpu_count": 2, "mujoco": "3.3.0", "quick": False, "batched_worlds": 64, "bare_mj_step_per_s": 131912.4,
+             "real_time_factor_serial": 107.26, "batched_over_bare": 1.2514, "predictor_us_per_call_batch64": 195.33,
+             "train_seconds_equivariant_full": 8.012}
+    conds = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")
+    lem = {"experiment": "lemniscate", "separation": 0.6, "duration": 20.0, "seeds": [0, 1, 2, 3, 4],
+           "conditions": _conditions(conds), "wall_seconds": 20.0, "flight_wall_seconds": 19.0}
+    return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
+            "sample_efficiency": ("experiments.sample_efficiency", "EfficiencyArgs", efficiency),
+            "force_maps": ("experiments.force_maps", "ForceMapArgs", maps),
+            "benchmark": ("experiments.benchmark", "BenchmarkArgs", bench),
+            "lemniscate": ("experiments.tracking", "lemniscate", lem)}
+
+
+def _write_fakes(runs: Path, names=None) -> dict:
+    import importlib
+
+    written = {}
+    for name, (module, cls_name, results) in _fakes().items():
+        if names is not None and name not in names:
+            continue
+        mod = importlib.import_module(module)
+        cls = mod.args_class(cls_name) if module == "experiments.tracking" else getattr(mod, cls_name)
+        args = parse_args(cls, name, ["--out", str(runs / name)])
+        pipeline = None if name == "benchmark" else {"pipeline_key": "feedc0ffee12", "pipeline": {}}
+        write_results(runs / name, results, args, pipeline)
+        written[name] = json.loads((runs / name / "results.json").read_text())
+    return written
+
+
+README = ("# Title\n\nintro text  \n\n## Measured results\n\nhand-typed 0.105 numbers\n\n### sub\n\nmore\n\n"
+          "## After\n\ntail\n")
+
+
+@pytest.fixture(scope="module")
+def transect_run(tmp_path_factory):
+    """ONE real quick transect run (baseline and oracle: no models, no collection) into runs/transect."""
+    work = tmp_path_factory.mktemp("report")
+    proc = subprocess.run([sys.executable, "-m", "experiments.transect", "--quick", "--conditions", "baseline,oracle",
+                           "--out", "runs/transect"], cwd=work, capture_output=True, text=True, timeout=600,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return work
+
+
+def _main(work: Path, *extra: str) -> str:
+    return report.main(["--runs", str(work / "runs"), "--results", str(work / "results"),
+                        "--readme", str(work / "README.md"), *extra])
+
+
+def test_fmt_and_pct():
+    assert [fmt(x) for x in (0.09461, 0.2054, 5.7, 107.26, 131912.4, 0.0, None, 3)] == \
+        ["0.0946", "0.205", "5.70", "107", "132,000", "0", "-", "3"]
+    assert fmt(131912.4, 4) == "131,900" and fmt(1.2514, 4) == "1.251" and pct(0.7834) == "78.3 %" and pct(None) == "-"
+
+
+def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_run):
+    work = tmp_path
+    (work / "runs").mkdir()
+    (work / "runs" / "transect").symlink_to(transect_run / "runs" / "transect")
+    written = _write_fakes(work / "runs")
+    (work / "README.md").write_text(README)
+    _main(work)
+    for name in (*written, "transect"):  # the committed copy is the experiment's file, byte for byte
+        assert (work / "results" / f"{name}.json").read_bytes() == (work / "runs" / name / "results.json").read_bytes()
+    text = render(work / "results")
+    assert section_of((work / "README.md").read_text()) == text
+    for name in report.EXPERIMENTS:
+        assert f"results/{name}.json" in text and "No results yet" not in text
+    meta = json.loads((work / "results" / "report.json").read_text())["files"]
+    assert set(meta) == set(report.EXPERIMENTS) and meta["benchmark"]["machine"]["cores"] == os.cpu_count()
+    assert meta["benchmark"]["machine"]["cpu"] in text and meta["lemniscate"]["written"] in text
+
+    s = written["staged_collection"]
+    for st in s["stages"]:
+        assert f"| {st['stage']} | {st['separation'][0]:g}-{st['separation'][1]:g} | 5.70 | {st['samples']} |" in text
+    assert "| 1 |" in text and "stage0 equivariant | 0.135 |" in text and "stage1 equivariant | 0.205 |" in text
+    assert "| equivariant | 0.105 | 13.0 % | 8.04 |" in text and "| deep | 0.133 | 42.9 % | 21.7 |" in text
+    assert "0.0931 m/s^2" in text and "Failed flights (1): flight 7: ground collision" in text and "95.3 s" in text
+    assert "17.1 min of training data, 17.1 min of validation" in text
+
+    e = written["sample_efficiency"]
+    for k in MODELS:
+        for m, sd in zip(e["models"][k]["rmse_mean"], e["models"][k]["rmse_std"]):
+            assert f"{fmt(m)} ± {fmt(sd, 2)}" in text
+    assert "16.93 min (full)" in text and "5 trials" in text
+    assert "5 min: ours at 4 min, 15 min: ours at 14 min" in text  # nearest points present, said
+    assert "| equivariant | 0.240 ± 0.013 | 0.222 | 0.200 ± 0.015 | 0.218 |" in text  # ours beside the paper's
+    for paper in ("0.263", "0.255", "0.243", "0.229"):
+        assert paper in text
+
+    for c, v in written["lemniscate"]["conditions"].items():
+        row = next(line for line in text.splitlines() if line.startswith(f"| {c} | {fmt(v['pos_err_3d_mean'])} |"))
+        for key in ("pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean"):
+            assert f"| {fmt(v[key])} |" in row
+        assert f"| {pct(v['crash_rate'])} |" in row and f"| {pct(v.get('improvement_pos_z'))} |" in row
+        if "gap_to_oracle_pos_3d" in v:
+            assert f"+{fmt(v['gap_to_oracle_pos_3d'])}" in row
+    t = json.loads((work / "results" / "transect.json").read_text())  # the real run's keys render
+    for c, v in t["conditions"].items():
+        assert f"| {c} | {fmt(v['pos_err_3d_mean'])} | {fmt(v['pos_err_xy_mean'])} |" in text
+    assert "36 %" in text and "56 %" in text and "0.181 m" in text and "0.154 m" in text
+    assert "A `--quick` smoke run" in text  # the transect run was quick, and the report says so
+
+    for k, v in written["force_maps"]["maps"].items():
+        assert f"| {k} | {fmt(v['down_top_rmse_vs_truth'])} | {fmt(v['down_side_rmse_vs_truth'])} |" in text
+    for k, v in written["benchmark"].items():
+        if isinstance(v, float):
+            assert f"| `{k}` | {fmt(v, 4)} |" in text
+    assert "pipeline key `feedc0ffee12`" in text and "seed 0" in text and "field built-in" in text
+    assert f"at {written['benchmark']['provenance']['code']['commit'][:12]}" in text
+
+
+def test_missing_files_are_named(tmp_path):
+    _write_fakes(tmp_path / "runs", names={"benchmark"})
+    (tmp_path / "README.md").write_text(README)
+    _main(tmp_path)
+    text = render(tmp_path / "results")
+    for name in report.EXPERIMENTS:
+        assert (f"No results yet for `{name}`" in text) == (name != "benchmark")
+    nothing = render(tmp_path / "nowhere")
+    assert nothing.count("No results yet for") == len(report.EXPERIMENTS)
+    assert "No results have been copied yet" in nothing
+
+
+def test_readme_rewrite_keeps_the_outside_and_is_idempotent(tmp_path):
+    first = rewrite_readme(README, "one\n")
+    head, tail = README.split("\n## Measured results\n")[0], "## After\n\ntail\n"
+    assert first == (head + "\n## Measured results\n\n" + BEGIN + "\none\n" + END + "\n\n" + tail)
+    assert "hand-typed" not in first and rewrite_readme(first, "one\n") == first
+    second = rewrite_readme(first, "two\nlines\n")
+    assert second.replace(f"{BEGIN}\ntwo\nlines\n{END}", f"{BEGIN}\none\n{END}") == first
+    assert section_of(second) == "two\nlines\n"
+    at_end = rewrite_readme("# T\n\n## Measured results\n\nold\n", "x\n")
+    assert at_end == f"# T\n\n## Measured results\n\n{BEGIN}\nx\n{END}\n"
+    for bad in ("# no heading\n", f"## Measured results\n{END}\n{BEGIN}\n",
+                "## Measured results\n## Measured results\n"):
+        with pytest.raises(ConfigError):
+            rewrite_readme(bad, "x\n")
+
+    _write_fakes(tmp_path / "runs", names={"force_maps"})
+    (tmp_path / "README.md").write_text(README)
+    _main(tmp_path)
+    once = (tmp_path / "README.md").read_bytes()
+    _main(tmp_path, "--runs", "")  # re-render only
+    assert (tmp_path / "README.md").read_bytes() == once
+    record_path = tmp_path / "results" / "report.json"  # an old copy date, to see whether a rerun touches it
+    record = json.loads(record_path.read_text())
+    record["files"]["force_maps"]["copied"] = "2000-01-01 00:00 UTC"
+    atomic_write_json(record_path, record)
+    _main(tmp_path, "--runs", "")
+    once = (tmp_path / "README.md").read_bytes()
+    _main(tmp_path)  # the unchanged file copied again: its record, and so the README, stay as they were
+    assert (tmp_path / "README.md").read_bytes() == once and b"2000-01-01 00:00 UTC" in once
+    results = tmp_path / "runs" / "force_maps" / "results.json"
+    results.write_text(results.read_text().replace('"speed": 0.5', '"speed": 0.25'))
+    _main(tmp_path)  # a changed file is copied with a new record
+    assert b"2000-01-01" not in (tmp_path / "README.md").read_bytes()
+
+
+def test_check_fails_on_a_stale_section_and_passes_after_regeneration(tmp_path):
+    _write_fakes(tmp_path / "runs", names={"force_maps", "benchmark"})
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    with pytest.raises(SystemExit) as e:  # no markers yet: stale
+        _main(tmp_path, "--check")
+    assert e.value.code == 1 and readme.read_text() == README and not (tmp_path / "results").exists()
+    _main(tmp_path)
+    _main(tmp_path, "--check")
+    stale = readme.read_text().replace(fmt(0.0521), "0.0999")  # a hand-typed edit inside the markers
+    readme.write_text(stale)
+    with pytest.raises(SystemExit):
+        _main(tmp_path, "--check")
+    assert readme.read_text() == stale
+    _main(tmp_path, "--runs", "")
+    _main(tmp_path, "--check")
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "garbage", "foreign"])
+def test_bad_runs_folder_fails_before_writing(tmp_path, case):
+    runs = tmp_path / "runs"
+    if case != "missing":
+        runs.mkdir()
+    if case in ("garbage", "foreign"):
+        _write_fakes(runs, names={"benchmark"})  # a good file that must not be copied either
+        (runs / "lemniscate").mkdir()
+        (runs / "lemniscate" / "results.json").write_text("{not json" if case == "garbage" else '{"minutes": []}')
+    (tmp_path / "README.md").write_text(README)
+    message = {"missing": "is not a folder", "empty": "holds no", "garbage": "not a readable JSON",
+               "foreign": "not a lemniscate results file (missing conditions, seeds)"}[case]
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        _main(tmp_path)
+    assert not (tmp_path / "results").exists() and (tmp_path / "README.md").read_text() == README
+
+
+def test_committed_readme_section_is_generated_from_committed_results():
+    """The guard: README numbers are never typed by hand. Regenerate with `python -m experiments.report`."""
+    text = (ROOT / "README.md").read_text()
+    assert text.count(BEGIN) == 1 and text.count(END) == 1
+    assert text.index("\n## Measured results\n") < text.index(BEGIN)
+    assert section_of(text) == render(ROOT / "results")
+    assert rewrite_readme(text, render(ROOT / "results")) == text
