@@ -21,6 +21,7 @@ from core.errors import ConfigError
 from core.params import LEADER_POSITION, SEPARATION_RANGE
 from core.validate import choice, count, number, pair
 from sim.field import DownwashField, check_field
+from sim.fields.registry import FIELDS, resolve_field_spec
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
 from trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
@@ -30,7 +31,7 @@ __all__ = [
     "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS", "CONTROL_HZ_ALLOWED",
     "DEFAULT_ACTION_BOUND", "MAX_ACTION_BOUND", "MIN_FOLLOWER_HEIGHT", "DEFAULT_MAX_EPISODE_STEPS",
     "FIELD_RANDOMIZABLE", "DEFAULT_FIELD_RANDOMIZATION", "MASS_SCALE_RANGE", "FIELD_SCALE_RANGE",
-    "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "FollowerConfig", "make_config",
+    "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "FollowerConfig", "make_config", "build_field",
 ]  # fmt: skip
 
 ACTION_MODES = ("residual", "acceleration")
@@ -103,8 +104,11 @@ class FollowerConfig:
     Downwash field
         c4_amplitude, swirl, skew: the field's misspecification knobs (see
             `sim.field.DownwashField`); all 0 by default.
-        field: a custom field object with `DownwashField`'s call signature (knobs and
-            field randomisation then need a `DownwashField`).
+        field: a field object with `DownwashField`'s call signature, or a field spec
+            string: a registered name ("so2", "so2-c4", "so2-swirl", "so2-skew",
+            "momentum"), optionally with parameters ("momentum:thrust_scale=1.5"), or
+            "MODULE:FACTORY" (see docs/fields.md). Knobs and field randomisation need
+            a `DownwashField` (the so2 names give one).
         field_randomization: None, "default" (strength x U(0.7, 1.3), width0 and
             width_slope x U(0.8, 1.2)) or {constant: (low, high)} factors drawn per
             episode, factors in 0.1-5, constants from FIELD_RANDOMIZABLE.
@@ -298,16 +302,32 @@ def _validate_field(c: FollowerConfig) -> None:
         else:
             raise ConfigError(f"field_randomization: expected None, 'default' or a dict, got {type(fr).__name__}")
     if c.field is not None:
-        if not callable(c.field):
-            raise ConfigError(
-                f"field: expected a callable field(p_a, v_a, R_a, p_b, v_b), got {type(c.field).__name__}"
-            )
-        check_field(c.field, name="field")  # shape and finiteness, once, before any episode
-        if (knobs or fr is not None) and not isinstance(c.field, DownwashField):
+        field = build_field(c.field)
+        check_field(field, name="field")  # shape and finiteness, once, before any episode
+        if (knobs or fr is not None) and not isinstance(field, DownwashField):
             raise ConfigError(
                 "field: c4_amplitude/swirl/skew and field_randomization need a sim.field.DownwashField, "
-                f"got {type(c.field).__name__}"
+                f"got {type(field).__name__}"
             )
+
+
+def build_field(field: Any) -> Any:
+    """The field object of the `field` option (ConfigError when it names none).
+
+    None: the default `DownwashField()`; a string: a field spec of the registry
+    (`"momentum"`, `"so2-c4"`, `"so2:strength=8"`, or `"MODULE:FACTORY"`; see
+    `sim.fields.registry`); otherwise the object itself, which must be callable.
+    """
+    if field is None:
+        return DownwashField()
+    if isinstance(field, str):
+        return resolve_field_spec(field, label="field")
+    if not callable(field):
+        raise ConfigError(
+            f"field: expected a callable field(p_a, v_a, R_a, p_b, v_b) or a registered name "
+            f"({', '.join(FIELDS)}), got {type(field).__name__}"
+        )
+    return field
 
 
 def _reference_probe(c: FollowerConfig) -> None:

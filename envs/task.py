@@ -22,9 +22,8 @@ import numpy as np
 from controllers.lqr import FeedbackLinearisedLQR
 from core.geometry import dot
 from core.status import Status
-from envs.config import FIELD_KNOBS, FollowerConfig
+from envs.config import FIELD_KNOBS, FollowerConfig, build_field
 from envs.observation import OBS_DIM, OBS_SLICES, obs_bounds
-from sim.field import DownwashField
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.scene import Scene, build_scene
 from sim.simulator import Simulator
@@ -125,7 +124,7 @@ class FollowerWorlds:
         self.residual_mode = cfg.action_mode == "residual"
 
         # field: the knobs once; per-world constants when randomised
-        field = cfg.field if cfg.field is not None else DownwashField()
+        field = build_field(cfg.field)  # None, a registered name / spec string, or an object
         knobs = {k: float(getattr(cfg, k)) for k in FIELD_KNOBS if float(getattr(cfg, k)) != 0.0}
         self.base_field = dataclasses.replace(field, **knobs) if knobs else field
         self.scale_names = tuple(cfg.field_scales)

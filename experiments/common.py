@@ -9,18 +9,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
-from core.errors import ConfigError
 from core.io import atomic_write_json
 from core.provenance import code_version, describe, fingerprint
 from downwash.staged import CollectionConfig, pipeline_dirs, provenance
-from sim.field import DownwashField, check_field
+from sim.field import check_field
+from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec
 
 __all__ = [
     "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field", "resolve_pipeline",
@@ -42,7 +41,8 @@ class CommonArgs:
     out: str = arg("", "output folder (default runs/<experiment>)")
     seed: int = arg(0, "base seed; world k of a run uses seed + k")
     quick: bool = arg(False, "tiny budget for smoke tests")
-    field: str = arg("", "MODULE:FACTORY returning a field object with DownwashField's call signature (default: built-in)")
+    field: str = arg("", "the ground-truth field: NAME[:KEY=VALUE,...] of the registry (python -m experiments.fields "
+                         "lists them; default so2) or MODULE:FACTORY returning a field object")
 
 
 @dataclass(frozen=True)
@@ -101,23 +101,15 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
 
 
 def load_field(spec: str) -> Any:
-    """The built-in field, or the object a `MODULE:FACTORY` import path returns."""
-    if not spec:
-        return DownwashField()
-    if spec.count(":") != 1:
-        raise ConfigError(f"--field: expected MODULE:FACTORY (e.g. mypkg.fields:make_field), got {spec!r}")
-    module_name, factory_name = spec.split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as e:
-        raise ConfigError(f"--field: cannot import module {module_name!r}: {e}") from e
-    factory = getattr(module, factory_name, None)
-    if not callable(factory):
-        raise ConfigError(f"--field: {module_name!r} has no callable {factory_name!r}")
-    obj = factory()
-    if not callable(obj):
-        raise ConfigError(f"--field: {spec} returned {type(obj).__name__}, which is not callable as field(p_a, v_a, R_a, p_b, v_b)")
-    check_field(obj, name=f"--field {spec}")
+    """The field a `--field` spec names, checked (outputs and provenance) before any work.
+
+    Grammar (`sim.fields.registry`): "" (the default, `so2`), a registered NAME with
+    optional parameters NAME:KEY=VALUE,... (`so2`, `so2:strength=8`,
+    `momentum:thrust_scale=1.2`), or a MODULE:FACTORY import path whose factory returns
+    the field object (`mypkg.fields:make`). `python -m experiments.fields` lists the names.
+    """
+    obj = resolve_field_spec(spec, label="--field")
+    check_field(obj, name=f"--field {spec or DEFAULT_FIELD}")
     describe(obj)  # a field that cannot be fingerprinted stops here, before any work
     return obj
 

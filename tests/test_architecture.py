@@ -62,11 +62,11 @@ def test_readme_architecture_table_lists_every_module():
     packages = ("core", "trajectories", "controllers", "sim", "downwash", "envs")
     modules = set()
     for pkg in packages:
-        for path in (ROOT / pkg).glob("*.py"):
+        for path in (ROOT / pkg).rglob("*.py"):  # subpackages too (sim.fields.momentum)
             text = path.read_text()
             if path.name == "__init__.py" or text.lstrip('"').startswith("Deprecated"):
                 continue
-            modules.add(f"{pkg}.{path.stem}")
+            modules.add(".".join(path.relative_to(ROOT).with_suffix("").parts))
     modules |= {"experiments.common", "experiments.tracking"}
     assert listed == modules, f"missing from the README: {sorted(modules - listed)}; stale: {sorted(listed - modules)}"
 

@@ -1,0 +1,223 @@
+"""Named ground-truth fields and the one grammar that selects a field from a string.
+
+A field spec (the experiments' `--field`, the envs' `field=` string) is one of::
+
+    ""                       the default field, `so2`
+    NAME                     a registered field:              so2, momentum
+    NAME:KEY=VALUE[,...]     a registered field with parameters: so2:strength=8,
+                             momentum:thrust_scale=1.2,drag=false
+    MODULE:FACTORY           an import path: MODULE.FACTORY() returns the field
+                             object (no parameters):          mypkg.fields:make
+
+The part before the first ':' is looked up in the registry first. A registered name
+takes only KEY=VALUE parameters after its colon; anything else that contains a ':'
+is an import path, which takes no '=' after its colon. Registered names contain no
+'.', so a dotted module path is never taken for one; a top-level module that shares
+a registered name (say a module `momentum`) must be reached through its package
+path. Parameter values are converted to the parameter's type (float; int; bool:
+true/false/1/0/yes/no/on/off). An unknown name or parameter, a bad value, or an
+import that fails raises ConfigError naming what is allowed, before any work.
+
+The `so2*` entries return a plain `sim.field.DownwashField`, so that the same law with
+the same constants has the same provenance (and pipeline key) however it is spelled:
+`so2-c4` and `so2:c4_amplitude=0.3` name one collection. `register_field` adds a
+user's field under a name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import re
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
+
+from core.errors import ConfigError
+from sim.field import DownwashField
+from sim.fields.momentum import MomentumWake
+
+__all__ = ["FieldEntry", "FIELDS", "DEFAULT_FIELD", "register_field", "make_field", "parse_field_spec",
+           "resolve_field_spec", "field_parameters"]
+
+DEFAULT_FIELD = "so2"
+_NAME = re.compile(r"^[a-z][a-z0-9_-]*$")  # no '.', so never a dotted module path
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+@dataclass(frozen=True)
+class FieldEntry:
+    """One registered field.
+
+    name: the registry key; factory(**params) -> field object; description and symmetry:
+    one line each; params: {parameter: float | int | bool} that the factory accepts;
+    preset: the parameters the entry fixes unless overridden (shown by the listing).
+    """
+
+    name: str
+    factory: Callable[..., Any]
+    description: str
+    symmetry: str
+    params: Mapping[str, type]
+    preset: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def make(self, **params: Any) -> Any:
+        """The field object with `params` (already typed) over the preset; ConfigError for unknown ones."""
+        unknown = sorted(set(params) - set(self.params))
+        if unknown:
+            raise ConfigError(f"field {self.name!r}: unknown parameter(s) {unknown}; allowed: {', '.join(self.params)}")
+        return self.factory(**{**self.preset, **params})
+
+
+def field_parameters(cls: type) -> dict[str, type]:
+    """{name: float | int | bool} of a dataclass's public fields, from their annotations."""
+    out: dict[str, type] = {}
+    for f in dataclasses.fields(cls):
+        text = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+        out[f.name] = bool if text.startswith("bool") else int if text.startswith("int") else float
+    return out
+
+
+_REGISTRY: dict[str, FieldEntry] = {}
+FIELDS: Mapping[str, FieldEntry] = MappingProxyType(_REGISTRY)  # read-only view, in registration order
+
+
+def register_field(name: str, factory: Callable[..., Any], description: str, symmetry: str,
+                   params: Mapping[str, type] | None = None, preset: Mapping[str, Any] | None = None) -> FieldEntry:
+    """Register `factory` under `name` (lowercase letters, digits, '-', '_'; not yet taken)."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ConfigError(f"field name {name!r}: use lowercase letters, digits, '-' and '_' (no '.' or ':')")
+    if name in _REGISTRY:
+        raise ConfigError(f"field name {name!r} is already registered")
+    if not callable(factory):
+        raise ConfigError(f"field {name!r}: factory must be callable, got {type(factory).__name__}")
+    entry = FieldEntry(name, factory, description, symmetry, MappingProxyType(dict(params or {})),
+                       MappingProxyType(dict(preset or {})))
+    _REGISTRY[name] = entry
+    return entry
+
+
+def make_field(name: str, **params: Any) -> Any:
+    """The registered field `name` built with typed `params`, e.g. make_field("momentum", thrust_scale=1.5)."""
+    if name not in _REGISTRY:
+        raise ConfigError(f"field: unknown name {name!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name].make(**params)
+
+
+def _convert(label: str, entry: FieldEntry, key: str, text: str) -> Any:
+    kind = entry.params[key]
+    value = text.strip()
+    if kind is bool:
+        if value.lower() in _TRUE:
+            return True
+        if value.lower() in _FALSE:
+            return False
+        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: expected a bool "
+                          f"({'/'.join(_TRUE)} or {'/'.join(_FALSE)})")
+    try:
+        number = int(value) if kind is int else float(value)
+    except ValueError:
+        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: expected "
+                          f"{'an integer' if kind is int else 'a number'}") from None
+    if not math.isfinite(number):
+        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: must be finite")
+    return number
+
+
+def parse_field_spec(spec: str, label: str = "field") -> tuple[str, str, Any]:
+    """("name", NAME, {typed params}) for a registered field, or ("import", MODULE, FACTORY).
+
+    ConfigError (prefixed with `label`) for an unknown name or parameter, a malformed
+    parameter list, or a malformed import path; nothing is imported or built here.
+    """
+    if not isinstance(spec, str):
+        raise ConfigError(f"{label}: expected a field spec string, got {type(spec).__name__}")
+    spec = spec.strip() or DEFAULT_FIELD
+    head, colon, tail = spec.partition(":")
+    if head in _REGISTRY:
+        entry, params = _REGISTRY[head], {}
+        for item in filter(None, (x.strip() for x in tail.split(","))) if colon else ():
+            key, eq, value = item.partition("=")
+            key = key.strip()
+            if not eq:
+                raise ConfigError(f"{label}: {spec!r}: parameters of field {head!r} are KEY=VALUE, got {item!r}; "
+                                  f"allowed keys: {', '.join(entry.params)}")
+            if key not in entry.params:
+                raise ConfigError(f"{label}: field {head!r} has no parameter {key!r}; "
+                                  f"allowed: {', '.join(entry.params)}")
+            if key in params:
+                raise ConfigError(f"{label}: {spec!r}: parameter {key!r} given twice")
+            params[key] = _convert(label, entry, key, value)
+        return "name", head, params
+    registered = ", ".join(_REGISTRY)
+    if not colon:
+        raise ConfigError(f"{label}: unknown field {spec!r}; registered: {registered}; or a MODULE:FACTORY "
+                          "import path (e.g. mypkg.fields:make_field)")
+    if "=" in tail:
+        raise ConfigError(f"{label}: unknown field {head!r} in {spec!r}; registered: {registered} "
+                          "(a MODULE:FACTORY import path takes no KEY=VALUE parameters)")
+    if tail.count(":") or not head or not tail:
+        raise ConfigError(f"{label}: expected a registered field ({registered}) or MODULE:FACTORY "
+                          f"(e.g. mypkg.fields:make_field), got {spec!r}")
+    return "import", head, tail
+
+
+def resolve_field_spec(spec: str, label: str = "field") -> Any:
+    """The field object a spec names (see the module docstring); ConfigError otherwise.
+
+    Checks only what the spec itself says; callers check the object's outputs
+    (`sim.field.check_field`) and provenance.
+    """
+    kind, target, detail = parse_field_spec(spec, label)
+    if kind == "name":
+        try:
+            return _REGISTRY[target].make(**detail)
+        except ConfigError as e:  # a value the field's constructor rejects: say which spec
+            raise ConfigError(f"{label}: {spec.strip() or DEFAULT_FIELD!r}: {e}") from e
+    module_name, factory_name = target, detail
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as e:
+        raise ConfigError(f"{label}: cannot import module {module_name!r}: {e}") from e
+    factory = getattr(module, factory_name, None)
+    if not callable(factory):
+        raise ConfigError(f"{label}: {module_name!r} has no callable {factory_name!r}")
+    obj = factory()
+    if not callable(obj):
+        raise ConfigError(f"{label}: {spec} returned {type(obj).__name__}, which is not callable as "
+                          "field(p_a, v_a, R_a, p_b, v_b)")
+    return obj
+
+
+# ----------------------------------------------------------------------------- built-in fields
+_SO2_PARAMS = field_parameters(DownwashField)
+_SO2_SYMMETRY = "SO(2) and reflections about the leader axis; translation"
+# Knob strengths of the presets: each large enough to matter against the turbulence
+# (10 % of the local force) and the models' validation error, yet inside what the
+# envs accept (|c4| < 1). c4 0.3: +/-30 % lobes of the push off the axis, the order
+# of a four-rotor wake's imprint near the vehicle. swirl 0.4: a tangential force of
+# 0.4 rho^2 times the push, as large as the radial one at the wake's edge (rho ~ 1).
+# skew 0.35 s/m: about 1 / (downwash speed ~3 m/s); at 1 m/s leader speed the wake
+# 1 m down trails by 0.35 m, 1.6 sigma of its width.
+register_field(
+    "so2", DownwashField,
+    "the paper's synthetic downwash (sim.field.DownwashField, DESIGN section 5); the default",
+    _SO2_SYMMETRY, _SO2_PARAMS)
+register_field(
+    "so2-c4", DownwashField,
+    "so2 with a four-lobe (rotor-imprint) modulation of the push with the leader's yaw, c4_amplitude 0.3",
+    "C4 (quarter turns) about the leader axis only; translation", _SO2_PARAMS, {"c4_amplitude": 0.3})
+register_field(
+    "so2-swirl", DownwashField,
+    "so2 with a tangential (swirling) lateral force, swirl 0.4",
+    "SO(2) about the leader axis, not reflections (chiral); translation", _SO2_PARAMS, {"swirl": 0.4})
+register_field(
+    "so2-skew", DownwashField,
+    "so2 with the wake trailing a laterally moving leader, skew 0.35 s/m",
+    "SO(2) about the leader axis only while the leader does not move sideways; translation",
+    _SO2_PARAMS, {"skew": 0.35})
+register_field(
+    "momentum", MomentumWake,
+    "physics wake: momentum-theory jet (Pope/Hussein constants), acting on the follower's rotors and airframe",
+    _SO2_SYMMETRY, field_parameters(MomentumWake))
