@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
+from tqdm import tqdm
+
 from core.io import atomic_write_json
 from core.provenance import code_version, describe, fingerprint
 from downwash.staged import CollectionConfig, pipeline_dirs, provenance
@@ -148,21 +150,18 @@ def setup_logging(verbose: bool = False) -> None:
 
 
 class ProgressBar:
-    """A one-line progress bar on a terminal (stderr); silent when stderr is not a TTY."""
+    """A tqdm progress bar with rate and ETA on stderr, for `progress(done, total)` callbacks;
+    quiet when stderr is not a terminal (CI, logs, pipes). `ProgressBar(label)` is also the
+    progress factory the library takes (`downwash.staged.collect(..., progress=ProgressBar)`)."""
 
-    def __init__(self, label: str, width: int = 30):
-        self.label, self.width = label, width
-        self.enabled = sys.stderr.isatty()
-        self._last = -1
+    def __init__(self, label: str, unit: str = "it"):
+        self.label, self.unit = label, unit
+        self._bar: tqdm | None = None
 
     def __call__(self, done: int, total: int) -> None:
-        if not self.enabled:
-            return
-        filled = int(self.width * done / max(total, 1))
-        if filled == self._last and done != total:
-            return
-        self._last = filled
-        bar = "#" * filled + "-" * (self.width - filled)
-        end = "\n" if done >= total else ""
-        sys.stderr.write(f"\r{self.label} [{bar}] {done}/{total}{end}")
-        sys.stderr.flush()
+        if self._bar is None:
+            self._bar = tqdm(total=total, desc=self.label, unit=self.unit, disable=not sys.stderr.isatty(),
+                             dynamic_ncols=True, leave=True)
+        self._bar.update(done - self._bar.n)
+        if done >= total:
+            self._bar.close()
