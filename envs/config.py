@@ -49,7 +49,8 @@ DEFAULT_MAX_EPISODE_STEPS = 500  # env steps (10 s at 50 Hz)
 # parameters are random_passes' keywords except those the env sets itself.
 _PASSES_SET_BY_ENV = ("rng", "n_worlds", "center", "depth_range", "n_segments", "start")
 REFERENCE_KWARGS = MappingProxyType({
-    **_SHAPED_REFERENCE_KWARGS,
+    # the follower's paths beneath a hovering leader (the moving-leader references are not for it)
+    **{name: _SHAPED_REFERENCE_KWARGS[name] for name in ("hover", "lemniscate", "transect")},
     "passes": tuple(p for p in inspect.signature(random_passes).parameters if p not in _PASSES_SET_BY_ENV),
 })
 REFERENCES = tuple(REFERENCE_KWARGS)  # hover, lemniscate, transect, passes

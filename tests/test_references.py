@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 
 from trajectories import (
+    Circle,
+    Line,
+    Offset,
     SPEED_RANGE,
     Hover,
     Lemniscate,
@@ -92,6 +95,10 @@ def _all_refs() -> dict[str, Reference]:
         "passes_seed2": random_passes(
             np.random.default_rng(2), w, LEADER, depth_range=(0.5, 0.7), speed_range=(0.9, 1.0)
         ),
+        "line": Line(centers, rng.uniform(-3, 3, size=(w, 3))),
+        "circle": Circle(centers, radius=rng.uniform(0.5, 4, w), speed=[0.5, -1.0, 2.0, -3.0, 1.2],
+                         phase=rng.uniform(0, 6, w)),
+        "offset_circle": Offset(Circle(LEADER, radius=2.0, speed=2.5, n_worlds=w), [0.0, 0.0, -0.6]),
     }
 
 
@@ -576,3 +583,26 @@ def test_stack_fills_in_place_exactly_like_sampling_each_reference():
         for v, ref in enumerate(refs):
             for a, b, c in zip(fast, slow, ref(t)):
                 assert np.array_equal(a[:, v], c) and np.array_equal(b[:, v], c)
+
+
+def test_moving_leader_references_have_the_speed_and_geometry_asked_for():
+    """Circle: constant speed |v| = speed, centripetal |a| = speed^2 / radius, radius kept, the sign
+    of speed sets the turn; Line: pos = start + v t; Offset keeps velocity and shifts position."""
+    t = np.linspace(0.0, 20.0, 7)
+    c = Circle([1.0, -1.0, 3.0], radius=2.5, speed=-2.0, n_worlds=7)
+    s = c(t)
+    np.testing.assert_allclose(np.linalg.norm(s.vel, axis=1), 2.0, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(s.acc, axis=1), 4.0 / 2.5, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(s.pos[:, :2] - [1.0, -1.0], axis=1), 2.5, rtol=1e-12)
+    rel = s.pos[:, :2] - [1.0, -1.0]
+    assert np.all(rel[:, 0] * s.vel[:, 1] - rel[:, 1] * s.vel[:, 0] < 0)  # clockwise for a negative speed
+    assert c.duration == pytest.approx(2 * np.pi * 2.5 / 2.0)
+    line = Line([0.0, 0.0, 2.5], [1.5, -0.5, 0.0], n_worlds=7)
+    np.testing.assert_allclose(line(t).pos, [0.0, 0.0, 2.5] + t[:, None] * [1.5, -0.5, 0.0])
+    below = Offset(c, [0.0, 0.0, -0.6])(t)
+    np.testing.assert_allclose(below.pos, s.pos - [0, 0, 0.6])
+    assert np.array_equal(below.vel, s.vel) and np.array_equal(below.acc, s.acc)
+    with pytest.raises(ValueError, match="speed: must be non-zero"):
+        Circle([0, 0, 2.5], speed=0.0)
+    with pytest.raises(ValueError, match=r"offset: expected 3 finite numbers"):
+        Offset(c, [0.0, 0.6])

@@ -1,8 +1,8 @@
 """Batched reference trajectories with analytic derivatives, and how to combine them.
 
 - `trajectories.base`: the `Reference` protocol and `RefSample`
-- `trajectories.primitives`: `Hover`, `Lemniscate`, `Transect`, `Waypoints`
-- `trajectories.combinators`: `stack`, `Mixed`, `TimeShifted`, `Cached`
+- `trajectories.primitives`: `Hover`, `Lemniscate`, `Transect`, `Waypoints`, `Line`, `Circle`
+- `trajectories.combinators`: `stack`, `Mixed`, `TimeShifted`, `Cached`, `Offset`
 - `trajectories.patterns`: the staged collection's `random_passes` and `collection_reference`
 - `trajectories.factory`: `make_reference(name, center, n_worlds, **shape)`, the one name -> reference factory
 
@@ -10,13 +10,14 @@ A new trajectory is any object with `n_worlds`, `duration` and `__call__(t) -> R
 """
 
 from trajectories.base import RefSample, Reference
-from trajectories.combinators import Cached, Mixed, StackedReference, TimeShifted, stack
+from trajectories.combinators import Cached, Mixed, Offset, StackedReference, TimeShifted, stack
 from trajectories.factory import REFERENCE_KWARGS, REFERENCES, make_reference
 from trajectories.patterns import LEMNISCATE_SHARE, SPEED_RANGE, collection_reference, random_passes
-from trajectories.primitives import Hover, Lemniscate, Transect, Waypoints
+from trajectories.primitives import Circle, Hover, Lemniscate, Line, Transect, Waypoints
 
 __all__ = [
-    "RefSample", "Reference", "Hover", "Lemniscate", "Transect", "Waypoints", "Mixed", "StackedReference",
+    "RefSample", "Reference", "Hover", "Lemniscate", "Transect", "Waypoints", "Line", "Circle", "Offset", "Mixed",
+    "StackedReference",
     "stack", "TimeShifted", "Cached", "random_passes", "collection_reference", "SPEED_RANGE",
     "LEMNISCATE_SHARE", "REFERENCES", "REFERENCE_KWARGS", "make_reference",
 ]  # fmt: skip

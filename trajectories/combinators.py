@@ -4,6 +4,7 @@
 - `Mixed`: different references for different worlds of one batch.
 - `TimeShifted`: a reference sampled at t + t0 (a per-world start phase).
 - `Cached`: returns its last sample again when asked for the same times.
+- `Offset`: a reference moved by a fixed offset (a follower flying beneath a moving leader).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from numpy.typing import ArrayLike
 from core.errors import ConfigError
 from trajectories.base import RefSample, Reference, empty_sample, sample_times
 
-__all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached"]
+__all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached", "Offset"]
 
 
 class Mixed:
@@ -129,3 +130,22 @@ class Cached:
             self._sample = self.ref(t)
             self._t = t.copy()  # the simulator updates its clock in place at reset
         return self._sample
+
+
+class Offset:
+    """`ref` moved by a fixed offset: the same velocity, acceleration and yaw.
+
+    offset: (W, 3) or (3,) m, world frame (e.g. (0, 0, -0.6): 0.6 m beneath a leader).
+    """
+
+    def __init__(self, ref: Reference, offset: ArrayLike):
+        off = np.array(offset, dtype=float)
+        if off.shape not in ((3,), (ref.n_worlds, 3)) or not np.all(np.isfinite(off)):
+            raise ConfigError(f"offset: expected 3 finite numbers or shape ({ref.n_worlds}, 3) in m, got {offset!r}")
+        self.ref, self.offset = ref, off
+        self.n_worlds = ref.n_worlds
+        self.duration = ref.duration
+
+    def __call__(self, t: Any) -> RefSample:
+        s = self.ref(t)
+        return RefSample(s.pos + self.offset, s.vel, s.acc, s.yaw, s.yaw_rate)

@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 from core.errors import ConfigError
 from core.validate import choice
 from trajectories.base import Reference
-from trajectories.primitives import Hover, Lemniscate, Transect
+from trajectories.primitives import Circle, Hover, Lemniscate, Line, Transect
 
 __all__ = ["REFERENCES", "REFERENCE_KWARGS", "make_reference"]
 
@@ -26,12 +26,15 @@ REFERENCE_KWARGS = MappingProxyType({
     "hover": ("offset",),
     "lemniscate": ("half_length", "half_width", "period"),
     "transect": ("x_offset", "half_length", "period"),
+    "line": ("velocity", "duration"),
+    "circle": ("radius", "speed", "phase"),
 })
 REFERENCES = tuple(REFERENCE_KWARGS)
 
 
 def make_reference(name: str, center: ArrayLike, n_worlds: int | None = None, **kwargs: Any) -> Reference:
-    """The reference `name` around `center` ((3,) or (W, 3) m, world frame) for `n_worlds` worlds.
+    """The reference `name` around `center` ((3,) or (W, 3) m, world frame) for `n_worlds` worlds
+    (for "line", `center` is the start; default velocity (1, 0, 0) m/s).
 
     kwargs: the shape parameters of REFERENCE_KWARGS[name] (each a float or (W,) array).
     """
@@ -46,5 +49,7 @@ def make_reference(name: str, center: ArrayLike, n_worlds: int | None = None, **
         if offset.shape != (3,) or not np.all(np.isfinite(offset)):
             raise ConfigError(f"reference_kwargs['offset']: expected 3 finite numbers (m), got {kwargs.get('offset')!r}")
         return Hover(np.asarray(center, dtype=float) + offset, n_worlds=n_worlds)
-    cls = Lemniscate if name == "lemniscate" else Transect
+    if name == "line":
+        return Line(center, kwargs.get("velocity", (1.0, 0.0, 0.0)), kwargs.get("duration", 10.0), n_worlds=n_worlds)
+    cls = {"lemniscate": Lemniscate, "transect": Transect, "circle": Circle}[name]
     return cls(center, n_worlds=n_worlds, **kwargs)

@@ -5,6 +5,8 @@
 - `Transect`: the paper's back-and-forth pass along world y, offset in x.
 - `Waypoints`: piecewise minimum-jerk moves between waypoints with dwells, padded
   so that every world can fly its own pattern; evaluated without Python loops.
+- `Line`, `Circle`: a leader that translates at constant speed (the outdoor regime of
+  the paper's future work), in a straight line or around a horizontal circle.
 
 Each serves W worlds (each world may have its own parameters) and has a compiled
 `_sample_into` for stacking (see `trajectories.base`); the tests check every
@@ -30,7 +32,7 @@ from trajectories.base import (
     zero_yaw,
 )
 
-__all__ = ["Hover", "Lemniscate", "Transect", "Waypoints", "MIN_JERK_PEAK"]
+__all__ = ["Hover", "Lemniscate", "Transect", "Waypoints", "Line", "Circle", "MIN_JERK_PEAK"]
 
 MIN_JERK_PEAK = 1.875  # -, peak speed of a min-jerk move over its mean speed (distance / duration)
 
@@ -444,3 +446,89 @@ class Waypoints:
         pos = self._p0.take(flat, axis=0) + s[:, None] * dp
         yaw, yaw_rate = zero_yaw(self.n_worlds)
         return RefSample(pos, ds[:, None] * dp, dds[:, None] * dp, yaw, yaw_rate)
+
+
+class Line:
+    """Constant velocity in a straight line: pos = start + velocity t, acceleration 0, yaw 0.
+
+    start: (W, 3) or (3,) m, world frame (z up): the position at t = 0.
+    velocity: (W, 3) or (3,) m/s, world frame.
+    duration: s, the length a caller should fly it for (default 10 s).
+    n_worlds: number of worlds (inferred from batched arguments when given).
+    """
+
+    def __init__(self, start: ArrayLike, velocity: ArrayLike, duration: float = 10.0, n_worlds: int | None = None) -> None:
+        p0, v = vec3("start", start), vec3("velocity", velocity)
+        batched = {k: a.shape[0] for k, a in (("start", p0), ("velocity", v)) if a.ndim == 2}
+        self.n_worlds = w = resolve_n_worlds(n_worlds, batched)
+        self.start = np.broadcast_to(p0, (w, 3)).copy()  # (W, 3) m
+        self.velocity = np.broadcast_to(v, (w, 3)).copy()  # (W, 3) m/s
+        self.duration: float = positive_float("duration", duration, "s")
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
+        t = sample_times(t, self.n_worlds)
+        yaw, yaw_rate = zero_yaw(self.n_worlds)
+        return RefSample(self.start + t[:, None] * self.velocity, self.velocity.copy(), np.zeros((self.n_worlds, 3)),
+                         yaw, yaw_rate)
+
+
+class Circle:
+    """A horizontal circle at constant speed around `center`, constant z, yaw 0.
+
+    With theta = phase + (speed / radius) t::
+
+        pos = center + radius [cos theta, sin theta, 0]
+
+    so the speed is `speed` (m/s) and the acceleration `speed^2 / radius`, centripetal;
+    a negative speed turns clockwise (seen from above).
+
+    center: (W, 3) or (3,) m, world frame (z up).
+    radius: m, float or (W,), > 0.
+    speed: m/s, float or (W,), any sign, |speed| > 0.
+    phase: rad, float or (W,): the angle at t = 0.
+    n_worlds: number of worlds (inferred from batched arguments when given).
+    `duration` is one lap (s).
+    """
+
+    def __init__(
+        self,
+        center: ArrayLike,
+        radius: float | ArrayLike = 2.0,
+        speed: float | ArrayLike = 1.0,
+        phase: float | ArrayLike = 0.0,
+        n_worlds: int | None = None,
+    ) -> None:
+        c = vec3("center", center)
+        r = scalar_or_world("radius", radius, "m")
+        v = np.array(speed, dtype=float)
+        ph = np.array(phase, dtype=float)
+        for name, a, unit in (("speed", v, "m/s"), ("phase", ph, "rad")):
+            if a.ndim > 1 or not np.all(np.isfinite(a)):
+                raise ConfigError(f"{name}: expected a finite float or shape (W,) in {unit}, got {a!r}")
+        if np.any(v == 0.0):
+            raise ConfigError(f"speed: must be non-zero (m/s; its sign sets the direction), got {speed!r}")
+        args = {"center": c, "radius": r, "speed": v, "phase": ph}
+        self.n_worlds = w = resolve_n_worlds(
+            n_worlds, leading_sizes(args, {"center": 1, "radius": 0, "speed": 0, "phase": 0})
+        )
+        self.center = np.broadcast_to(c, (w, 3)).copy()  # (W, 3) m
+        self.radius = np.broadcast_to(r, (w,)).copy()  # (W,) m
+        self.speed = np.broadcast_to(v, (w,)).copy()  # (W,) m/s
+        self.phase = np.broadcast_to(ph, (w,)).copy()  # (W,) rad
+        self._omega = self.speed / self.radius  # (W,) rad/s
+        lap = 2.0 * np.pi * self.radius / np.abs(self.speed)
+        self.duration: np.ndarray | float = float(lap[0]) if np.ndim(r) == 0 and v.ndim == 0 else lap
+
+    def __call__(self, t: float | ArrayLike) -> RefSample:
+        """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
+        t = sample_times(t, self.n_worlds)
+        th = self.phase + self._omega * t
+        c, s = np.cos(th), np.sin(th)
+        r, om = self.radius, self._omega
+        zero = np.zeros(self.n_worlds)
+        pos = self.center + np.stack([r * c, r * s, zero], axis=1)
+        vel = np.stack([-r * om * s, r * om * c, zero], axis=1)
+        acc = np.stack([-r * om * om * c, -r * om * om * s, zero], axis=1)
+        yaw, yaw_rate = zero_yaw(self.n_worlds)
+        return RefSample(pos, vel, acc, yaw, yaw_rate)
