@@ -27,6 +27,13 @@ leader's body axis ``a3`` pointing DOWN. In our z-up world ``a3 = -n``, so
   NED-down, so the world-frame axial force is ``-f2 n``: a positive ``f2`` pushes
   the follower toward the ground (our negative z for a level leader).
 
+The generalised set "general" adds the signed angles of ``P v_b`` and ``P v_a``
+about ``n`` (sines, so a model can tell left from right) and the leader's lateral and
+axial speed, and a third basis row ``t_hat = n x r_hat``: with them an equivariant
+model can represent swirl and wakes skewed by the leader's velocity. Its symmetry is
+SO(2) about ``n`` acting on dp, v_b AND v_a (a rotation of the whole configuration),
+not reflections.
+
 Equivariant output (paper eq. 5): ``F = f1 r_hat + f2 d`` with the basis rows
 ``r_hat = P dp / sqrt(|P dp|^2 + R_EPS^2)`` (the radial direction in the leader's
 rotor plane, smoothly 0 at r = 0) and ``d = -n`` (the leader's NED-down axis),
@@ -50,6 +57,7 @@ __all__ = [
     "V_EPS",
     "FEATURE_SETS",
     "EQUIVARIANT_FEATURE_SETS",
+    "N_BASIS",
     "RAW_FEATURE_SETS",
     "leader_axis",
     "project_plane",
@@ -72,10 +80,15 @@ FEATURE_SETS: dict[str, tuple[str, ...]] = {
     "5": ("cos_dp_vb", "r_lateral", "vb_lateral", "depth", "vb_axial_down"),
     # paper eq. 4, all six features
     "6": ("cos_dp_vb", "r_lateral", "vb_lateral", "depth", "vb_axial_down", "va_lateral"),
+    # the generalised equivariant model: also the signed angles of v_b and v_a about the axis
+    # (sin, so it can tell left from right: swirl) and the leader's velocity (skewed wakes)
+    "general": ("cos_dp_vb", "sin_dp_vb", "r_lateral", "vb_lateral", "depth", "vb_axial_down",
+                "va_lateral", "cos_dp_va", "sin_dp_va", "va_axial_down"),
     # non-equivariant baselines: [dp, v_b] in the world frame
     "raw": ("dp_x", "dp_y", "dp_z", "vb_x", "vb_y", "vb_z"),
 }
-EQUIVARIANT_FEATURE_SETS = ("5", "6")
+EQUIVARIANT_FEATURE_SETS = ("5", "6", "general")
+N_BASIS = {"5": 2, "6": 2, "general": 3}  # output basis rows: r_hat, d (and t_hat = n x r_hat for "general")
 RAW_FEATURE_SETS = ("raw",)
 
 
@@ -143,24 +156,44 @@ def _check_equivariant_set(feature_set: str) -> None:
         )
 
 
+def _cross(xp: ModuleType, a, b):
+    """a x b over the last axis (..., 3), written out: the same operations in NumPy and torch."""
+    return _stack(xp, [a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+
+
 def _equivariant_inputs(xp: ModuleType, dp, v_a, v_b, R_a, feature_set: str, want_features: bool = True):
-    """Invariant features (..., k) (or None) and output basis (..., 2, 3), sharing intermediates."""
+    """Invariant features (..., k) (or None) and output basis (..., N_BASIS, 3), sharing intermediates."""
     n = leader_axis(R_a)
     dp_n = dot(dp, n, xp)
     pdp = dp - dp_n[..., None] * n
     r2 = dot(pdp, pdp, xp)
     r_soft = xp.sqrt(r2 + R_EPS**2)
-    basis = _stack(xp, [pdp / r_soft[..., None], -n], -2)
+    r_hat = pdp / r_soft[..., None]
+    rows = [r_hat, -n] if feature_set != "general" else [r_hat, -n, _cross(xp, n, r_hat)]
+    basis = _stack(xp, rows, -2)
     if not want_features:
         return None, basis
     vb_n = dot(v_b, n, xp)
     pvb = v_b - vb_n[..., None] * n
     q2 = dot(pvb, pvb, xp)
     c = dot(pdp, pvb, xp) / (r_soft * xp.sqrt(q2 + V_EPS**2))
-    cols = [c, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n]
-    if feature_set == "6":
-        pva = v_a - dot(v_a, n, xp)[..., None] * n
-        cols.append(_sqrt0(xp, dot(pva, pva, xp)))
+    if feature_set != "general":
+        cols = [c, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n]
+        if feature_set == "6":
+            pva = v_a - dot(v_a, n, xp)[..., None] * n
+            cols.append(_sqrt0(xp, dot(pva, pva, xp)))
+        return _stack(xp, cols, -1), basis
+    # signed angles about n: sin = n . (P dp x P v) / (|P dp| |P v|), softened like the cosines
+    va_n = dot(v_a, n, xp)
+    pva = v_a - va_n[..., None] * n
+    qa2 = dot(pva, pva, xp)
+    den_b = r_soft * xp.sqrt(q2 + V_EPS**2)
+    den_a = r_soft * xp.sqrt(qa2 + V_EPS**2)
+    cols = [
+        c, dot(n, _cross(xp, pdp, pvb), xp) / den_b, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n,
+        _sqrt0(xp, qa2), dot(pdp, pva, xp) / den_a, dot(n, _cross(xp, pdp, pva), xp) / den_a, -va_n,
+    ]
     return _stack(xp, cols, -1), basis
 
 
@@ -192,15 +225,16 @@ def raw_features(dp, v_b):
     return xp.concatenate([dp, v_b], -1)
 
 
-def equivariant_basis(dp, R_a):
-    """Output basis (..., 2, 3), world frame: rows ``r_hat`` and ``d = -n``.
+def equivariant_basis(dp, R_a, feature_set: str = "5"):
+    """Output basis (..., 2, 3), world frame: rows ``r_hat`` and ``d = -n`` (and, for the
+    "general" feature set, a third row ``t_hat = n x r_hat``, the tangential direction).
 
     ``r_hat = P dp / sqrt(|P dp|^2 + R_EPS^2)``: the radial unit vector in the
     leader's rotor plane, smoothly 0 on the axis (finite gradient there);
     ``d = -n``: the leader's NED-down axis (world -z for a level leader).
     """
     xp, (dp, R_a) = _namespace(dp, R_a)
-    return _equivariant_inputs(xp, dp, None, None, R_a, "5", want_features=False)[1]
+    return _equivariant_inputs(xp, dp, None, None, R_a, feature_set, want_features=False)[1]
 
 
 def assemble(f, basis):

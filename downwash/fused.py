@@ -19,12 +19,12 @@ from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, R_EPS, V_E
 
 __all__ = ["pack_layers", "feature_code", "predict_into"]
 
-_RAW, _SET5, _SET6 = 0, 1, 2  # feature-set codes of the kernel
+_RAW, _SET5, _SET6, _GENERAL = 0, 1, 2, 3  # feature-set codes of the kernel
 
 
 def feature_code(feature_set: str) -> int:
-    """The kernel's code of a feature set ("raw", "5" or "6")."""
-    return {"raw": _RAW, "5": _SET5, "6": _SET6}[feature_set]
+    """The kernel's code of a feature set ("raw", "5", "6" or "general")."""
+    return {"raw": _RAW, "5": _SET5, "6": _SET6, "general": _GENERAL}[feature_set]
 
 
 def pack_layers(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -69,6 +69,22 @@ def predict_into(pos, vel, rot, weights, biases, widths, code, clamp, out):
                 if code == _RAW:
                     x[0], x[1], x[2] = dx, dy, dz
                     x[3], x[4], x[5] = vel[w, j, 0], vel[w, j, 1], vel[w, j, 2]
+                elif code == _GENERAL:
+                    vb_n = vel[w, j, 0] * nx + vel[w, j, 1] * ny + vel[w, j, 2] * nz
+                    ux, uy, uz = vel[w, j, 0] - vb_n * nx, vel[w, j, 1] - vb_n * ny, vel[w, j, 2] - vb_n * nz
+                    va_n = vel[w, i, 0] * nx + vel[w, i, 1] * ny + vel[w, i, 2] * nz
+                    ax, ay, az = vel[w, i, 0] - va_n * nx, vel[w, i, 1] - va_n * ny, vel[w, i, 2] - va_n * nz
+                    r2 = px * px + py * py + pz * pz
+                    q2 = ux * ux + uy * uy + uz * uz
+                    qa2 = ax * ax + ay * ay + az * az
+                    den_b = r_soft * np.sqrt(q2 + V_EPS * V_EPS)
+                    den_a = r_soft * np.sqrt(qa2 + V_EPS * V_EPS)
+                    x[0] = (px * ux + py * uy + pz * uz) / den_b
+                    x[1] = (nx * (py * uz - pz * uy) + ny * (pz * ux - px * uz) + nz * (px * uy - py * ux)) / den_b
+                    x[2], x[3], x[4], x[5], x[6] = np.sqrt(r2), np.sqrt(q2), -dp_n, -vb_n, np.sqrt(qa2)
+                    x[7] = (px * ax + py * ay + pz * az) / den_a
+                    x[8] = (nx * (py * az - pz * ay) + ny * (pz * ax - px * az) + nz * (px * ay - py * ax)) / den_a
+                    x[9] = -va_n
                 else:
                     vb_n = vel[w, j, 0] * nx + vel[w, j, 1] * ny + vel[w, j, 2] * nz
                     ux, uy, uz = vel[w, j, 0] - vb_n * nx, vel[w, j, 1] - vb_n * ny, vel[w, j, 2] - vb_n * nz
@@ -96,10 +112,14 @@ def predict_into(pos, vel, rot, weights, biases, widths, code, clamp, out):
                     bo += n_out
                 if code == _RAW:
                     fx, fy, fz = fx + x[0], fy + x[1], fz + x[2]
-                else:  # F = f1 r_hat + f2 d, r_hat = P dp / r_soft, d = -n
+                else:  # F = f1 r_hat + f2 d (+ f3 t_hat), r_hat = P dp / r_soft, d = -n, t_hat = n x r_hat
                     fx += x[0] * px / r_soft - x[1] * nx
                     fy += x[0] * py / r_soft - x[1] * ny
                     fz += x[0] * pz / r_soft - x[1] * nz
+                    if code == _GENERAL:
+                        fx += x[2] * (ny * pz - nz * py) / r_soft
+                        fy += x[2] * (nz * px - nx * pz) / r_soft
+                        fz += x[2] * (nx * py - ny * px) / r_soft
             scale = 1.0
             if clamp > 0.0:
                 norm = np.sqrt(fx * fx + fy * fy + fz * fz)

@@ -11,7 +11,8 @@ All models share one call, ``model(dp, v_a, v_b, R_a) -> F``:
 Inputs are computed in `downwash.features` (the only place). Every model holds
 its input normalisation (mean/std of its own features) and an output scaling as
 buffers, so they travel in the state dict. For the equivariant model the output
-scaling acts on its two invariant outputs (radial and NED-down), one scalar each,
+scaling acts on its invariant outputs (radial and NED-down, plus tangential for the
+generalised model), one scalar each,
 which keeps the model exactly equivariant.
 
 float32 by default; ``.double()`` gives a float64 model (used by the property tests).
@@ -29,7 +30,6 @@ from torch.nn.utils.parametrizations import spectral_norm
 from core.errors import ConfigError
 
 from downwash.features import (
-    EQUIVARIANT_FEATURE_SETS,
     FEATURE_SETS,
     RAW_FEATURE_SETS,
     assemble,
@@ -217,7 +217,7 @@ class EquivariantModel(DownwashModel):
     """
 
     kind = "equivariant"
-    ALLOWED_FEATURE_SETS = EQUIVARIANT_FEATURE_SETS
+    ALLOWED_FEATURE_SETS = ("5", "6")
     DEFAULT_FEATURE_SET = "5"
     n_outputs = 2
 
@@ -225,6 +225,31 @@ class EquivariantModel(DownwashModel):
         super().__init__(feature_set)
         self.hidden = int(hidden)
         self.net = _mlp([self.n_features, self.hidden, 2])
+
+    def architecture(self) -> dict[str, Any]:
+        return {"hidden": self.hidden}
+
+
+class GeneralEquivariantModel(DownwashModel):
+    """A generalised SO(2)-equivariant model: ``F = f1 r_hat + f2 d + f3 t_hat``, ``t_hat = n x r_hat``.
+
+    ``(f1, f2, f3) = MLP(h)`` with h the 10 invariant features of the "general" set
+    (`downwash.features`): the paper's, plus the signed angles of v_b and v_a about the
+    leader's axis and the leader's lateral and axial speed. 10-32-3 ReLU, 451 parameters.
+    The tangential channel represents swirl and the leader's velocity represents skewed
+    wakes, which the paper's model cannot. Equivariant under rotations about n applied
+    to dp, v_b and v_a together (tested like the paper's model).
+    """
+
+    kind = "equivariant_general"
+    ALLOWED_FEATURE_SETS = ("general",)
+    DEFAULT_FEATURE_SET = "general"
+    n_outputs = 3
+
+    def __init__(self, feature_set: str | None = None, hidden: int = 32):
+        super().__init__(feature_set)
+        self.hidden = int(hidden)
+        self.net = _mlp([self.n_features, self.hidden, 3])
 
     def architecture(self) -> dict[str, Any]:
         return {"hidden": self.hidden}
@@ -340,6 +365,7 @@ MODEL_KINDS: dict[str, type[DownwashModel]] = {
     "shallow": ShallowMLP,
     "deep": DeepSNMLP,
     "equivariant": EquivariantModel,
+    "equivariant_general": GeneralEquivariantModel,
 }
 
 

@@ -45,7 +45,7 @@ _REQUIRED = {name: SAMPLE_SCHEMA[name][0] for name in (*MODEL_INPUTS, "y")}  # n
 # (51k samples, batch 2048, 60 epochs, cosine decay): the equivariant model kept
 # improving up to 0.1, the shallow MLP was best at 0.03, the deep SN-MLP at
 # 0.003-0.01 and diverged at 0.03.
-DEFAULT_LR = {"equivariant": 5e-2, "shallow": 3e-2, "deep": 5e-3}
+DEFAULT_LR = {"equivariant": 5e-2, "equivariant_general": 5e-2, "shallow": 3e-2, "deep": 5e-3}
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from typing import Any
 
 from core.errors import ConfigError
 from core.io import atomic_write_bytes, atomic_write_json, to_json
+from downwash.conditions import CONDITIONS
 from experiments.common import CommonArgs, arg, parse_args
 
 __all__ = [
@@ -49,7 +50,7 @@ EXPERIMENTS = {
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 HEADING = "## Measured results"
 TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
-ORDER = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")  # conditions and models, as the paper
+ORDER = CONDITIONS  # conditions and models in one order: the references, then MODEL_KINDS (the paper's order)
 PAPER_RMSE = {5.0: {"shallow": 0.263, "deep": 0.255, "equivariant": 0.222},  # the paper's figure 3 table, m/s^2
               15.0: {"shallow": 0.243, "deep": 0.229, "equivariant": 0.218}}
 PAPER_TRACKING = ("Paper (real flights, section 5.E): with the equivariant model, 3D position improves about 36 % "

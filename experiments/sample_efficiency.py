@@ -88,11 +88,11 @@ def run(args: EfficiencyArgs) -> dict:
     path = write_results(out, results, args, p.provenance())
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    colors = {"shallow": "tab:orange", "deep": "tab:blue", "equivariant": "tab:green"}
+    colors = {"shallow": "tab:orange", "deep": "tab:blue", "equivariant": "tab:green", "equivariant_general": "tab:purple"}
     for kind, r in results["models"].items():
         mean, std = np.array(r["rmse_mean"]), np.array(r["rmse_std"])
-        ax.plot(minutes, mean, "o-", color=colors[kind], label=kind)
-        ax.fill_between(minutes, mean - std, mean + std, color=colors[kind], alpha=0.2)
+        ax.plot(minutes, mean, "o-", color=colors.get(kind), label=kind)
+        ax.fill_between(minutes, mean - std, mean + std, color=colors.get(kind), alpha=0.2)
     ax.axhline(floor["rmse_mean"], color="k", ls="--", lw=1, label="label noise floor")
     ax.set_xlabel("training flight time (min)"), ax.set_ylabel("validation RMSE (m/s^2)")
     ax.set_title(f"sample efficiency ({trials} trials per point)"), ax.legend()

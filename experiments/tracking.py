@@ -145,7 +145,7 @@ def _table(name: str, results: dict) -> str:
 
 
 COLORS = {"no_downwash": "0.5", "baseline": "tab:red", "oracle": "k", "shallow": "tab:orange",
-          "deep": "tab:blue", "equivariant": "tab:green"}
+          "deep": "tab:blue", "equivariant": "tab:green", "equivariant_general": "tab:purple"}
 
 
 def _figures(out: Path, name: str, per_cond_logs: dict) -> None:

@@ -62,11 +62,11 @@ def test_parameter_counts():
 
 
 def test_registry_and_attributes():
-    assert set(MODEL_KINDS) == {"equivariant", "shallow", "deep"}
+    assert list(MODEL_KINDS) == ["shallow", "deep", "equivariant", "equivariant_general"]
     for kind, cls in MODEL_KINDS.items():
         m = make_model(kind)
         assert isinstance(m, cls) and m.kind == kind
-        assert m.feature_set == {"equivariant": "5"}.get(kind, "raw")
+        assert m.feature_set == {"equivariant": "5", "equivariant_general": "general"}.get(kind, "raw")
         assert m.in_mean.dtype == torch.float32
         assert {"in_mean", "in_std", "out_mean", "out_std"} <= set(m.state_dict())
 
@@ -155,7 +155,7 @@ def test_deep_spectral_norm_settles_from_a_poor_estimate():
 
 
 def test_bad_kind_and_feature_set():
-    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'equivariant', 'shallow'\], got 'mlp'"):
+    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'equivariant', 'equivariant_general', 'shallow'\], got 'mlp'"):
         make_model("mlp")
     with pytest.raises(ValueError, match=r"feature_set: model kind 'shallow' accepts \['raw'\], got '6'"):
         make_model("shallow", "6")
