@@ -206,7 +206,19 @@ def _mlp(widths: Sequence[int]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class EquivariantModel(DownwashModel):
+class _OneHiddenLayer(DownwashModel):
+    """The paper's shallow network: k features - `hidden` ReLU units - n_outputs."""
+
+    def __init__(self, feature_set: str | None = None, hidden: int = 32):
+        super().__init__(feature_set)
+        self.hidden = int(hidden)
+        self.net = _mlp([self.n_features, self.hidden, self.n_outputs])
+
+    def architecture(self) -> dict[str, Any]:
+        return {"hidden": self.hidden}
+
+
+class EquivariantModel(_OneHiddenLayer):
     """The paper's SO(2)-equivariant model (eq. 5): ``F = f1 r_hat + f2 d``.
 
     ``(f1, f2) = MLP(h)`` with h the invariant features of `features.invariant_features`
@@ -221,16 +233,8 @@ class EquivariantModel(DownwashModel):
     DEFAULT_FEATURE_SET = "5"
     n_outputs = 2
 
-    def __init__(self, feature_set: str | None = None, hidden: int = 32):
-        super().__init__(feature_set)
-        self.hidden = int(hidden)
-        self.net = _mlp([self.n_features, self.hidden, 2])
 
-    def architecture(self) -> dict[str, Any]:
-        return {"hidden": self.hidden}
-
-
-class GeneralEquivariantModel(DownwashModel):
+class GeneralEquivariantModel(_OneHiddenLayer):
     """A generalised SO(2)-equivariant model: ``F = f1 r_hat + f2 d + f3 t_hat``, ``t_hat = n x r_hat``.
 
     ``(f1, f2, f3) = MLP(h)`` with h the 10 invariant features of the "general" set
@@ -246,30 +250,14 @@ class GeneralEquivariantModel(DownwashModel):
     DEFAULT_FEATURE_SET = "general"
     n_outputs = 3
 
-    def __init__(self, feature_set: str | None = None, hidden: int = 32):
-        super().__init__(feature_set)
-        self.hidden = int(hidden)
-        self.net = _mlp([self.n_features, self.hidden, 3])
 
-    def architecture(self) -> dict[str, Any]:
-        return {"hidden": self.hidden}
-
-
-class ShallowMLP(DownwashModel):
+class ShallowMLP(_OneHiddenLayer):
     """Shallow non-equivariant baseline: ``[dp, v_b]`` 6-32-3 ReLU (323 parameters), world axes out."""
 
     kind = "shallow"
     ALLOWED_FEATURE_SETS = RAW_FEATURE_SETS
     DEFAULT_FEATURE_SET = "raw"
     n_outputs = 3
-
-    def __init__(self, feature_set: str | None = None, hidden: int = 32):
-        super().__init__(feature_set)
-        self.hidden = int(hidden)
-        self.net = _mlp([self.n_features, self.hidden, 3])
-
-    def architecture(self) -> dict[str, Any]:
-        return {"hidden": self.hidden}
 
 
 class _SpectralLinear(nn.Module):
