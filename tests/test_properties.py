@@ -32,6 +32,7 @@ from core.status import Status
 from downwash.checkpoint import load_checkpoint, save_checkpoint
 from downwash.features import (
     FEATURE_SETS,
+    N_BASIS,
     equivariant_basis,
     invariant_features,
     model_inputs,
@@ -291,12 +292,18 @@ def test_model_inputs_finite_and_consistent_numpy(feature_set, x):
         assert basis is None
         np.testing.assert_array_equal(feats, np.concatenate([dp, v_b], -1))
         return
-    assert basis.shape == dp.shape[:-1] + (2, 3) and np.isfinite(basis).all()
+    assert basis.shape == dp.shape[:-1] + (N_BASIS[feature_set], 3) and np.isfinite(basis).all()
     np.testing.assert_array_equal(feats, invariant_features(dp, v_a, v_b, R_a, feature_set))
-    np.testing.assert_array_equal(basis, equivariant_basis(dp, R_a))
-    # the cosine feature lies in [-1, 1], the norms and |r_hat| are non-negative / at most 1
-    assert np.all(np.abs(feats[..., 0]) <= 1.0) and np.all(feats[..., 1:3] >= 0.0)
+    np.testing.assert_array_equal(basis, equivariant_basis(dp, R_a, feature_set))
+    # cosines and sines lie in [-1, 1], lateral norms are non-negative, |r_hat| (and |t_hat|) at most 1
+    names = FEATURE_SETS[feature_set]
+    for j, name in enumerate(names):
+        if name.startswith(("cos_", "sin_")):
+            assert np.all(np.abs(feats[..., j]) <= 1.0), name
+        if name.endswith("_lateral"):
+            assert np.all(feats[..., j] >= 0.0), name
     assert np.all(np.linalg.norm(basis[..., 0, :], axis=-1) <= 1.0 + 1e-12)
+    assert np.all(np.linalg.norm(basis[..., 2:, :], axis=-1) <= 1.0 + 1e-12)
 
 
 @pytest.mark.parametrize("feature_set", ["5", "6"])
