@@ -3,14 +3,21 @@
 Modules (import them directly; this package imports nothing heavy on its own):
 
 - `downwash.features`: the model inputs (paper eq. 4, NED mapping), NumPy and torch
-- `downwash.models`: `EquivariantModel`, `ShallowMLP`, `DeepSNMLP`, `make_model`
+- `downwash.models`: `EquivariantModel`, `GeneralEquivariantModel`, `ShallowMLP`, `DeepSNMLP`, `MODEL_KINDS`
 - `downwash.labels`: labels ``f = a - u`` from flight logs, the label-noise floor
 - `downwash.datasets`: `Dataset`, `load_dataset`, `split_by_flight`, `shorten_per_stage`
 - `downwash.train`: `TrainConfig`, `train_model`, `rmse`
+- `downwash.ensemble`: `train_ensemble`, many models of one kind as one batched network
 - `downwash.checkpoint`: `save_checkpoint`, `load_checkpoint` (no code runs on load)
 - `downwash.predictor`: `LearnedPredictor`, a model in the control loop (`sim.predictor.Predictor`)
+- `downwash.fused`: the predictor's compiled one-pass kernel
+- `downwash.conditions`: the tracking conditions and what each flies with
+- `downwash.staged`: the staged collection pipeline, provenance and `ensure_models`
 
 Data flows one way: `downwash` may import `sim`, never `experiments`.
 """
 
-__all__ = ["features", "models", "labels", "datasets", "train", "checkpoint", "predictor"]
+__all__ = [
+    "features", "models", "labels", "datasets", "train", "ensemble", "checkpoint", "predictor", "fused",
+    "conditions", "staged",
+]

@@ -1,28 +1,38 @@
 """Validation RMSE against minutes of training data (the paper's figure 3 and table).
 
-    python -m experiments.sample_efficiency [--collection-dir DIR] [--quick]
+    python -m experiments.sample_efficiency [--collection-dir DIR] [--trials N] [--workers N] [--quick]
 
 For each training length (each stage shortened proportionally, whole flights or
 flight prefixes) and each of several trials (different subsets and seeds), the
 three models are trained and evaluated on the whole validation set of the staged
 collection. The label-noise floor (labels against the true mean field) is the line
 no model can go below. Runs the staged collection first if its data is missing.
+
+The trials of one minute point train as one ensemble per model kind
+(`downwash.ensemble.train_ensemble`): each trial's model is bit-identical to its
+own `train_model` with the same data subset and seed, so the numbers are those of
+one training after another, only sooner. The ensembles (model kinds x minute points)
+are spread over ``--workers`` processes (one intra-op thread each).
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from core.errors import ConfigError
-from downwash.datasets import concatenate, find_logs, load_dataset, shorten_per_stage
+from downwash.datasets import Dataset, concatenate, find_logs, load_dataset, shorten_per_stage
+from downwash.ensemble import train_ensemble
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS
 from downwash.staged import ensure_collection, train_config
-from downwash.train import rmse, train_model
+from downwash.train import rmse
 from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 
 __all__ = ["EfficiencyArgs", "run", "main"]
@@ -32,8 +42,37 @@ MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # plus the full set
 
 @dataclass(frozen=True)
 class EfficiencyArgs(PipelineArgs):
-    trials: int = arg(5, "trials per point (different data subsets and seeds)")
+    trials: int = arg(10, "trials per point (different data subsets and seeds)")
     minutes: str = arg(",".join(str(m) for m in MINUTES), "comma list of training minutes; the full set is always added")
+    workers: int = arg(0, "processes training ensembles side by side (0: one per CPU core, at most 4; 1 with --quick)")
+
+
+def trial_data(train_all: Dataset, minutes: list[float], i: int, trials: int, seed: int) -> list[Dataset]:
+    """The training subsets of minute point i, one per trial (the same draws for every model kind)."""
+    full = minutes[-1]
+    return [train_all if minutes[i] >= full else
+            shorten_per_stage(train_all, minutes[i], np.random.default_rng([seed, trial, i])) for trial in range(trials)]
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(train_all: Dataset, val: Dataset) -> None:
+    import torch
+
+    torch.set_num_threads(1)  # one core per worker (training sets one thread anyway; this is for evaluation)
+    _WORKER.update(train_all=train_all, val=val)
+
+
+def _train_point(kind: str, i: int, minutes: list[float], trials: int, seed: int, quick: bool,
+                 train_all: Dataset | None = None, val: Dataset | None = None) -> tuple[str, int, list[float]]:
+    """Validation RMSE of every trial of minute point i for one model kind: one ensemble."""
+    train_all = _WORKER["train_all"] if train_all is None else train_all
+    val = _WORKER["val"] if val is None else val
+    data = trial_data(train_all, minutes, i, trials, seed)
+    configs = [train_config(seed + trial, quick) for trial in range(trials)]
+    models = train_ensemble(kind, data, configs)
+    return kind, i, [rmse(model, val)[0] for model, _ in models]
 
 
 def run(args: EfficiencyArgs) -> dict:
@@ -50,6 +89,8 @@ def run(args: EfficiencyArgs) -> dict:
         raise ConfigError(f"--minutes: every value must be > 0, got {wanted}")
     if args.trials < 1:
         raise ConfigError(f"--trials: expected >= 1, got {args.trials}")
+    if args.workers < 0:
+        raise ConfigError(f"--workers: expected >= 0 (0: one per core), got {args.workers}")
     p = resolve_pipeline(args)
     collection = ensure_collection(p.collection_dir, p.models_dir, p.config, p.field, ProgressBar)
     t_start = time.perf_counter()
@@ -65,16 +106,27 @@ def run(args: EfficiencyArgs) -> dict:
     trials = min(args.trials, 2) if args.quick else args.trials
 
     rmse_runs = {m: np.zeros((len(minutes), trials)) for m in MODEL_KINDS}
-    bar = ProgressBar("sample efficiency", 30)
+    bar = ProgressBar("sample efficiency", "models")
+    # one ensemble per (kind, minute point); the deep model's (the slowest) and the longest first
+    tasks = sorted(((kind, i) for kind in MODEL_KINDS for i in range(len(minutes))),
+                   key=lambda t: (t[0] != "deep", -t[1]))
+    workers = min(args.workers or (1 if args.quick else min(os.cpu_count() or 1, 4)), len(tasks))
     total, done = len(minutes) * trials * len(MODEL_KINDS), 0
-    for i, minute in enumerate(minutes):
-        for trial in range(trials):
-            rng = np.random.default_rng([args.seed, trial, i])
-            data = train_all if minute >= full else shorten_per_stage(train_all, minute, rng)
-            for kind in MODEL_KINDS:
-                model, _ = train_model(kind, data, None, train_config(args.seed + trial, args.quick))
-                rmse_runs[kind][i, trial] = rmse(model, val)[0]
-                done += 1
+    if workers <= 1:
+        points = (_train_point(kind, i, minutes, trials, args.seed, args.quick, train_all, val) for kind, i in tasks)
+        for kind, i, values in points:
+            rmse_runs[kind][i] = values
+            done += trials
+            bar(done, total)
+    else:
+        # spawn: a fresh interpreter per worker (no forked torch/OpenMP state); the data goes once per worker
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_init_worker, initargs=(train_all, val)) as pool:
+            futures = [pool.submit(_train_point, kind, i, minutes, trials, args.seed, args.quick) for kind, i in tasks]
+            for future in as_completed(futures):
+                kind, i, values = future.result()
+                rmse_runs[kind][i] = values
+                done += trials
                 bar(done, total)
 
     results = {
@@ -83,6 +135,7 @@ def run(args: EfficiencyArgs) -> dict:
         "models": {k: {"rmse_mean": v.mean(axis=1).tolist(), "rmse_std": v.std(axis=1).tolist(),
                        "rmse_runs": v.tolist()} for k, v in rmse_runs.items()},
         "wall_seconds": time.perf_counter() - t_start,
+        "workers": workers,
     }
     out = Path(args.out)
     path = write_results(out, results, args, p.provenance())
