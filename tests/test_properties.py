@@ -37,6 +37,7 @@ from downwash.features import (
     invariant_features,
     model_inputs,
 )
+from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, FAIL_MARGIN_S, SAMPLE_SCHEMA, labels_from_log
 from downwash.models import MODEL_KINDS, DeepSNMLP, make_model
 from sim.field import DownwashField, pairwise_field
@@ -489,17 +490,8 @@ def _code_objects(sentinel: Path) -> list:
 
 
 def _trained_like(kind: str, seed: int, dtype=torch.float32):
-    """A model of `kind` with random weights and normalisation, as if trained."""
-    torch.manual_seed(seed)
-    model = make_model(kind)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(0.1 * torch.randn_like(p))
-        model.set_normalization(torch.rand(model.n_features) - 0.5, torch.rand(model.n_features) + 0.5,
-                                torch.rand(model.n_outputs) - 0.5, torch.rand(model.n_outputs) + 0.5)  # fmt: skip
-    if isinstance(model, DeepSNMLP):
-        model.settle_spectral_norm()
-    return model.to(dtype).eval()
+    """A model of `kind` with random weights and normalisation, as if trained, in `dtype`."""
+    return trained_like(kind, seed=seed).to(dtype)
 
 
 _VALID: dict[str, bytes] = {}
