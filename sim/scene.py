@@ -16,9 +16,9 @@ import numpy as np
 
 from core.errors import ConfigError, DataError
 from core.params import GRAVITY, RATES, Rates
-from core.roles import DEFAULT_VEHICLES, Role
+from core.roles import DEFAULT_VEHICLES, MAX_VEHICLES, MIN_VEHICLES, Role
 
-__all__ = ["QUAD_XML", "DEFAULT_VEHICLES", "Scene", "build_scene", "load_quad_spec"]
+__all__ = ["QUAD_XML", "DEFAULT_VEHICLES", "Scene", "build_scene", "check_clearance", "load_quad_spec"]
 
 QUAD_XML = Path(__file__).resolve().parent.parent / "assets" / "quad.xml"
 
@@ -105,8 +105,10 @@ def build_scene(
              for i, v in enumerate(vehicles)]
     roles = tuple(r for _, r in pairs)
     vehicles = tuple(n for n, _ in pairs)
-    if len(vehicles) < 1 or len(set(vehicles)) != len(vehicles):
-        raise ConfigError(f"vehicles: expected one or more distinct names, got {vehicles}")
+    if not MIN_VEHICLES <= len(vehicles) <= MAX_VEHICLES:
+        raise ConfigError(f"vehicles: a scene holds {MIN_VEHICLES}-{MAX_VEHICLES} vehicles, got {len(vehicles)}")
+    if len(set(vehicles)) != len(vehicles):
+        raise ConfigError(f"vehicles: expected distinct names, got {vehicles}")
     quad = load_quad_spec(quad_xml)
 
     spec = mujoco.MjSpec()
@@ -150,3 +152,23 @@ def build_scene(
         act_ids=act_ids,
         quad_xml_sha256=hashlib.sha256(Path(quad_xml).read_bytes()).hexdigest(),
     )
+
+
+def check_clearance(pos: np.ndarray, names: Sequence[str], radius_xy: float, radius_z: float) -> None:
+    """ConfigError if two vehicles lie inside each other's collision ellipsoid in any world.
+
+    pos: (W, V, 3) or (V, 3) m, world frame (e.g. the references at t = 0); names: the V
+    vehicle names (for the message); radius_xy, radius_z: m, the ellipsoid of
+    `SimConfig.collision_radius_xy` / `collision_radius_z`, the same test the loop applies.
+    """
+    pos = np.asarray(pos, dtype=np.float64).reshape(-1, len(names), 3)
+    d = pos[:, :, None, :] - pos[:, None, :, :]  # (W, V, V, 3)
+    inside = (d[..., 0] ** 2 + d[..., 1] ** 2) / radius_xy**2 + d[..., 2] ** 2 / radius_z**2 < 1.0
+    inside &= ~np.eye(len(names), dtype=bool)
+    if inside.any():
+        w, i, j = (int(x) for x in np.argwhere(inside)[0])
+        raise ConfigError(
+            f"vehicles {names[i]} and {names[j]} start inside each other in world {w}: {pos[w, i].round(3).tolist()} "
+            f"and {pos[w, j].round(3).tolist()} m; allowed: apart by more than the collision ellipsoid "
+            f"({radius_xy} m laterally, {radius_z} m vertically)"
+        )
