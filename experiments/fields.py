@@ -1,27 +1,53 @@
-"""List the registered ground-truth fields: `python -m experiments.fields`.
+"""List the registered ground-truth fields, or run the main job on every one of them.
+
+    python -m experiments.fields                 # the listing
+    python -m experiments.fields --run [--quick] # the lemniscate from scratch on every field
 
 One line per field (name, description, symmetry), printed and written to
 `<out>/results.json` under `fields`, each with its parameters (name: type, and the
-values its preset fixes). `--seed` and `--quick` are accepted and ignored (nothing is
-flown); `--field SPEC` also resolves and checks that spec and records its
-description, so a spec can be tried here before a long run. See docs/fields.md.
+values its preset fixes). `--field SPEC` also resolves and checks that spec and records
+its description, so a spec can be tried here before a long run. See docs/fields.md.
+
+`--run` answers "how does each model fare when the air is not what it assumes": for
+every registered field it runs the main job, `python -m experiments.lemniscate --field
+NAME` (its own process, so each field collects and trains from scratch into its own
+keyed pipeline folder unless that exists already; `--fresh` deletes nothing but points
+each run at a new pipeline folder under --out), and tabulates per field and condition the
+improvement over the baseline and the gap to the oracle, with each run's wall time, under
+`table` (the README's field x model table is rendered from it), in runs/field_table unless --out.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import subprocess
+import sys
+import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 from core.provenance import describe
-from experiments.common import CommonArgs, format_table, load_field, parse_args, setup_logging, write_results
+from downwash.conditions import CONDITIONS
+from core.errors import ConfigError
+from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.fields.registry import FIELDS
 
-__all__ = ["FieldsArgs", "listing", "run", "main"]
+__all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
+
+# per condition, from each field's lemniscate results: what the field x model table shows
+TABLE_KEYS = ("improvement_pos_3d", "improvement_pos_z", "gap_to_oracle_pos_3d", "pos_err_3d_mean", "crash_rate")
 
 
 @dataclass(frozen=True)
 class FieldsArgs(CommonArgs):
-    """The common options only (--seed and --quick do nothing here)."""
+    """--seed and --quick apply to --run only (the listing flies nothing)."""
+
+    run: bool = arg(False, "run the main job (python -m experiments.lemniscate) on every registered field")
+    only: str = arg("", "with --run: a comma list of registered field names (default: all of them)")
+    fresh: bool = arg(False, "with --run: collect and train from scratch into <out>/pipeline/<field> "
+                             "instead of reusing the keyed pipeline folders")
 
 
 def listing() -> list[dict]:
@@ -33,14 +59,67 @@ def listing() -> list[dict]:
     ]
 
 
+def run_every_field(args: FieldsArgs, out: Path) -> dict:
+    """{field: {wall_seconds, conditions: {condition: TABLE_KEYS}}}: the lemniscate on every registered field."""
+    table = {}
+    for name in _selected(args.only):
+        run_dir = out / name
+        cmd = [sys.executable, "-m", "experiments.lemniscate", "--field", name, "--seed", str(args.seed),
+               "--out", str(run_dir)] + (["--quick"] if args.quick else [])
+        if args.fresh:
+            cmd += ["--collection-dir", str(out / "pipeline" / name / "collection"),
+                    "--models-dir", str(out / "pipeline" / name / "models")]
+        print(f"--field {name}: {' '.join(cmd[1:])}", flush=True)
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise ConfigError(f"the lemniscate on --field {name} failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
+        result = json.loads((run_dir / "results.json").read_text())
+        table[name] = {
+            "wall_seconds": wall, "seeds": len(result["seeds"]), "duration": result["duration"],
+            "pipeline_key": result.get("provenance", {}).get("pipeline_key"),
+            "conditions": {c: {k: e.get(k) for k in TABLE_KEYS} for c, e in result["conditions"].items()},
+        }
+        print(f"--field {name}: {wall:.0f} s", flush=True)
+    return table
+
+
+def _selected(only: str) -> list[str]:
+    names = [n.strip() for n in only.split(",") if n.strip()] or list(FIELDS)
+    unknown = [n for n in names if n not in FIELDS]
+    if unknown:
+        raise ConfigError(f"--only: unknown fields {unknown}; allowed: {', '.join(FIELDS)}")
+    return names
+
+
+def _cell(entry: dict) -> str:
+    improvement, gap = entry.get("improvement_pos_3d"), entry.get("gap_to_oracle_pos_3d")
+    return ("-" if improvement is None else f"{improvement:+.0%}") + ("" if gap is None else f" ({gap:+.3f})")
+
+
 def run(args: FieldsArgs) -> dict:
-    """The listing (and the --field spec, resolved and checked); print and write it."""
+    """The listing (and the --field spec, resolved and checked); with --run the main job on every field."""
+    if args.run and args.field:
+        raise ConfigError("--field: not with --run, which runs every registered field (choose some with --only)")
+    if args.only and not args.run:
+        raise ConfigError("--only: only with --run")
+    _selected(args.only)  # before any work
     results: dict = {"fields": listing()}
     if args.field:  # resolved and checked before anything is written
         results["selected"] = {"spec": args.field, "field": describe(load_field(args.field))}
-    path = write_results(args.out, results, args)
     print(format_table([(f["name"], f["description"], f["symmetry"]) for f in results["fields"]],
                        ("name", "description", "symmetry")))
+    if args.run:  # its own default folder: the report reads the table from runs/field_table/results.json
+        args = dataclasses.replace(args, out=args.out or "runs/field_table")
+        out = Path(args.out)
+        results["table"] = run_every_field(args, out)
+        conditions = [c for c in CONDITIONS if c in next(iter(results["table"].values()))["conditions"]]
+        print("\nimprovement of 3D position error over the baseline (gap to the oracle, m):")
+        print(format_table([[f] + [_cell(e["conditions"].get(c, {})) for c in conditions] + [f"{e['wall_seconds']:.0f} s"]
+                            for f, e in results["table"].items()],
+                           ["field"] + conditions + ["wall"]))
+    path = write_results(args.out, results, args)
     if "selected" in results:
         print(f"\n--field {args.field}: {results['selected']['field']}")
     print(f"\nwrote {path}")

@@ -31,6 +31,7 @@ from core.errors import ConfigError
 from core.io import atomic_write_bytes, atomic_write_json, to_json
 from downwash.conditions import CONDITIONS
 from experiments.common import CommonArgs, arg, parse_args
+from sim.fields.registry import FIELDS
 
 __all__ = [
     "EXPERIMENTS", "BEGIN", "END", "PAPER_RMSE", "ReportArgs", "load_results", "machine", "copy_results", "render",
@@ -45,6 +46,7 @@ EXPERIMENTS = {
     "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
     "transect": ("Tracking: transect", ("conditions", "seeds")),
     "force_maps": ("Force maps", ("maps",)),
+    "field_table": ("Field x model: the main job on every registered field", ("fields", "table")),
     "benchmark": ("Speed", ("cpu_count",)),
 }
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
@@ -273,9 +275,30 @@ def render_benchmark(r: dict, label: str) -> str:
                         f"worlds (`{label}`):", _table(["key", "value"], rows)])
 
 
+def render_field_table(r: dict, label: str) -> str:
+    table = r["table"]
+    shown = [c for c in ORDER if c not in ("no_downwash", "baseline") and any(c in e["conditions"] for e in table.values())]
+    rows = []
+    for name, e in sorted(table.items(), key=lambda kv: (list(FIELDS).index(kv[0]) if kv[0] in FIELDS else len(FIELDS), kv[0])):
+        cells = []
+        for c in shown:
+            m = e["conditions"].get(c, {})
+            gap = m.get("gap_to_oracle_pos_3d")
+            cells.append(pct(m.get("improvement_pos_3d")) + ("" if gap is None or c == "oracle" else f" ({gap:+.3f})"))
+        rows.append([f"`{name}`", fmt(e["conditions"].get("baseline", {}).get("pos_err_3d_mean"))] + cells
+                    + [pct(max((m.get("crash_rate") or 0.0) for m in e["conditions"].values())), f"{e['wall_seconds']:.0f}"])
+    first = next(iter(table.values()))
+    return "\n\n".join([
+        f"The lemniscate (`python -m experiments.lemniscate --field NAME`, {first['seeds']} seeds, {short(first['duration'])} s) "
+        "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
+        "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
+        f"oracle). The wall time is the whole main job, collection and training included (`{label}`):",
+        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate", "wall (s)"], rows)])
+
+
 RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
              "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps,
-             "benchmark": render_benchmark}
+             "field_table": render_field_table, "benchmark": render_benchmark}
 
 
 def _render_one(name: str, data: dict, record: dict, label: str) -> list[str]:
