@@ -70,7 +70,15 @@ def _fakes():
     conds = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")
     lem = {"experiment": "lemniscate", "separation": 0.6, "duration": 20.0, "seeds": [0, 1, 2, 3, 4],
            "conditions": _conditions(conds), "wall_seconds": 20.0, "flight_wall_seconds": 19.0}
+    field_table = {"fields": [], "table": {
+        f: {"wall_seconds": 51.3 + i, "seeds": 5, "duration": 20.0, "pipeline_key": "k",
+            "conditions": {c: {"improvement_pos_3d": None if c in ("baseline", "no_downwash") else 0.6123 - 0.1 * i,
+                               "improvement_pos_z": None, "pos_err_3d_mean": 0.0811,
+                               "gap_to_oracle_pos_3d": None if c in ("baseline", "no_downwash", "oracle") else 0.01234,
+                               "crash_rate": 0.0} for c in conds}}
+        for i, f in enumerate(("momentum", "so2"))}}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
+            "field_table": ("experiments.fields", "FieldsArgs", field_table),
             "sample_efficiency": ("experiments.sample_efficiency", "EfficiencyArgs", efficiency),
             "force_maps": ("experiments.force_maps", "ForceMapArgs", maps),
             "benchmark": ("experiments.benchmark", "BenchmarkArgs", bench),
@@ -153,6 +161,10 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
     assert "| equivariant | 0.240 ± 0.013 | 0.222 | 0.200 ± 0.015 | 0.218 |" in text  # ours beside the paper's
     for paper in ("0.263", "0.255", "0.243", "0.229"):
         assert paper in text
+
+    rows = [line for line in text.splitlines() if line.startswith("| `so2` |") or line.startswith("| `momentum` |")]
+    assert rows[0].startswith("| `so2` | 0.0811 | 51.2 % | 51.2 % (+0.012)") and rows[0].endswith("| 52 |")  # so2 first
+    assert rows[1].startswith("| `momentum` | 0.0811 | 61.2 % | 61.2 % (+0.012)") and rows[1].endswith("| 51 |")
 
     for c, v in written["lemniscate"]["conditions"].items():
         row = next(line for line in text.splitlines() if line.startswith(f"| {c} | {fmt(v['pos_err_3d_mean'])} |"))
