@@ -2,11 +2,15 @@
 
     python -m experiments.lemniscate [--conditions baseline,oracle] [--seeds 5] [--quick]
     python -m experiments.transect   [--conditions baseline,oracle] [--seeds 5] [--quick]
+    python -m experiments.lemniscate --video flight.mp4   # also an mp4 of the first seed, conditions side by side
 
 Paper section 5: Alpha hovers at 2.5 m; Bravo flies beneath it. `TRACKS` holds each
 experiment's reference and its shape options (each becomes a command-line flag);
 the conditions are those of `downwash.conditions`. Writes results.json (DESIGN
-section 10), prints a table and saves the figures beside it.
+section 10), prints a table and saves the figures beside it. `--video PATH` also writes
+an mp4 of every condition's first seed side by side, the leader's wake drawn
+(`envs.video`; needs `pip install -e ".[video]"` and an OpenGL backend, checked before
+any flight).
 """
 
 from __future__ import annotations
@@ -67,6 +71,8 @@ class TrackingArgs(PipelineArgs):
     seeds: int = arg(5, "number of seeds (flights per condition)")
     separation: float = arg(0.6, f"vertical separation below the leader, m ({SEPARATION_RANGE[0]}-{SEPARATION_RANGE[1]})")
     duration: float = arg(0.0, "flight length, s (0: one period of the reference)")
+    video: str = arg("", "also write an mp4 of the first seed of every condition, side by side with the wake "
+                         "drawn, to this path (.mp4; needs pip install -e '.[video]')")
 
 
 def args_class(track: str) -> type:
@@ -92,6 +98,11 @@ def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
     spec = TRACKS[track]
     conditions = _validate(args)
+    scene = build_scene()
+    if args.video:
+        from envs.video import check_video_output  # imageio and an OpenGL context only when asked for
+
+        check_video_output(args.video, scene)
     p = resolve_pipeline(args)
     field = p.field
     checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, field, ProgressBar)
@@ -104,7 +115,7 @@ def run(track: str, args: Any) -> dict:
     follower = make_reference(spec.reference, center, W, period=spec.period, **shape)
     reference = stack([Hover(LEADER, n_worlds=W), follower])
     seeds = list(range(args.seed, args.seed + K))
-    per_condition = fly_conditions(build_scene(), conditions, reference, seeds, duration, field, checkpoints,
+    per_condition = fly_conditions(scene, conditions, reference, seeds, duration, field, checkpoints,
                                    meta={"experiment": track})
     flight_seconds = time.perf_counter() - t_start
 
@@ -117,7 +128,20 @@ def run(track: str, args: Any) -> dict:
     _figures(out, track, per_condition)
     print(_table(track, results))
     print(f"\nwrote {path} and figures in {out}/")
+    if args.video:
+        _video(args.video, scene, per_condition, field)
     return results
+
+
+def _video(path: str, scene, per_cond_logs: dict, field) -> None:
+    """The first seed of every condition side by side (at most 4 per row), the wake drawn."""
+    from envs.video import logs_video
+
+    t0 = time.perf_counter()
+    n = logs_video(path, scene, {c: clogs[0] for c, clogs in per_cond_logs.items()}, field=field,
+                   columns=min(len(per_cond_logs), 4))
+    print(f"wrote {path} ({n} frames, seed {next(iter(per_cond_logs.values()))[0].meta['seed']}, "
+          f"{time.perf_counter() - t0:.1f} s)")
 
 
 def main(track: str, argv=None) -> dict:
