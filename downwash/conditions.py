@@ -68,11 +68,13 @@ def fly_conditions(
     field: Any,
     checkpoints: dict[str, Path],
     meta: dict | None = None,
+    **components: Any,
 ) -> dict[str, list[FlightLog]]:
     """Fly every condition on every seed as one batch of worlds; returns the logs per condition.
 
-    reference: a stacked (leader, follower) reference over len(conditions) x len(seeds)
-    worlds, condition-major (world i * K + k is condition i, seed k).
+    reference: a stacked reference (one per vehicle of `scene`) over len(conditions) x
+    len(seeds) worlds, condition-major (world i * K + k is condition i, seed k).
+    components: further `Simulator` keywords shared by every world (e.g. wind, aggregation).
     """
     K = len(seeds)
     predictor = PerWorldPredictor([make_predictor(c, field, checkpoints) for c in conditions],
@@ -80,5 +82,5 @@ def fly_conditions(
     field_enabled = np.array([c != "no_downwash" for c in conditions for _ in range(K)])
     world_meta = [{"condition": c, **(meta or {})} for c in conditions for _ in range(K)]
     logs = fly(scene, reference, [s for _ in conditions for s in seeds], duration, field=field,
-               predictor=predictor, field_enabled=field_enabled, meta=world_meta)
+               predictor=predictor, field_enabled=field_enabled, meta=world_meta, **components)
     return {c: logs[i * K:(i + 1) * K] for i, c in enumerate(conditions)}

@@ -8,16 +8,22 @@ and the clamp, in float64. Per call it costs a few microseconds where NumPy's
 per-operation overhead cost ~55 us at one world. The readable path is the "numpy"
 backend; a test checks the two agree to float64 rounding (the sums run in another
 order than BLAS's).
+
+`predict_address` is the same kernel as a C function of `sim.predictor.PREDICTOR_SIGNATURE`
+(`pack_abi` packs its constants), which the simulator's fused loop calls in the 45 Hz
+slot without a Python call: `LearnedPredictor.compiled()`.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from core.jit import njit
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, R_EPS, V_EPS
+from sim.predictor import PREDICTOR_SIGNATURE
 
-__all__ = ["pack_layers", "feature_code", "predict_into"]
+__all__ = ["pack_layers", "feature_code", "predict_into", "pack_abi", "predict_address"]
 
 _RAW, _SET5, _SET6, _GENERAL = 0, 1, 2, 3  # feature-set codes of the kernel
 
@@ -126,6 +132,31 @@ def predict_into(pos, vel, rot, weights, biases, widths, code, clamp, out):
                 if norm > clamp:
                     scale = clamp / norm
             out[w, j, 0], out[w, j, 1], out[w, j, 2] = fx * scale, fy * scale, fz * scale
+
+
+def pack_abi(packed: tuple[np.ndarray, np.ndarray, np.ndarray], code: int, clamp: float) -> tuple[np.ndarray, np.ndarray]:
+    """(params, iparams) of the C form: params = [clamp, weights..., biases...] float64,
+    iparams = [code, len(weights), len(biases), len(widths), widths...] int64."""
+    weights, biases, widths = packed
+    params = np.concatenate([[float(clamp)], weights, biases]).astype(np.float64)
+    iparams = np.concatenate([[code, weights.size, biases.size, widths.size], widths]).astype(np.int64)
+    return np.ascontiguousarray(params), np.ascontiguousarray(iparams)
+
+
+@numba.cfunc(PREDICTOR_SIGNATURE, cache=True, nopython=True)
+def _predict_c(n_worlds, n_veh, pos, vel, rot, true_pos, true_vel, true_rot, params, iparams, out):
+    """`predict_into` behind the C signature (estimated states only; the truth is ignored)."""
+    code, n_w, n_b, n_l = iparams[0], iparams[1], iparams[2], iparams[3]
+    ints = numba.carray(iparams, (4 + n_l,))
+    floats = numba.carray(params, (1 + n_w + n_b,))
+    predict_into(
+        numba.carray(pos, (n_worlds, n_veh, 3)), numba.carray(vel, (n_worlds, n_veh, 3)),
+        numba.carray(rot, (n_worlds, n_veh, 3, 3)), floats[1:1 + n_w], floats[1 + n_w:], ints[4:], code, floats[0],
+        numba.carray(out, (n_worlds, n_veh, 3)),
+    )
+
+
+predict_address: int = _predict_c.address  # of `_predict_c`, a C function of PREDICTOR_SIGNATURE
 
 
 assert set(FEATURE_SETS) == {"raw", *EQUIVARIANT_FEATURE_SETS}, "a new feature set needs a kernel code"

@@ -18,9 +18,10 @@ import torch
 
 from downwash.checkpoint import load_checkpoint
 from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
-from downwash.fused import feature_code, pack_layers, predict_into
+from downwash.fused import feature_code, pack_abi, pack_layers, predict_address, predict_into
 from downwash.models import DownwashModel
 from core.state import VehicleStates
+from sim.predictor import CompiledPredictor
 
 __all__ = ["LearnedPredictor"]
 
@@ -80,6 +81,14 @@ class LearnedPredictor:
         self._packed = pack_layers(layers)
         self._code = feature_code(self.feature_set)
         self._clamp_kernel = 0.0 if self.clamp is None else self.clamp  # <= 0: no bound
+        self._abi = pack_abi(self._packed, self._code, self._clamp_kernel)
+
+    def compiled(self) -> CompiledPredictor | None:
+        """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`);
+        None for the "numpy" and "torch" backends, which the loop calls through `__call__`."""
+        if self.backend != "compiled":
+            return None
+        return CompiledPredictor(predict_address, *self._abi)
 
     @classmethod
     def from_checkpoint(

@@ -6,8 +6,11 @@ Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop),
 closed_loop_serial_steps_per_s, real_time_factor_serial and serial_over_bare (one
 flight, the full stack with the trained equivariant model at 45 Hz, the stack a
 user runs), closed_loop_batched_world_steps_per_s (64 worlds on all cores) and
-batched_over_bare; the same with the oracle predictor under *_oracle; the
-predictor's cost per call, the training time and the envs' speed.
+batched_over_bare; the same with the oracle predictor under *_oracle; the same
+flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
+passes around Python calls, as before the fused tick) under *_readable, so that one
+run shows what the fused tick gains; the predictor's cost per call, the training
+time and the envs' speed.
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -65,11 +68,12 @@ def bare_mj_step_per_s(n_steps: int, repeats: int) -> float:
     return n_steps / _best(run, repeats)
 
 
-def closed_loop_steps_per_s(n_worlds: int, seconds: float, repeats: int, field: Any, predictor: Any) -> float:
+def closed_loop_steps_per_s(n_worlds: int, seconds: float, repeats: int, field: Any, predictor: Any,
+                            fast: bool = True) -> float:
     """Physics steps per wall second, summed over worlds, full stack with `predictor` at 45 Hz
-    (the lemniscate 0.6 m below the leader)."""
+    (the lemniscate 0.6 m below the leader); fast=False: the simulator's readable path."""
     ref = stack([Hover(LEADER, n_worlds=n_worlds), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=n_worlds)])
-    sim = Simulator(build_scene(), ref, list(range(n_worlds)), field=field, predictor=predictor)
+    sim = Simulator(build_scene(), ref, list(range(n_worlds)), field=field, predictor=predictor, fast=fast)
     n_ticks = int(round(seconds / sim.cfg.rates.control_dt))
     sim.tick()  # warm-up: first-call costs (allocation, JIT caches)
 
@@ -104,6 +108,11 @@ def run(args: BenchmarkArgs) -> dict:
         r[f"serial_over_bare{suffix}"] = serial / r["bare_mj_step_per_s"]
         r[f"closed_loop_batched_world_steps_per_s{suffix}"] = batched
         r[f"batched_over_bare{suffix}"] = batched / r["bare_mj_step_per_s"]
+    for name, n_worlds in (("serial", 1), ("batched", worlds)):  # the same flights on the readable path
+        rate = closed_loop_steps_per_s(n_worlds, seconds, repeats, field, learned, fast=False)
+        key = "closed_loop_serial_steps_per_s_readable" if n_worlds == 1 else "closed_loop_batched_world_steps_per_s_readable"
+        r[key] = rate
+        r[f"{name}_over_bare_readable"] = rate / r["bare_mj_step_per_s"]
     r["batched_worlds"] = worlds
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)

@@ -17,6 +17,7 @@ from typing import Any, Sequence, TypeVar
 
 from tqdm import tqdm
 
+from core.errors import ConfigError
 from core.io import atomic_write_json
 from core.provenance import code_version, describe, fingerprint
 from downwash.staged import CollectionConfig, pipeline_dirs, provenance
@@ -24,7 +25,7 @@ from sim.field import check_field
 from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec
 
 __all__ = [
-    "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field", "resolve_pipeline",
+    "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field", "resolve_pipeline",
     "write_results", "format_table", "setup_logging",
 ]
 
@@ -114,6 +115,39 @@ def load_field(spec: str) -> Any:
     check_field(obj, name=f"--field {spec or DEFAULT_FIELD}")
     describe(obj)  # a field that cannot be fingerprinted stops here, before any work
     return obj
+
+
+WIND_HELP = ("ambient wind: off (default), or a MIL-F-8785C severity light|moderate|severe|calm (calm: no gusts) "
+             "with an optional mean wind, e.g. light:mean=2,0,0 (m/s, world frame, air moving toward +x)")
+
+
+def load_wind(spec: str) -> Any:
+    """The `DrydenWind` a `--wind` spec names, or None for "" / "off".
+
+    Grammar: SEVERITY[:mean=U,V,W] with SEVERITY one of light, moderate, severe (the
+    MIL-F-8785C W20 of 15, 30, 45 kt, which sets the gust intensities) or calm (no gusts,
+    the mean wind only); U, V, W in m/s, world frame. ConfigError naming what is allowed.
+    """
+    from sim.wind import PRESETS_KT, DrydenWind
+
+    text = (spec or "").strip()
+    if text in ("", "off"):
+        return None
+    severity, _, rest = text.partition(":")
+    allowed = f"off, calm, {', '.join(PRESETS_KT)}, each with an optional :mean=U,V,W (m/s)"
+    if severity not in ("calm", *PRESETS_KT):
+        raise ConfigError(f"--wind: unknown {severity!r}; allowed: {allowed}")
+    mean = (0.0, 0.0, 0.0)
+    if rest:
+        key, eq, value = rest.partition("=")
+        try:
+            mean = tuple(float(x) for x in value.split(","))
+        except ValueError:
+            mean = ()
+        if key.strip() != "mean" or not eq or len(mean) != 3:
+            raise ConfigError(f"--wind: bad {rest!r} in {spec!r}; allowed: {allowed}")
+    wind = DrydenWind(mean=mean) if severity == "calm" else DrydenWind.preset(severity, mean=mean)
+    return None if wind.off else wind
 
 
 def write_results(out: str | Path, results: dict, args: Any, provenance: dict | None = None) -> Path:

@@ -46,6 +46,8 @@ EXPERIMENTS = {
     "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
     "transect": ("Tracking: transect", ("conditions", "seeds")),
     "force_maps": ("Force maps", ("maps",)),
+    "outdoor": ("Outdoor: a moving leader in wind", ("conditions", "seeds", "leader", "leader_airspeed")),
+    "swarm": ("Many vehicles: summed pairwise models against models of sets", ("summary", "conditions", "laws")),
     "field_table": ("Field x model: the main job on every registered field", ("fields", "table")),
     "benchmark": ("Speed", ("cpu_count",)),
 }
@@ -260,6 +262,53 @@ def render_tracking(r: dict, label: str) -> str:
                         f"{short(r['duration'])} s (`{label}`):", _table(header, rows)])
 
 
+def render_outdoor(r: dict, label: str) -> str:
+    a, wind = r["leader_airspeed"], r.get("wind")
+    if wind is None:
+        air = "no wind"
+    else:
+        air = (f"wind: mean ({', '.join(short(x) for x in wind['mean'])}) m/s plus Dryden gusts (W20 {fmt(wind['w20'])} m/s, sigma_u "
+               f"{fmt(wind['sigma_u'])} m/s, L_u {fmt(wind['L_u'])} m)")
+    head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
+            f"the follower {short(r['separation'])} m beneath it; {air}. The models are those of the staged collection "
+            "(hovering leader, still air).")
+    return head + "\n\n" + render_tracking({**r, "separation": r["separation"]}, label)
+
+
+def _share_of_oracle(entry: dict, condition: str) -> float | None:
+    """A condition's improvement over the baseline as a share of the oracle's (1: as good as the truth)."""
+    oracle, got = entry["oracle"].get("improvement_pos_3d"), entry.get(condition, {}).get("improvement_pos_3d")
+    return None if oracle in (None, 0) or got is None else got / oracle
+
+
+def render_swarm(r: dict, label: str) -> str:
+    shown = r["conditions"][1:]  # all but the baseline
+    parts = [f"{len(r['seeds'])} seeds per preset and law; metrics over every follower of a flight. Each cell: the "
+             "improvement of the followers' mean 3D position error over the baseline, and in brackets the gap to "
+             "the oracle (m). `summed_pairwise` is the paper's two-vehicle equivariant model summed over neighbours; "
+             "`-pair` models were trained on two-vehicle data only, `-mixed` ones on two-vehicle data plus the swarm "
+             f"stages flown under that law (`{label}`):"]
+    verdicts = []
+    for law, by_preset in r["summary"].items():
+        rows = []
+        for preset, entry in by_preset.items():
+            rows.append([f"`{preset}`"] + [pct(entry[c].get("improvement_pos_3d")) + (
+                "" if entry[c].get("gap_to_oracle_pos_3d") is None else f" ({entry[c]['gap_to_oracle_pos_3d']:+.3f})")
+                + (f", {pct(entry[c]['crash_rate'])} crashed" if entry[c].get("crash_rate") else "") for c in shown])
+        parts += [f"**{law} aggregation** ({r['laws'][law]['law'].get('name', law)}):",
+                  _table(["preset"] + shown, rows)]
+        shares = {c: [x for e in by_preset.values() if (x := _share_of_oracle(e, c)) is not None] for c in shown[1:]}
+        mean = {c: sum(v) / len(v) for c, v in shares.items() if v}
+        best = max(mean, key=mean.get) if mean else None
+        if "summed_pairwise" in mean:
+            verdicts.append(f"under the {law} law, summing the pairwise model recovers {pct(mean['summed_pairwise'])} "
+                            f"of the oracle's improvement on average over the presets; the best condition is `{best}` "
+                            f"with {pct(mean[best])}")
+    if verdicts:
+        parts.append("Does summing pairwise models hold up? " + "; ".join(verdicts) + ".")
+    return "\n\n".join(parts)
+
+
 def render_force_maps(r: dict, label: str) -> str:
     keys = ("down_top_rmse_vs_truth", "down_side_rmse_vs_truth", "lateral_rmse_vs_truth_pos",
             "lateral_rmse_vs_truth_neg")
@@ -297,7 +346,8 @@ def render_field_table(r: dict, label: str) -> str:
 
 
 RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
-             "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps,
+             "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
+             "swarm": render_swarm,
              "field_table": render_field_table, "benchmark": render_benchmark}
 
 

@@ -27,7 +27,7 @@ from core.errors import ConfigError
 from core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
 from downwash.staged import ensure_models
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
+from experiments.common import WIND_HELP, PipelineArgs, load_wind, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 from sim.metrics import aggregate_conditions, tracking_errors
 from sim.scene import build_scene
 from trajectories import Hover, make_reference, stack
@@ -71,6 +71,7 @@ class TrackingArgs(PipelineArgs):
     seeds: int = arg(5, "number of seeds (flights per condition)")
     separation: float = arg(0.6, f"vertical separation below the leader, m ({SEPARATION_RANGE[0]}-{SEPARATION_RANGE[1]})")
     duration: float = arg(0.0, "flight length, s (0: one period of the reference)")
+    wind: str = arg("off", WIND_HELP)
     video: str = arg("", "also write an mp4 of the first seed of every condition, side by side with the wake "
                          "drawn, to this path (.mp4; needs pip install -e '.[video]')")
 
@@ -98,6 +99,7 @@ def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
     spec = TRACKS[track]
     conditions = _validate(args)
+    wind = load_wind(args.wind)
     scene = build_scene()
     if args.video:
         from envs.video import check_video_output  # imageio and an OpenGL context only when asked for
@@ -116,7 +118,7 @@ def run(track: str, args: Any) -> dict:
     reference = stack([Hover(LEADER, n_worlds=W), follower])
     seeds = list(range(args.seed, args.seed + K))
     per_condition = fly_conditions(scene, conditions, reference, seeds, duration, field, checkpoints,
-                                   meta={"experiment": track})
+                                   meta={"experiment": track}, wind=wind)
     flight_seconds = time.perf_counter() - t_start
 
     results: dict[str, Any] = {"experiment": track, "separation": args.separation, "duration": duration,

@@ -10,9 +10,10 @@ import numpy as np
 from core.errors import ConfigError
 from core.provenance import code_version, describe
 from core.status import Status
+from sim.aggregation import LinearSuperposition
 from sim.logs import ARRAY_SPECS, FlightLog
 from sim.scene import Scene
-from sim.simulator import SimConfig, Simulator
+from sim.simulator import Row, SimConfig, Simulator
 
 __all__ = ["fly"]
 
@@ -32,11 +33,14 @@ def fly(
     """Fly W = len(seeds) worlds for `duration` seconds; returns their logs.
 
     components: the `Simulator` keywords (config, controller, autopilot, turbulence,
-      field, predictor, field_enabled, n_threads).
+      field, predictor, field_enabled, n_threads, wind, aggregation, fast).
     meta: extra metadata per world (a list) or shared (a dict), merged into each log.
     progress: called as progress(ticks done, ticks in all) after each controller tick.
     A world that diverges or collides ends early with its status and message in the
     log's metadata; the others fly on.
+    With a wind (`wind=sim.wind.DrydenWind(...)`, not off) the logs also hold "wind" (the
+    air velocity at each vehicle, (T, V, 3) m/s) and "wind_acc" (its drag, m/s^2), and
+    the metadata its `describe()` under "wind".
     """
     if not duration > 0:
         raise ConfigError(f"duration: must be > 0 s, got {duration}")
@@ -58,9 +62,8 @@ def fly(
         rows.append(sim.tick())
         if progress is not None:
             progress(k + 1, n_ticks)
-    stacked = {
-        name: np.stack([row[name] for row in rows], axis=1).astype(np.float64, copy=False) for name in ARRAY_SPECS
-    }  # (W, T, ...)
+    names = list(ARRAY_SPECS) + [name for name in _WIND_ARRAYS if rows and name in rows[0]]
+    stacked = _stack_rows(rows, names, W, sim.V)  # (W, T, ...)
 
     if isinstance(meta, dict) or meta is None:
         meta = [dict(meta or {}) for _ in range(W)]
@@ -69,7 +72,7 @@ def fly(
     logs = []
     for w in range(W):
         n = int(sim.tick_index[w])
-        arrays = {name: stacked[name][w, :n].copy() for name in ARRAY_SPECS}
+        arrays = {name: stacked[name][w, :n].copy() for name in names}
         info = {
             "seed": sim.seeds[w],
             "config": sim.cfg.to_dict(),
@@ -81,7 +84,10 @@ def fly(
             "controller": describe(sim.controller),
             "turbulence": describe(sim.turbulence),
             "field": describe(sim.field),
+            # how the wakes combined (None: linear); with two vehicles every law is the pairwise field
+            "aggregation": describe(sim.aggregation if sim.aggregation is not None else LinearSuperposition()),
             "field_enabled": bool(sim.field_enabled[w]),
+            **({"wind": describe(sim.wind)} if sim.wind is not None else {}),
             "predictor": _predictor_name(components.get("predictor")),
             "code": code_version(),
             "duration": duration,
@@ -94,6 +100,30 @@ def fly(
             log.warning("%s", info["message"])
         logs.append(FlightLog(arrays, info))
     return logs
+
+
+_WIND_ARRAYS = ("wind", "wind_acc")  # rows of a flight with wind: (V, 3) m/s and m/s^2
+
+
+def _stack_rows(rows: list, names: list[str], W: int, V: int) -> dict[str, np.ndarray]:
+    """{name: (W, T, ...) float64} from T rows; the fused path's `Row`s (views of one flat array
+    each, all with one layout) are stacked once and sliced, any other rows name by name."""
+    if rows and all(type(row) is Row for row in rows) and all(row.layout is rows[0].layout for row in rows):
+        flat = np.stack([row.flat for row in rows])  # (T, size)
+        out = {}
+        for name in names:
+            offset, shape = rows[0].layout[name]
+            block = flat[:, offset:offset + int(np.prod(shape))].reshape((len(rows),) + shape)
+            out[name] = np.moveaxis(block, 0, 1)
+        return out
+    if not rows:
+        return {name: np.zeros((W, 0) + _trailing(name, V)) for name in names}
+    return {name: np.stack([row[name] for row in rows], axis=1).astype(np.float64, copy=False) for name in names}
+
+
+def _trailing(name: str, V: int) -> tuple[int, ...]:
+    trail = ARRAY_SPECS[name][0] if name in ARRAY_SPECS else ("V", 3)
+    return tuple(V if d == "V" else d for d in trail)
 
 
 def _predictor_name(predictor: Any) -> str | None:

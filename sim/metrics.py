@@ -11,6 +11,8 @@ crashed.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from core.errors import ConfigError
@@ -19,7 +21,7 @@ from sim.logs import FlightLog
 
 __all__ = [
     "TRACKING_METRICS", "IMPROVEMENT_METRICS", "CRASH_PENALTY", "tracking_errors", "planned_ticks",
-    "tracking_metrics", "improvement",
+    "tracking_metrics", "follower_metrics", "improvement",
     "aggregate_conditions",
 ]
 
@@ -76,13 +78,25 @@ def tracking_metrics(log: FlightLog, vehicle: int | None = None) -> dict[str, fl
     return {k: out[k] for k in TRACKING_METRICS}
 
 
+def follower_metrics(log: FlightLog) -> dict[str, float]:
+    """TRACKING_METRICS averaged over every follower of the log (a swarm's metrics: each
+    vehicle that flies in a wake counts once; the peak is the largest of theirs)."""
+    roles = log.meta.get("roles") or []
+    followers = [v for v, r in enumerate(roles) if r != "leader"] or [log.meta["follower"]]
+    each = [tracking_metrics(log, v) for v in followers]
+    out = {m: float(np.mean([e[m] for e in each])) for m in TRACKING_METRICS}
+    out["pos_err_3d_peak"] = max(e["pos_err_3d_peak"] for e in each)
+    return out
+
+
 def improvement(metrics: dict[str, float], baseline: dict[str, float]) -> dict[str, float]:
     """Fractions by which `metrics` improve on `baseline` (0.36: 36 % smaller error)."""
     return {name: 1.0 - metrics[m] / baseline[m] for name, m in IMPROVEMENT_METRICS.items()}
 
 
 def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: str = "baseline",
-                         oracle: str = "oracle", unmodelled: tuple[str, ...] = ("no_downwash",)) -> dict[str, dict]:
+                         oracle: str = "oracle", unmodelled: tuple[str, ...] = ("no_downwash",),
+                         metrics: Callable[[FlightLog], dict[str, float]] | None = None) -> dict[str, dict]:
     """Metrics per condition from logs flown on the same seeds (seed k is the k-th log of each).
 
     Each condition gets the mean over seeds of every TRACKING_METRICS entry (crashed
@@ -92,11 +106,13 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
     condition, every other condition but the `unmodelled` ones gets the paired
     IMPROVEMENT_METRICS (per seed, then their mean); with an `oracle` too, every
     compensating condition gets `gap_to_oracle_pos_3d` (m): how much larger its mean 3D
-    position error is than the oracle's.
+    position error is than the oracle's. `metrics(log)` gives one flight's TRACKING_METRICS
+    (default `tracking_metrics`, the log's follower; `follower_metrics` for a swarm).
     """
+    metrics = tracking_metrics if metrics is None else metrics
     out: dict[str, dict] = {}
     for c, logs in per_condition.items():
-        per_seed = [tracking_metrics(L) for L in logs]
+        per_seed = [metrics(L) for L in logs]
         entry: dict = {m: float(np.mean([p[m] for p in per_seed])) for m in TRACKING_METRICS}
         entry["per_seed"] = {m: [p[m] for p in per_seed] for m in TRACKING_METRICS}
         entry["per_seed"]["crashed"] = [not L.ok for L in logs]

@@ -7,7 +7,11 @@ single code path: a single flight is a batch of one.
 from __future__ import annotations
 
 import copy
+import ctypes
+import functools
+import glob
 import logging
+import os
 
 import mujoco
 import mujoco.batch
@@ -15,7 +19,7 @@ import numpy as np
 
 from core.jit import njit
 
-__all__ = ["Physics", "make_physics"]
+__all__ = ["Physics", "make_physics", "mj_step_address"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +41,7 @@ class Physics:
     """
 
     n_worlds: int
+    revision: int = 0  # counts the changes of the worlds' models (set_body_mass)
     qpos: np.ndarray
     qvel: np.ndarray
     act: np.ndarray
@@ -97,10 +102,21 @@ class _SerialPhysics(Physics):
             self.model.body_mass[body_ids] = scale * mass0[body_ids]
             self.model.body_inertia[body_ids] = scale[:, None] * inertia0[body_ids]
             mujoco.mj_setConst(self.model, self.data)
+            self.revision += 1
 
     def mjdata(self, world: int) -> mujoco.MjData:
         mujoco.mj_forward(self.model, self.data)
         return self.data
+
+    def native_step(self) -> tuple[int, int, int, np.ndarray] | None:
+        """(address of mj_step, of the mjModel, of the mjData, the live warning counts (mjNWARNING,) int32),
+        for a compiled caller that steps this world itself (the simulator's fused loop), or None
+        where libmujoco's mj_step cannot be found. The model address changes when
+        `set_body_mass` copies the model: ask again after that."""
+        fn = mj_step_address()
+        if fn is None:
+            return None
+        return fn, int(self.model._address), int(self.data._address), self._warnings
 
 
 class _BatchPhysics(Physics):
@@ -138,6 +154,35 @@ class _BatchPhysics(Physics):
             masses[np.ix_(worlds, body_ids)] = scale * self.model.body_mass[body_ids]
             inertia[np.ix_(worlds, body_ids)] = scale[..., None] * self.model.body_inertia[body_ids]
             self.batch.set_const(ids=worlds)
+            self.revision += 1
+
+    def native_step(self, n_scratch: int) -> tuple | None:
+        """What a compiled caller needs to step the worlds itself, or None (then it calls `step`).
+
+        Returns (address of mj_step, of mj_setState, of mj_getState, of the mjModel, state
+        (W, nstate) float64, the state spec (mjSTATE_INTEGRATION), warning (W, mjNWARNING, 2)
+        int32 [last info, count], and n_scratch MjData of the model, one per thread).
+        A world is stepped as the batch does it (its docstring): its state row loaded into
+        an MjData, nstep mj_step, the row saved back, bit for bit (tested); the caller
+        clears the MjData's warnings before and adds them to `warning` after. None where the
+        worlds have models of their own (`set_body_mass`), the state rows are not the
+        integration state, or libmujoco's functions cannot be found.
+        """
+        step = mj_step_address()
+        if step is None or self.revision or self.batch.persistent or self.batch._models is not None:
+            return None
+        spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+        state, warning = self.batch.state, self.batch.warning
+        if state.shape[1] != mujoco.mj_stateSize(self.model, spec) or not state.flags.c_contiguous \
+                or not warning.flags.c_contiguous or warning.dtype != np.int32:
+            return None
+        lib = ctypes.CDLL(_libmujoco_path())
+        set_state, get_state = (int(ctypes.cast(getattr(lib, f), ctypes.c_void_p).value) for f in ("mj_setState", "mj_getState"))
+        scratch = getattr(self, "_scratch", [])
+        while len(scratch) < n_scratch:
+            scratch.append(mujoco.MjData(self.model))
+        self._scratch = scratch
+        return step, set_state, get_state, int(self.model._address), state, spec, warning, scratch[:n_scratch]
 
     def mjdata(self, world: int) -> mujoco.MjData:
         if not hasattr(self, "_render_data"):
@@ -154,6 +199,35 @@ def _mark_fatal(warning, fatal, failed):
         for i in fatal:
             if warning[w, i, 1] > 0:
                 failed[w] = True
+
+
+@functools.lru_cache(maxsize=1)
+def mj_step_address() -> int | None:
+    """The address of `mj_step(const mjModel*, mjData*)` in the libmujoco that the bindings load, or None.
+
+    A compiled loop calls it directly (no Python call per physics step); the result equals
+    `mujoco.mj_step` bit for bit (tested). dlopen of the bindings' own library file returns
+    the library already loaded.
+    """
+    path = _libmujoco_path()
+    if path is None:
+        return None
+    return int(ctypes.cast(ctypes.CDLL(path).mj_step, ctypes.c_void_p).value)
+
+
+@functools.lru_cache(maxsize=1)
+def _libmujoco_path() -> str | None:
+    """The bindings' libmujoco with its mj_step, setState and getState, or None."""
+    folder = os.path.dirname(mujoco.__file__)
+    for pattern in ("libmujoco.so*", "libmujoco*.dylib", "mujoco*.dll"):
+        for path in sorted(glob.glob(os.path.join(folder, pattern))):
+            try:
+                lib = ctypes.CDLL(path)
+                lib.mj_step, lib.mj_setState, lib.mj_getState  # noqa: B018 (all three must exist)
+                return path
+            except (OSError, AttributeError):  # not loadable here, or no such symbol
+                continue
+    return None
 
 
 def make_physics(model: mujoco.MjModel, n_worlds: int, n_threads: int = 0) -> Physics:

@@ -3,17 +3,25 @@
 `sim` never imports `downwash`; a learned model enters through this small
 interface. The stepping loop calls the predictor at 45 Hz and holds the result
 between calls; the controller subtracts it: `u = a_ref - K (x - x_ref) - f_hat`.
+
+A predictor may also offer a compiled form, `compiled() -> CompiledPredictor | None`:
+the address of a C function of `PREDICTOR_SIGNATURE` (a numba `cfunc`) that computes
+exactly what `__call__` returns. The simulator's fused loop then calls it without
+leaving compiled code (see `sim.simulator`); `__call__` stays the readable form, and
+the predictor's own tests compare the two. `ZeroPredictor` and `OraclePredictor` need
+no such function: the loop knows them.
 """
 
 from __future__ import annotations
 
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
+from numba import types as _nb
 
 from core.errors import ConfigError
 from core.state import VehicleStates
-from sim.field import pairwise_field
+from sim.aggregation import wake_field
 
 __all__ = [
     "VehicleStates",
@@ -21,15 +29,42 @@ __all__ = [
     "ZeroPredictor",
     "OraclePredictor",
     "PerWorldPredictor",
+    "CompiledPredictor",
+    "PREDICTOR_SIGNATURE",
 ]
+
+_F64P, _I64P = _nb.CPointer(_nb.float64), _nb.CPointer(_nb.int64)
+# void f(n_worlds, n_vehicles, pos, vel, rot, true_pos, true_vel, true_rot, params, iparams, out):
+# the estimated states (W, V, 3) m, (W, V, 3) m/s, (W, V, 3, 3) and the true ones (velocity
+# relative to the air, see `Predictor`), all C-contiguous float64; params / iparams the
+# predictor's own constants (float64 / int64); out (W, V, 3) m/s^2, written in full.
+PREDICTOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _I64P, _F64P)
+
+
+class CompiledPredictor(NamedTuple):
+    """A predictor's compiled form for the simulator's fused loop.
+
+    address: of a C function of `PREDICTOR_SIGNATURE` (e.g. `numba.cfunc(PREDICTOR_SIGNATURE)(f).address`)
+      that writes exactly the predictor's `__call__` result into `out`.
+    params: (n,) float64 and iparams: (m,) int64, C-contiguous, passed to it unchanged; the
+      predictor keeps them (and the function) alive as long as it lives.
+    """
+
+    address: int
+    params: np.ndarray
+    iparams: np.ndarray
 
 
 @runtime_checkable
 class Predictor(Protocol):
     """Anything that predicts the downwash acceleration on each vehicle.
 
-    `estimated` is what the vehicles know (Kalman-filtered motion capture);
-    `true` is the simulator's state, for oracles and diagnostics only.
+    `estimated` is what the vehicles know (Kalman-filtered motion capture: positions,
+    GROUND velocities, the motion-capture attitude), what a lab measures and all a
+    learned model may use. `true` is the simulator's state, for oracles and
+    diagnostics only: true positions and attitudes, and `true.vel` the velocity
+    RELATIVE TO THE AMBIENT AIR (v - u_air; the ground velocity when there is no wind,
+    see `sim.simulator`), the velocity that shapes a wake.
     Returns (W, V, 3) m/s^2, world frame, the summed effect of all other vehicles.
     """
 
@@ -44,13 +79,18 @@ class ZeroPredictor:
 
 
 class OraclePredictor:
-    """The true mean field (no turbulence) at the true state: the best any model can do."""
+    """The true mean field (no turbulence) at the true state: the best any model can do.
 
-    def __init__(self, field):
+    field: the ground-truth field; aggregation: how the wakes of several leaders combine
+    (`sim.aggregation`, None: linear superposition), as in the simulator.
+    """
+
+    def __init__(self, field: Any, aggregation: Any = None):
         self.field = field
+        self.aggregation = aggregation
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates) -> np.ndarray:
-        return pairwise_field(self.field, true.pos, true.vel, true.rot)
+        return wake_field(self.field, true.pos, true.vel, true.rot, self.aggregation)
 
 
 class PerWorldPredictor:

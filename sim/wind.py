@@ -41,9 +41,16 @@ from the airspeed V = |v_vehicle - mean| (`airspeed`), floored at `min_airspeed`
 (1 m/s): a hovering vehicle in still air still sees the turbulence evolve.
 
 Randomness enters only through the standard normal draws `xi` (..., 3, 2) passed in;
-the simulator draws them from each world's generator. A compiled caller (the simulator,
-once `Simulator(wind=...)` exists) runs this law with the arrays of
-`coefficients(dt, airspeed)`; `step`, `gust` and `stationary_state` are the readable law.
+the simulator draws them from a wind generator of each world. `step`, `gust` and
+`stationary_state` are the readable law; the simulator's compiled loop runs the same law
+per world and tick with `gust_step_into` / `gust_into` (the coefficients of
+`coefficients`, computed in the kernel by `coefficients_into` for the airspeed of the
+moment), which a test compares with the readable law.
+
+Drag. The wind acts on a vehicle through the airframe's quadratic drag on the
+relative air velocity, `drag_acceleration`; its constants are defined once, in
+`AIRFRAME` (`AirframeDrag`: C_d = 1.0, A_ref = 0.01 m^2, rho = 1.225 kg/m^3), which the
+momentum-theory wake (`sim.fields.momentum.MomentumWake`) uses as well.
 """
 
 from __future__ import annotations
@@ -56,10 +63,14 @@ import numpy as np
 from scipy.special import gammainc
 
 from core.errors import ConfigError
+from core.jit import njit
 from core.params import LEADER_POSITION
 from core.validate import number
 
-__all__ = ["DrydenWind", "drag_acceleration", "wind_at", "FT", "KT", "MIN_ALTITUDE", "MAX_ALTITUDE", "PRESETS_KT"]
+__all__ = [
+    "DrydenWind", "AirframeDrag", "AIRFRAME", "AIR_DENSITY", "drag_acceleration", "wind_at", "FT", "KT",
+    "MIN_ALTITUDE", "MAX_ALTITUDE", "PRESETS_KT", "coefficients_into", "gust_step_into", "gust_into", "drag_gain_speed",
+]
 
 FT = 0.3048  # m per international foot (exact)
 KT = 1852.0 / 3600.0  # m/s per international knot (exact)
@@ -68,19 +79,58 @@ MAX_ALTITUDE = 1000.0 * FT  # m, 1000 ft: the low-altitude model's upper limit
 PRESETS_KT = {"light": 15.0, "moderate": 30.0, "severe": 45.0}  # W20, kt (MIL-F-8785C)
 _SQRT3 = math.sqrt(3.0)
 _C_AXIS = np.array([[1.0, 0.0], [_SQRT3, 1.0 - _SQRT3], [_SQRT3, 1.0 - _SQRT3]])  # (3, 2) gust = C x per axis
+AIR_DENSITY = 1.225  # kg/m^3, ISA sea level
+
+
+@dataclass(frozen=True)
+class AirframeDrag:
+    """The airframe's quadratic drag constants: the one definition every force law uses.
+
+    C_d = 1.0 and A_ref = 0.01 m^2: a bluff body (Hoerner, *Fluid-Dynamic Drag*, 1965,
+    ch. 3: a flat plate normal to the flow has C_d ~ 1.2); A_ref ~ the 8 x 8 cm body plus
+    four 9 x 1 cm arms. rho: ISA sea level. Used by the ambient wind in the simulator and
+    by `sim.fields.momentum.MomentumWake` (its defaults).
+    """
+
+    drag_coefficient: float = 1.0  # -, C_d
+    reference_area: float = 0.01  # m^2, A_ref
+    air_density: float = AIR_DENSITY  # kg/m^3, rho
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "drag_coefficient", number("drag_coefficient", self.drag_coefficient, "-", 0.0, 100.0))
+        object.__setattr__(self, "reference_area", number("reference_area", self.reference_area, "m^2", 0.0, 100.0))
+        object.__setattr__(self, "air_density", number("air_density", self.air_density, "kg/m^3", 0.0, 1e6))
+
+    def gain(self, mass: float) -> float:
+        """rho C_d A_ref / (2 m) (1/m) for a vehicle of `mass` (kg > 0)."""
+        mass = number("mass", mass, "kg", 0.0, 1e6, lo_open=True)
+        return self.air_density * self.drag_coefficient * self.reference_area / (2.0 * mass)
+
+    def acceleration(self, air_velocity, vehicle_velocity, mass) -> np.ndarray:
+        """`drag_acceleration` with these constants: (..., 3) m/s^2."""
+        return drag_acceleration(air_velocity, vehicle_velocity, mass, self.drag_coefficient, self.reference_area,
+                                 self.air_density)
+
+    def describe(self) -> dict[str, Any]:
+        return {"type": f"{type(self).__module__}.{type(self).__qualname__}", "drag_coefficient": self.drag_coefficient,
+                "reference_area": self.reference_area, "air_density": self.air_density}
+
+
+AIRFRAME = AirframeDrag()  # the testbed's quadrotor airframe
 
 
 def drag_acceleration(air_velocity, vehicle_velocity, mass, drag_coefficient, reference_area,
-                      air_density=1.225) -> np.ndarray:
+                      air_density=AIR_DENSITY) -> np.ndarray:
     """Quadratic drag on the relative air velocity, mass-normalised (m/s^2, (..., 3)).
 
     a = rho C_d A_ref / (2 m) |u - v| (u - v): u the air velocity and v the vehicle's
     (m/s, (..., 3), world frame), m (kg), C_d (-), A_ref (m^2), rho (kg/m^3), scalars or
-    (...). The airframe drag of `sim.fields.momentum.MomentumWake` is this law inline
-    (there is no function there to import); momentum should import this one later,
-    its wake share being drag_acceleration(u, v_b, ...) - drag_acceleration(0, v_b, ...).
+    (...); the testbed's airframe constants are `AIRFRAME`. The airframe drag of
+    `sim.fields.momentum.MomentumWake` is this law: its wake share is
+    drag_acceleration(u, v_b, ...) - drag_acceleration(0, v_b, ...).
     |u - v| is taken with hypot (no overflow of the squares); the result is finite
-    whenever the drag itself is representable.
+    whenever the drag itself is representable. The simulator's compiled loop computes
+    the same product, (gain * |u - v|) (u - v), with `drag_gain_speed`.
     """
     rel = np.asarray(air_velocity, dtype=np.float64) - np.asarray(vehicle_velocity, dtype=np.float64)
     mass = np.asarray(mass, dtype=np.float64)
@@ -244,6 +294,13 @@ class DrydenWind:
         """The air velocity (..., 3) m/s, world frame: mean + gust(state)."""
         return wind_at(self.mean, self.gust(state))
 
+    def kernel_constants(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """What the compiled loop needs: mean (3,) m/s, sigma_{u,v,w} (3,) m/s, L_{u,v,w} (3,) m,
+        axes (3, 3) (rows e_u, e_v, e_w) and min_airspeed (m/s); float64, contiguous."""
+        s = self.scales()
+        return (np.array(self.mean), np.array([s["sigma_u"], s["sigma_v"], s["sigma_w"]]),
+                np.array([s["L_u"], s["L_v"], s["L_w"]]), np.ascontiguousarray(self.axes()), float(self.min_airspeed))
+
     def describe(self) -> dict[str, Any]:
         """Stable provenance: the law, every parameter and the derived MIL-spec scales."""
         return {
@@ -253,3 +310,94 @@ class DrydenWind:
             "min_airspeed": self.min_airspeed, "effective_altitude": self.effective_altitude,
             **{k: float(v) for k, v in self.scales().items()},
         }
+
+
+# ----------------------------------------------------------------------- compiled forms
+# The simulator advances each world's gust state on the autopilot grid inside its compiled
+# loop, with an airspeed that changes every tick; these are `coefficients`, `step` and
+# `gust` for one state (3, 2) at one airspeed, in the same arithmetic order (a test compares
+# them with the readable law; gammainc is computed here in closed form, see `_gammainc`).
+
+
+@njit
+def _gammainc(n, x):
+    """The regularised lower incomplete gamma P(n, x) for n = 1, 2, 3 and x >= 0.
+
+    x < 1: the series e^-x x^n / n! sum_k x^k / ((n + 1) ... (n + k)) (positive terms, no
+    cancellation); x >= 1: 1 - e^-x sum_{k < n} x^k / k! (P >= 0.08 there, no cancellation).
+    """
+    if x < 1.0:
+        term = 1.0
+        total = 1.0
+        k = 1
+        while term > 1e-17 * total:
+            term *= x / (n + k)
+            total += term
+            k += 1
+        factorial = 1.0
+        for j in range(2, n + 1):
+            factorial *= j
+        return math.exp(-x) * x**n / factorial * total
+    partial = 1.0
+    term = 1.0
+    for k in range(1, n):
+        term *= x / k
+        partial += term
+    return 1.0 - math.exp(-x) * partial
+
+
+@njit
+def coefficients_into(dt, airspeed, sigma, length, min_airspeed, A, B):
+    """`DrydenWind.coefficients(dt, airspeed)` for one scalar airspeed (m/s) into A, B (3, 2, 2).
+
+    sigma (3,) m/s and length (3,) m: `kernel_constants`; dt (s); min_airspeed (m/s).
+    """
+    V = max(airspeed, min_airspeed)
+    for ax in range(3):
+        T = length[ax] / V  # s
+        r = dt / T
+        a = math.exp(-r)
+        s2 = sigma[ax] ** 2
+        A[ax, 0, 0] = a
+        A[ax, 0, 1] = 0.0
+        A[ax, 1, 1] = a
+        B[ax, 0, 1] = 0.0
+        if ax == 0:  # longitudinal: first order, the second state only decays
+            A[ax, 1, 0] = 0.0
+            B[ax, 0, 0] = math.sqrt(s2 * _gammainc(1, 2.0 * r))
+            B[ax, 1, 0] = 0.0
+            B[ax, 1, 1] = 0.0
+        else:
+            A[ax, 1, 0] = a * r
+            b11 = math.sqrt(s2 * (_gammainc(1, 2.0 * r) / 2.0))
+            q21 = s2 * _gammainc(2, 2.0 * r) / 4.0
+            q22 = s2 * _gammainc(3, 2.0 * r) / 4.0
+            b21 = q21 / b11 if b11 > 0.0 else 0.0
+            B[ax, 0, 0] = b11
+            B[ax, 1, 0] = b21
+            B[ax, 1, 1] = math.sqrt(max(q22 - b21 * b21, 0.0))
+
+
+@njit
+def gust_step_into(state, xi, A, B):
+    """state (3, 2) <- A state + B xi in place (`DrydenWind.step`), xi (3, 2) standard normals."""
+    for ax in range(3):
+        x0, x1 = state[ax, 0], state[ax, 1]
+        state[ax, 0] = A[ax, 0, 0] * x0 + A[ax, 0, 1] * x1 + (B[ax, 0, 0] * xi[ax, 0] + B[ax, 0, 1] * xi[ax, 1])
+        state[ax, 1] = A[ax, 1, 0] * x0 + A[ax, 1, 1] * x1 + (B[ax, 1, 0] * xi[ax, 0] + B[ax, 1, 1] * xi[ax, 1])
+
+
+@njit
+def gust_into(state, axes, out):
+    """The gust (3,) m/s, world frame, from the state (3, 2) (`DrydenWind.gust`) into out."""
+    g0 = state[0, 0] * 1.0 + state[0, 1] * 0.0
+    g1 = state[1, 0] * _SQRT3 + state[1, 1] * (1.0 - _SQRT3)
+    g2 = state[2, 0] * _SQRT3 + state[2, 1] * (1.0 - _SQRT3)
+    for k in range(3):
+        out[k] = g0 * axes[0, k] + g1 * axes[1, k] + g2 * axes[2, k]
+
+
+@njit
+def drag_gain_speed(rx, ry, rz, gain):
+    """gain |r| for the relative air velocity r = u - v (m/s): the drag is this times r (`drag_acceleration`)."""
+    return gain * math.hypot(math.hypot(rx, ry), rz)

@@ -75,3 +75,9 @@ def test_readme_observation_table_is_the_generated_one():
     from envs.observation import markdown_table
 
     assert markdown_table() in (ROOT / "README.md").read_text()
+
+
+def test_readme_swarm_observation_table_is_the_generated_one():
+    from envs.swarm import markdown_table
+
+    assert markdown_table() in (ROOT / "README.md").read_text()

@@ -77,7 +77,20 @@ def _fakes():
                                "gap_to_oracle_pos_3d": None if c in ("baseline", "no_downwash", "oracle") else 0.01234,
                                "crash_rate": 0.0} for c in conds}}
         for i, f in enumerate(("momentum", "so2"))}}
+    outdoor = {**lem, "experiment": "outdoor", "leader": "circle", "speed": 1.5, "lateral": 0.1,
+               "leader_airspeed": {"mean": 2.31, "min": 0.5123, "max": 3.4871},
+               "wind": {"mean": [2.0, 0.0, 0.0], "w20": 7.717, "sigma_u": 1.515, "L_u": 47.23}}
+    swarm_names = ["baseline", "oracle", "summed_pairwise", "deepsets_equivariant-mixed"]
+    swarm_summary = {law: {preset: {c: {"improvement_pos_3d": (None, 0.4, 0.2, 0.1)[j],
+                                        "gap_to_oracle_pos_3d": None if j < 2 else 0.0123 * j,
+                                        "pos_err_3d_mean": 0.1, "crash_rate": 0.0}
+                                    for j, c in enumerate(swarm_names)} for preset in ("stack3", "swap")}
+                     for law in ("linear", "velocity")}
+    swarm = {"conditions": swarm_names, "seeds": [0, 1, 2], "summary": swarm_summary,
+             "laws": {law: {"law": {"name": law}} for law in ("linear", "velocity")}}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
+            "outdoor": ("experiments.outdoor", "OutdoorArgs", outdoor),
+            "swarm": ("experiments.swarm", "SwarmArgs", swarm),
             "field_table": ("experiments.fields", "FieldsArgs", field_table),
             "sample_efficiency": ("experiments.sample_efficiency", "EfficiencyArgs", efficiency),
             "force_maps": ("experiments.force_maps", "ForceMapArgs", maps),
@@ -165,6 +178,12 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
     rows = [line for line in text.splitlines() if line.startswith("| `so2` |") or line.startswith("| `momentum` |")]
     assert rows[0].startswith("| `so2` | 0.0811 | 51.2 % | 51.2 % (+0.012)") and rows[0].endswith("| 52 |")  # so2 first
     assert rows[1].startswith("| `momentum` | 0.0811 | 61.2 % | 61.2 % (+0.012)") and rows[1].endswith("| 51 |")
+
+    assert "airspeed 0.512-3.49 m/s" in text and "sigma_u 1.51 m/s" in text
+    # the swarm verdict is computed from the numbers: oracle 0.4, summed_pairwise 0.2 (50 %), the set model 0.1
+    assert "summing the pairwise model recovers 50.0 % of the oracle's improvement" in text
+    assert "the best condition is `summed_pairwise` with 50.0 %" in text
+    assert "| `stack3` | 40.0 % | 20.0 % (+0.025) | 10.0 % (+0.037) |" in text
 
     for c, v in written["lemniscate"]["conditions"].items():
         row = next(line for line in text.splitlines() if line.startswith(f"| {c} | {fmt(v['pos_err_3d_mean'])} |"))

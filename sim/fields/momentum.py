@@ -60,9 +60,10 @@ r_vec = dp + s n the lateral offset from the wake axis, r = |r_vec|.
    and free of blade parameters. c < 0 (up-flow, i.e. descent) uses the same formula,
    outside momentum theory's validity for -2 < c < 0 (vortex ring state).
    Airframe: quadratic drag on the relative air velocity,
-   a = rho C_d A_ref / (2 m_b) |u - v_b| (u - v_b), with C_d = 1.0 and A_ref = 0.01 m^2
-   (a bluff body, Hoerner, *Fluid-Dynamic Drag*, 1965, ch. 3: a flat plate normal to
-   the flow has C_d ~ 1.2; A_ref ~ the 8 x 8 cm body plus four 9 x 1 cm arms).
+   a = rho C_d A_ref / (2 m_b) |u - v_b| (u - v_b): `sim.wind.drag_acceleration`, with the
+   airframe constants of `sim.wind.AIRFRAME` (C_d = 1.0, A_ref = 0.01 m^2, rho = 1.225
+   kg/m^3; a bluff body, Hoerner, *Fluid-Dynamic Drag*, 1965, ch. 3), the same law and
+   constants through which the ambient wind acts on every vehicle.
    Only the wake's share is returned: each term minus its value in still air
    (u = 0), so the follower's own climb and drag stay out of the field, and the
    field is exactly zero where there is no wake.
@@ -87,6 +88,7 @@ from core.errors import ConfigError
 from core.geometry import dot as _dot
 from core.params import GRAVITY, QUAD
 from core.validate import count, number
+from sim.wind import AIRFRAME, drag_acceleration
 
 __all__ = ["MomentumWake", "rotor_thrust_ratio", "PROFILE_A"]
 
@@ -95,6 +97,7 @@ _BLEND = 4.0  # -, exponent of the smooth min/max joining near and far field (sh
 _MIN_TILT_COS = 0.5  # -, the thrust estimate m g / n_z is capped at 2 m g (60 deg tilt)
 _C_STAR = -(27.0 / 4.0) ** (1.0 / 3.0)  # the cubic's discriminant changes sign here
 _C_SMALL = 0.5  # above: the sinh form, cancellation-free for large c
+_STILL_AIR = np.zeros(3)  # m/s
 
 
 def rotor_thrust_ratio(c: Any) -> np.ndarray:
@@ -128,7 +131,7 @@ class MomentumWake:
     plain numbers, checked on construction (ConfigError naming the bad one).
     """
 
-    air_density: float = 1.225  # kg/m^3, ISA sea level
+    air_density: float = AIRFRAME.air_density  # kg/m^3, ISA sea level
     leader_mass: float = QUAD.mass  # kg, sets the hover thrust m g
     rotor_radius: float = QUAD.rotor_radius  # m, each of the leader's rotors
     n_rotors: int = 4  # -, rotors per vehicle (both vehicles)
@@ -141,8 +144,8 @@ class MomentumWake:
     follower_rotor_radius: float = QUAD.rotor_radius  # m, sets the follower's hover induced velocity
     follower_arm: float = QUAD.arm_length  # m, follower centre to each rotor axis
     ring_points: int = 8  # -, azimuths of the yaw average over the follower's rotor ring
-    drag_coefficient: float = 1.0  # -, C_d of the follower's airframe
-    drag_area: float = 0.01  # m^2, A_ref of the follower's airframe
+    drag_coefficient: float = AIRFRAME.drag_coefficient  # -, C_d of the follower's airframe
+    drag_area: float = AIRFRAME.reference_area  # m^2, A_ref of the follower's airframe
     rotors: bool = True  # include the follower's rotor thrust change
     drag: bool = True  # include the follower's airframe drag
 
@@ -177,8 +180,8 @@ class MomentumWake:
             "_d0": math.sqrt(2.0) * radius_eq,  # m, vena contracta diameter
             "_hover_thrust": float(self.leader_mass) * GRAVITY,  # N
             "_vh_follower": math.sqrt(float(self.follower_mass) * GRAVITY / (2.0 * rho * follower_area)),  # m/s
-            "_drag_gain": rho * float(self.drag_coefficient) * float(self.drag_area)
-            / (2.0 * float(self.follower_mass)),  # 1/m
+            # the airframe drag law's constants (sim.wind.drag_acceleration)
+            "_drag_law": (float(self.follower_mass), float(self.drag_coefficient), float(self.drag_area), rho),
             "_ring_cos": np.cos(azimuth),  # (K,) azimuths of the rotors relative to r_vec
         }
         for name, value in derived.items():
@@ -303,8 +306,6 @@ class MomentumWake:
         if self.drag:
             axial, radial_over_r = self._velocity(s, r2, T)
             u = radial_over_r[..., None] * r_vec - axial[..., None] * n
-            rel = u - v_b
-            speed_rel = np.sqrt(_dot(rel, rel))[..., None]
-            speed_b = np.sqrt(_dot(v_b, v_b))[..., None]
-            out = out + self._drag_gain * (speed_rel * rel + speed_b * v_b)  # minus the still-air drag -|v_b| v_b
+            # the wake's share: the drag in the wake minus the drag in still air
+            out = out + (drag_acceleration(u, v_b, *self._drag_law) - drag_acceleration(_STILL_AIR, v_b, *self._drag_law))
         return out

@@ -1,0 +1,232 @@
+"""Staged data collection for many vehicles, and the multi-vehicle models trained on it.
+
+The two-vehicle staged collection (`downwash.staged`) comes first and is shared: with
+two vehicles every aggregation law is the pairwise field (`sim.aggregation`), so its
+logs serve every law. Then, as the two-vehicle stages move the follower closer, the
+swarm stages add vehicles deeper in the stack:
+
+    stage 3: a leader hovering and two followers at depths 0.45-0.75 m and 1.0-1.3 m,
+             flown with the two-vehicle equivariant model summed over neighbours
+             (the naive model: it is what a lab would deploy first);
+    stage 4: a third follower at 1.55-1.85 m, flown with the deep-sets equivariant model
+             trained on the two-vehicle data and stage 3.
+
+Every follower flies the collection patterns of `trajectories.collection_reference`
+(passes through and beside the wakes, lemniscates) within its own depth band, so no two
+vehicles ever share a height (the bands are 0.25 m apart: no collision is possible).
+After the last stage, each trainable kind of `downwash.swarm_models` is trained twice:
+on the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation
+question of the paper's section 6.
+
+Resumable as the two-vehicle collection: a flight's reference and noise come from its
+own seeds, each log is written as its batch lands, a manifest records what is done; a
+folder of another provenance (field, law, settings, the pair collection) is refused
+with the differences.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from core.errors import ConfigError, DataError
+from core.io import atomic_write_json
+from core.params import LEADER_POSITION
+from core.provenance import describe, differences, fingerprint
+from core.roles import VEHICLE_NAMES, Role
+from downwash.staged import STAGES, train_config
+from downwash.swarm_data import NeighbourSet, concatenate_swarm, load_swarm_dataset
+from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, wrap_pairwise
+from downwash.swarm_train import save_trained, swarm_rmse, train_swarm_model
+from sim.flight import fly
+from sim.logs import save_log
+from sim.scene import build_scene
+from trajectories import Hover, collection_reference, stack
+
+__all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_provenance", "collect_swarm",
+           "swarm_model_path"]
+
+LEADER = np.array(LEADER_POSITION)
+DEPTH_BANDS = ((0.45, 0.75), (1.0, 1.3), (1.55, 1.85))  # m below the leader, follower k of a swarm stage
+SWARM_STAGES = (3, 4)  # vehicles per swarm stage
+DEPLOYED_SWARM_KIND = "deepsets_equivariant"  # trained after stage 3, flown in stage 4
+DATA_MIXES = ("pair", "mixed")  # the two-vehicle data only, or all of it
+ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
+
+
+@dataclass(frozen=True)
+class SwarmCollectionConfig:
+    """Size and settings of the swarm stages (validated on construction)."""
+
+    stage_minutes: float = 2.0  # training flight minutes per swarm stage
+    val_ratio: float = 0.5  # validation minutes per training minute
+    flight_seconds: float = 20.0
+    max_neighbours: int = 3  # the models' neighbour slots: every other vehicle of a 4-vehicle scene
+    clamp: float = 6.0  # m/s^2, bound on the deployed model's prediction
+    seed: int = 0
+    quick: bool = False  # 0.1 min per stage of 4 s flights, a few training steps
+    batch_flights: int = 16
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stage_minutes <= 60:
+            raise ConfigError(f"--swarm-minutes: allowed (0, 60], got {self.stage_minutes}")
+        if not 0 < self.val_ratio <= 5:
+            raise ConfigError(f"val_ratio: allowed (0, 5], got {self.val_ratio}")
+        if not 2.0 <= self.flight_seconds <= 600:
+            raise ConfigError(f"flight_seconds: allowed 2-600 s, got {self.flight_seconds}")
+        if not 1 <= self.max_neighbours <= 7:
+            raise ConfigError(f"max_neighbours: allowed 1-7, got {self.max_neighbours}")
+
+    @property
+    def seconds(self) -> float:
+        return 4.0 if self.quick else self.flight_seconds
+
+    @property
+    def n_train(self) -> int:
+        return max(2, math.ceil((0.1 if self.quick else self.stage_minutes) * 60 / self.seconds))
+
+    @property
+    def n_val(self) -> int:
+        return max(1, math.ceil(self.val_ratio * self.n_train))
+
+    @property
+    def neighbours(self) -> NeighbourSet:
+        return NeighbourSet(self.max_neighbours)
+
+
+def swarm_provenance(cfg: SwarmCollectionConfig, law: Any, pair_record: dict) -> dict:
+    """What defines a swarm collection: the two-vehicle collection's record (field, scene, sim,
+    controller, ...), the aggregation law and the swarm settings."""
+    return {"pair": {k: v for k, v in pair_record.items() if k != "code"}, "aggregation": describe(law),
+            "swarm": {"stages": list(SWARM_STAGES), "depth_bands": [list(b) for b in DEPTH_BANDS],
+                      "stage_minutes": 0.1 if cfg.quick else cfg.stage_minutes, "seconds": cfg.seconds,
+                      "n_train": cfg.n_train, "n_val": cfg.n_val, "neighbours": cfg.neighbours.describe(),
+                      "clamp": cfg.clamp, "deployed_kind": DEPLOYED_SWARM_KIND, "seed": cfg.seed,
+                      "training": train_config(cfg.seed, cfg.quick).to_dict()}}
+
+
+def swarm_model_path(models_dir: str | Path, kind: str, mix: str) -> Path:
+    return Path(models_dir) / f"{kind}-{mix}.pt"
+
+
+def _stage_reference(cfg: SwarmCollectionConfig, n_vehicles: int, flights: list[int]):
+    """The leader's hover and one collection pattern per follower, each in its own depth band."""
+    followers = [collection_reference((cfg.seed, 100 + n_vehicles, k), flights, cfg.n_train, cfg.n_val, LEADER,
+                                      DEPTH_BANDS[k - 1], cfg.seconds).refs[1] for k in range(1, n_vehicles)]
+    return stack([Hover(LEADER, n_worlds=len(flights)), *followers])
+
+
+def _pair_dirs(pair_collection: Path, split: str) -> list[Path]:
+    return [pair_collection / f"stage{k}" / split for k in range(len(STAGES))]
+
+
+def collect_swarm(
+    cfg: SwarmCollectionConfig,
+    out: str | Path,
+    pair_collection: str | Path,
+    pair_model: str | Path,
+    pair_record: dict,
+    field: Any,
+    law: Any,
+    progress: ProgressFactory = lambda label: None,
+) -> dict:
+    """Fly the swarm stages into `out` (resuming) and train the models of every kind and data mix.
+
+    pair_collection: the complete two-vehicle staged collection folder; pair_model: its
+    final equivariant checkpoint (flown summed in stage 3); pair_record: its provenance.
+    Returns {stages: [...], models: {kind-mix: {path, val_rmse}}, provenance, key}.
+    """
+    t0 = time.perf_counter()
+    out, pair_collection = Path(out), Path(pair_collection)
+    record = swarm_provenance(cfg, law, pair_record)
+    manifest_path = out / "manifest.json"
+    manifest = {"provenance": record, "key": fingerprint(record), "stages": {}, "models": {}}
+    if manifest_path.is_file():
+        have = json.loads(manifest_path.read_text())
+        if have.get("key") != manifest["key"]:
+            raise DataError(f"{out}: this folder holds a swarm collection made with other settings:\n  "
+                            + "\n  ".join(differences(have.get("provenance"), record))
+                            + "\nuse another folder or delete this one to start afresh")
+        manifest = have
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(manifest_path, manifest)
+    neighbours = cfg.neighbours
+    load = _Loader(neighbours)
+    stages = []
+    for n_vehicles in SWARM_STAGES:
+        sdir = out / f"stage{n_vehicles}"
+        if n_vehicles == SWARM_STAGES[0]:
+            deployed = SwarmPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant"))
+        else:
+            deployed = SwarmPredictor(swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed"))
+        _fly_stage(cfg, sdir, n_vehicles, field, law, deployed, progress)
+        if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
+            path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
+            if not path.is_file():
+                dirs = _pair_dirs(pair_collection, "train") + [out / f"stage{n}" / "train" for n in SWARM_STAGES
+                                                              if n <= n_vehicles]
+                _train(DEPLOYED_SWARM_KIND, load(dirs), path, cfg)
+        stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
+                       "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
+
+    train_swarm = [out / f"stage{n}" / "train" for n in SWARM_STAGES]
+    val_swarm = [out / f"stage{n}" / "val" for n in SWARM_STAGES]
+    data = {"pair": _pair_dirs(pair_collection, "train"), "mixed": _pair_dirs(pair_collection, "train") + train_swarm}
+    val = load(val_swarm)  # every model is judged on the same many-vehicle validation flights
+    models = {}
+    for kind in TRAINABLE_SWARM_KINDS:
+        for mix in DATA_MIXES:
+            path = swarm_model_path(out / "models", kind, mix)
+            if not path.is_file():
+                _train(kind, load(data[mix]), path, cfg)
+            from downwash.swarm_models import load_swarm_checkpoint
+
+            model = load_swarm_checkpoint(path, expect_kind=kind).model
+            models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": swarm_rmse(model, val)[0]}
+    manifest["complete"] = True
+    atomic_write_json(manifest_path, manifest)
+    return {"stages": stages, "models": models, "provenance": record, "key": manifest["key"],
+            "wall_seconds": time.perf_counter() - t0}
+
+
+class _Loader:
+    """Swarm data sets per folder, loaded once per run."""
+
+    def __init__(self, neighbours: NeighbourSet):
+        self.neighbours, self._cache = neighbours, {}
+
+    def __call__(self, dirs: list[Path]):
+        for d in dirs:
+            if d not in self._cache:
+                self._cache[d] = load_swarm_dataset(d, self.neighbours)
+        return concatenate_swarm([self._cache[d] for d in dirs])
+
+
+def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig) -> None:
+    model, history = train_swarm_model(kind, data, None, train_config(cfg.seed, cfg.quick))
+    save_trained(path, model, history, data)
+
+
+def _fly_stage(cfg: SwarmCollectionConfig, sdir: Path, n_vehicles: int, field: Any, law: Any, predictor: Any,
+               progress: ProgressFactory) -> None:
+    """The stage's missing flights, in batches; each log written as soon as its batch lands."""
+    n_all = cfg.n_train + cfg.n_val
+    paths = [sdir / ("train" if i < cfg.n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_all)]
+    todo = [i for i, p in enumerate(paths) if not p.is_file()]
+    scene = build_scene([(VEHICLE_NAMES[k], Role.LEADER if k == 0 else Role.FOLLOWER) for k in range(n_vehicles)])
+    for start in range(0, len(todo), cfg.batch_flights):
+        batch = todo[start:start + cfg.batch_flights]
+        seeds = [cfg.seed * 100_000 + 10_000 * n_vehicles + i for i in batch]
+        meta = [{"stage": n_vehicles, "index": i, "role": "train" if i < cfg.n_train else "val"} for i in batch]
+        logs = fly(scene, _stage_reference(cfg, n_vehicles, batch), seeds, cfg.seconds, field=field,
+                   aggregation=law, predictor=predictor, meta=meta, n_threads=cfg.threads,
+                   progress=progress(f"swarm stage {n_vehicles}: flights {batch[0]}-{batch[-1]} of {n_all}"))
+        for i, L in zip(batch, logs):
+            save_log(paths[i], L)

@@ -1,0 +1,831 @@
+"""Models for many vehicles: the force on a target from its whole neighbour set.
+
+Every model takes a batch of padded neighbour sets (`downwash.swarm_data`)::
+
+    dp   (B, K, 3)    m     p_target - p_neighbour, world frame (z up)
+    v_a  (B, K, 3)    m/s   neighbour velocities
+    v_b  (B, 3)       m/s   target velocity
+    R_a  (B, K, 3, 3) -     neighbour body-to-world rotations
+    mask (B, K)       bool  real neighbours (False: padding, ignored whatever it holds)
+    F    (B, 3)       m/s^2 predicted force on the target, world frame
+
+and is invariant to the order of the neighbours (sums over the set) and to padding;
+a target without neighbours gets exactly 0. The registry `SWARM_MODEL_KINDS`:
+
+- ``summed_pairwise``: a trained two-vehicle model (any of `downwash.models.MODEL_KINDS`)
+  on each (neighbour, target) pair, summed: the paper's naive multi-vehicle approach
+  (its conclusion) and `downwash.predictor.LearnedPredictor`'s law, with the same gate
+  (a pair whose target is not below the neighbour, depth <= 0, adds 0). No training.
+- ``deepsets_equivariant``: ours. Each neighbour i gives the SO(2)-invariant features
+  x_i of `downwash.features` about its own axis and its output basis rows b_i,c
+  (radial r_hat_i, axial d_i = -n_i, and tangential t_hat_i for the "general" set).
+  phi(x_i) gives a latent z_i and weights a_i,g,c; the set is pooled into invariants
+  ``S = sum_i z_i`` and world vectors ``U_g = sum_i sum_c a_i,g,c b_i,c`` (G channels).
+  Per neighbour, ``rho(z_i, S, [U_g . b_i,c])`` gives coefficients c_i and
+  ``F = sum_i sum_c c_i,c b_i,c``. A rotation Q of the whole configuration about world z
+  (indeed any rotation) leaves every x_i, S and U_g . b_i,c unchanged and rotates every
+  b_i,c, so F(Q x) = Q F(x); the vector channels let the model see where the other
+  neighbours sit relative to each one (the relative azimuth of two wakes), which
+  invariants per neighbour alone cannot.
+- ``deepsets``: Neural-Swarm2's deep sets on raw world-frame inputs: phi([dp_i, v_i, v_b])
+  summed, then rho -> 3 world axes. Not equivariant.
+
+The deep-sets networks are spectrally normalised as the paper's deep baseline
+(`torch.nn.utils.parametrizations.spectral_norm`, largest singular value of each layer
+``gamma = 2``). Each holds its input normalisation and output scaling as buffers; the
+equivariant one scales its outputs by one scalar, which keeps it equivariant.
+
+Checkpoints (`save_swarm_checkpoint`, `load_swarm_checkpoint`) load without executing
+code and record the kind, the neighbour set, the aggregation law and the field of the
+training data; asking for another neighbour set or law raises `CheckpointError` before
+any flight. `SwarmPredictor` puts a model in the control loop (`sim.predictor.Predictor`),
+by default through the model's float64 NumPy twin (`SwarmModel.numpy_forward`, tested
+against the torch model, which stays the readable reference and the training path).
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any, Callable, NamedTuple, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from core.errors import CheckpointError, ConfigError
+from core.io import atomic_write_bytes, to_json
+from core.provenance import differences
+from core.state import VehicleStates
+from core.validate import count, positive_float
+from downwash.checkpoint import (
+    _CORRUPT_PICKLE_ERRORS,
+    MAX_WIDTH,
+    _unpickling_reason,
+    load_checkpoint,
+    sidecar_path,
+)
+from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
+from downwash.predictor import LearnedPredictor
+from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, count_parameters, make_model
+from downwash.swarm_data import NeighbourSet, aggregation_record, gather_neighbours, select_neighbours
+
+__all__ = [
+    "Encoded",
+    "SwarmModel",
+    "SummedPairwise",
+    "DeepSetsEquivariant",
+    "DeepSets",
+    "SWARM_MODEL_KINDS",
+    "TRAINABLE_SWARM_KINDS",
+    "make_swarm_model",
+    "SwarmCheckpoint",
+    "SWARM_CHECKPOINT_FORMAT",
+    "SWARM_CHECKPOINT_VERSION",
+    "wrap_pairwise",
+    "save_swarm_checkpoint",
+    "load_swarm_checkpoint",
+    "check_expectations",
+    "SwarmPredictor",
+]
+
+_STD_FLOOR = 1e-6  # a feature or output with a smaller spread is left unscaled
+RAW_SWARM_FEATURES = ("dp_x", "dp_y", "dp_z", "va_x", "va_y", "va_z", "vb_x", "vb_y", "vb_z")
+
+
+class Encoded(NamedTuple):
+    """Parameter-free model inputs (computed once for a whole data set in training).
+
+    x (B, K, k): per-neighbour features; basis (B, K, n_basis, 3) world-frame output
+    rows, or None; mask (B, K) bool: the neighbours that count.
+    """
+
+    x: torch.Tensor
+    basis: torch.Tensor | None
+    mask: torch.Tensor
+
+    def index(self, idx: Any) -> "Encoded":
+        """The samples at ``idx`` (index tensor or slice)."""
+        return Encoded(self.x[idx], None if self.basis is None else self.basis[idx], self.mask[idx])
+
+
+def _tensor(a: Any, dtype: torch.dtype) -> torch.Tensor:
+    if isinstance(a, np.ndarray) and (not a.flags.writeable or any(st < 0 for st in a.strides)):
+        a = np.array(a)  # torch wants writable, positive strides
+    return torch.as_tensor(a, dtype=dtype)
+
+
+def _check_shapes(dp, v_a, v_b, R_a, mask) -> None:
+    """ConfigError naming the first input whose shape is not the batched neighbour layout."""
+    shapes = {name: tuple(np.shape(a))
+              for name, a in (("dp", dp), ("v_a", v_a), ("v_b", v_b), ("R_a", R_a), ("mask", mask))}
+    if len(shapes["dp"]) != 3:
+        raise ConfigError(f"dp: expected (B, K, 3), got {shapes['dp']}")
+    B, K = shapes["dp"][:2]
+    want = {"dp": (B, K, 3), "v_a": (B, K, 3), "v_b": (B, 3), "R_a": (B, K, 3, 3), "mask": (B, K)}
+    for name, shape in want.items():
+        if shapes[name] != shape:
+            raise ConfigError(f"{name}: expected {shape} (B, K from dp), got {shapes[name]}")
+
+
+def _floored_std(a: torch.Tensor) -> torch.Tensor:
+    std = a.std(0) if a.shape[0] > 1 else torch.ones(a.shape[1:], dtype=a.dtype)
+    return torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
+
+
+def _widths_arg(name: str, widths: Sequence[int]) -> tuple[int, ...]:
+    """Hidden widths: a sequence of integers in [1, MAX_WIDTH]; ConfigError naming the argument."""
+    if isinstance(widths, (int, str)) or not hasattr(widths, "__iter__"):
+        raise ConfigError(f"{name}: expected a sequence of layer widths, got {widths!r}")
+    return tuple(count(name, w, 1, MAX_WIDTH) for w in widths)
+
+
+def _sn_mlp(widths: Sequence[int], gamma: float) -> nn.Sequential:
+    """Spectrally normalised MLP (each layer's largest singular value gamma), ReLU between layers."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
+        if i:
+            layers.append(nn.ReLU())
+        layers.append(_SpectralLinear(a, b, gamma))
+    return nn.Sequential(*layers)
+
+
+@torch.no_grad()
+def _effective_weight64(layer: _SpectralLinear) -> torch.Tensor:
+    """The eval-mode weight ``gamma W / (u . W v)`` computed in float64 from the stored estimates
+    (as the float64 copy of the torch model computes it)."""
+    param = layer.linear.parametrizations.weight[0]
+    w = layer.linear.parametrizations.weight.original.double()
+    sigma = torch.dot(param._u.double(), torch.mv(w, param._v.double()))
+    return layer.gamma * w / sigma
+
+
+@torch.no_grad()
+def _numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(W_i (in, out), b_i (out,)), ...] float64 of an MLP of (spectral) linear layers and ReLUs, as in eval mode."""
+    layers = []
+    for m in net:
+        if isinstance(m, _SpectralLinear):
+            w, b = _effective_weight64(m), m.linear.bias
+        elif isinstance(m, nn.Linear):
+            w, b = m.weight, m.bias
+        elif isinstance(m, nn.ReLU):
+            continue
+        else:  # pragma: no cover - guards future architectures
+            raise TypeError(f"numpy_forward: unsupported layer {type(m).__name__}")
+        layers.append((np.ascontiguousarray(w.detach().double().numpy().T), b.detach().double().numpy().copy()))
+    return layers
+
+
+_MLP_ROWS = 128  # rows per matrix product: small enough that OpenBLAS stays on the calling thread
+
+
+def _numpy_mlp(layers: list[tuple[np.ndarray, np.ndarray]], h: np.ndarray) -> np.ndarray:
+    """The MLP on h (..., in) -> (..., out), in blocks of `_MLP_ROWS` rows.
+
+    Why blocks: one product over all rows is large enough for OpenBLAS to split it over its
+    threads, and on two busy cores those threads waited their turn for milliseconds (we
+    measured 5 ms a call instead of 0.3 ms at 192 targets); a batched (..., in) @ (in, out)
+    instead runs one tiny product per leading index.
+    """
+    lead = h.shape[:-1]
+    h = h.reshape(-1, h.shape[-1])
+    out = np.empty((h.shape[0], layers[-1][1].shape[0]))
+    for i in range(0, h.shape[0], _MLP_ROWS):
+        x = h[i : i + _MLP_ROWS]
+        for w, b in layers[:-1]:
+            x = x @ w
+            x += b
+            np.maximum(x, 0.0, out=x)
+        w, b = layers[-1]
+        out[i : i + _MLP_ROWS] = x @ w + b
+    return out.reshape(*lead, -1)
+
+
+def _numpy_inputs(dp, v_a, v_b, R_a, mask) -> tuple[np.ndarray, ...]:
+    _check_shapes(dp, v_a, v_b, R_a, mask)
+    dp, v_a, v_b, R_a = (np.asarray(a, dtype=np.float64) for a in (dp, v_a, v_b, R_a))
+    return dp, v_a, np.broadcast_to(v_b[:, None, :], dp.shape), R_a, np.asarray(mask, dtype=bool)
+
+
+class SwarmModel(nn.Module):
+    """Common part: the batched call, encode (parameter-free) -> decode (network), description.
+
+    Subclasses set ``kind`` and implement `_features` and `decode`.
+    """
+
+    kind: str = ""
+    trainable: bool = True
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the inputs the model computes in (that of its normalisation buffers)."""
+        return next(self.buffers()).dtype
+
+    def _features(self, dp: torch.Tensor, v_a: torch.Tensor, v_b: torch.Tensor, R_a: torch.Tensor):
+        """(x (B, K, k), basis or None) of tensors; v_b is broadcast to (B, K, 3)."""
+        raise NotImplementedError
+
+    def encode(self, dp, v_a, v_b, R_a, mask) -> Encoded:
+        """Features, basis and mask of a batch (module doc for the shapes), in the model's dtype."""
+        _check_shapes(dp, v_a, v_b, R_a, mask)
+        dtype = self.dtype
+        dp, v_a, v_b, R_a = (_tensor(a, dtype) for a in (dp, v_a, v_b, R_a))
+        mask = _tensor(mask, torch.bool)
+        x, basis = self._features(dp, v_a, v_b[:, None, :].expand_as(dp), R_a)
+        return Encoded(x, basis, mask)
+
+    def decode(self, enc: Encoded) -> torch.Tensor:
+        """Force on each target (B, 3) m/s^2, world frame."""
+        raise NotImplementedError
+
+    def forward(self, dp, v_a, v_b, R_a, mask) -> torch.Tensor:
+        """Predicted force on each target (B, 3) m/s^2 (see the module doc)."""
+        return self.decode(self.encode(dp, v_a, v_b, R_a, mask))
+
+    def fit_normalization(self, enc: Encoded, y: torch.Tensor) -> None:
+        """Set the normalisation buffers from training inputs and labels y (B, 3) m/s^2."""
+
+    def architecture(self) -> dict[str, Any]:
+        """Constructor arguments that rebuild this architecture (JSON-serialisable)."""
+        return {}
+
+    def normalization(self) -> dict[str, list[float]]:
+        return {}
+
+    def describe(self) -> dict[str, Any]:
+        """Kind, architecture and parameter count (JSON-serialisable)."""
+        return {"kind": self.kind, "architecture": self.architecture(), "n_parameters": count_parameters(self)}
+
+    def numpy_forward(self) -> Callable[..., np.ndarray]:
+        """The model as a float64 NumPy function ``f(dp, v_a, v_b, R_a, mask) -> F (B, 3)`` (the
+        inputs of `forward`): the weights as they are now (eval mode), copied. The predictor's
+        default path: a few hundred microseconds less per call than torch's per-operation cost."""
+        raise NotImplementedError
+
+    def spectral_layers(self) -> list[_SpectralLinear]:
+        return [m for m in self.modules() if isinstance(m, _SpectralLinear)]
+
+    @torch.no_grad()
+    def settle_spectral_norm(self) -> None:
+        """Power iterations to convergence, so eval mode bounds every layer exactly (see `DeepSNMLP`)."""
+        DeepSNMLP.settle_spectral_norm(self)  # the same procedure: it only walks spectral_layers()
+
+
+class SummedPairwise(SwarmModel):
+    """A two-vehicle model applied to each (neighbour, target) pair and summed (masked).
+
+    pairwise: a `DownwashModel` (used as is, not copied), or the record of one
+      (``{"kind", "feature_set", "architecture", "dtype"}``) to rebuild with fresh weights
+      before a state dict is loaded. A pair whose target is not below its neighbour
+      (depth ``-(dp . n) <= 0``) adds 0, as in `LearnedPredictor`.
+    """
+
+    kind = "summed_pairwise"
+    trainable = False
+
+    def __init__(self, pairwise: DownwashModel | dict):
+        super().__init__()
+        if isinstance(pairwise, dict):
+            pairwise = _rebuild_pairwise(pairwise)
+        if not isinstance(pairwise, DownwashModel):
+            raise ConfigError(f"pairwise: expected a DownwashModel or its record, got {type(pairwise).__name__}")
+        self.pairwise = pairwise
+
+    def encode(self, dp, v_a, v_b, R_a, mask) -> Encoded:
+        enc = super().encode(dp, v_a, v_b, R_a, mask)
+        below = depth(_tensor(dp, self.dtype), _tensor(R_a, self.dtype)) > 0
+        return Encoded(enc.x, enc.basis, enc.mask & below)
+
+    def _features(self, dp, v_a, v_b, R_a):
+        return model_inputs(self.pairwise.feature_set, dp, v_a, v_b, R_a)
+
+    def decode(self, enc: Encoded) -> torch.Tensor:
+        f = self.pairwise.decode(enc.x, enc.basis)  # (B, K, 3)
+        return torch.where(enc.mask[..., None], f, 0.0).sum(1)
+
+    def numpy_forward(self) -> Callable[..., np.ndarray]:
+        pairs = LearnedPredictor(self.pairwise, backend="numpy")  # its float64 pair law, depth gate included
+
+        def forward(dp, v_a, v_b, R_a, mask):
+            _check_shapes(dp, v_a, v_b, R_a, mask)
+            B, K = np.shape(mask)
+            f = pairs.predict_pairs(np.reshape(dp, (B * K, 3)), np.reshape(v_a, (B * K, 3)),
+                                    np.repeat(np.asarray(v_b, dtype=np.float64), K, axis=0),
+                                    np.reshape(R_a, (B * K, 3, 3)))
+            return np.where(np.asarray(mask)[..., None], f.reshape(B, K, 3), 0.0).sum(1)
+
+        return forward
+
+    def architecture(self) -> dict[str, Any]:
+        p = self.pairwise
+        return {"pairwise": {"kind": p.kind, "feature_set": p.feature_set, "architecture": p.architecture(),
+                             "dtype": str(p.in_mean.dtype).replace("torch.", "")}}
+
+    def normalization(self) -> dict[str, list[float]]:
+        return self.pairwise.normalization()
+
+
+def _rebuild_pairwise(record: dict) -> DownwashModel:
+    kind = record.get("kind")
+    if kind not in MODEL_KINDS:
+        raise ConfigError(f"pairwise kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
+    model = make_model(kind, record.get("feature_set"), **dict(record.get("architecture") or {}))
+    return model.double() if record.get("dtype") == "float64" else model
+
+
+class _DeepSetsBase(SwarmModel):
+    """Input normalisation (k,) of the per-neighbour features, fitted over real neighbours only."""
+
+    def __init__(self, n_features: int):
+        super().__init__()
+        self.n_features = n_features
+        self.register_buffer("in_mean", torch.zeros(n_features))
+        self.register_buffer("in_std", torch.ones(n_features))
+
+    def _normalised(self, enc: Encoded) -> torch.Tensor:
+        """(x - mean) / std, 0 in padding (so padding never reaches a sum, whatever it holds)."""
+        return torch.where(enc.mask[..., None], (enc.x - self.in_mean) / self.in_std, 0.0)
+
+    @torch.no_grad()
+    def fit_normalization(self, enc: Encoded, y: torch.Tensor) -> None:
+        real = enc.x[enc.mask]
+        if real.shape[0] >= 2:
+            self.in_mean.copy_(real.mean(0))
+            self.in_std.copy_(_floored_std(real))
+        self._fit_output(torch.as_tensor(y, dtype=self.in_mean.dtype))
+
+    def _fit_output(self, y: torch.Tensor) -> None:
+        raise NotImplementedError
+
+    def normalization(self) -> dict[str, list[float]]:
+        return {name: buf.tolist() for name, buf in self.named_buffers() if "." not in name}
+
+
+class DeepSetsEquivariant(_DeepSetsBase):
+    """Deep sets on each neighbour's invariant features, with an equivariant output (module doc).
+
+    feature_set: one of `features.EQUIVARIANT_FEATURE_SETS` ("general": 10 features and
+      three basis rows, default; "5", "6": the paper's, two rows).
+    phi_hidden, latent: phi's hidden widths and its invariant latent size L.
+    vectors: G, the pooled world-vector channels.
+    rho_hidden: rho's hidden widths; rho maps (z_i, S, U . b_i) (2 L + G n_basis) to n_basis.
+    gamma: largest singular value of every layer.
+    Buffers: in_mean, in_std (k,) of the features; out_scale (1,) m/s^2, one scalar for
+    every output channel (keeps the model equivariant).
+    """
+
+    kind = "deepsets_equivariant"
+
+    def __init__(self, feature_set: str = "general", phi_hidden: Sequence[int] = (32, 32), latent: int = 16,
+                 vectors: int = 4, rho_hidden: Sequence[int] = (32, 32), gamma: float = 2.0):
+        if feature_set not in EQUIVARIANT_FEATURE_SETS:
+            raise ConfigError(f"feature_set: {self.kind!r} accepts {list(EQUIVARIANT_FEATURE_SETS)}, "
+                              f"got {feature_set!r}")
+        super().__init__(len(FEATURE_SETS[feature_set]))
+        self.feature_set = feature_set
+        self.n_basis = N_BASIS[feature_set]
+        self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
+        self.latent, self.vectors = count("latent", latent, 1, MAX_WIDTH), count("vectors", vectors, 1, MAX_WIDTH)
+        self.gamma = positive_float("gamma", gamma, "(largest singular value)")
+        nb = self.n_basis
+        self.phi = _sn_mlp([self.n_features, *self.phi_hidden, self.latent + self.vectors * nb], self.gamma)
+        self.rho = _sn_mlp([2 * self.latent + self.vectors * nb, *self.rho_hidden, nb], self.gamma)
+        self.register_buffer("out_scale", torch.ones(1))
+        self.settle_spectral_norm()
+
+    def _features(self, dp, v_a, v_b, R_a):
+        return model_inputs(self.feature_set, dp, v_a, v_b, R_a)
+
+    def decode(self, enc: Encoded) -> torch.Tensor:
+        m = enc.mask[..., None]
+        B, K = enc.mask.shape
+        L, G, nb = self.latent, self.vectors, self.n_basis
+        basis = torch.where(m[..., None], enc.basis, 0.0)  # (B, K, nb, 3)
+        h = torch.where(m, self.phi(self._normalised(enc)), 0.0)
+        z, a = h[..., :L], h[..., L:].reshape(B, K, G, nb)
+        pooled = z.sum(1)  # (B, L) invariant
+        vec = torch.einsum("bkgc,bkcj->bgj", a, basis)  # (B, G, 3) world vectors: rotate with the configuration
+        seen = torch.einsum("bgj,bkcj->bkgc", vec, basis).reshape(B, K, G * nb)  # invariant in each frame
+        coef = self.rho(torch.cat([z, pooled[:, None, :].expand(B, K, L), seen], -1)) * self.out_scale
+        return torch.einsum("bkc,bkcj->bj", torch.where(m, coef, 0.0), basis)
+
+    def numpy_forward(self) -> Callable[..., np.ndarray]:
+        phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
+        mean, std = self.in_mean.double().numpy().copy(), self.in_std.double().numpy().copy()
+        scale, L, G, nb, feature_set = float(self.out_scale), self.latent, self.vectors, self.n_basis, self.feature_set
+
+        def forward(dp, v_a, v_b, R_a, mask):  # decode, step for step
+            dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
+            B, K = mask.shape
+            x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
+            m = mask[..., None]
+            basis = np.where(m[..., None], basis, 0.0)
+            h = np.where(m, _numpy_mlp(phi, np.where(m, (x - mean) / std, 0.0)), 0.0)
+            z, a = h[..., :L], h[..., L:].reshape(B, K, G, nb)
+            rows = basis.reshape(B, K * nb, 3)  # the einsums of decode as batched matrix products
+            vec = a.transpose(0, 2, 1, 3).reshape(B, G, K * nb) @ rows  # (B, G, 3)
+            seen = (rows @ vec.transpose(0, 2, 1)).reshape(B, K, nb, G).transpose(0, 1, 3, 2).reshape(B, K, G * nb)
+            pooled = np.broadcast_to(z.sum(1)[:, None, :], (B, K, L))
+            coef = _numpy_mlp(rho, np.concatenate([z, pooled, seen], -1)) * scale
+            return (np.where(m, coef, 0.0).reshape(B, 1, K * nb) @ rows)[:, 0]
+
+        return forward
+
+    def _fit_output(self, y: torch.Tensor) -> None:
+        rms = torch.sqrt(torch.mean(y**2))  # one scalar for every channel keeps the model equivariant
+        self.out_scale.fill_(float(rms) if float(rms) > _STD_FLOOR else 1.0)
+
+    def architecture(self) -> dict[str, Any]:
+        return {"feature_set": self.feature_set, "phi_hidden": list(self.phi_hidden), "latent": self.latent,
+                "vectors": self.vectors, "rho_hidden": list(self.rho_hidden), "gamma": self.gamma}
+
+
+class DeepSets(_DeepSetsBase):
+    """Neural-Swarm2's deep sets: ``rho(sum_i phi([dp_i, v_i, v_b]))`` -> 3 world axes (not equivariant).
+
+    Buffers: in_mean, in_std (9,); out_mean, out_std (3,) m/s^2 per world axis.
+    A target with no neighbour gets 0 (rho of the empty sum is not used).
+    """
+
+    kind = "deepsets"
+
+    def __init__(self, phi_hidden: Sequence[int] = (48, 48), latent: int = 24, rho_hidden: Sequence[int] = (48, 48),
+                 gamma: float = 2.0):
+        super().__init__(len(RAW_SWARM_FEATURES))
+        self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
+        self.latent = count("latent", latent, 1, MAX_WIDTH)
+        self.gamma = positive_float("gamma", gamma, "(largest singular value)")
+        self.phi = _sn_mlp([self.n_features, *self.phi_hidden, self.latent], self.gamma)
+        self.rho = _sn_mlp([self.latent, *self.rho_hidden, 3], self.gamma)
+        self.register_buffer("out_mean", torch.zeros(3))
+        self.register_buffer("out_std", torch.ones(3))
+        self.settle_spectral_norm()
+
+    def _features(self, dp, v_a, v_b, R_a):
+        return torch.cat([dp, v_a, v_b], -1), None
+
+    def decode(self, enc: Encoded) -> torch.Tensor:
+        pooled = torch.where(enc.mask[..., None], self.phi(self._normalised(enc)), 0.0).sum(1)
+        out = self.rho(pooled) * self.out_std + self.out_mean
+        return torch.where(enc.mask.any(1, keepdim=True), out, 0.0)
+
+    def numpy_forward(self) -> Callable[..., np.ndarray]:
+        phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
+        mean, std, out_mean, out_std = (getattr(self, k).double().numpy().copy()
+                                        for k in ("in_mean", "in_std", "out_mean", "out_std"))
+
+        def forward(dp, v_a, v_b, R_a, mask):  # decode, step for step
+            dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
+            m = mask[..., None]
+            xn = np.where(m, (np.concatenate([dp, v_a, v_b], -1) - mean) / std, 0.0)
+            pooled = np.where(m, _numpy_mlp(phi, xn), 0.0).sum(1)
+            out = _numpy_mlp(rho, pooled) * out_std + out_mean
+            return np.where(mask.any(1)[:, None], out, 0.0)
+
+        return forward
+
+    def _fit_output(self, y: torch.Tensor) -> None:
+        self.out_mean.copy_(y.mean(0))
+        self.out_std.copy_(_floored_std(y))
+
+    def architecture(self) -> dict[str, Any]:
+        return {"phi_hidden": list(self.phi_hidden), "latent": self.latent, "rho_hidden": list(self.rho_hidden),
+                "gamma": self.gamma}
+
+
+# The one registry of multi-vehicle model kinds.
+SWARM_MODEL_KINDS: dict[str, type[SwarmModel]] = {
+    "summed_pairwise": SummedPairwise,
+    "deepsets_equivariant": DeepSetsEquivariant,
+    "deepsets": DeepSets,
+}
+TRAINABLE_SWARM_KINDS = tuple(k for k, cls in SWARM_MODEL_KINDS.items() if cls.trainable)
+
+
+def make_swarm_model(kind: str, **architecture: Any) -> SwarmModel:
+    """A fresh model of a registered kind (float32, initialised from torch's global RNG).
+
+    ``summed_pairwise`` needs ``pairwise=`` (a trained `DownwashModel`, or its record);
+    ConfigError naming the allowed kinds, TypeError for bad architecture arguments.
+    """
+    if kind not in SWARM_MODEL_KINDS:
+        raise ConfigError(f"swarm model kind: expected one of {sorted(SWARM_MODEL_KINDS)}, got {kind!r}")
+    try:
+        return SWARM_MODEL_KINDS[kind](**architecture)
+    except TypeError as e:
+        raise TypeError(f"swarm model kind {kind!r}: bad architecture arguments {sorted(architecture)}: {e}") from e
+
+
+# -- checkpoints -----------------------------------------------------------------------------
+
+SWARM_CHECKPOINT_FORMAT = "downwash-swarm-model"
+SWARM_CHECKPOINT_VERSION = 1
+
+
+class SwarmCheckpoint(NamedTuple):
+    """A model with what it was made for: its neighbour set and its record (``aggregation``,
+    ``field``, ``provenance``, training ...; the fields `save_swarm_checkpoint` stores)."""
+
+    model: SwarmModel
+    neighbours: NeighbourSet
+    record: dict[str, Any]
+
+
+def _field_of(record: dict[str, Any]) -> Any:
+    """The field a two-vehicle checkpoint's data was flown on (staged: provenance.field;
+    experiments.train: provenance.flights.field), or None when it does not say."""
+    prov = record.get("provenance")
+    if not isinstance(prov, dict):
+        return None
+    if "field" in prov:
+        return prov["field"]
+    flights = prov.get("flights")
+    return flights.get("field") if isinstance(flights, dict) else None
+
+
+def wrap_pairwise(pairwise: DownwashModel | str | os.PathLike, neighbours: NeighbourSet | None = None,
+                  expect_kind: str | None = None) -> SwarmCheckpoint:
+    """``summed_pairwise`` from a trained two-vehicle model or its checkpoint file.
+
+    The aggregation law recorded is the linear sum (what summing pairs assumes); the field is
+    that of the pair model's data when its checkpoint says. neighbours: default `NeighbourSet()`
+    (every other vehicle).
+    """
+    neighbours = NeighbourSet() if neighbours is None else neighbours
+    record: dict[str, Any] = {}
+    if isinstance(pairwise, (str, os.PathLike)):
+        path = pairwise
+        pairwise, record = load_checkpoint(path, expect_kind=expect_kind)
+        record = {"pairwise_checkpoint": str(path), "pairwise_provenance": record.get("provenance")}
+        record["field"] = _field_of({"provenance": record["pairwise_provenance"]})
+    elif expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
+        raise ConfigError(f"pairwise: model kind is {getattr(pairwise, 'kind', None)!r}, expected {expect_kind!r}")
+    model = SummedPairwise(copy.deepcopy(pairwise)).eval()  # the caller's model stays as it is
+    record = {**record, "aggregation": aggregation_record("linear")}
+    record.setdefault("field", None)
+    return SwarmCheckpoint(model, neighbours, record)
+
+
+def save_swarm_checkpoint(path: str | os.PathLike, model: SwarmModel, neighbours: NeighbourSet,
+                          provenance: dict[str, Any] | None, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``model`` and its record to ``path`` atomically (a ``.json`` copy of the record beside it).
+
+    provenance: what the training data was flown with (`SwarmDataset.provenance`, or a
+      `SwarmCheckpoint.record`); its ``aggregation`` (required: a law or its record, or None
+      for two-vehicle data only) and ``field`` are stored at the top of the record, where the
+      loader checks them.
+    meta: extra JSON-serialisable metadata (training history, data summary, seed); the keys
+      "model", "neighbours", "aggregation", "field" are reserved. Returns the stored record.
+    """
+    if not isinstance(model, SwarmModel):
+        raise TypeError(f"model: expected a SwarmModel, got {type(model).__name__}")
+    if not isinstance(neighbours, NeighbourSet):
+        raise TypeError(f"neighbours: expected a NeighbourSet, got {type(neighbours).__name__}")
+    meta = dict(meta or {})
+    reserved = sorted({"model", "neighbours", "aggregation", "field"} & set(meta))
+    if reserved:
+        raise ValueError(f"meta: the keys {reserved} are reserved")
+    provenance = dict(provenance or {})
+    if "aggregation" not in provenance:
+        raise ValueError("provenance: must name the aggregation law of the training data ('aggregation')")
+    record = {
+        **meta,
+        "provenance": {k: v for k, v in provenance.items() if k not in ("aggregation", "field")} or None,
+        "model": {**model.describe(), "normalization": model.normalization(),
+                  "dtype": str(model.dtype).replace("torch.", "")},
+        "neighbours": neighbours.describe(),
+        "aggregation": None if provenance["aggregation"] is None else aggregation_record(provenance["aggregation"]),
+        "field": provenance.get("field"),
+    }
+    try:
+        meta_json = to_json(record)
+    except TypeError as e:
+        raise TypeError(f"checkpoint metadata: {e}") from e
+    record = json.loads(meta_json)
+    payload = {
+        "format": SWARM_CHECKPOINT_FORMAT,
+        "version": SWARM_CHECKPOINT_VERSION,
+        "meta_json": meta_json,
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+    }
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    path = Path(path)
+    atomic_write_bytes(sidecar_path(path), (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
+    atomic_write_bytes(path, buf.getvalue())
+    return record
+
+
+def _read(path: Path) -> tuple[dict, dict]:
+    """(payload, record) through the safe loader (weights_only); CheckpointError naming the file."""
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except (zipfile.BadZipFile, OSError, ValueError) as e:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): {e}") from e
+    if not is_zip:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(f"{path}: refused by the safe loader (weights_only=True): it holds objects other than "
+                              f"tensors and plain containers ({_unpickling_reason(e)})") from e
+    except _CORRUPT_PICKLE_ERRORS as e:
+        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): "
+                              f"{type(e).__name__}: {e}") from e
+    if isinstance(payload, dict) and payload.get("format") == "downwash-model":
+        raise CheckpointError(f"{path}: a two-vehicle model checkpoint, not a swarm model; wrap it with "
+                              "downwash.swarm_models.wrap_pairwise (kind 'summed_pairwise')")
+    if not isinstance(payload, dict) or payload.get("format") != SWARM_CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {SWARM_CHECKPOINT_FORMAT!r} checkpoint of this project")
+    if payload.get("version") != SWARM_CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads "
+                              f"{SWARM_CHECKPOINT_VERSION}")
+    try:
+        record = json.loads(payload["meta_json"])
+    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
+    state = payload.get("state_dict")
+    if not isinstance(record, dict) or not isinstance(record.get("model"), dict):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: no model record")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise CheckpointError(f"{path}: corrupt checkpoint: the state dict must map names to tensors")
+    return payload, record
+
+
+def _widths(value: Any) -> list[int]:
+    """Every integer in an architecture record (layer widths, latent sizes)."""
+    if isinstance(value, dict):
+        return [w for v in value.values() for w in _widths(v)]
+    if isinstance(value, list):
+        return [w for v in value for w in _widths(v)]
+    return [value] if isinstance(value, int) and not isinstance(value, bool) else []
+
+
+def check_expectations(where: Any, neighbours: NeighbourSet, record: dict[str, Any],
+                       expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None) -> None:
+    """CheckpointError when a model's neighbour set or aggregation law is not the one asked for.
+
+    expect_aggregation: a registered name, a law object or a stored record (`aggregation_record`).
+    """
+    if expect_neighbours is not None and neighbours != expect_neighbours:
+        raise CheckpointError(f"{where}: trained for the neighbour set {neighbours.describe()}, but the flight "
+                              f"asks for {expect_neighbours.describe()}; train or wrap a model for that set")
+    if expect_aggregation is not None:
+        want = aggregation_record(expect_aggregation)
+        have = record.get("aggregation")
+        if have is None:
+            raise CheckpointError(f"{where}: trained on two-vehicle flights only (where every law is the pairwise "
+                                  f"force), not for the flight's aggregation law {want}")
+        diffs = differences(have, want)
+        if diffs:
+            raise CheckpointError(f"{where}: trained for another aggregation law than the flight's:\n  "
+                                  + "\n  ".join(diffs))
+
+
+def load_swarm_checkpoint(path: str | os.PathLike, expect_kind: str | None = None,
+                          expect_neighbours: NeighbourSet | None = None,
+                          expect_aggregation: Any = None) -> SwarmCheckpoint:
+    """Rebuild a model from ``path`` (eval mode), with its neighbour set and record.
+
+    Raises CheckpointError naming the file when it is missing, unreadable, holds anything
+    but tensors and plain containers, is not a swarm checkpoint of this project, or its
+    kind, neighbour set, aggregation law or tensors differ from what was asked for.
+    """
+    path = Path(path)
+    payload, record = _read(path)
+    desc = record["model"]
+    kind, architecture = desc.get("kind"), desc.get("architecture", {})
+    if not isinstance(kind, str) or not isinstance(architecture, dict):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: kind {kind!r}, architecture {architecture!r}")
+    if any(not 1 <= w <= MAX_WIDTH for w in _widths(architecture)):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: architecture {architecture} "
+                              f"(sizes must lie in 1-{MAX_WIDTH})")
+    if expect_kind is not None and kind != expect_kind:
+        raise CheckpointError(f"{path}: model kind is {kind!r}, expected {expect_kind!r}")
+    if kind not in SWARM_MODEL_KINDS:
+        raise CheckpointError(f"{path}: unknown swarm model kind {kind!r} (known: {sorted(SWARM_MODEL_KINDS)})")
+    try:
+        neighbours = NeighbourSet.from_record(record.get("neighbours"))
+    except ConfigError as e:
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e}") from e
+    if "aggregation" not in record or not isinstance(record["aggregation"], (dict, type(None))):
+        raise CheckpointError(f"{path}: corrupt checkpoint metadata: no aggregation law record")
+    check_expectations(path, neighbours, record, expect_neighbours, expect_aggregation)
+    try:
+        model = make_swarm_model(kind, **architecture)
+    except (ValueError, TypeError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: cannot rebuild the model: {e}") from e
+    if desc.get("dtype") == "float64":
+        model = model.double()
+    state = payload["state_dict"]
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    found = {k: tuple(v.shape) for k, v in state.items()}
+    problems = [f"missing tensor {k!r} (expected shape {s})" for k, s in expected.items() if k not in found]
+    problems += [f"unexpected tensor {k!r}" for k in found if k not in expected]
+    problems += [f"tensor {k!r} has shape {found[k]}, expected {s}" for k, s in expected.items()
+                 if k in found and found[k] != s]
+    if problems:
+        raise CheckpointError(f"{path}: weights do not match a {kind!r} model: " + "; ".join(problems))
+    model.load_state_dict(state, strict=True)
+    return SwarmCheckpoint(model.eval(), neighbours, record)
+
+
+# -- the model in the loop -----------------------------------------------------------------------
+
+
+@torch.no_grad()
+def _fold_spectral(model: nn.Module) -> nn.Module:
+    """Replace every spectrally normalised layer (in eval mode) by a plain linear layer with its
+    effective weight: the same function, without the per-call normalisation (inference only)."""
+    for module in list(model.modules()):
+        for name, child in list(module.named_children()):
+            if isinstance(child, _SpectralLinear):
+                w = child.effective_weight()
+                plain = nn.Linear(w.shape[1], w.shape[0], dtype=w.dtype)
+                plain.weight.copy_(w)
+                plain.bias.copy_(child.linear.bias)
+                setattr(module, name, plain)
+    return model
+
+
+class SwarmPredictor:
+    """A swarm model in the predictor slot: (W, V, 3) m/s^2, world frame, float64.
+
+    checkpoint: a `SwarmCheckpoint` (e.g. from `load_swarm_checkpoint` or `wrap_pairwise`) or
+      the path of a swarm checkpoint file.
+    expect_neighbours, expect_aggregation: what the flight needs; a model made for another
+      neighbour set or aggregation law raises CheckpointError here, before any flight.
+    backend: "numpy" (default): the model's float64 NumPy twin (`SwarmModel.numpy_forward`);
+      "torch": the frozen torch model under ``torch.inference_mode``, its readable reference
+      (they agree to float64 rounding, a test), 2-5x slower on these small batches.
+    dtype: the torch backend's precision (default float64: the model is copied and converted).
+    num_threads: torch intra-op threads during a torch call (default 1: these small batches
+      ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
+
+    Each call selects every vehicle's neighbour set from the ESTIMATED positions (the
+    data's `select_neighbours`) and evaluates all worlds and vehicles in one batch.
+    """
+
+    def __init__(self, checkpoint: SwarmCheckpoint | str | os.PathLike, *,
+                 expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
+                 backend: str = "numpy", dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
+        if isinstance(checkpoint, (str, os.PathLike)):
+            checkpoint = load_swarm_checkpoint(checkpoint, expect_neighbours=expect_neighbours,
+                                               expect_aggregation=expect_aggregation)
+        elif isinstance(checkpoint, SwarmCheckpoint):
+            check_expectations(f"{checkpoint.model.kind} model", checkpoint.neighbours, checkpoint.record,
+                               expect_neighbours, expect_aggregation)
+        else:
+            raise TypeError(f"checkpoint: expected a SwarmCheckpoint or a path, got {type(checkpoint).__name__}")
+        if backend not in self.BACKENDS:
+            raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
+        self.backend = backend
+        model = copy.deepcopy(checkpoint.model).eval()  # eval: the spectral-norm estimates stay as stored
+        self._numpy = model.numpy_forward() if backend == "numpy" else None
+        model = _fold_spectral(model.to(dtype))
+        for p in model.parameters():
+            p.requires_grad_(False)
+        self.model = model
+        self.neighbours = checkpoint.neighbours
+        self.record = checkpoint.record
+        self.kind = model.kind
+        self.num_threads = None if num_threads is None else count("num_threads", num_threads, 1)
+
+    BACKENDS = ("numpy", "torch")
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.kind, "neighbours": self.neighbours.describe(),
+                "aggregation": self.record.get("aggregation"), "backend": self.backend}
+
+    def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
+        """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored."""
+        pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
+        W, V = pos.shape[:2]
+        if V < 2:
+            return np.zeros((W, V, 3))
+        index, mask = select_neighbours(pos, self.neighbours)
+        g = gather_neighbours(pos, vel, rot, index, mask)
+        K = index.shape[-1]
+        batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
+                 g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
+        if self._numpy is not None:
+            return self._numpy(*batch).reshape(W, V, 3)
+        old_threads = torch.get_num_threads()
+        if self.num_threads is not None:
+            torch.set_num_threads(self.num_threads)
+        try:
+            with torch.inference_mode():
+                out = self.model(*batch)
+        finally:
+            if self.num_threads is not None:
+                torch.set_num_threads(old_threads)
+        return out.double().numpy().reshape(W, V, 3)

@@ -1,0 +1,167 @@
+"""The paper's outdoor regime (its section 6): a moving leader, the follower beneath it, ambient wind.
+
+    python -m experiments.outdoor [--leader circle|line] [--speed 1.5] [--wind light:mean=2,0,0] [--quick]
+
+Alpha flies a horizontal circle (or a straight line) at `--speed` m/s (0.5-3); Bravo
+tracks the point `--separation` below it (and `--lateral` to its side, so it sits on
+the wake's flank where the radial force acts). The wind (`--wind`, a mean wind plus
+Dryden gusts, see `sim.wind`) acts on both vehicles through their airframe drag and
+convects the wake: its axis follows the leader's airspeed, not its ground speed. Every
+condition flies the same seeds in one batch: the references, the oracle (the true mean
+wake at the true, air-relative state) and the models of the staged collection, which
+were trained indoors on a hovering leader in still air. So this measures how far
+they carry into a regime they never saw. Writes results.json (with the leader's
+airspeed range), a table and a figure.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from core.errors import ConfigError
+from core.params import LEADER_POSITION
+from core.provenance import describe
+from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
+from downwash.staged import ensure_models
+from experiments.common import (WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind, parse_args,
+                                resolve_pipeline, setup_logging, write_results)
+from sim.metrics import aggregate_conditions, tracking_errors
+from sim.scene import build_scene
+from trajectories import Circle, Line, Offset, stack
+
+__all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
+
+LEADERS = ("circle", "line")
+SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the issue's sustained-speed regime)
+
+
+@dataclass(frozen=True)
+class OutdoorArgs(PipelineArgs):
+    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS))
+    seeds: int = arg(5, "number of seeds (flights per condition)")
+    leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)")
+    speed: float = arg(1.5, f"the leader's ground speed, m/s ({SPEED_RANGE[0]}-{SPEED_RANGE[1]})")
+    radius: float = arg(2.0, "radius of the leader's circle, m (1-10)")
+    separation: float = arg(0.6, "the follower's depth below the leader, m (0.3-2.0)")
+    lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m (0-1)")
+    wind: str = arg("light:mean=2,0,0", WIND_HELP)
+    duration: float = arg(20.0, "flight length, s")
+
+
+def _validate(args: OutdoorArgs) -> list[str]:
+    conditions = parse_conditions(args.conditions)
+    checks = [
+        (args.leader in LEADERS, f"--leader: unknown {args.leader!r}; allowed: {', '.join(LEADERS)}"),
+        (SPEED_RANGE[0] <= args.speed <= SPEED_RANGE[1],
+         f"--speed: {args.speed} m/s is out of range; allowed {SPEED_RANGE[0]}-{SPEED_RANGE[1]} m/s"),
+        (1.0 <= args.radius <= 10.0, f"--radius: {args.radius} m is out of range; allowed 1-10 m"),
+        (0.3 <= args.separation <= 2.0, f"--separation: {args.separation} m is out of range; allowed 0.3-2.0 m"),
+        (0.0 <= args.lateral <= 1.0, f"--lateral: {args.lateral} m is out of range; allowed 0-1 m"),
+        (args.seeds >= 1, f"--seeds: expected >= 1, got {args.seeds}"),
+        (args.duration > 0, f"--duration: expected > 0 s, got {args.duration}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(message)
+    return conditions
+
+
+def _leader_reference(args: OutdoorArgs, W: int):
+    top = np.array(LEADER_POSITION)
+    if args.leader == "circle":
+        return Circle(top, radius=args.radius, speed=args.speed, n_worlds=W)
+    start = top - np.array([0.5 * args.speed * args.duration, 0.0, 0.0])  # the line is centred on the origin
+    return Line(start, (args.speed, 0.0, 0.0), duration=args.duration, n_worlds=W)
+
+
+def run(args: OutdoorArgs) -> dict:
+    """Fly every condition x seed with the moving leader and the wind; write results, table and figure."""
+    conditions = _validate(args)
+    wind = load_wind(args.wind)
+    p = resolve_pipeline(args)
+    checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, p.field, ProgressBar)
+    t_start = time.perf_counter()
+    K = args.seeds
+    W = len(conditions) * K
+    leader = _leader_reference(args, W)
+    follower = Offset(leader, (0.0, args.lateral, -args.separation))
+    seeds = list(range(args.seed, args.seed + K))
+    per_condition = fly_conditions(build_scene(), conditions, stack([leader, follower]), seeds, args.duration,
+                                   p.field, checkpoints, meta={"experiment": "outdoor"}, wind=wind)
+    results: dict[str, Any] = {
+        "experiment": "outdoor", "leader": args.leader, "speed": args.speed, "separation": args.separation,
+        "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
+        "wind": None if wind is None else describe(wind), "leader_airspeed": _airspeed(per_condition),
+        "conditions": aggregate_conditions(per_condition),
+    }
+    results["wall_seconds"] = time.perf_counter() - t_start
+    out = Path(args.out)
+    path = write_results(out, results, args, p.provenance() if checkpoints else None)
+    _figure(out, per_condition, results)
+    print(_table(results, args.wind))
+    print(f"\nwrote {path} and {out / 'errors_over_time.png'}")
+    return results
+
+
+def _airspeed(per_condition: dict) -> dict[str, float]:
+    """The leader's airspeed |v - u_air| over every flight (m/s): what weakens and tilts its wake."""
+    speeds = []
+    for logs in per_condition.values():
+        for L in logs:
+            vel = L["vel"][:, L.meta["leader"]]
+            air = L["wind"][:, L.meta["leader"]] if "wind" in L.arrays else np.zeros_like(vel)  # logged with wind on
+            speeds.append(np.linalg.norm(vel - air, axis=-1))
+    s = np.concatenate(speeds)
+    return {"mean": float(s.mean()), "min": float(s.min()), "max": float(s.max())}
+
+
+def _table(results: dict, wind_spec: str) -> str:
+    rows = []
+    for c, e in results["conditions"].items():
+        rows.append([c, e["pos_err_3d_mean"], e["pos_err_z_mean"], e["pos_err_3d_peak"],
+                     f"{100 * e['improvement_pos_3d']:.1f}%" if "improvement_pos_3d" in e else "-",
+                     f"{e['gap_to_oracle_pos_3d']:+.4f}" if "gap_to_oracle_pos_3d" in e else "-",
+                     f"{100 * e['crash_rate']:.0f}%"])
+    a = results["leader_airspeed"]
+    wind = "no wind" if results["wind"] is None else f"wind {wind_spec}"
+    head = (f"\noutdoor: leader on a {results['leader']} at {results['speed']} m/s (airspeed {a['min']:.2f}-"
+            f"{a['max']:.2f} m/s), {wind}, {len(results['seeds'])} seeds, {results['duration']:.0f} s")
+    return head + "\n" + format_table(rows, ["condition", "pos3d m", "posz m", "peak3d m", "impr 3d", "gap oracle m",
+                                             "crashed"])
+
+
+def _figure(out: Path, per_condition: dict, results: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for c, logs in per_condition.items():
+        ax.plot(logs[0]["t"], tracking_errors(logs[0])["pos_3d"], label=c, lw=1.1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("|e| pos 3D (m)")
+    ax.legend(ncol=4, fontsize=8)
+    ax.set_title(f"outdoor: {results['leader']} at {results['speed']} m/s, seed {results['seeds'][0]}")
+    fig.tight_layout()
+    fig.savefig(out / "errors_over_time.png", dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    setup_logging()
+    args = parse_args(OutdoorArgs, "outdoor", argv, __doc__)
+    if args.quick:
+        import dataclasses
+
+        args = dataclasses.replace(args, seeds=1, duration=min(args.duration, 2.0))
+    return run(args)
+
+
+if __name__ == "__main__":
+    main()

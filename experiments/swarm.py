@@ -1,0 +1,227 @@
+"""Many vehicles: does summing two-vehicle models hold up, and what do models of sets learn?
+
+    python -m experiments.swarm [--presets stack3,stack4,swap,formation5] [--aggregations linear,velocity]
+                                [--seeds 3] [--quick] [--video swarm.mp4]
+
+The paper's section 6 asks how downwash models carry over to many vehicles. For each
+aggregation law of the ground truth (`sim.aggregation`: how the wakes of several
+vehicles combine) this experiment
+1. reuses the two-vehicle staged collection and its equivariant model (the main job's);
+2. runs the swarm stages (`downwash.swarm_collection`: stacks of 3, then 4, vehicles,
+   flown with the models so far) and trains the models of sets twice, on the two-vehicle
+   data only ("pair") and on all of it ("mixed");
+3. flies every preset (`sim.presets`) with the conditions on the same seeds, in one
+   batch per preset and law: baseline (no model), oracle (the true mean wake, combined
+   by the law), summed_pairwise (the paper's two-vehicle equivariant model summed over
+   neighbours), and deepsets_equivariant / deepsets from each data mix.
+Metrics are taken over every follower of a flight (`sim.metrics.follower_metrics`).
+Writes `<out>/<preset>/results.json` and a figure per preset, and `<out>/results.json`
+with all of them and the summary: per law and preset, each model's improvement over
+the baseline and gap to the oracle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from core.errors import ConfigError
+from core.provenance import describe, fingerprint
+from downwash.staged import ensure_models
+from downwash.swarm_collection import (DATA_MIXES, SwarmCollectionConfig, collect_swarm, swarm_model_path,
+                                       swarm_provenance)
+from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, wrap_pairwise
+from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline,
+                                setup_logging, write_results)
+from sim.aggregation import make_aggregation
+from sim.flight import fly
+from sim.metrics import aggregate_conditions, follower_metrics
+from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
+from sim.presets import make_preset
+
+__all__ = ["SwarmArgs", "conditions", "run", "main"]
+
+DEFAULT_PRESETS = "stack3,stack4,swap,formation5"
+
+
+def conditions() -> list[str]:
+    """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix."""
+    return ["baseline", "oracle", "summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SWARM_KINDS for m in DATA_MIXES]
+
+
+@dataclass(frozen=True)
+class SwarmArgs(PipelineArgs):
+    presets: str = arg(DEFAULT_PRESETS, "comma list of presets (python -c 'import sim.presets as p; print(p.PRESETS)'"
+                                        "; stack:n=N takes N = 2-8)")
+    aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
+                                               "(linear, velocity, shielding, with optional :KEY=VALUE)")
+    seeds: int = arg(3, "flights per condition, preset and law")
+    duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)")
+    swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)")
+    video: str = arg("", "also write an mp4 of the first preset and law, the first seed of every condition side by "
+                         "side with the wakes drawn (.mp4; needs pip install -e '.[video]')")
+
+
+def _split(text: str, label: str) -> list[str]:
+    """A comma list of specs whose parameters may hold commas: 'linear,shielding:eta=0.8,radius=0.3'
+    is ['linear', 'shielding:eta=0.8,radius=0.3'] (a KEY=VALUE part belongs to the spec before it)."""
+    items: list[str] = []
+    for part in (x.strip() for x in text.split(",")):
+        if items and "=" in part and ":" not in part:
+            items[-1] += "," + part
+        elif part:
+            items.append(part)
+    if not items:
+        raise ConfigError(f"--{label}: expected a comma list, got {text!r}")
+    if len(set(items)) != len(items):
+        raise ConfigError(f"--{label}: duplicates in {text!r}")
+    return items
+
+
+def _validate(args: SwarmArgs) -> tuple[list, list]:
+    presets = [make_preset(p) for p in _split(args.presets, "presets")]  # ConfigError for a bad name or N
+    laws = [(a, make_aggregation(a)) for a in _split(args.aggregations, "aggregations")]
+    if args.seeds < 1:
+        raise ConfigError(f"--seeds: expected >= 1, got {args.seeds}")
+    if args.duration < 0:
+        raise ConfigError(f"--duration: expected >= 0 s, got {args.duration}")
+    for p in presets:  # vehicles inside each other are named before any flight
+        p.reference(1)
+    return presets, laws
+
+
+def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, neighbours) -> list:
+    out = []
+    for c in names:
+        if c == "baseline":
+            out.append(ZeroPredictor())
+        elif c == "oracle":
+            out.append(OraclePredictor(field, aggregation=law))
+        elif c == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
+            out.append(SwarmPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
+        else:
+            kind, mix = c.rsplit("-", 1)
+            out.append(SwarmPredictor(swarm_model_path(models_dir, kind, mix), expect_neighbours=neighbours,
+                                      expect_aggregation=law if mix == "mixed" else None))
+    return out
+
+
+def run(args: SwarmArgs) -> dict:
+    presets, laws = _validate(args)
+    if args.video:
+        from envs.video import check_video_output  # imageio and an OpenGL context only when asked for
+
+        check_video_output(args.video, presets[0].scene())
+    p = resolve_pipeline(args)
+    pair_model = ensure_models(p.models_dir, ["equivariant"], p.collection_dir, p.config, p.field,
+                               ProgressBar)["equivariant"]
+    cfg = SwarmCollectionConfig(stage_minutes=args.swarm_minutes, seed=args.seed, quick=args.quick)
+    t_start = time.perf_counter()
+    names = conditions()
+    K = args.seeds
+    seeds = list(range(args.seed, args.seed + K))
+    out = Path(args.out)
+    results: dict[str, Any] = {"experiment": "swarm", "seeds": seeds, "conditions": names, "laws": {}, "presets": {}}
+    first_logs = None
+    for law_name, law in laws:
+        record = swarm_provenance(cfg, law, p.record)
+        swarm_dir = p.collection_dir.parent / f"swarm-{law.name}-{fingerprint(record)}"
+        collected = collect_swarm(cfg, swarm_dir, p.collection_dir, pair_model, p.record, p.field, law, ProgressBar)
+        results["laws"][law_name] = {"law": describe(law), "collection_dir": str(swarm_dir),
+                                     "models": collected["models"], "stages": collected["stages"]}
+        predictors = _predictors(names, p.field, law, pair_model, swarm_dir / "models", cfg.neighbours)
+        for preset in presets:
+            duration = args.duration or (2.0 if args.quick else max(preset.duration, 10.0))
+            W = len(names) * K
+            logs = fly(preset.scene(), preset.reference(W), [s for _ in names for s in seeds], duration,
+                       field=p.field, aggregation=law,
+                       predictor=PerWorldPredictor(predictors, np.repeat(np.arange(len(names)), K)),
+                       meta=[{"experiment": "swarm", "preset": preset.name, "condition": c} for c in names for _ in seeds],
+                       progress=ProgressBar(f"{preset.name}, {law_name}"))
+            per_condition = {c: logs[i * K:(i + 1) * K] for i, c in enumerate(names)}
+            first_logs = first_logs or (preset, per_condition)
+            entry = {"preset": preset.describe(), "law": law_name, "duration": duration, "seeds": seeds,
+                     "conditions": aggregate_conditions(per_condition, metrics=follower_metrics)}
+            results["presets"].setdefault(preset.name, {})[law_name] = entry
+    results["summary"] = _summary(results)
+    results["wall_seconds"] = time.perf_counter() - t_start
+    for name, by_law in results["presets"].items():  # one results.json per preset (DESIGN section 10)
+        write_results(out / name.replace(":", "_"), {"experiment": "swarm", "preset": name, "laws": by_law}, args,
+                      p.provenance())
+        _figure(out / name.replace(":", "_"), name, by_law)
+    path = write_results(out, results, args, p.provenance())
+    print(_table(results))
+    print(f"\nwrote {path} and one folder per preset in {out}/")
+    if args.video and first_logs is not None:
+        from envs.video import logs_video
+
+        preset, per_condition = first_logs
+        n = logs_video(args.video, preset.scene(), {c: L[0] for c, L in per_condition.items()}, field=p.field,
+                       columns=min(len(per_condition), 4))
+        print(f"wrote {args.video} ({n} frames)")
+    return results
+
+
+def _summary(results: dict) -> dict:
+    """law -> preset -> condition -> (improvement over baseline, gap to the oracle), the README's question."""
+    out: dict = {}
+    for preset, by_law in results["presets"].items():
+        for law, entry in by_law.items():
+            out.setdefault(law, {})[preset] = {
+                c: {"improvement_pos_3d": e.get("improvement_pos_3d"), "gap_to_oracle_pos_3d": e.get("gap_to_oracle_pos_3d"),
+                    "pos_err_3d_mean": e["pos_err_3d_mean"], "crash_rate": e["crash_rate"]}
+                for c, e in entry["conditions"].items()}
+    return out
+
+
+def _table(results: dict) -> str:
+    lines = []
+    for law, by_preset in results["summary"].items():
+        rows = [[preset] + [_cell(e.get(c, {})) for c in results["conditions"][1:]] for preset, e in by_preset.items()]
+        lines.append(f"\n{law} aggregation: improvement of the followers' 3D error over the baseline (gap to oracle, m)")
+        lines.append(format_table(rows, ["preset"] + results["conditions"][1:]))
+    return "\n".join(lines)
+
+
+def _cell(e: dict) -> str:
+    imp, gap = e.get("improvement_pos_3d"), e.get("gap_to_oracle_pos_3d")
+    return ("-" if imp is None else f"{imp:+.0%}") + ("" if gap is None else f" ({gap:+.3f})")
+
+
+def _figure(out: Path, preset: str, by_law: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    laws = list(by_law)
+    names = list(next(iter(by_law.values()))["conditions"])
+    fig, ax = plt.subplots(figsize=(9, 3.8))
+    width = 0.8 / len(laws)
+    for j, law in enumerate(laws):
+        values = [by_law[law]["conditions"][c]["pos_err_3d_mean"] for c in names]
+        ax.bar(np.arange(len(names)) + j * width, values, width, label=f"{law} aggregation")
+    ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("followers' mean 3D error (m)")
+    ax.set_title(f"{preset}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "errors.png", dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    setup_logging()
+    args = parse_args(SwarmArgs, "swarm", argv, __doc__)
+    if args.quick:
+        args = dataclasses.replace(args, seeds=1)
+    return run(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""`python -m experiments.outdoor`: a moving leader in wind, every condition; and the --wind grammar."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from core.errors import ConfigError
+from experiments.common import load_wind
+
+
+def _run(args, cwd, check=True):
+    proc = subprocess.run([sys.executable, "-m", "experiments.outdoor", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=600)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{args} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    return proc
+
+
+def test_outdoor_flies_a_moving_leader_in_wind(tmp_path):
+    """The leader's airspeed is its ground speed minus the wind: a 1.5 m/s circle in a 2 m/s wind spans
+    roughly 0.5-3.5 m/s, which the results report; the oracle, which knows the wake, beats the baseline."""
+    _run(["--seeds", "1", "--duration", "6", "--conditions", "baseline,oracle", "--wind", "calm:mean=2,0,0",
+          "--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    assert r["wind"]["mean"] == [2.0, 0.0, 0.0] and r["leader"] == "circle" and r["speed"] == 1.5
+    a = r["leader_airspeed"]
+    # over 6 s the circle (radius 2 m, 0.75 rad/s) turns 4.5 rad: the airspeed passes near both extremes
+    assert 0.4 < a["min"] < 1.0 and 3.0 < a["max"] < 3.6
+    c = r["conditions"]
+    assert c["oracle"]["pos_err_3d_mean"] < c["baseline"]["pos_err_3d_mean"]
+    assert (tmp_path / "od" / "errors_over_time.png").is_file()
+
+
+def test_without_wind_the_airspeed_is_the_ground_speed(tmp_path):
+    _run(["--seeds", "1", "--duration", "3", "--conditions", "baseline", "--wind", "off", "--leader", "line",
+          "--speed", "2.5", "--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    assert r["wind"] is None
+    np.testing.assert_allclose([r["leader_airspeed"]["mean"]], [2.5], rtol=0.05)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--speed", "5"], "--speed: 5.0 m/s is out of range; allowed 0.5-3.0"),
+    (["--leader", "spiral"], "--leader: unknown 'spiral'; allowed: circle, line"),
+    (["--wind", "gale"], "--wind: unknown 'gale'; allowed: off, calm, light"),
+    (["--conditions", "baseline,nope"], "unknown \\['nope'\\]"),
+])
+def test_bad_input_fails_before_any_flight(args, message, tmp_path):
+    proc = _run(args + ["--out", "x"], tmp_path, check=False)
+    assert proc.returncode != 0 and __import__("re").search(message, proc.stderr), proc.stderr[-800:]
+    assert not (tmp_path / "x").exists()
+
+
+def test_wind_specs():
+    assert load_wind("") is None and load_wind("off") is None and load_wind("calm") is None
+    w = load_wind("moderate:mean=1,-2,0")
+    assert w.mean == (1.0, -2.0, 0.0) and w.w20 == pytest.approx(30 * 1852 / 3600)
+    assert load_wind("calm:mean=3,0,0").w20 == 0.0
+    for bad in ("light:mean=1,2", "light:speed=3", "storm"):
+        with pytest.raises(ConfigError, match="--wind"):
+            load_wind(bad)
+
+
+def test_quick_smoke_with_every_condition(tmp_path):
+    """--quick with the default conditions: a quick staged collection, then the models fly outdoors too."""
+    _run(["--quick", "--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    assert set(r["conditions"]) >= {"baseline", "oracle", "equivariant", "equivariant_general", "deep", "shallow"}
+    assert r["wind"]["w20"] > 0 and r["provenance"]["pipeline_key"]

@@ -1,0 +1,428 @@
+"""The multi-agent swarm env (envs.swarm): PettingZoo's API test, determinism, batched == serial,
+the neighbour observation's properties, zero action == the baseline flight, shared episode ends,
+bad input, the documented table, rendering."""
+
+import inspect
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pettingzoo.test import parallel_api_test
+
+import envs.swarm as swarm
+from controllers.lqr import FeedbackLinearisedLQR
+from core.errors import ConfigError
+from core.geometry import quat_to_mat
+from core.status import Status
+from envs.swarm import (
+    NEIGHBOUR_DIM,
+    OWN_DIM,
+    SwarmEnv,
+    SwarmVectorEnv,
+    neighbour_block,
+    obs_dim,
+    obs_slices,
+    parallel_env,
+)
+from envs.task import REWARD_TERMS
+from sim.field import DownwashField, pairwise_field
+from sim.flight import fly
+from sim.presets import make_preset
+from sim.simulator import Simulator
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _random_actions(rng, agents, scale=2.0, n_worlds=None):
+    shape = (3,) if n_worlds is None else (n_worlds, 3)
+    return {a: (scale * rng.uniform(-1.0, 1.0, shape)).astype(np.float32) for a in agents}
+
+
+# ----------------------------------------------------------------------------- API contract
+
+
+@pytest.mark.parametrize("preset", ["stack3", "formation5"])
+def test_pettingzoo_parallel_api(preset):
+    """PettingZoo's own checker, through truncation (1 s = 50 steps) and two resets."""
+    env = parallel_env(preset=preset, duration=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the checker's reset(options={"options": 1}) draws our warning
+        parallel_api_test(env, num_cycles=60)
+    n_vehicles = make_preset(preset).n_vehicles
+    assert env.possible_agents == [name for name, _ in make_preset(preset).vehicles[1:]]
+    assert env.observation_space("bravo").shape == (OWN_DIM + NEIGHBOUR_DIM * (n_vehicles - 1),)
+
+
+def test_rollout_stays_in_the_spaces_and_reward_is_the_sum_of_its_terms():
+    env = parallel_env(preset="formation5", max_neighbours=6)  # 4 others, 2 padded slots
+    rng = np.random.default_rng(0)
+    obs, infos = env.reset(seed=3)
+    assert set(infos["bravo"]) == {"sim_seed", "phase"}
+    for _ in range(40):
+        for a, o in obs.items():
+            assert env.observation_space(a).contains(o), a
+        obs, rewards, term, trunc, infos = env.step(_random_actions(rng, env.agents))
+        for a in env.possible_agents:
+            assert rewards[a] == sum(infos[a][f"reward_{k}"] for k in REWARD_TERMS)
+            assert isinstance(rewards[a], float) and infos[a]["field_mean"].shape == (3,)
+        if not env.agents:
+            break
+    # the padded slots (k = 4, 5) are zero with mask 0; the real ones have mask 1
+    s = obs_slices(6)
+    for o in obs.values():
+        assert [o[s[f"n{k}_mask"]][0] for k in range(6)] == [1, 1, 1, 1, 0, 0]
+        assert not o[s["n4_mask"].start:].any()
+
+
+# ----------------------------------------------------------------------------- determinism
+
+
+def _rollout(env, seed, n_steps, action_seed):
+    rng = np.random.default_rng(action_seed)
+    obs, info = env.reset(seed=seed)
+    out = [(obs, info)]
+    for _ in range(n_steps):
+        if not env.agents:
+            break
+        out.append(env.step(_random_actions(rng, env.agents)))
+    return out
+
+
+def _assert_same(a, b):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys()
+        for k in a:
+            _assert_same(a[k], b[k])
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            _assert_same(x, y)
+    else:
+        np.testing.assert_array_equal(a, b)
+
+
+def test_same_seed_same_actions_same_trajectory_bit_for_bit():
+    a = _rollout(parallel_env(preset="stack3", random_phase=True), seed=7, n_steps=60, action_seed=1)
+    b = _rollout(parallel_env(preset="stack3", random_phase=True), seed=7, n_steps=60, action_seed=1)
+    assert len(a) == 61
+    _assert_same(a, b)
+    c = _rollout(parallel_env(preset="stack3", random_phase=True), seed=8, n_steps=5, action_seed=1)
+    assert not np.array_equal(a[5][0]["bravo"], c[5][0]["bravo"])  # the seed matters
+    assert a[0][1]["bravo"]["phase"] != c[0][1]["bravo"]["phase"]
+    # the provenance is stable JSON, and names what differs
+    d = [json.dumps(swarm.make_swarm_config(preset=p, random_phase=True).describe()) for p in ("stack3", "stack3", "stack4")]
+    assert d[0] == d[1] != d[2]
+
+
+# ----------------------------------------------------------------------------- batched == serial
+
+
+def test_vector_world_k_equals_the_parallel_env_with_its_seed():
+    """stack4 (4 vehicles, 3 agents): world k of SwarmVectorEnv(3).reset(seed=s) is SwarmEnv.reset(seed=s + k),
+    bit for bit, through truncation and the vector env's autoreset into the next episode."""
+    W, T, seed = 3, 25, 10
+    opts = dict(preset="stack4", duration=T * 0.02, random_phase=True)
+    vec = SwarmVectorEnv(W, **opts)
+    singles = [SwarmEnv(**opts) for _ in range(W)]
+    rng = np.random.default_rng(0)
+    v_obs, v_info = vec.reset(seed=seed)
+    s_out = [env.reset(seed=seed + k) for k, env in enumerate(singles)]
+    for k in range(W):
+        for a in vec.agents:
+            np.testing.assert_array_equal(v_obs[a][k], s_out[k][0][a])
+            assert v_info[a]["sim_seed"][k] == s_out[k][1][a]["sim_seed"]
+    for step in range(T + 1):
+        actions = _random_actions(rng, vec.agents, n_worlds=W)
+        v_obs, v_rew, v_term, v_trunc, v_info = vec.step(actions)
+        for k, env in enumerate(singles):
+            if step < T:
+                obs, rew, term, trunc, info = env.step({a: actions[a][k] for a in env.agents})
+            else:  # the vector env resets world k now: the single env's next episode
+                obs, info = env.reset()
+                rew = dict.fromkeys(env.possible_agents, 0.0)
+                term = trunc = dict.fromkeys(env.possible_agents, False)
+            for a in vec.agents:
+                np.testing.assert_array_equal(v_obs[a][k], obs[a])
+                assert v_rew[a][k] == rew[a] and v_term[a][k] == term[a] and v_trunc[a][k] == trunc[a]
+                if step < T:
+                    for key, value in info[a].items():
+                        np.testing.assert_array_equal(v_info[a][key][k], value, err_msg=key)
+                else:
+                    assert v_info[a]["autoreset"][k] and v_info[a]["sim_seed"][k] == info[a]["sim_seed"]
+        if step == T - 1:  # the episodes end by truncation, in every world, for every agent
+            assert all(v_trunc[a].all() and not v_term[a].any() for a in vec.agents)
+
+
+# ----------------------------------------------------------------------------- observation
+
+
+def _random_scene(rng, W, V):
+    pos = rng.normal(size=(W, V, 3))
+    vel = rng.normal(size=(W, V, 3))
+    q = rng.normal(size=(W, V, 4))
+    rot = quat_to_mat(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    return pos, vel, rot
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), V=st.integers(2, 8), K=st.integers(1, 7))
+def test_neighbour_slots_are_sorted_masked_and_do_not_depend_on_scene_order(seed, V, K):
+    rng = np.random.default_rng(seed)
+    W = 3
+    pos, vel, rot = _random_scene(rng, W, V)
+    agents = np.arange(1, V)
+    nb = neighbour_block(pos, vel, rot, agents, K)
+    assert nb.shape == (W, V - 1, K, NEIGHBOUR_DIM)
+    n = min(K, V - 1)
+    # mask: the first min(K, V-1) slots; padding is all zero
+    np.testing.assert_array_equal(nb[..., 0], np.broadcast_to(np.arange(K) < n, (W, V - 1, K)))
+    assert not nb[..., n:, :].any()
+    # slots hold the nearest vehicles, nearest first: distances nondecreasing, and the K nearest
+    dist = np.linalg.norm(nb[..., :n, 1:4], axis=-1)
+    assert np.all(np.diff(dist, axis=-1) >= 0)
+    for w in range(W):
+        for i, a in enumerate(agents):
+            all_d = np.sort([np.linalg.norm(pos[w, a] - pos[w, j]) for j in range(V) if j != a])
+            np.testing.assert_allclose(dist[w, i], all_d[:n], rtol=1e-12)
+            # each slot is one real vehicle: dp, dv and its z axis belong together
+            for k in range(n):
+                j = int(np.argmin(np.linalg.norm(pos[w] - (pos[w, a] - nb[w, i, k, 1:4]), axis=-1)))
+                np.testing.assert_array_equal(nb[w, i, k, 1:4], pos[w, a] - pos[w, j])
+                np.testing.assert_array_equal(nb[w, i, k, 4:7], vel[w, a] - vel[w, j])
+                np.testing.assert_array_equal(nb[w, i, k, 7:10], rot[w, j, :, 2])
+    # relabel the vehicles (the scene order): each agent's slots are unchanged, bit for bit
+    perm = rng.permutation(V)  # new index of old vehicle i is inv[i]
+    inv = np.argsort(perm)
+    nb_perm = neighbour_block(pos[:, perm], vel[:, perm], rot[:, perm], inv[agents], K)
+    np.testing.assert_array_equal(nb_perm, nb)
+    # a world's slots do not depend on the batch it is in
+    np.testing.assert_array_equal(neighbour_block(pos[1:2], vel[1:2], rot[1:2], agents, K), nb[1:2])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_observation_equals_the_readable_one(seed):
+    """`_observe_kernel` against `observation` (own block + neighbour_block), bit for bit, over random
+    states with exact distance ties (positions in whole metres) and a diverged (NaN) world."""
+    rng = np.random.default_rng(seed)
+    W, V = 4, int(rng.integers(2, 9))
+    K = int(rng.integers(1, 8))
+    pos, vel, rot = _random_scene(rng, W, V)
+    pos = np.round(3.0 * pos)  # whole metres: exact distance ties are common
+    pos[3, 1] = np.nan  # a diverged world
+    ref = type("Ref", (), {})()
+    ref.pos, ref.vel, ref.acc = (rng.normal(size=(W, V, 3)) * 20 for _ in range(3))  # some beyond the bounds
+    agents = np.arange(1, V) if seed % 2 else rng.permutation(V)[: max(1, V // 2)]
+    last = rng.normal(size=(W, len(agents), 3))
+    low, high = swarm.obs_bounds(K, 5.0)
+    want = swarm.observation(pos, vel, rot, ref, agents, last, K, low, high)
+    got = np.empty_like(want)
+    others = swarm._others(agents, V)
+    swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, others, last, low, high, got)
+    np.testing.assert_array_equal(got, want)
+    assert np.all(want >= low) and np.all(want <= high) and np.isfinite(want).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_reward_and_termination_equal_the_readable_ones(seed):
+    """`_task_kernel` against `task_terms`, bit for bit: random states, some agents outside the box,
+    a crashed world, a diverged (NaN) one, non-default weights."""
+    rng = np.random.default_rng(seed)
+    W, V = 6, int(rng.integers(2, 9))
+    agents = np.arange(1, V)
+    ref_pos, ref_vel, true_vel = (rng.normal(size=(W, V, 3)) for _ in range(3))
+    spread = np.array([0.05, 0.05, 1.0, 0.05, 0.05, 0.05])[:, None, None]  # m: world 2 far off its references
+    true_pos = ref_pos + spread * rng.normal(size=(W, V, 3))
+    true_pos[4, 1] = np.nan
+    true_vel[5, -1] = 1e3  # beyond the cap
+    actions, last = rng.uniform(-5, 5, (W, V - 1, 3)), rng.uniform(-5, 5, (W, V - 1, 3))
+    sim_status = np.array([0, 0, 0, int(Status.GROUND), int(Status.DIVERGED), 0], np.int64)
+    task = swarm.make_config({"max_tracking_error": 0.9, "alive_reward": 0.3, "action_cost_weight": 0.7})
+    constants = swarm.task_constants(task, 5.0)
+    status, terms, reward, pos_err, vel_err = swarm.task_terms(
+        true_pos, true_vel, ref_pos, ref_vel, agents, actions, last, sim_status, constants)
+    out = (np.empty(W, np.int64), np.empty((6, W, V - 1)), *(np.empty((W, V - 1)) for _ in range(3)))
+    swarm._task_kernel(true_pos, true_vel, ref_pos, ref_vel, agents, actions, last, sim_status, constants, *out)
+    for got, want in zip(out, (status, terms, reward, pos_err, vel_err)):
+        np.testing.assert_array_equal(got, want)
+    assert status[3] == Status.GROUND and status[4] == Status.DIVERGED and pos_err[4, 0] == swarm.ERROR_CAP
+    assert vel_err[5, -1] == swarm.ERROR_CAP
+    for w in range(W):  # LEFT_BOX exactly where a live world has an agent outside the box
+        if sim_status[w] == 0:
+            assert (status[w] == Status.LEFT_BOX) == bool((pos_err[w] > 0.9).any())
+    assert np.all(terms[0][status != 0] == 0.0) and np.all(terms[5][status != 0] == -50.0)
+    assert np.all(terms[0][status == 0] == 0.3) and (status == 0).any() and status[2] == Status.LEFT_BOX
+
+
+def test_env_observation_is_the_documented_layout_of_the_estimated_state():
+    env = parallel_env(preset="stack4", max_neighbours=5)
+    rng = np.random.default_rng(2)
+    env.reset(seed=1)
+    for _ in range(20):
+        obs, *_ = env.step(_random_actions(rng, env.agents, scale=1.0))
+    sim = env.simulator
+    pe, ve, rot, ref = sim.pos_est[0], sim.vel_est[0], sim.true_states().rot[0], sim.reference(sim.t)
+    assert not np.array_equal(pe, sim.true_states().pos[0])  # estimates, not the truth
+    s = obs_slices(5)
+    assert len(obs["charlie"]) == obs_dim(5) == 71
+    for name in env.possible_agents:
+        i = env.simulator.scene.vehicles.index(name)
+        o = obs[name]
+        np.testing.assert_array_equal(o[s["pos_error"]], pe[i] - ref.pos[0, i])
+        np.testing.assert_array_equal(o[s["v_follower"]], ve[i])
+        np.testing.assert_array_equal(o[s["follower_z_axis"]], rot[i, :, 2])
+        others = [j for j in range(4) if j != i]
+        d = sorted((np.linalg.norm(pe[i] - pe[j]), j) for j in others)
+        for k, (_, j) in enumerate(d):
+            assert o[s[f"n{k}_mask"]][0] == 1.0
+            np.testing.assert_array_equal(o[s[f"n{k}_dp"]], pe[i] - pe[j])
+            np.testing.assert_array_equal(o[s[f"n{k}_z_axis"]], rot[j, :, 2])
+        assert o[s["n3_mask"]][0] == 0.0 and not o[s["n3_mask"].start:].any()
+
+
+def test_docstring_table_is_the_generated_one():
+    assert swarm.markdown_table() in swarm.__doc__
+
+
+# ----------------------------------------------------------------------------- physics
+
+
+def test_zero_action_flies_the_baseline_controller_bit_for_bit():
+    """Action 0 everywhere is `sim.flight.fly` of the preset with the same noise seed."""
+    env = parallel_env(preset="stack3")
+    _, info = env.reset(seed=4)
+    T = 60
+    pos = []
+    for _ in range(T):
+        env.step({a: np.zeros(3, np.float32) for a in env.agents})
+        pos.append(env.simulator.true_states().pos[0].copy())
+    preset = make_preset("stack3")
+    log, = fly(preset.scene(), preset.reference(1), [info["bravo"]["sim_seed"]], (T + 1) * env.dt,
+               field=DownwashField(), controller=FeedbackLinearisedLQR())
+    np.testing.assert_array_equal(np.array(pos), log.arrays["pos"][1:T + 1])
+
+
+def test_info_field_is_the_true_field_on_each_agent():
+    env = parallel_env(preset="stack3")
+    env.reset(seed=0)
+    for _ in range(5):
+        before = env.simulator.true_states()  # the step's first autopilot tick senses this state
+        _, _, _, _, infos = env.step({a: np.zeros(3, np.float32) for a in env.agents})
+    mean = pairwise_field(DownwashField(), before.pos, before.vel, before.rot)[0]
+    np.testing.assert_array_equal(infos["bravo"]["field_mean"], mean[1])
+    np.testing.assert_array_equal(infos["charlie"]["field_mean"], mean[2])
+    assert mean[1, 2] < -0.3  # bravo is in alpha's downwash
+
+
+def test_a_collision_ends_the_world_for_every_agent():
+    """Charlie driven into the ground: the crash terminates bravo and charlie alike, both penalised."""
+    env = parallel_env(preset="stack3", action_bound=20.0, max_tracking_error=5.0)
+    env.reset(seed=0)
+    for _ in range(200):
+        down = np.array([0.0, 0.0, -20.0], np.float32)
+        obs, rew, term, trunc, infos = env.step({"bravo": np.zeros(3, np.float32), "charlie": down})
+        if not env.agents:
+            break
+    assert term == {"bravo": True, "charlie": True} and not any(trunc.values())
+    assert infos["charlie"]["status"] == infos["bravo"]["status"] == int(Status.GROUND)
+    assert infos["charlie"]["reward_termination"] == -50.0 and infos["charlie"]["reward_alive"] == 0.0
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step({})
+
+
+def test_a_nonlinear_aggregation_reaches_the_flight():
+    """With the simulator's aggregation slot, a shielding law changes the field on the bottom of a stack;
+    without it (the slot is being added), the env refuses the law by name before building anything."""
+    if "aggregation" not in inspect.signature(Simulator).parameters:
+        with pytest.raises(ConfigError, match="aggregation: 'shielding' needs the simulator's aggregation slot"):
+            parallel_env(preset="stack4", aggregation="shielding")
+        return
+    fields = {}
+    for law in ("linear", "shielding"):
+        env = parallel_env(preset="stack4", aggregation=law)
+        env.reset(seed=0)
+        for _ in range(3):
+            *_, infos = env.step({a: np.zeros(3, np.float32) for a in env.agents})
+        fields[law] = infos["delta"]["field_mean"]
+    assert not np.allclose(fields["linear"], fields["shielding"], rtol=0.0, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"preset": "stack9"}, "preset: unknown"),
+    ({"preset": "stack:n=9"}, "n: a stack has 2-8"),
+    ({"aggregation": "cubic"}, "aggregation.*'cubic'.*allowed: linear"),
+    ({"field": "nofield"}, "field"),
+    ({"max_neighbours": 0}, "max_neighbours"),
+    ({"max_neighbours": 8}, "max_neighbours"),
+    ({"duration": -1.0}, "duration"),
+    ({"duration": 0.001}, "duration: 0.001 s is shorter than one env step"),
+    ({"action_bound": 50.0}, "action_bound"),
+])  # fmt: skip
+def test_bad_options_raise_config_error_before_any_simulation(kwargs, match, monkeypatch):
+    def no_sim(*args, **kw):
+        raise AssertionError("a Simulator was built before the options were checked")
+
+    monkeypatch.setattr(swarm, "Simulator", no_sim)
+    with pytest.raises(ConfigError, match=match):
+        parallel_env(**kwargs)
+    with pytest.raises(ConfigError, match=match):
+        SwarmVectorEnv(2, **kwargs)
+
+
+def test_bad_names_and_actions():
+    with pytest.raises(TypeError, match="separation.*allowed: preset"):
+        parallel_env(separation=0.5)  # a single-env option that does not apply to a preset
+    with pytest.raises(ValueError, match="render_mode"):
+        parallel_env(render_mode="human")
+    env = parallel_env(preset="stack3")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"missing \['charlie'\]"):
+        env.step({"bravo": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"unexpected \['alpha'\]"):
+        env.step({"bravo": np.zeros(3), "charlie": np.zeros(3), "alpha": np.zeros(3)})
+    with pytest.raises(ValueError, match="finite"):
+        env.step({"bravo": np.array([np.nan, 0, 0]), "charlie": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        env.step({"bravo": np.zeros(2), "charlie": np.zeros(3)})
+    vec = SwarmVectorEnv(2, preset="stack3")
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 3\)"):
+        vec.step({"bravo": np.zeros(3), "charlie": np.zeros(3)})
+    with pytest.raises(ValueError, match="reset_mask"):
+        vec.reset(options={"reset_mask": np.zeros(2, bool)})
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def test_rendering_frames_the_swarm():
+    """A fresh process (MUJOCO_GL is read at `import mujoco`); a missing EGL is a failure here."""
+    code = """
+        import json
+        import numpy as np
+        from envs.swarm import parallel_env, SwarmVectorEnv
+        env = parallel_env(preset="stack3", render_mode="rgb_array", render_width=160, render_height=120)
+        env.reset(seed=0)
+        env.step({a: np.zeros(3, np.float32) for a in env.agents})
+        f = env.render()
+        r, g, b = (f[..., i].astype(int) for i in range(3))
+        orange = int(((r > 150) & (g > 60) & (g < 170) & (b < 70)).sum())  # the leader
+        vec = SwarmVectorEnv(2, preset="stack3", render_mode="rgb_array", render_width=160, render_height=120)
+        vec.reset(seed=0)
+        print(json.dumps({"shape": list(f.shape), "std": float(f.std()), "orange": orange, "n": len(vec.render())}))
+    """
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr[-4000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["shape"] == [120, 160, 3] and res["std"] > 10.0 and res["orange"] > 5 and res["n"] == 2, res

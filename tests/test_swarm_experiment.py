@@ -1,0 +1,83 @@
+"""`python -m experiments.swarm`: the swarm stages, the models of sets, every preset and law; resumable."""
+
+import json
+import re
+import subprocess
+import sys
+
+import pytest
+
+from downwash.swarm_models import load_swarm_checkpoint
+
+
+def _run(args, cwd, check=True):
+    proc = subprocess.run([sys.executable, "-m", "experiments.swarm", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=900)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{args} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+ARGS = ["--quick", "--presets", "stack3,swap", "--aggregations", "linear,velocity", "--collection-dir", "pc",
+        "--models-dir", "pm"]
+
+
+@pytest.fixture(scope="module")
+def swarm_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("swarm")
+    _run(ARGS + ["--out", "sw"], work)
+    return work
+
+
+def test_every_preset_law_and_condition_is_reported(swarm_run):
+    r = json.loads((swarm_run / "sw" / "results.json").read_text())
+    names = ["baseline", "oracle", "summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed",
+             "deepsets-pair", "deepsets-mixed"]
+    assert r["conditions"] == names
+    assert set(r["summary"]) == {"linear", "velocity"}
+    for law in ("linear", "velocity"):
+        assert set(r["summary"][law]) == {"stack3", "swap"}
+        for preset, entry in r["summary"][law].items():
+            assert set(entry) == set(names)
+            # the oracle knows the wake and how the wakes combine: it beats no model
+            assert entry["oracle"]["improvement_pos_3d"] > 0.2, (law, preset)
+    for preset in ("stack3", "swap"):  # a results.json and a figure per preset
+        per = json.loads((swarm_run / "sw" / preset / "results.json").read_text())
+        assert per["preset"] == preset and set(per["laws"]) == {"linear", "velocity"}
+        assert (swarm_run / "sw" / preset / "errors.png").is_file()
+    # every follower counts: stack3 has two
+    assert r["presets"]["stack3"]["linear"]["preset"]["roles"] == ["leader", "follower", "follower"]
+
+
+def test_each_law_has_its_own_collection_and_models_know_it(swarm_run):
+    r = json.loads((swarm_run / "sw" / "results.json").read_text())
+    dirs = {law: r["laws"][law]["collection_dir"] for law in ("linear", "velocity")}
+    assert dirs["linear"] != dirs["velocity"]
+    for law, d in dirs.items():
+        mixed = load_swarm_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-mixed.pt")
+        assert mixed.record["aggregation"]["name"] == law  # trained on this law's many-vehicle flights
+        pair = load_swarm_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-pair.pt")
+        assert pair.record["aggregation"] is None  # two-vehicle data: every law is the pairwise field
+
+
+def test_a_rerun_reuses_the_collections_and_reproduces_the_numbers(swarm_run):
+    r1 = json.loads((swarm_run / "sw" / "results.json").read_text())
+    logs = sorted((swarm_run).glob("pc/../**/stage3/train/*.npz"))
+    mtimes = [p.stat().st_mtime_ns for p in logs]
+    assert logs
+    _run(ARGS + ["--out", "sw2"], swarm_run)
+    r2 = json.loads((swarm_run / "sw2" / "results.json").read_text())
+    assert [p.stat().st_mtime_ns for p in logs] == mtimes  # nothing flown again
+    assert r2["summary"] == r1["summary"]  # same seeds, same models: the same numbers
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--presets", "stack:n=9"], "2-8 vehicles, got 9"),
+    (["--presets", "ring"], "preset: unknown 'ring'"),
+    (["--aggregations", "cubic"], "unknown.*cubic.*allowed.*linear"),
+    (["--seeds", "0"], "--seeds: expected >= 1"),
+])
+def test_bad_input_fails_before_any_flight(args, message, tmp_path):
+    proc = _run(args + ["--out", "x"], tmp_path, check=False)
+    assert proc.returncode != 0 and re.search(message, proc.stderr), proc.stderr[-1000:]
+    assert not (tmp_path / "x").exists() and not (tmp_path / "runs").exists()
