@@ -16,7 +16,16 @@ Every follower flies the collection patterns of `trajectories.collection_referen
 vehicles ever share a height (the bands are 0.25 m apart: no collision is possible).
 After the last stage, each trainable kind of `downwash.swarm_models` is trained twice:
 on the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation
-question of the paper's section 6.
+question of the paper's section 6. The "pair" models depend on no law, so they live in
+a folder of their own (`pair_models_dir`) that every law's collection shares. The
+models of sets train on a shorter schedule than the two-vehicle models
+(`swarm_train_config`: at least 600 steps, at most 20 epochs, against 1500 and 60), so
+that the swarm experiment fits its five minutes on two cores.
+
+A swarm stage flight that ended early (a collision or a divergence, which the deployed
+model of a stage can cause) is left out of the models' data: its last seconds hold
+labels of tens of m/s^2 that are the crash, not the wakes, and one such flight made a
+validation RMSE of 10 m/s^2 out of flights otherwise near 0.13. The count is reported.
 
 Resumable as the two-vehicle collection: a flight's reference and noise come from its
 own seeds, each log is written as its batch lands, a manifest records what is done; a
@@ -41,16 +50,17 @@ from core.params import LEADER_POSITION
 from core.provenance import describe, differences, fingerprint
 from core.roles import VEHICLE_NAMES, Role
 from downwash.staged import STAGES, train_config
+from downwash.train import TrainConfig
 from downwash.swarm_data import NeighbourSet, concatenate_swarm, load_swarm_dataset
-from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, wrap_pairwise
+from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, load_swarm_checkpoint, wrap_pairwise
 from downwash.swarm_train import save_trained, swarm_rmse, train_swarm_model
 from sim.flight import fly
-from sim.logs import save_log
+from sim.logs import load_log, save_log
 from sim.scene import build_scene
 from trajectories import Hover, collection_reference, stack
 
-__all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_provenance", "collect_swarm",
-           "swarm_model_path"]
+__all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_train_config",
+           "swarm_provenance", "pair_models_key", "collect_swarm", "swarm_model_path"]
 
 LEADER = np.array(LEADER_POSITION)
 DEPTH_BANDS = ((0.45, 0.75), (1.0, 1.3), (1.55, 1.85))  # m below the leader, follower k of a swarm stage
@@ -101,6 +111,19 @@ class SwarmCollectionConfig:
         return NeighbourSet(self.max_neighbours)
 
 
+def swarm_train_config(seed: int, quick: bool) -> TrainConfig:
+    """The schedule of the models of sets (see the module docstring); --quick: a few steps."""
+    return train_config(seed, quick) if quick else TrainConfig(seed=seed, max_epochs=20, min_steps=600)
+
+
+def pair_models_key(cfg: SwarmCollectionConfig, pair_record: dict) -> str:
+    """The fingerprint of what the law-free "pair" models depend on: the two-vehicle collection,
+    the neighbour set and the training schedule."""
+    return fingerprint({"pair": {k: v for k, v in pair_record.items() if k != "code"},
+                        "neighbours": cfg.neighbours.describe(),
+                        "training": swarm_train_config(cfg.seed, cfg.quick).to_dict()})
+
+
 def swarm_provenance(cfg: SwarmCollectionConfig, law: Any, pair_record: dict) -> dict:
     """What defines a swarm collection: the two-vehicle collection's record (field, scene, sim,
     controller, ...), the aggregation law and the swarm settings."""
@@ -109,7 +132,8 @@ def swarm_provenance(cfg: SwarmCollectionConfig, law: Any, pair_record: dict) ->
                       "stage_minutes": 0.1 if cfg.quick else cfg.stage_minutes, "seconds": cfg.seconds,
                       "n_train": cfg.n_train, "n_val": cfg.n_val, "neighbours": cfg.neighbours.describe(),
                       "clamp": cfg.clamp, "deployed_kind": DEPLOYED_SWARM_KIND, "seed": cfg.seed,
-                      "training": train_config(cfg.seed, cfg.quick).to_dict()}}
+                      "data": "swarm stage flights that ended early are left out",
+                      "training": swarm_train_config(cfg.seed, cfg.quick).to_dict()}}
 
 
 def swarm_model_path(models_dir: str | Path, kind: str, mix: str) -> Path:
@@ -135,12 +159,15 @@ def collect_swarm(
     pair_record: dict,
     field: Any,
     law: Any,
+    pair_models_dir: str | Path,
     progress: ProgressFactory = lambda label: None,
 ) -> dict:
     """Fly the swarm stages into `out` (resuming) and train the models of every kind and data mix.
 
     pair_collection: the complete two-vehicle staged collection folder; pair_model: its
-    final equivariant checkpoint (flown summed in stage 3); pair_record: its provenance.
+    final equivariant checkpoint (flown summed in stage 3); pair_record: its provenance;
+    pair_models_dir: where the law-free "pair" models are (trained there when missing; name
+    it by `pair_models_key`, so that a folder never holds models of other settings).
     Returns {stages: [...], models: {kind-mix: {path, val_rmse}}, provenance, key}.
     """
     t0 = time.perf_counter()
@@ -170,29 +197,30 @@ def collect_swarm(
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
             if not path.is_file():
-                dirs = _pair_dirs(pair_collection, "train") + [out / f"stage{n}" / "train" for n in SWARM_STAGES
-                                                              if n <= n_vehicles]
-                _train(DEPLOYED_SWARM_KIND, load(dirs), path, cfg)
+                swarm_dirs = [out / f"stage{n}" / "train" for n in SWARM_STAGES if n <= n_vehicles]
+                data = concatenate_swarm([load(_pair_dirs(pair_collection, "train")), load(swarm_dirs, True)])
+                _train(DEPLOYED_SWARM_KIND, data, path, cfg)
         stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
                        "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
 
     train_swarm = [out / f"stage{n}" / "train" for n in SWARM_STAGES]
     val_swarm = [out / f"stage{n}" / "val" for n in SWARM_STAGES]
-    data = {"pair": _pair_dirs(pair_collection, "train"), "mixed": _pair_dirs(pair_collection, "train") + train_swarm}
-    val = load(val_swarm)  # every model is judged on the same many-vehicle validation flights
+    pair_data = load(_pair_dirs(pair_collection, "train"))
+    data = {"pair": pair_data, "mixed": concatenate_swarm([pair_data, load(train_swarm, True)])}
+    val = load(val_swarm, True)  # every model is judged on the same many-vehicle validation flights
     models = {}
     for kind in TRAINABLE_SWARM_KINDS:
         for mix in DATA_MIXES:
-            path = swarm_model_path(out / "models", kind, mix)
+            path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
             if not path.is_file():
-                _train(kind, load(data[mix]), path, cfg)
-            from downwash.swarm_models import load_swarm_checkpoint
-
+                _train(kind, data[mix], path, cfg)
             model = load_swarm_checkpoint(path, expect_kind=kind).model
             models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": swarm_rmse(model, val)[0]}
     manifest["complete"] = True
     atomic_write_json(manifest_path, manifest)
     return {"stages": stages, "models": models, "provenance": record, "key": manifest["key"],
+            "pair_models_dir": str(pair_models_dir),
+            "failed_flights_left_out": {str(d.relative_to(out)): n for d, n in load.skipped.items() if n and d.is_relative_to(out)},
             "wall_seconds": time.perf_counter() - t0}
 
 
@@ -200,17 +228,20 @@ class _Loader:
     """Swarm data sets per folder, loaded once per run."""
 
     def __init__(self, neighbours: NeighbourSet):
-        self.neighbours, self._cache = neighbours, {}
+        self.neighbours, self._cache, self.skipped = neighbours, {}, {}
 
-    def __call__(self, dirs: list[Path]):
+    def __call__(self, dirs: list[Path], skip_failed: bool = False):
         for d in dirs:
-            if d not in self._cache:
-                self._cache[d] = load_swarm_dataset(d, self.neighbours)
-        return concatenate_swarm([self._cache[d] for d in dirs])
+            if (d, skip_failed) not in self._cache:
+                files = sorted(d.glob("*.npz"))
+                ok = [f for f in files if not skip_failed or load_log(f).meta.get("status", 0) == 0]
+                self.skipped[d] = len(files) - len(ok)
+                self._cache[d, skip_failed] = load_swarm_dataset(ok, self.neighbours)
+        return concatenate_swarm([self._cache[d, skip_failed] for d in dirs])
 
 
 def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig) -> None:
-    model, history = train_swarm_model(kind, data, None, train_config(cfg.seed, cfg.quick))
+    model, history = train_swarm_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick))
     save_trained(path, model, history, data)
 
 

@@ -33,8 +33,8 @@ import numpy as np
 from core.errors import ConfigError
 from core.provenance import describe, fingerprint
 from downwash.staged import ensure_models
-from downwash.swarm_collection import (DATA_MIXES, SwarmCollectionConfig, collect_swarm, swarm_model_path,
-                                       swarm_provenance)
+from downwash.swarm_collection import (DATA_MIXES, SwarmCollectionConfig, collect_swarm, pair_models_key,
+                                       swarm_model_path, swarm_provenance)
 from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, wrap_pairwise
 from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline,
                                 setup_logging, write_results)
@@ -95,7 +95,8 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
     return presets, laws
 
 
-def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, neighbours) -> list:
+def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, pair_models_dir: Path,
+                neighbours) -> list:
     out = []
     for c in names:
         if c == "baseline":
@@ -106,7 +107,8 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
             out.append(SwarmPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
         else:
             kind, mix = c.rsplit("-", 1)
-            out.append(SwarmPredictor(swarm_model_path(models_dir, kind, mix), expect_neighbours=neighbours,
+            out.append(SwarmPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
+                                      expect_neighbours=neighbours,
                                       expect_aggregation=law if mix == "mixed" else None))
     return out
 
@@ -128,13 +130,16 @@ def run(args: SwarmArgs) -> dict:
     out = Path(args.out)
     results: dict[str, Any] = {"experiment": "swarm", "seeds": seeds, "conditions": names, "laws": {}, "presets": {}}
     first_logs = None
+    pair_models_dir = p.collection_dir.parent / f"swarm-pair-{pair_models_key(cfg, p.record)}"  # shared by every law
     for law_name, law in laws:
         record = swarm_provenance(cfg, law, p.record)
         swarm_dir = p.collection_dir.parent / f"swarm-{law.name}-{fingerprint(record)}"
-        collected = collect_swarm(cfg, swarm_dir, p.collection_dir, pair_model, p.record, p.field, law, ProgressBar)
+        collected = collect_swarm(cfg, swarm_dir, p.collection_dir, pair_model, p.record, p.field, law,
+                                  pair_models_dir, ProgressBar)
         results["laws"][law_name] = {"law": describe(law), "collection_dir": str(swarm_dir),
                                      "models": collected["models"], "stages": collected["stages"]}
-        predictors = _predictors(names, p.field, law, pair_model, swarm_dir / "models", cfg.neighbours)
+        predictors = _predictors(names, p.field, law, pair_model, swarm_dir / "models", pair_models_dir,
+                                 cfg.neighbours)
         for preset in presets:
             duration = args.duration or (2.0 if args.quick else max(preset.duration, 10.0))
             W = len(names) * K

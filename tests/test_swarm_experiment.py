@@ -56,7 +56,7 @@ def test_each_law_has_its_own_collection_and_models_know_it(swarm_run):
     for law, d in dirs.items():
         mixed = load_swarm_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-mixed.pt")
         assert mixed.record["aggregation"]["name"] == law  # trained on this law's many-vehicle flights
-        pair = load_swarm_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-pair.pt")
+        pair = load_swarm_checkpoint(next(swarm_run.glob("swarm-pair-*/deepsets_equivariant-pair.pt")))
         assert pair.record["aggregation"] is None  # two-vehicle data: every law is the pairwise field
 
 
