@@ -111,7 +111,8 @@ def run(args: FieldsArgs) -> dict:
     print(format_table([(f["name"], f["description"], f["symmetry"]) for f in results["fields"]],
                        ("name", "description", "symmetry")))
     if args.run:  # its own default folder: the report reads the table from runs/field_table/results.json
-        args = dataclasses.replace(args, out=args.out or "runs/field_table")
+        if Path(args.out) == Path("runs") / "fields":  # the listing's default: --run keeps its table apart
+            args = dataclasses.replace(args, out=str(Path("runs") / "field_table"))
         out = Path(args.out)
         results["table"] = run_every_field(args, out)
         conditions = [c for c in CONDITIONS if c in next(iter(results["table"].values()))["conditions"]]
