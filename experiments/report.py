@@ -272,7 +272,19 @@ def render_outdoor(r: dict, label: str) -> str:
     head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
             f"the follower {short(r['separation'])} m beneath it; {air}. The models are those of the staged collection "
             "(hovering leader, still air).")
-    return head + "\n\n" + render_tracking({**r, "separation": r["separation"]}, label)
+    c = r["conditions"]
+    models = [k for k in ORDER if k in c and k not in ("no_downwash", "baseline", "oracle")]
+    best = max(models, key=lambda k: c[k].get("improvement_pos_3d") or -math.inf) if models else None
+    crashed = [f"`{k}` ({pct(c[k]['crash_rate'])})" for k in models if c[k].get("crash_rate")]
+    verdict = []
+    if "oracle" in c and c["oracle"].get("improvement_pos_3d") is not None:
+        verdict.append(f"The oracle improves the 3D position error by {pct(c['oracle']['improvement_pos_3d'])} over the "
+                       "baseline")
+    if best is not None:
+        verdict.append(f"the best model, `{best}`, by {pct(c[best].get('improvement_pos_3d'))}")
+    if crashed:
+        verdict.append("crashes (counted with the crash penalty): " + ", ".join(crashed))
+    return "\n\n".join([head, render_tracking(r, label), "; ".join(verdict) + "."])
 
 
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
