@@ -43,16 +43,19 @@ leaves the stacks.
 * ``deep``: 8 spectrally normalised layers. torch's parametrisation runs one power
   iteration per training forward on its ``u, v`` and divides the weight by
   ``sigma = vdot(u, mv(W, v))``, the gradient flowing through ``sigma``. Here
-  ``u, v`` are stacked ``(M, out)``, ``(M, in)`` buffers, and the power iteration
-  and ``sigma`` run per member with exactly torch's operations (``torch.mv``,
-  ``F.normalize(..., out=u[m])``, ``torch.vdot``, ``gamma * (W / sigma)``) on views
-  of the stacked tensors; only the effective weights are then stacked for the
-  batched layers. Eval mode (validation) uses the stored ``u, v``, as torch does.
-  At the end each member is a real `DeepSNMLP` whose best state is loaded and
-  settled by `DeepSNMLP.settle_spectral_norm`, exactly as after `train_model`.
-  A batched power iteration (``bmm`` on the stacked weights) would save the
-  per-member small operations (a few per cent of a deep step, which is dominated
-  by the 40x40 matrix products), but would not be bit-identical: ``bmm`` and
+  ``u, v`` are stacked ``(M, out)``, ``(M, in)`` buffers. The BLAS calls run per
+  member with exactly torch's operations (``torch.mv`` of the power iteration and
+  of ``sigma``, ``torch.vdot``); ``F.normalize`` runs over the stack (the norm of a
+  row of the stack is the norm of that vector alone, measured bit for bit; the
+  rest is elementwise) and ``gamma * (W / sigma)`` is one custom autograd function
+  (`_SpectralWeights`) whose backward applies torch's derivative formulas for that
+  graph over the stack, only the reduction to ``sigma``'s gradient per member.
+  Eval mode (validation) uses the stored ``u, v``, as torch does. At the end each
+  member is a real `DeepSNMLP` with its best state, whose spectral norms are
+  settled as `DeepSNMLP.settle_spectral_norm` does after `train_model` (the same
+  chunks of iterations and stopping test per member, the members side by side:
+  `_settle_members`). A power iteration by ``bmm`` on the stacked weights would
+  save the per-member ``mv`` calls, but would not be bit-identical: ``bmm`` and
   ``mv``/``vdot`` accumulate in different orders.
 
 Equivalence
@@ -90,12 +93,18 @@ Speed: a step's cost is mostly arithmetic and memory traffic on the (M, B, width
 activations, not per-operation overhead, so an ensemble is cheaper than its
 members one after another by what it saves on overhead (measured on 2 cores:
 about 1.4-1.6x for the one-hidden-layer models, 1.1-1.3x for the deep model);
-independent ensembles in separate processes use further cores.
+independent ensembles in separate processes use further cores. For the deep model
+about 5 members is the fastest per member (measured per member-step: 14 ms alone,
+8 ms with 2, 6.6 ms with 5, 7.1 ms with 10, 8 ms with 20: beyond that the
+activations outgrow the caches). Where most members of a step have padded batches
+(small data sets, one batch per epoch) every member's weight gradient is its own
+``mm`` instead of a batched product that would mostly be recomputed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import logging
 import math
 import time
@@ -105,7 +114,6 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 from torch.optim.adam import adam as _adam_functional
 
 from core.errors import ConfigError
@@ -141,7 +149,9 @@ class _BatchedLinear(torch.autograd.Function):
     ``gx = g W``, ``gW = g^T x``, ``gb = sum_rows g``; for the members in ``short``
     (``(j, rows)``: a batch padded beyond its ``rows`` real rows) ``gW`` and ``gb``
     are recomputed from the real rows only, so that the reduction over rows has
-    the member's own length (see the module doc).
+    the member's own length (see the module doc); when most members are short (small
+    data sets, one batch per epoch), every member's ``gW`` is its own ``mm`` instead
+    of a batched product that would mostly be redone.
     """
 
     @staticmethod
@@ -154,10 +164,17 @@ class _BatchedLinear(torch.autograd.Function):
     def backward(ctx, g):
         x, weight = ctx.saved_tensors
         gx = g.bmm(weight) if ctx.needs_input_grad[0] else None
-        gw = torch.bmm(g.transpose(1, 2), x, out=_aligned_empty(weight.shape, g.dtype))
         gb = g.sum(1)
-        for j, rows in ctx.short:
+        m = g.shape[0]
+        if 2 * len(ctx.short) < m:
+            gw = torch.bmm(g.transpose(1, 2), x, out=_aligned_empty(weight.shape, g.dtype))
+            rows_of = ctx.short
+        else:  # mostly padded batches (small data sets): every member's own product, no batched one to redo
+            gw = _aligned_empty(weight.shape, g.dtype)
+            rows_of = [(j, dict(ctx.short).get(j, g.shape[1])) for j in range(m)]
+        for j, rows in rows_of:
             gw[j] = g[j, :rows].t().mm(x[j, :rows])
+        for j, rows in ctx.short:
             gb[j] = g[j, :rows].sum(0)
         return gx, gw, gb, None
 
@@ -509,7 +526,8 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
         weight = torch.where(real, inv[:, None], 0.0)[..., None]
 
         # -- forward, loss, backward -------------------------------------------------------------
-        pred = _forward(plan, stacks.params, stacks.p_views, stacks.buf_views, xb, short, training=True)
+        pred = _forward(plan, stacks.params, stacks.p_views, stacks.buf_views, xb, short, training=True,
+                        buffers=stacks.buffers)
         pred = pred * stacks.out_std + stacks.out_mean
         if bb is not None:
             pred = assemble(pred, bb)
@@ -544,6 +562,9 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
             active = [active[j] for j in keep]
             if active:
                 stacks = stacks.keep(keep)
+    deep = [mb for mb in members if isinstance(mb.model, DeepSNMLP)]
+    if deep:
+        _settle_members(deep, level)
     seconds = time.perf_counter() - start
     for mb in members:
         mb.history["seconds"] = seconds
@@ -556,11 +577,13 @@ def _round_rows(rows: int) -> int:
 
 
 def _forward(plan: list[_Layer], params: Sequence[torch.Tensor], p_views, buf_views, x: torch.Tensor, short,
-             training: bool) -> torch.Tensor:
+             training: bool, buffers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
     """The stacked network on x (M, B, k): (M, B, m), normalised outputs.
 
     params: the members' stacked weights and biases (plan order); p_views, buf_views:
-    per member, views of its weights and of its power-iteration vectors (the deep model).
+    per member, views of its weights and of its power-iteration vectors (the deep
+    model); buffers: those vectors stacked (training mode: the power iteration
+    updates them in place).
     """
     h = x
     for layer in plan:
@@ -569,12 +592,13 @@ def _forward(plan: list[_Layer], params: Sequence[torch.Tensor], p_views, buf_vi
             continue
         w, b = params[layer.weight], params[layer.bias]
         if layer.kind == "spectral":
-            w = _spectral_weights(layer, w, p_views, buf_views, training)
+            w = _spectral_weights(layer, w, p_views, buf_views, training, buffers)
         h = _BatchedLinear.apply(h, w, b, short)
     return h
 
 
-def _spectral_weights(layer: _Layer, w: torch.Tensor, p_views, buf_views, training: bool) -> torch.Tensor:
+def _spectral_weights(layer: _Layer, w: torch.Tensor, p_views, buf_views, training: bool,
+                      buffers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
     """``gamma W_m / sigma_m`` for every member, with torch's `spectral_norm` arithmetic per member.
 
     Training mode first runs ``n_power_iterations`` of torch's ``_power_method`` on
@@ -586,22 +610,67 @@ def _spectral_weights(layer: _Layer, w: torch.Tensor, p_views, buf_views, traini
     vs = [views[layer.v] for views in buf_views]
     if training:
         with torch.no_grad():
-            for views, u, v in zip(p_views, us, vs):
-                wm = views[layer.weight]
-                for _ in range(layer.n_power_iterations):
-                    F.normalize(torch.mv(wm, v), dim=0, eps=layer.eps, out=u)
-                    F.normalize(torch.mv(wm.H, u), dim=0, eps=layer.eps, out=v)
+            ws = [views[layer.weight] for views in p_views]
+            for _ in range(layer.n_power_iterations):
+                _normalize_rows([torch.mv(wm, v) for wm, v in zip(ws, vs)], layer.eps, buffers[layer.u])
+                _normalize_rows([torch.mv(wm.H, u) for wm, u in zip(ws, us)], layer.eps, buffers[layer.v])
     u_all = _aligned_stack(us)  # the parametrisation's clones of u, v
     v_all = _aligned_stack(vs)
-    effective = []
-    for wm, u, v in zip(w.unbind(0), u_all.unbind(0), v_all.unbind(0)):
-        sigma = torch.vdot(u, torch.mv(wm, v))
-        effective.append(layer.gamma * (wm / sigma))
-    # stacked with 64-byte aligned member slices (see _aligned_stack), differentiably
-    numel = effective[0].numel()
-    stride = _aligned_stride(numel, effective[0].element_size())
-    flat = torch.stack([F.pad(e.reshape(-1), (0, stride - numel)) for e in effective])
-    return flat.narrow(1, 0, numel).unflatten(1, effective[0].shape)
+    return _SpectralWeights.apply(w, u_all, v_all, layer.gamma)
+
+
+def _normalize_rows(rows: list[torch.Tensor], eps: float, out: torch.Tensor) -> None:
+    """``F.normalize(rows[m], dim=0, eps=eps, out=out[m])`` for every member, as a few ops on the stack.
+
+    F.normalize is ``x / x.norm(2, 0, keepdim=True).clamp_min_(eps)``: the norm of each
+    row of the stack equals the norm of that vector alone (measured bit for bit for
+    the widths 3-100; the ensemble tests check it end to end), the rest is elementwise.
+    """
+    x = _aligned_stack(rows)
+    denom = torch.linalg.vector_norm(x, 2, dim=1, keepdim=True).clamp_min_(eps)
+    torch.div(x, denom, out=out)
+
+
+class _SpectralWeights(torch.autograd.Function):
+    """``gamma W_m / sigma_m``, ``sigma_m = vdot(u_m, mv(W_m, v_m))``, for the stacked members.
+
+    Forward: ``mv`` and ``vdot`` per member (BLAS calls, as the parametrisation
+    makes them), the division and the scaling as one elementwise op each over the
+    stack. Backward: the gradient autograd computes for the member's graph
+    ``gamma * (W / vdot(u, mv(W, v)))``, formula by formula (torch's
+    derivatives.yaml): ``MulBackward0`` ``g gamma``; ``DivBackward0``
+    ``g / sigma`` for W and ``-g ((W / sigma) / sigma)`` summed to a scalar for
+    sigma (that sum per member, a reduction); ``VdotBackward0`` ``g_sigma u``;
+    ``MvBackward0`` ``outer(g_mv, v)``; the two gradients of W added. Elementwise
+    ops give the same value per element batched or not; only the reductions
+    (``mv``, ``vdot``, the sum) run per member. The output's member slices are
+    64-byte aligned (see `_aligned_stack`), as the batched layer's weights must be.
+    """
+
+    @staticmethod
+    def forward(ctx, w, u_all, v_all, gamma):
+        sigma = torch.stack([torch.vdot(u, torch.mv(wm, v)) for wm, u, v in zip(w.unbind(0), u_all.unbind(0),
+                                                                                 v_all.unbind(0))])
+        s = sigma.view(-1, 1, 1)
+        out = _aligned_empty(w.shape, w.dtype)
+        torch.div(w, s, out=out)
+        out.mul_(gamma)
+        ctx.save_for_backward(w, sigma, u_all, v_all)
+        ctx.gamma = gamma
+        return out
+
+    @staticmethod
+    def backward(ctx, g):
+        w, sigma, u_all, v_all = ctx.saved_tensors
+        s = sigma.view(-1, 1, 1)
+        gq = g * ctx.gamma
+        grad = gq / s
+        r = _aligned_empty(w.shape, w.dtype)
+        torch.mul(-gq, (w / s) / s, out=r)
+        g_sigma = torch.stack([rm.sum() for rm in r.unbind(0)])
+        g_mv = g_sigma.view(-1, 1) * u_all
+        grad += g_mv.unsqueeze(2) * v_all.unsqueeze(1)
+        return grad, None, None, None
 
 
 def _adam_step(active: list[_Member], stacks: _Stacks, grads: Sequence[torch.Tensor]) -> None:
@@ -693,19 +762,14 @@ def _end_epoch(kind: str, mb: _Member, stacks: _Stacks, j: int, val_loss: float)
 
 
 def _finish(kind: str, mb: _Member, level: int, size: int) -> None:
-    """Best-epoch restore (and settled spectral norms), history: as at the end of `train_model`."""
+    """Best-epoch restore and history, as at the end of `train_model`; the deep model's
+    spectral norms are settled later, for all members at once (`_settle_members`)."""
     model = mb.model
     model.eval()  # as train_model's model is after its last validation (no power iteration in decode)
     model.load_state_dict(mb.best_state)
-    best = mb.best
-    if isinstance(model, DeepSNMLP):
-        model.settle_spectral_norm()
-        with torch.no_grad():
-            best = float(torch.mean((model.decode(mb.xv, mb.basis_v) - mb.yv) ** 2))
-    model.eval()
     mb.history.update(
         best_epoch=mb.best_epoch,
-        best_val_loss=best,
+        best_val_loss=mb.best,
         epochs=len(mb.history["val_loss"]),
         planned_epochs=mb.n_epochs,
         steps=mb.step,
@@ -720,7 +784,72 @@ def _finish(kind: str, mb: _Member, level: int, size: int) -> None:
         ensemble_size=size,
         member=mb.index,
     )
-    mb.train = mb.val = None  # free the member's data
-    mb.xv = mb.xv_n = mb.yv = mb.basis_v = mb.x = mb.y = mb.basis = mb.epoch_data = None
-    logger.log(level, "%s member %d: best val rmse %.4f at epoch %d of %d", kind, mb.index, math.sqrt(best),
-               mb.best_epoch, mb.history["epochs"])
+    mb.train = mb.val = None  # free the member's data (the deep model keeps its validation set)
+    mb.xv_n = mb.x = mb.y = mb.basis = mb.epoch_data = mb.best_state = None
+    if isinstance(model, DeepSNMLP):
+        return
+    mb.xv = mb.yv = mb.basis_v = None
+    _log_member(kind, mb, level)
+
+
+def _log_member(kind: str, mb: _Member, level: int) -> None:
+    logger.log(level, "%s member %d: best val rmse %.4f at epoch %d of %d", kind, mb.index,
+               math.sqrt(mb.history["best_val_loss"]), mb.best_epoch, mb.history["epochs"])
+
+
+def _settle_members(members: list[_Member], level: int) -> None:
+    """`DeepSNMLP.settle_spectral_norm` of every member, then its validation loss, as `train_model` ends.
+
+    The power iterations of one layer run for all members side by side, chunk by
+    chunk as in `settle_spectral_norm` (20 iterations, then the float32 estimate
+    ``dot(u, mv(W, v))`` against the previous chunk's), each member stopping at its
+    own chunk: ``mv`` and ``dot`` per member, the normalisation over the stack
+    (`_normalize_rows`).
+    """
+    models = [mb.model for mb in members]
+    for i in range(len(models[0].spectral_layers())):
+        _settle_layer([m.spectral_layers()[i] for m in models])
+    for mb in members:
+        with torch.no_grad():
+            mb.history["best_val_loss"] = float(torch.mean((mb.model.decode(mb.xv, mb.basis_v) - mb.yv) ** 2))
+        mb.xv = mb.yv = mb.basis_v = None
+        _log_member(mb.model.kind, mb, level)
+
+
+_SETTLE = inspect.signature(DeepSNMLP.settle_spectral_norm).parameters  # its max_iterations and rtol
+_SETTLE_CHUNK = 20  # power iterations between two tests of convergence, as in DeepSNMLP.settle_spectral_norm
+
+
+def _settle_layer(layers: list[_SpectralLinear], max_iterations: int = _SETTLE["max_iterations"].default,
+                  rtol: float = _SETTLE["rtol"].default, chunk: int = _SETTLE_CHUNK) -> None:
+    """`DeepSNMLP.settle_spectral_norm` for one layer of several models, side by side (the ensemble
+    tests compare the settled vectors with those of `train_model`, bit for bit)."""
+    params = [layer.linear.parametrizations.weight[0] for layer in layers]
+    ws = [layer.linear.parametrizations.weight.original.detach() for layer in layers]
+    with torch.no_grad():
+        u = _aligned_stack([p._u for p in params])
+        v = _aligned_stack([p._v for p in params])
+        us, vs = u.unbind(0), v.unbind(0)
+        eps = params[0].eps
+        active, prev = list(range(len(layers))), [None] * len(layers)
+        for _ in range(0, max_iterations, chunk):
+            uu, vv = _aligned_stack([us[j] for j in active]), _aligned_stack([vs[j] for j in active])
+            uus, vvs = uu.unbind(0), vv.unbind(0)
+            aws = [ws[j] for j in active]
+            for _ in range(chunk):
+                _normalize_rows([torch.mv(w, x) for w, x in zip(aws, vvs)], eps, uu)
+                _normalize_rows([torch.mv(w.H, x) for w, x in zip(aws, uus)], eps, vv)
+            still = []
+            for k, j in enumerate(active):
+                us[j].copy_(uus[k])
+                vs[j].copy_(vvs[k])
+                sigma = float(torch.dot(uus[k], torch.mv(ws[j], vvs[k])))
+                if prev[j] is None or abs(sigma - prev[j]) > rtol * abs(sigma):
+                    still.append(j)
+                prev[j] = sigma
+            active = still
+            if not active:
+                break
+        for p, uj, vj in zip(params, us, vs):
+            p._u.copy_(uj)
+            p._v.copy_(vj)

@@ -113,10 +113,14 @@ def test_train_sample_efficiency_force_maps(collection):
     assert r["model"] == "equivariant" and r["n_params"] == 258
     assert r["val_rmse"] > 0 and len(r["val_rmse_axis"]) == 3 and r["noise_floor"] > 0
     _run(["experiments.sample_efficiency", "--quick", "--collection-dir", "staged", "--models-dir", "models",
-          "--out", "se", "--minutes", "0.1"], collection)
+          "--out", "se", "--minutes", "0.1", "--workers", "2"], collection)
     r = json.loads((collection / "se" / "results.json").read_text())
-    assert len(r["minutes"]) == 2 and set(r["models"]) == set(MODEL_KINDS)
-    assert all(len(m["rmse_mean"]) == 2 for m in r["models"].values())
+    assert len(r["minutes"]) == 2 and set(r["models"]) == {"shallow", "deep", "equivariant"} and r["trials"] == 2
+    for m in r["models"].values():
+        assert len(m["rmse_mean"]) == 2 and all(lo <= mu <= hi for lo, mu, hi in
+                                                 zip(m["rmse_ci_low"], m["rmse_mean"], m["rmse_ci_high"]))
+    assert r["cells"] == {"total": 12, "cached": 0, "computed": 12} and r["claim"] is None
+    assert (collection / "se" / "sample_efficiency.png").is_file() and (collection / "se" / "results.md").is_file()
     _run(["experiments.force_maps", "--quick", "--collection-dir", "staged", "--models-dir", "models", "--out", "fm"],
          collection)
     assert (collection / "fm" / "force_maps_down.png").is_file()

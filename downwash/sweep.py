@@ -1,0 +1,676 @@
+"""Resumable sweeps of validation RMSE over fields x model kinds x training minutes x seeds.
+
+    grid = SweepGrid(fields=("so2",), models=("shallow", "equivariant"), minutes=(1.0, 5.0), seeds=(0, 1, 2))
+    results = run_sweep(grid, {"so2": pipeline}, "runs/cells", workers=2)   # a local Ray of 2 CPUs
+    results["fields"]["so2"]["models"]["equivariant"]["rmse_ci_low"]        # per minute point
+
+    # the steps it takes, one by one
+    cells = plan_cells(grid, {"so2": (collection_key, train.n_minutes)})
+    cache = CellCache("runs/cells")
+    for batch in batch_cells(cache.missing(cells), size=5):
+        for cell, result in zip(batch, run_cells(batch, train, val)):
+            cache.store(cell, result)
+    summary = summarize_field(cells, cache.load_all(cells), floor)
+
+This module holds the cells, their cache, their statistics and `run_sweep`, which
+spreads the missing cells over Ray (imported only when cells must be computed); the
+command lines are `experiments.sweep` and its preset `experiments.sample_efficiency`
+(experiments do not import each other, so what they share lives here).
+
+The unit: a cell
+----------------
+A cell is ONE trained model: one field's staged collection, one model kind, one
+training length (minutes, or `FULL`, the whole training set) and one seed. Its
+training subset is drawn from the collection's training flights by `cell_data`
+(`downwash.datasets.shorten_per_stage`, every stage shortened proportionally) with
+a generator seeded by (seed, minutes) only, never by the model kind, and the model
+trains with that seed (`downwash.staged.train_config`). So every kind of one
+(field, minutes, seed) sees the same subset: the trials are paired across models,
+and the difference of two models on one seed is a paired difference. The result is
+the RMSE over the collection's whole validation set (all stages), overall and per
+axis, with the training summary.
+
+Each cell's result is cached as one JSON file named by its key, the `fingerprint`
+of `Cell.record`: the collection's provenance key (field, scene, simulator,
+collection and its seed), the model kind, the minutes, the seed, the training
+config and `CELL_VERSION` (the rules above). The code version is recorded in the
+file, not in the key, as for collections (`core.provenance`). Files are written
+atomically, so a killed sweep leaves only whole cells, and a rerun computes only
+the missing ones.
+
+Cells are cached one by one but computed in batches: `run_cells` trains a batch of
+cells of one field and one kind (several seeds and minute points) as ONE ensemble
+(`downwash.ensemble.train_ensemble`), each member bit-identical to its own
+`train_model` (one intra-op thread). So a cell's numbers do not depend on which
+batch computed it, or on which node: a resumed or distributed sweep gives the
+numbers of an uninterrupted one, bit for bit (with the same BLAS; see
+`downwash.ensemble`).
+
+Statistics
+----------
+Per (field, model, minutes): the mean RMSE over seeds with a 95 % bootstrap
+confidence interval (`bootstrap_ci`: `scipy.stats.bootstrap`, BCa, a fixed seed).
+The paper's claim, "the equivariant model at 5 min beats the best baseline at
+15 min" (`PAPER_CLAIM`), is tested seed by seed (`paired_comparison`): the
+difference ``d_s = rmse(equivariant, 5, s) - min_b rmse(b, 15, s)``, its mean with
+a bootstrap CI, and the fraction of seeds where ``d_s < 0``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import socket
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from core.errors import ConfigError, DataError
+from core.io import atomic_write_json
+from core.provenance import code_version, fingerprint
+from downwash.datasets import Dataset, concatenate, find_logs, load_dataset, shorten_per_stage
+from downwash.labels import label_noise_floor
+from downwash.models import MODEL_KINDS
+from downwash.staged import ensure_collection, train_config
+from downwash.train import TrainConfig
+from sim.fields.registry import resolve_field_spec
+
+__all__ = [
+    "FULL", "CELL_VERSION", "PAPER_MINUTES", "PAPER_MODELS", "Claim", "PAPER_CLAIM", "SweepGrid", "Cell",
+    "load_collection", "field_minutes", "plan_cells", "cell_data", "batch_cells", "run_cells", "CellCache", "bootstrap_ci",
+    "paired_comparison", "summarize_field", "grid_from_text", "check_execution", "run_sweep", "minute_labels",
+    "table_rows", "claim_text", "markdown", "plot_field",
+]  # fmt: skip
+
+log = logging.getLogger(__name__)
+
+FULL = "full"  # the minute point of the whole training set
+CELL_VERSION = 1  # bump when the subset draw, the training or the metric of a cell changes meaning
+PAPER_MINUTES = (0.5, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # the paper's figure 3 (plus the full set)
+PAPER_MODELS = ("shallow", "deep", "equivariant")  # the paper's three models
+_MINUTE_TICKS = 10_000  # the subset generator sees minutes rounded to 1e-4 min (6 ms of flight)
+
+
+@dataclass(frozen=True)
+class Claim:
+    """``model`` at ``minutes`` beats the best of ``baselines`` at ``baseline_minutes``, seed by seed."""
+
+    model: str = "equivariant"
+    minutes: float | str = 5.0  # or FULL
+    baselines: tuple[str, ...] = ("shallow", "deep")
+    baseline_minutes: float | str = 15.0
+
+    def describe(self) -> str:
+        at = lambda m: "the full set" if m == FULL else f"{m:g} min"  # noqa: E731
+        return f"{self.model} at {at(self.minutes)} < min({', '.join(self.baselines)}) at {at(self.baseline_minutes)}"
+
+
+PAPER_CLAIM = Claim()  # the paper's abstract: 5 min of data beat the baselines with 15 min
+
+
+@dataclass(frozen=True)
+class SweepGrid:
+    """What a sweep measures: every (field, model, minutes, seed), each validated on construction.
+
+    fields: field specs (`sim.fields.registry` grammar; "" is the default field);
+    models: kinds of `downwash.models.MODEL_KINDS`; minutes: training lengths, min
+    (> 0; the whole training set is always added as `FULL`, and a length at or
+    beyond it is left out for that field); seeds: the trials (ints >= 0), each a
+    data subset and a training seed shared by all models; quick: the quick
+    training settings (`downwash.staged.train_config`); training: a `TrainConfig`
+    whose seed is replaced per cell (None: `train_config(0, quick)`).
+    """
+
+    fields: tuple[str, ...] = ("",)
+    models: tuple[str, ...] = PAPER_MODELS
+    minutes: tuple[float, ...] = PAPER_MINUTES
+    seeds: tuple[int, ...] = tuple(range(10))
+    quick: bool = False
+    training: TrainConfig | None = None
+
+    def __post_init__(self) -> None:
+        fields = _as_tuple("fields", self.fields)
+        if not fields:
+            raise ConfigError("fields: empty; give at least one field spec ('' is the default field)")
+        for spec in fields:
+            if not isinstance(spec, str):
+                raise ConfigError(f"fields: expected field specs (strings), got {spec!r}")
+            resolve_field_spec(spec, label=f"field {spec!r}")  # unknown names raise here, naming the registry
+        if len(set(fields)) != len(fields):
+            raise ConfigError(f"fields: {list(fields)} names a field twice")
+        models = _as_tuple("models", self.models)
+        if not models:
+            raise ConfigError(f"models: empty; allowed: {', '.join(MODEL_KINDS)}")
+        for m in models:
+            if m not in MODEL_KINDS:
+                raise ConfigError(f"models: unknown {m!r}; allowed: {', '.join(MODEL_KINDS)}")
+        if len(set(models)) != len(models):
+            raise ConfigError(f"models: {list(models)} names a model twice")
+        minutes = []
+        for m in _as_tuple("minutes", self.minutes):
+            try:
+                value = float(m)
+            except (TypeError, ValueError):
+                raise ConfigError(f"minutes: expected numbers > 0 (min), got {m!r}") from None
+            if isinstance(m, bool) or not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"minutes: every value must be a finite number > 0 (min), got {m!r}")
+            minutes.append(value)
+        seeds = _as_tuple("seeds", self.seeds)
+        if not seeds:
+            raise ConfigError("seeds: empty; give at least one seed (one trial each)")
+        for s in seeds:
+            if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
+                raise ConfigError(f"seeds: expected integers >= 0, got {s!r}")
+        if len(set(seeds)) != len(seeds):
+            raise ConfigError(f"seeds: {list(seeds)} repeats a seed (each seed is one trial)")
+        if self.training is not None and not isinstance(self.training, TrainConfig):
+            raise ConfigError(f"training: expected a TrainConfig or None, got {type(self.training).__name__}")
+        object.__setattr__(self, "fields", fields)
+        object.__setattr__(self, "models", models)
+        object.__setattr__(self, "minutes", tuple(sorted(set(minutes))))
+        object.__setattr__(self, "seeds", tuple(int(s) for s in seeds))
+
+    def config(self, seed: int) -> TrainConfig:
+        """The training settings of a cell of this seed."""
+        base = train_config(0, self.quick) if self.training is None else self.training
+        return dataclasses.replace(base, seed=int(seed))
+
+    def describe(self) -> dict[str, Any]:
+        return {"fields": list(self.fields), "models": list(self.models), "minutes": list(self.minutes),
+                "full": True, "seeds": list(self.seeds), "training": self.config(0).to_dict()}
+
+
+def _as_tuple(name: str, value: Any) -> tuple:
+    if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+        raise ConfigError(f"{name}: expected a list, got {value!r}")
+    return tuple(value)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One trained model of a sweep; its result is cached under `key`.
+
+    field: the field spec as given (for tables; the collection key identifies the
+    field); collection: the collection's provenance key; model: the kind; minutes:
+    training minutes, or `FULL`; seed: the trial; training: the full training config
+    (its seed is the cell's).
+    """
+
+    field: str
+    collection: str
+    model: str
+    minutes: float | str
+    seed: int
+    training: TrainConfig
+
+    def record(self) -> dict[str, Any]:
+        """Everything that determines the result (the key is its fingerprint)."""
+        return {"version": CELL_VERSION, "collection": self.collection, "model": self.model,
+                "minutes": self.minutes, "seed": self.seed, "training": self.training.to_dict(),
+                "metric": "rmse over the collection's validation flights, all stages"}
+
+    @property
+    def key(self) -> str:
+        return fingerprint(self.record(), length=16)
+
+    @property
+    def label(self) -> str:
+        minutes = self.minutes if self.minutes == FULL else f"{self.minutes:g} min"
+        return f"{self.field or 'default'}/{self.model}/{minutes}/seed {self.seed}"
+
+
+def load_collection(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict]:
+    """(training data, validation data, label-noise floor) of a staged collection folder.
+
+    Training: every stage's ``train`` flights; validation: every stage's ``val``
+    flights. DataError when either is missing.
+    """
+    collection_dir = Path(collection_dir)
+    train_dirs = sorted(collection_dir.glob("stage*/train"))
+    val_dirs = sorted(collection_dir.glob("stage*/val"))
+    if not train_dirs or not val_dirs:
+        raise DataError(f"{collection_dir}: expected stage*/train and stage*/val folders of flight logs")
+    train = concatenate([load_dataset(d) for d in train_dirs])
+    val = concatenate([load_dataset(d) for d in val_dirs])
+    floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)])
+    return train, val, floor
+
+
+def field_minutes(grid: SweepGrid, full_minutes: float) -> list[float | str]:
+    """The minute points of a field whose training set lasts ``full_minutes``: those shorter, then FULL."""
+    return [m for m in grid.minutes if m < full_minutes] + [FULL]
+
+
+def plan_cells(grid: SweepGrid, collections: Mapping[str, tuple[str, float]]) -> list[Cell]:
+    """Every cell of the grid, in (field, model, minutes, seed) order.
+
+    collections: field spec -> (collection provenance key, training minutes of that collection).
+    """
+    missing = [f for f in grid.fields if f not in collections]
+    if missing:
+        raise ConfigError(f"plan_cells: no collection given for field(s) {missing}")
+    cells = []
+    for spec in grid.fields:
+        key, full = collections[spec]
+        for kind in grid.models:
+            for m in field_minutes(grid, full):
+                cells += [Cell(spec, key, kind, m, s, grid.config(s)) for s in grid.seeds]
+    return cells
+
+
+def cell_data(train: Dataset, minutes: float | str, seed: int) -> Dataset:
+    """The training subset of a cell: the whole set for FULL, else `minutes` of it, every stage
+    shortened proportionally, drawn by a generator of (seed, minutes) (the same for every kind)."""
+    if minutes == FULL:
+        return train
+    rng = np.random.default_rng([int(seed), int(round(float(minutes) * _MINUTE_TICKS))])
+    return shorten_per_stage(train, float(minutes), rng)
+
+
+def batch_cells(cells: Sequence[Cell], size: int) -> list[list[Cell]]:
+    """The cells grouped into batches of at most ``size`` cells of one field and one kind.
+
+    Each batch trains as one ensemble (`run_cells`). Within a group the cells are
+    taken in (minutes, seed) order, so a batch holds whole minute points where it
+    can. Batches come largest estimated cost first (the deep model, the longest
+    data), which keeps workers busy to the end when they run in that order.
+    Scheduling only: a cell's result does not depend on its batch.
+    """
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ConfigError(f"batch size: expected an integer >= 1, got {size!r}")
+    groups: dict[tuple[str, str], list[Cell]] = {}
+    for c in cells:
+        groups.setdefault((c.collection, c.model), []).append(c)
+    batches = []
+    for group in groups.values():
+        group = sorted(group, key=lambda c: (math.inf if c.minutes == FULL else c.minutes, c.seed))
+        batches += [group[i:i + size] for i in range(0, len(group), size)]
+
+    return sorted(batches, key=lambda b: sum(_cost(c) for c in b), reverse=True)
+
+
+def _cost(cell: Cell) -> float:
+    """A rough training cost of a cell, for scheduling only (measured on 2 cores, the paper's
+    collection): rows per step x steps x the kind's cost per row. A cell of m minutes trains on
+    0.8 x 3000 m rows (50 Hz, a fifth held out) and runs about 500 + 40 m steps (early stopping
+    after ~1500 scheduled); the deep model costs about 7 times a one-hidden-layer model per row."""
+    minutes = 20.0 if cell.minutes == FULL else float(cell.minutes)
+    rows = min(cell.training.batch_size, 0.8 * 3000 * minutes)
+    return (7.0 if cell.model == "deep" else 1.0) * rows * (500 + 40 * minutes)
+
+
+def run_cells(cells: Sequence[Cell], train: Dataset, val: Dataset) -> list[dict[str, Any]]:
+    """Train the cells (one field, one kind) as one ensemble and evaluate each on ``val``.
+
+    Returns one result per cell, in order: ``rmse`` (m/s^2, over samples and the
+    three axes), ``rmse_axis`` (x, y, z), ``train_minutes``, ``history`` (epochs,
+    best epoch, steps, planned epochs, best early-stopping loss, training rows),
+    ``compute`` (the ensemble's wall and CPU seconds and size, host, code version:
+    not part of the numbers), ``record`` and ``key``.
+    """
+    import torch
+
+    from downwash.ensemble import train_ensemble
+
+    if not cells:
+        return []
+    kinds = {(c.collection, c.model) for c in cells}
+    if len(kinds) != 1:
+        raise ConfigError(f"run_cells: a batch must be of one collection and one model kind, got {sorted(kinds)}")
+    kind = cells[0].model
+    data = [cell_data(train, c.minutes, c.seed) for c in cells]
+    t0, c0 = time.perf_counter(), time.process_time()
+    trained = train_ensemble(kind, data, [c.training for c in cells])
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    # the features do not depend on the weights: the validation set is encoded once for the batch;
+    # one intra-op thread, as in training, so that the numbers do not depend on the machine's cores
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.inference_mode():
+            x, basis = trained[0][0].encode(val.dp, val.v_a, val.v_b, val.R_a)
+            predictions = [model.decode(x, basis).double().numpy() for model, _ in trained]
+    finally:
+        torch.set_num_threads(threads)
+    y = np.asarray(val.y, dtype=np.float64)
+    out = []
+    for cell, d, (model, history), pred in zip(cells, data, trained, predictions):
+        err = pred - y
+        out.append({
+            "key": cell.key, "record": cell.record(), "field": cell.field,
+            "rmse": float(np.sqrt(np.mean(err**2))), "rmse_axis": np.sqrt(np.mean(err**2, axis=0)).tolist(),
+            "train_minutes": d.n_minutes,
+            "history": {k: history[k] for k in ("epochs", "best_epoch", "steps", "planned_epochs", "best_val_loss",
+                                                 "n_train", "n_val")},
+            "compute": {"ensemble_seconds": seconds, "ensemble_cpu_seconds": cpu, "ensemble_size": len(cells),
+                        "host": socket.gethostname(),
+                        "pid": os.getpid(), "code": code_version()},
+        })  # fmt: skip
+    return out
+
+
+class CellCache:
+    """One JSON file per cell, ``root/<model>/<key>.json``, written atomically.
+
+    A file whose record differs from the cell's (a key collision, or a hand-edited
+    file) or that cannot be read counts as missing, with a warning, and is rewritten.
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def path(self, cell: Cell) -> Path:
+        return self.root / cell.model / f"{cell.key}.json"
+
+    def load(self, cell: Cell) -> dict[str, Any] | None:
+        import json
+
+        path = self.path(cell)
+        if not path.is_file():
+            return None
+        try:
+            result = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            log.warning("%s: unreadable cell result (%s); recomputing it", path, e)
+            return None
+        if result.get("record") != json.loads(json.dumps(cell.record())):
+            log.warning("%s: holds another cell's result; recomputing it", path)
+            return None
+        return result
+
+    def load_all(self, cells: Sequence[Cell]) -> dict[str, dict[str, Any]]:
+        """{key: result} of the cached cells among ``cells``."""
+        return {c.key: r for c in cells if (r := self.load(c)) is not None}
+
+    def missing(self, cells: Sequence[Cell]) -> list[Cell]:
+        return [c for c in cells if self.load(c) is None]
+
+    def store(self, cell: Cell, result: Mapping[str, Any]) -> Path:
+        if result.get("key") != cell.key:
+            raise ConfigError(f"CellCache.store: result of cell {result.get('key')!r} given for cell {cell.key!r}")
+        path = self.path(cell)
+        atomic_write_json(path, {**result, "written": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+        return path
+
+
+# -- statistics -------------------------------------------------------------------------------
+
+def bootstrap_ci(values: Sequence[float], confidence: float = 0.95, seed: int = 0,
+                 n_resamples: int = 9999) -> tuple[float, float]:
+    """The bootstrap confidence interval (low, high) of the mean of ``values``.
+
+    `scipy.stats.bootstrap` (BCa) with a generator seeded by ``seed``: the same
+    values give the same interval. Fewer than two values, or values that are all
+    equal, have no spread to resample: the interval is the mean itself.
+    """
+    from scipy import stats
+
+    x = np.asarray(values, dtype=np.float64)
+    if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
+        raise ConfigError(f"bootstrap_ci: expected a non-empty 1-D list of finite numbers, got {values!r}")
+    if not 0 < confidence < 1:
+        raise ConfigError(f"bootstrap_ci: confidence must be in (0, 1), got {confidence!r}")
+    mean = float(np.mean(x))
+    if x.size < 2 or np.ptp(x) <= 1e-12 * max(1.0, abs(mean)):
+        return mean, mean
+    res = stats.bootstrap((x,), np.mean, confidence_level=confidence, n_resamples=n_resamples, method="BCa",
+                          vectorized=True, random_state=np.random.default_rng(seed))
+    low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    if not (math.isfinite(low) and math.isfinite(high)):  # BCa undefined (e.g. one odd value): percentile
+        res = stats.bootstrap((x,), np.mean, confidence_level=confidence, n_resamples=n_resamples,
+                              method="percentile", vectorized=True, random_state=np.random.default_rng(seed))
+        low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    return low, high
+
+
+def paired_comparison(target: Mapping[int, float], baselines: Sequence[Mapping[int, float]],
+                      seed: int = 0) -> dict[str, Any]:
+    """Seed by seed: ``d_s = target[s] - min_b baselines[b][s]`` over the seeds all of them have.
+
+    Returns n, seeds, differences, mean_difference with its bootstrap CI
+    (`bootstrap_ci`), and fraction_holds, the share of seeds with ``d_s < 0``.
+    ConfigError when no baseline is given or no seed is shared.
+    """
+    if not baselines:
+        raise ConfigError("paired_comparison: no baseline given")
+    seeds = sorted(set(target).intersection(*[set(b) for b in baselines]))
+    if not seeds:
+        raise ConfigError("paired_comparison: the target and the baselines share no seed (no pairs)")
+    d = np.array([target[s] - min(b[s] for b in baselines) for s in seeds])
+    low, high = bootstrap_ci(d, seed=seed)
+    return {"n": len(seeds), "seeds": seeds, "differences": d.tolist(), "mean_difference": float(d.mean()),
+            "ci_low": low, "ci_high": high, "fraction_holds": float(np.mean(d < 0))}
+
+
+def summarize_field(cells: Sequence[Cell], results: Mapping[str, Mapping[str, Any]], floor: Mapping[str, Any],
+                    claim: Claim = PAPER_CLAIM, seed: int = 0) -> dict[str, Any]:
+    """The statistics of one field's cells (all of them must have results).
+
+    Returns minutes (the FULL point as its length in minutes), seeds, models ->
+    rmse_mean, rmse_std, rmse_ci_low, rmse_ci_high (per minute point) and rmse_runs
+    (minutes x seeds), the label-noise floor and validation minutes, and ``claim``:
+    `paired_comparison` at the claim's points, or None with ``claim_skipped`` saying why.
+    """
+    absent = [c.label for c in cells if c.key not in results]
+    if absent:
+        raise ConfigError(f"summarize_field: {len(absent)} cells have no result, e.g. {absent[:3]}")
+    models = list(dict.fromkeys(c.model for c in cells))
+    points = list(dict.fromkeys(c.minutes for c in cells))
+    seeds = sorted({c.seed for c in cells})
+    full = next((results[c.key]["train_minutes"] for c in cells if c.minutes == FULL), None)
+    value = {(c.model, c.minutes, c.seed): results[c.key]["rmse"] for c in cells}
+    out: dict[str, Any] = {
+        "minutes": [full if m == FULL else m for m in points], "seeds": seeds, "models": {},
+        "noise_floor": floor["rmse_mean"], "noise_floor_applied": floor["rmse"],
+    }
+    for kind in models:
+        runs = np.array([[value[(kind, m, s)] for s in seeds] for m in points])
+        cis = [bootstrap_ci(row, seed=seed) for row in runs]
+        out["models"][kind] = {"rmse_mean": runs.mean(axis=1).tolist(), "rmse_std": runs.std(axis=1).tolist(),
+                               "rmse_ci_low": [c[0] for c in cis], "rmse_ci_high": [c[1] for c in cis],
+                               "rmse_runs": runs.tolist()}
+    out["claim"], out["claim_skipped"] = None, None
+    needed = [(claim.model, claim.minutes)] + [(b, claim.baseline_minutes) for b in claim.baselines]
+    lacking = [f"{k} at {m if m == FULL else f'{m:g} min'}" for k, m in needed if k not in models or m not in points]
+    if lacking:
+        out["claim_skipped"] = f"not in the grid: {', '.join(lacking)}"
+    else:
+        per_seed = lambda k, m: {s: value[(k, m, s)] for s in seeds}  # noqa: E731
+        out["claim"] = {"statement": claim.describe(), **dataclasses.asdict(claim),
+                        **paired_comparison(per_seed(claim.model, claim.minutes),
+                                            [per_seed(b, claim.baseline_minutes) for b in claim.baselines], seed)}
+    return out
+
+
+# -- the sweep ---------------------------------------------------------------------------------
+
+def grid_from_text(fields: str, models: str, minutes: str, seeds: str, quick: bool = False) -> SweepGrid:
+    """A grid from the command line's text: fields separated by ';' (a field spec holds commas),
+    the rest by ','. ConfigError naming the option for an item that is not a number."""
+
+    def items(name: str, text: str, convert: Callable[[str], Any], sep: str = ",") -> tuple:
+        try:
+            return tuple(convert(t.strip()) for t in text.split(sep) if t.strip())
+        except ValueError:
+            what = "numbers" if convert is float else "integers" if convert is int else "names"
+            raise ConfigError(f"--{name}: expected a comma list of {what}, got {text!r}") from None
+
+    specs = tuple(dict.fromkeys(t.strip() for t in fields.split(";"))) if fields.strip() else ("",)
+    return SweepGrid(fields=specs, models=items("models", models, str), minutes=items("minutes", minutes, float),
+                     seeds=items("seeds", seeds, int), quick=quick)
+
+
+def check_execution(workers: int, batch: int) -> None:
+    """ConfigError unless ``workers >= 0`` (0: all cores) and ``batch >= 1``."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise ConfigError(f"--workers: expected an integer >= 0 (0: all cores), got {workers!r}")
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
+        raise ConfigError(f"--batch: expected an integer >= 1 (cells per task), got {batch!r}")
+
+
+def run_sweep(
+    grid: SweepGrid,
+    pipelines: Mapping[str, Any],
+    cache_dir: str | Path,
+    *,
+    workers: int = 0,
+    address: str = "",
+    batch: int = 5,
+    claim: Claim = PAPER_CLAIM,
+    progress: Callable[[str], Callable[[int, int], None] | None] = lambda label: None,
+) -> dict[str, Any]:
+    """Compute the grid's missing cells on Ray and summarise every field.
+
+    pipelines: field spec -> its collection, an object with ``collection_dir``,
+    ``models_dir``, ``config`` (`downwash.staged.CollectionConfig`), ``field`` and
+    ``record`` (the provenance record), as `experiments.common.Pipeline`. Each
+    field's collection is made first when incomplete, here, once. The missing cells
+    then run as Ray tasks of one CPU, `batch_cells` of ``batch`` cells each; their
+    results are cached here as each task lands. Ray: the one this process is
+    connected to, else ``ray.init(address=address)``, else a local Ray of
+    ``workers`` CPUs (0: all cores), shut down at the end; none at all when every
+    cell is cached. ``claim`` is tested per field (`summarize_field`); ``progress(label)``
+    may return a ``(done, total)`` callback.
+
+    Returns ``fields`` (spec -> `summarize_field` plus ``collection_key``,
+    ``collection_dir`` and ``validation_minutes``), ``cells`` (total, cached,
+    computed), ``workers`` (the Ray CPUs, 0 when nothing ran) and ``grid``.
+    """
+    check_execution(workers, batch)
+    missing = [f for f in grid.fields if f not in pipelines]
+    if missing:
+        raise ConfigError(f"run_sweep: no pipeline given for field(s) {missing}")
+    data: dict[str, tuple[Dataset, Dataset, dict]] = {}
+    collections: dict[str, tuple[str, float]] = {}
+    for spec in grid.fields:
+        p = pipelines[spec]
+        ensure_collection(p.collection_dir, p.models_dir, p.config, p.field, progress)
+        data[spec] = load_collection(p.collection_dir)
+        collections[spec] = (fingerprint(p.record), data[spec][0].n_minutes)
+    cells = plan_cells(grid, collections)
+    cache = CellCache(cache_dir)
+    # two specs of one field (say "so2" and "so2:strength=10.6") share their cells: each is computed once
+    todo = list({c.key: c for c in cache.missing(cells)}.values())
+    log.info("sweep: %d cells, %d cached, %d to compute", len(cells), len(cells) - len(todo), len(todo))
+    cpus = _compute_on_ray(todo, data, cache, workers, address, batch, progress("sweep cells"), len(cells)) if todo else 0
+    results = cache.load_all(cells)
+    fields = {}
+    for spec in grid.fields:
+        _, val, floor = data[spec]
+        fields[spec] = {**summarize_field([c for c in cells if c.field == spec], results, floor, claim),
+                        "collection_key": collections[spec][0], "collection_dir": str(pipelines[spec].collection_dir),
+                        "validation_minutes": val.n_minutes}
+    return {"fields": fields, "cells": {"total": len(cells), "cached": len(cells) - len(todo), "computed": len(todo)},
+            "workers": cpus, "grid": grid.describe()}
+
+
+def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str, Any]]:
+    """One Ray task: `run_cells`, with the Ray node that ran it in each result's ``compute``."""
+    import ray
+
+    node = ray.get_runtime_context().get_node_id()
+    results = run_cells(cells, train, val)
+    for r in results:
+        r["compute"]["ray_node"] = node
+    return results
+
+
+def _compute_on_ray(todo: list[Cell], data: Mapping[str, tuple], cache: CellCache, workers: int, address: str,
+                    batch: int, progress: Callable[[int, int], None] | None, total: int) -> int:
+    """Run the cells ``todo`` as Ray tasks, caching each task's results as it lands; the cluster's CPUs."""
+    import ray
+
+    started = not ray.is_initialized()
+    if started:
+        if address:
+            ray.init(address=address, logging_level=logging.WARNING)
+        else:
+            # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
+            # they are the computation and the driver only waits
+            ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
+                     _system_config={"worker_niceness": 0})
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
+        refs = {}
+        for spec in dict.fromkeys(c.field for c in todo):  # each field's data goes to the object store once
+            train, val, _ = data[spec]
+            refs[spec] = (ray.put(train), ray.put(val))
+        # submitted largest first: a free CPU takes the next, so the long deep batches start early
+        pending = {task.remote(b, *refs[b[0].field]): b for b in batch_cells(todo, batch)}
+        done = total - len(todo)
+        if progress:
+            progress(done, total)
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                cells = pending.pop(ref)
+                for cell, result in zip(cells, ray.get(ref)):
+                    cache.store(cell, result)
+                done += len(cells)
+                if progress:
+                    progress(done, total)
+        return int(ray.cluster_resources().get("CPU", 0))
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# -- presentation (text; the figure is drawn on the caller's axes) ----------------------------
+
+def minute_labels(minutes: Sequence[float]) -> list[str]:
+    """Column titles: "5 min", ..., the last "16.9 min (full)"."""
+    return [f"{m:.3g} min (full)" if i == len(minutes) - 1 else f"{m:g} min" for i, m in enumerate(minutes)]
+
+
+def table_rows(summary: Mapping[str, Any], digits: int = 3) -> list[list[str]]:
+    """Rows [model, "mean [low, high]", ...] of one field's summary."""
+    return [[k] + [f"{mu:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+                   for mu, lo, hi in zip(m["rmse_mean"], m["rmse_ci_low"], m["rmse_ci_high"])]
+            for k, m in summary["models"].items()]
+
+
+def claim_text(summary: Mapping[str, Any]) -> str:
+    """One sentence on the paired claim of a field's summary (or why it was not tested)."""
+    c = summary.get("claim")
+    if not c:
+        return f"Claim not tested: {summary.get('claim_skipped')}."
+    return (f"Claim \"{c['statement']}\", paired over {c['n']} seeds: mean difference {c['mean_difference']:+.4f} "
+            f"m/s^2, 95 % CI [{c['ci_low']:+.4f}, {c['ci_high']:+.4f}]; it holds for "
+            f"{100 * c['fraction_holds']:.0f} % of the seeds.")
+
+
+def markdown(fields: Mapping[str, Mapping[str, Any]]) -> str:
+    """Markdown: per field, mean RMSE [95 % CI] per model and minute point, and the claim."""
+    parts = []
+    for spec, r in fields.items():
+        header = ["model"] + minute_labels(r["minutes"])
+        lines = [f"### Field `{spec or 'default'}` (collection `{r.get('collection_key')}`)", "",
+                 f"Validation RMSE (m/s^2), mean [95 % bootstrap CI] over {len(r['seeds'])} seeds; label-noise "
+                 f"floor {r['noise_floor']:.4f} m/s^2; validation set {r.get('validation_minutes', 0):.3g} min.", "",
+                 "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(row) + " |" for row in table_rows(r, 4)]
+        lines += ["", claim_text(r)]
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts) + "\n"
+
+
+_COLORS = {"shallow": "tab:orange", "deep": "tab:blue", "equivariant": "tab:green", "equivariant_general": "tab:purple"}
+
+
+def plot_field(ax: Any, summary: Mapping[str, Any], title: str) -> None:
+    """Draw one field's mean RMSE against minutes, its 95 % CI band and the noise floor on ``ax``
+    (a matplotlib Axes; this module imports no plotting library)."""
+    minutes = summary["minutes"]
+    for kind, m in summary["models"].items():
+        ax.plot(minutes, m["rmse_mean"], "o-", color=_COLORS.get(kind), label=kind)
+        ax.fill_between(minutes, m["rmse_ci_low"], m["rmse_ci_high"], color=_COLORS.get(kind), alpha=0.2)
+    ax.axhline(summary["noise_floor"], color="k", ls="--", lw=1, label="label noise floor")
+    ax.set_xlabel("training flight time (min)")
+    ax.set_ylabel("validation RMSE (m/s^2)")
+    ax.set_title(title)
+    ax.legend()
