@@ -704,11 +704,13 @@ class _Plan:
 
     Built from the simulator's current components (`Simulator._make_plan`); holding the
     arrays here keeps every address in the tables valid for the plan's lifetime.
-    chunks: (n, 4) int64, the world ranges run in parallel (see `_fused_kernel`).
+    chunks: (n_threads, n, 4) int64, the n world ranges as thread t runs them, with its scratch
+    MjData (see `_fused_kernel`); the threads take the ranges in turn (`_run_chunks`).
     """
 
     def __init__(self, sim: "Simulator", stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
-                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None, n_chunks: int):
+                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None, n_chunks: int,
+                 n_threads: int):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
         self.revision = ph.revision
@@ -738,9 +740,9 @@ class _Plan:
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub, n_physics=r.physics_per_autopilot,
                    stepping=stepping, predictor=predictor_code, wind=int(sim._wind_on))
-        chunks = np.zeros((n_chunks, 4), np.int64)
+        chunks = np.zeros((n_threads, n_chunks, 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.linspace(0, W, n_chunks + 1).round().astype(np.int64)
-        chunks[:, 0], chunks[:, 1] = bounds[:-1], bounds[1:]
+        chunks[:, :, 0], chunks[:, :, 1] = bounds[:-1], bounds[1:]
         if stepping == _STEP_SERIAL:
             step_fn, model, data, warnings = physics_native
             if warnings.dtype != np.int32 or warnings.strides[0] % 4 or warnings.size <= _FATAL_MAX:
@@ -751,11 +753,11 @@ class _Plan:
         elif stepping == _STEP_ROWS:
             step_fn, set_state, get_state, model, state, spec, batch_warnings, scratch = physics_native
             keep.update(state=state, batch_warnings=batch_warnings)
-            self.scratch = scratch  # one MjData per chunk
-            for c, d in enumerate(scratch):
+            self.scratch = scratch  # one MjData per thread, as mujoco.batch keeps
+            for t, d in enumerate(scratch):
                 warning = d.warning  # (mjNWARNING,) records of two int32 [lastinfo, number]
-                chunks[c, 2], chunks[c, 3] = int(d._address), warning.lastinfo.ctypes.data
-                if warning.number.ctypes.data != chunks[c, 3] + 4 or warning.lastinfo.strides != (8,):
+                chunks[t, :, 2], chunks[t, :, 3] = int(d._address), warning.lastinfo.ctypes.data
+                if warning.number.ctypes.data != warning.lastinfo.ctypes.data + 4 or warning.lastinfo.strides != (8,):
                     raise _NoPlan("unexpected layout of MuJoCo's warning records")
             tab.update(step_fn=step_fn, set_state_fn=set_state, get_state_fn=get_state, model=model,
                        nstate=state.shape[1], state_spec=spec, n_warnings=batch_warnings.shape[1])
@@ -776,6 +778,7 @@ class _Plan:
                 tab["row_" + slot] = self.row_layout[name][0]
         self.tab = np.array([tab[name] for name in _TAB], dtype=np.int64)
         self.chunks = chunks
+        self.n_threads = n_threads
         lqr = sim.controller
         fc = {
             "sigma_p": sim._sigma_p, "sigma_att": sim._sigma_att, "kf_gain_p": sim._kf_gain_p,
@@ -962,18 +965,19 @@ class Simulator:
             return None
         if not isinstance(self.autopilot, Autopilot):
             return None
-        ph, n_chunks = self.physics, 1
+        ph, n_chunks, n_threads = self.physics, 1, 1
         if isinstance(ph, _SerialPhysics):
             stepping, native = _STEP_SERIAL, ph.native_step()
             if native is None:
                 return None
         else:
-            # worlds in chunks of >= _CHUNK_WORLDS, one per thread of the batch
-            n_chunks = max(1, min(ph.batch.nthread, self.W // _CHUNK_WORLDS))
-            native = ph.native_step(n_chunks)
+            # worlds in chunks of >= _CHUNK_WORLDS, a few per thread of the batch, each with its MjData
+            n_threads = max(1, min(ph.batch.nthread, self.W // _CHUNK_WORLDS))
+            n_chunks = 1 if n_threads == 1 else min(self.W // _CHUNK_WORLDS, _CHUNKS_PER_THREAD * n_threads)
+            native = ph.native_step(n_threads)
             stepping = _STEP_ROWS if native is not None else _STEP_CALLER
             if native is None:
-                n_chunks = 1
+                n_chunks = n_threads = 1
         predictor, compiled, oracle_packed = self.predictor, None, np.zeros(16)
         if type(predictor) is ZeroPredictor:
             code = _PRED_ZERO
@@ -988,7 +992,7 @@ class Simulator:
                 return None
             code = _PRED_C
         try:
-            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_chunks)
+            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_chunks, n_threads)
         except _NoPlan:
             return None
 
@@ -1105,12 +1109,10 @@ class Simulator:
             # the rest of the tick in one call (up to a refill of the noise blocks), unless the
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
-            if len(chunks) == 1:
-                n_ended = _fused_kernel(*args, sub, stop, chunks[0])
-            else:  # the chunks' worlds are independent: one thread each (the kernel releases the GIL)
-                pool = _thread_pool(len(chunks) - 1)
-                others = [pool.submit(_fused_kernel, *args, sub, stop, c) for c in chunks[1:]]
-                n_ended = _fused_kernel(*args, sub, stop, chunks[0]) + sum(f.result() for f in others)
+            if plan.n_threads == 1 and chunks.shape[1] == 1:
+                n_ended = _fused_kernel(*args, sub, stop, chunks[0, 0])
+            else:
+                n_ended = _run_chunks(args, sub, stop, chunks, plan.n_threads)
             self._cursor_max += stop - sub
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
@@ -1201,7 +1203,25 @@ class Simulator:
             self.active[w] = False
 
 
-_CHUNK_WORLDS = 8  # fewest worlds worth a thread of their own in the fused kernel
+_CHUNK_WORLDS = 8  # fewest worlds in a chunk of the fused kernel's work
+_CHUNKS_PER_THREAD = 4  # chunks per thread: a thread slowed by other load takes fewer of them
+
+
+def _run_chunks(args: tuple, sub: int, stop: int, chunks: np.ndarray, n_threads: int) -> int:
+    """`_fused_kernel` on every chunk of worlds, on n_threads threads (this one included) that take
+    the chunks in turn, each with its own scratch MjData (chunks (n_threads, n, 4), see `_Plan`;
+    the worlds are independent; the kernel releases the GIL); returns the sum of its results,
+    how many worlds ended."""
+    todo = iter(range(chunks.shape[1]))  # shared: under the GIL each chunk is handed out once
+
+    def work(thread: int) -> int:
+        return sum(_fused_kernel(*args, sub, stop, chunks[thread, c]) for c in todo)
+
+    if n_threads == 1:
+        return work(0)
+    pool = _thread_pool(n_threads - 1)
+    others = [pool.submit(work, t) for t in range(1, n_threads)]
+    return work(0) + sum(f.result() for f in others)
 _POOL: dict[str, Any] = {"pid": None, "pool": None, "size": 0}
 
 

@@ -98,9 +98,10 @@ def test_threads_and_models_of_their_own(scene, models):
     """A batch large enough for one chunk of worlds per thread, and a batch whose worlds have
     models of their own (the batch steps them): both equal the readable path."""
     wind = DrydenWind(mean=(1.0, 0.0, 0.0), w20=5.0)
-    fused, readable = _fly_both(scene, 19, 30, wind=wind, predictor=LearnedPredictor(models["equivariant"]), n_threads=2)
+    fused, readable = _fly_both(scene, 33, 30, wind=wind, predictor=LearnedPredictor(models["equivariant"]), n_threads=2)
     plan = fused[1]._plan
-    assert plan.stepping == _STEP_ROWS and len(plan.chunks) == 2 and plan.chunks[:, :2].tolist() == [[0, 10], [10, 19]]
+    assert plan.stepping == _STEP_ROWS and plan.n_threads == 2  # four chunks of worlds on two threads
+    assert plan.chunks.shape == (2, 4, 4) and plan.chunks[1, :, :2].tolist() == [[0, 8], [8, 16], [16, 25], [25, 33]]
     _assert_same(fused, readable)
     out = []
     for fast in (True, False):
