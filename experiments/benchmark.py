@@ -10,7 +10,9 @@ batched_over_bare; the same with the oracle predictor under *_oracle; the same
 flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
 passes around Python calls, as before the fused tick) under *_readable, so that one
 run shows what the fused tick gains; the predictor's cost per call, the training
-time and the envs' speed.
+time and the envs' speed. For the 5-vehicle preset (`formation5`, every wake on every
+vehicle, the learned equivariant model summed over neighbours): bare_mj_step_per_s_formation5
+(plain mj_step of that scene), formation5_serial_over_bare and formation5_batched_over_bare.
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -32,6 +34,7 @@ from downwash.train import TrainConfig, train_model
 from envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.predictor import OraclePredictor
+from sim.presets import make_preset
 from sim.scene import build_scene
 from sim.simulator import Simulator
 from trajectories import Hover, Lemniscate, stack
@@ -56,10 +59,12 @@ def _best(fn, repeats: int) -> float:
     return min(times)
 
 
-def bare_mj_step_per_s(n_steps: int, repeats: int) -> float:
-    scene = build_scene()
+def bare_mj_step_per_s(n_steps: int, repeats: int, preset: Any = None) -> float:
+    """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start)."""
+    scene = build_scene() if preset is None else preset.scene()
     data = mujoco.MjData(scene.model)
-    data.qpos[scene.qpos_adr[:, None] + np.arange(3)] = [[0, 0, 2.5], [0, 0, 1.9]]
+    start = [[0, 0, 2.5], [0, 0, 1.9]] if preset is None else preset.reference(1)(np.zeros(1)).pos[0]
+    data.qpos[scene.qpos_adr[:, None] + np.arange(3)] = start
 
     def run():
         for _ in range(n_steps):
@@ -69,11 +74,16 @@ def bare_mj_step_per_s(n_steps: int, repeats: int) -> float:
 
 
 def closed_loop_steps_per_s(n_worlds: int, seconds: float, repeats: int, field: Any, predictor: Any,
-                            fast: bool = True) -> float:
+                            fast: bool = True, preset: Any = None) -> float:
     """Physics steps per wall second, summed over worlds, full stack with `predictor` at 45 Hz
-    (the lemniscate 0.6 m below the leader); fast=False: the simulator's readable path."""
-    ref = stack([Hover(LEADER, n_worlds=n_worlds), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=n_worlds)])
-    sim = Simulator(build_scene(), ref, list(range(n_worlds)), field=field, predictor=predictor, fast=fast)
+    (the lemniscate 0.6 m below the leader, or `preset`'s flight); fast=False: the simulator's
+    readable path."""
+    if preset is None:
+        ref = stack([Hover(LEADER, n_worlds=n_worlds), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=n_worlds)])
+        scene = build_scene()
+    else:
+        ref, scene = preset.reference(n_worlds), preset.scene()
+    sim = Simulator(scene, ref, list(range(n_worlds)), field=field, predictor=predictor, fast=fast)
     n_ticks = int(round(seconds / sim.cfg.rates.control_dt))
     sim.tick()  # warm-up: first-call costs (allocation, JIT caches)
 
@@ -113,6 +123,12 @@ def run(args: BenchmarkArgs) -> dict:
         key = "closed_loop_serial_steps_per_s_readable" if n_worlds == 1 else "closed_loop_batched_world_steps_per_s_readable"
         r[key] = rate
         r[f"{name}_over_bare_readable"] = rate / r["bare_mj_step_per_s"]
+    five = make_preset("formation5")  # issue 10: the 5-vehicle preset against its own bare step
+    r["bare_mj_step_per_s_formation5"] = bare_mj_step_per_s(n_bare, repeats, five)
+    for name, n_worlds in (("serial", 1), ("batched", worlds)):
+        rate = closed_loop_steps_per_s(n_worlds, seconds, repeats, field, learned, preset=five)
+        r[f"formation5_{name}_world_steps_per_s"] = rate
+        r[f"formation5_{name}_over_bare"] = rate / r["bare_mj_step_per_s_formation5"]
     r["batched_worlds"] = worlds
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
