@@ -247,7 +247,18 @@ def render_efficiency(r: dict, label: str) -> str:
         _table(header, rows),
         f"Label-noise floor: {fmt(r['noise_floor'])} m/s^2; validation set {fmt(r.get('validation_minutes'))} min.",
         f"Beside the paper's table (its means; nearest point present, {said}; `{label}`):",
-        _table(paper_header, paper_rows)])
+        _table(paper_header, paper_rows)] + ([_claim(r["claim"])] if r.get("claim") else []))
+
+
+def _claim(c: dict) -> str:
+    """The paired test of the paper's claim, and whether it holds (the 95 % interval excludes 0)."""
+    holds = c["ci_high"] < 0
+    refuted = c["ci_low"] > 0
+    verdict = "holds" if holds else ("does not hold" if refuted else "is not established: the interval contains 0")
+    return (f"The paper's claim, \"{c['statement']}\", paired over {c['n']} trials (the same data subsets for every "
+            f"model): mean difference {c['mean_difference']:+.4f} m/s^2, 95 % bootstrap interval "
+            f"[{c['ci_low']:+.4f}, {c['ci_high']:+.4f}]; it holds in {pct(c['fraction_holds'])} of the trials. "
+            f"The claim {verdict}.")
 
 
 def render_tracking(r: dict, label: str) -> str:

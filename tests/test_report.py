@@ -57,6 +57,8 @@ def _fakes():
     minutes = [1.0, 3.0, 4.0, 10.0, 14.0, 16.93]
     efficiency = {"minutes": minutes, "trials": 5, "noise_floor": 0.09312, "noise_floor_applied": 0.1204,
                   "validation_minutes": 17.05, "wall_seconds": 300.0,
+                  "claim": {"statement": "equivariant at 5 min < min(shallow, deep) at 15 min", "n": 10,
+                            "mean_difference": -0.0123, "ci_low": -0.02, "ci_high": -0.004, "fraction_holds": 0.9},
                   "models": {k: {"rmse_mean": [0.3 - 0.01 * j - 0.02 * i for i in range(6)],
                                  "rmse_std": [0.011 + 0.001 * i for i in range(6)], "rmse_runs": [[0.3]] * 6}
                              for j, k in enumerate(MODELS)}}
@@ -170,6 +172,8 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
         for m, sd in zip(e["models"][k]["rmse_mean"], e["models"][k]["rmse_std"]):
             assert f"{fmt(m)} ± {fmt(sd, 2)}" in text
     assert "16.93 min (full)" in text and "5 trials" in text
+    assert ("mean difference -0.0123 m/s^2, 95 % bootstrap interval [-0.0200, -0.0040]; it holds in 90.0 % of the "
+            "trials. The claim holds.") in text
     assert "5 min: ours at 4 min, 15 min: ours at 14 min" in text  # nearest points present, said
     assert "| equivariant | 0.240 ± 0.013 | 0.222 | 0.200 ± 0.015 | 0.218 |" in text  # ours beside the paper's
     for paper in ("0.263", "0.255", "0.243", "0.229"):
