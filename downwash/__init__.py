@@ -13,11 +13,16 @@ Modules (import them directly; this package imports nothing heavy on its own):
 - `downwash.fused`: the predictor's compiled one-pass kernel
 - `downwash.conditions`: the tracking conditions and what each flies with
 - `downwash.staged`: the staged collection pipeline, provenance and `ensure_models`
+- `downwash.swarm_data`: every vehicle's labels with its padded neighbour set (`NeighbourSet`, `SwarmDataset`)
+- `downwash.swarm_models`: models for many vehicles (`SWARM_MODEL_KINDS`), their checkpoints, `SwarmPredictor`
+- `downwash.swarm_train`: `train_swarm_model`
+- `downwash.swarm_collection`: the swarm stages and the models of sets trained on them
+- `downwash.sweep`: cached, resumable sweeps on Ray, bootstrap intervals, the paired claim
 
 Data flows one way: `downwash` may import `sim`, never `experiments`.
 """
 
 __all__ = [
     "features", "models", "labels", "datasets", "train", "ensemble", "checkpoint", "predictor", "fused",
-    "conditions", "staged",
+    "conditions", "staged", "swarm_data", "swarm_models", "swarm_train", "swarm_collection", "sweep",
 ]

@@ -51,6 +51,8 @@ Modules (one role each):
 - `envs.base`: what the single and the vector env share
 - `envs.follower`: `DownwashFollowerEnv` and `DownwashFollowerVectorEnv`
 - `envs.evaluation`: `evaluate_lqr` and the env speed benchmarks
+- `envs.swarm`: the multi-agent env (PettingZoo `SwarmEnv` via `parallel_env`, batched `SwarmVectorEnv`)
+- `envs.video`: mp4 of flights, conditions side by side, the wake drawn
 
 The public names of these modules are also attributes of `envs`, imported on first use.
 """
