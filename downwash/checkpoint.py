@@ -69,14 +69,20 @@ def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[st
         "normalization": model.normalization(),
         "dtype": str(model.in_mean.dtype).replace("torch.", ""),
     }
+    return write_checkpoint(path, model, record, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
+
+
+def write_checkpoint(path: str | os.PathLike, model: torch.nn.Module, record: dict, fmt: str, version: int) -> dict:
+    """Atomically write `model`'s tensors and `record` (JSON-safe, also as a `.json` sidecar) to `path`;
+    returns the record as stored. Shared by the pair and the swarm checkpoints."""
     try:
         meta_json = to_json(record)
     except TypeError as e:
         raise TypeError(f"checkpoint metadata: {e}") from e
     record = json.loads(meta_json)
     payload = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
+        "format": fmt,
+        "version": version,
         "meta_json": meta_json,
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
     }

@@ -46,7 +46,6 @@ against the torch model, which stays the readable reference and the training pat
 from __future__ import annotations
 
 import copy
-import io
 import json
 import os
 import pickle
@@ -59,7 +58,6 @@ import torch
 from torch import nn
 
 from core.errors import CheckpointError, ConfigError
-from core.io import atomic_write_bytes, to_json
 from core.provenance import differences
 from core.state import VehicleStates
 from core.validate import count, positive_float
@@ -68,7 +66,7 @@ from downwash.checkpoint import (
     MAX_WIDTH,
     _unpickling_reason,
     load_checkpoint,
-    sidecar_path,
+    write_checkpoint,
 )
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
 from downwash.predictor import LearnedPredictor
@@ -603,23 +601,7 @@ def save_swarm_checkpoint(path: str | os.PathLike, model: SwarmModel, neighbours
         "aggregation": None if provenance["aggregation"] is None else aggregation_record(provenance["aggregation"]),
         "field": provenance.get("field"),
     }
-    try:
-        meta_json = to_json(record)
-    except TypeError as e:
-        raise TypeError(f"checkpoint metadata: {e}") from e
-    record = json.loads(meta_json)
-    payload = {
-        "format": SWARM_CHECKPOINT_FORMAT,
-        "version": SWARM_CHECKPOINT_VERSION,
-        "meta_json": meta_json,
-        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-    }
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    path = Path(path)
-    atomic_write_bytes(sidecar_path(path), (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
-    atomic_write_bytes(path, buf.getvalue())
-    return record
+    return write_checkpoint(path, model, record, SWARM_CHECKPOINT_FORMAT, SWARM_CHECKPOINT_VERSION)
 
 
 def _read(path: Path) -> tuple[dict, dict]:
