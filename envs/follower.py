@@ -23,7 +23,7 @@ from gymnasium.vector.utils import batch_space
 from core.validate import count
 from envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces
 from envs.config import DEFAULT_MAX_EPISODE_STEPS
-from envs.task import draw_episode, episode_info, total_reward
+from envs.task import draw_episode, episode_info
 
 __all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
 
@@ -124,10 +124,9 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
 
     def step(self, action: Any):
         a = self._worlds.check_actions(action, (3,))
-        terminated, infos = self._worlds.step(a[None], None)
+        out = self._worlds.step(a[None], None)
         obs = self._worlds.observe(fresh=False)[0]
-        info = {k: v[0].item() for k, v in infos.items()}  # plain Python floats and ints
-        return obs, total_reward(info), bool(terminated[0]), False, info
+        return obs, out.reward[0].item(), bool(out.terminated[0]), False, out.world_info(0)
 
     def render(self):
         frames = self._frames((0,))
@@ -237,8 +236,8 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
         resetting = self._autoreset
         stepping = ~resetting
         any_reset = bool(resetting.any())
-        terminated, step_info = self._worlds.step(a, stepping if any_reset else None)
-        reward = total_reward(step_info)
+        out = self._worlds.step(a, stepping if any_reset else None)
+        terminated, reward, step_info = out.terminated, out.reward, out.info()
         self._elapsed += stepping
         truncated = self._elapsed >= self.max_episode_steps if self.max_episode_steps is not None else np.zeros(N, bool)
         reset_info: dict[str, np.ndarray] = {}

@@ -60,7 +60,7 @@ Entries are clipped to their bound; a diverged world's NaN reads 0.
 
 ## Reward
 Per agent, the single env's terms (`envs.task.REWARD_TERMS`, same default weights),
-each in ``info["reward_<term>"]`` and summed in that order (as `envs.task.total_reward`): alive bonus,
+each in ``info["reward_<term>"]`` and summed in that order (as `envs.task.task_terms`): alive bonus,
 -w_p |e_p|, -w_v |e_v| (agent's true position / velocity error, capped at 10),
 -w_a |a|^2 / b^2, -w_da |a - a_prev|^2 / b^2, and the termination penalty. The world
 is shared, so its end is shared: every agent loses the alive bonus and pays the
@@ -129,7 +129,7 @@ from envs.base import RENDER_MODES
 from envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
 from envs.observation import OBSERVATION, ObsEntry
 from envs.rendering import Renderer
-from envs.task import ERROR_CAP, REWARD_TERMS
+from envs.task import REWARD_TERMS, squared_norm, task_constants, task_kernel
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.presets import Preset, make_preset
@@ -142,7 +142,7 @@ __all__ = [
     "observation_layout", "obs_dim", "obs_slices", "obs_bounds", "markdown_table",
     "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
     "draw_swarm_episode",
-    "task_constants", "task_terms", "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env",
+    "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env",
 ]  # fmt: skip
 
 # The FollowerConfig options that mean the same here (validated by envs.config); the
@@ -151,7 +151,7 @@ SHARED_OPTIONS = (
     "action_bound", "control_hz", "predictor", "max_tracking_error", *REWARD_WEIGHTS,
     "sim_config", "lqr", "turbulence", "render_width", "render_height",
 )  # fmt: skip
-_OK, _LEFT_BOX = int(Status.OK), int(Status.LEFT_BOX)
+_OK = int(Status.OK)
 
 # ----------------------------------------------------------------------------- observation layout
 
@@ -264,7 +264,7 @@ def neighbour_block(
     if n == 0:
         return out
     dp = pos[:, agents, None, :] - pos[:, others, :]  # (W, A, V-1, 3)
-    d2 = _sq_dist(dp)
+    d2 = squared_norm(dp)
     d2[np.isnan(d2)] = np.inf
     order = np.argsort(d2, axis=-1, kind="stable")[..., :n]  # (W, A, n)
     nb = others[np.arange(A)[:, None], order]  # (W, A, n) vehicle indices
@@ -294,11 +294,6 @@ def observation(
 def _others(agents: np.ndarray, n_vehicles: int) -> np.ndarray:
     """(A, V-1) int64: for each agent, the other vehicles' indices in scene order."""
     return np.array([[j for j in range(n_vehicles) if j != i] for i in agents], np.int64).reshape(len(agents), -1)
-
-
-def _sq_dist(dp: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (...) squared norm, summed x, y, z left to right (as `_observe_kernel`)."""
-    return dp[..., 0] * dp[..., 0] + dp[..., 1] * dp[..., 1] + dp[..., 2] * dp[..., 2]
 
 
 @njit
@@ -598,7 +593,7 @@ class SwarmWorlds:
         status = np.empty(W, np.int64)
         terms = np.empty((len(REWARD_TERMS), W, A))
         reward, pos_err, vel_err = np.empty((W, A)), np.empty((W, A)), np.empty((W, A))
-        _task_kernel(true.pos, true.vel, ref.pos, ref.vel, ag, actions, self.last_action, sim.status,
+        task_kernel(true.pos, true.vel, ref.pos, ref.vel, ag, actions, self.last_action, sim.status,
                      self._task_constants, status, terms, reward, pos_err, vel_err)
         terminated = status != _OK
         if stepping is None:
@@ -628,96 +623,6 @@ class SwarmWorlds:
         _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index, self._others,
                         self.last_action, self.obs_low, self.obs_high, o)
         return o
-
-
-# ----------------------------------------------------------------------------- reward and termination
-
-
-def task_constants(task: FollowerConfig, bound: float) -> np.ndarray:
-    """(8,) float64: max_tracking_error (m), the six reward weights in REWARD_TERMS order (the
-    costs negated, so that each term is weight * value), and bound^2 (m^2/s^4)."""
-    return np.array([
-        task.max_tracking_error, task.alive_reward, -task.position_cost_weight, -task.velocity_cost_weight,
-        -task.action_cost_weight, -task.action_rate_cost_weight, -task.termination_penalty, bound * bound,
-    ])  # fmt: skip
-
-
-def task_terms(
-    true_pos: np.ndarray, true_vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray, agents: np.ndarray,
-    actions: np.ndarray, last_action: np.ndarray, sim_status: np.ndarray, constants: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The readable reward and termination of a step (`SwarmWorlds` runs the twin `_task_kernel`).
-
-    true_pos, true_vel, ref_pos, ref_vel: (W, V, 3) m, m/s at the end of the step; agents (A,);
-    actions, last_action: (W, A, 3) m/s^2 (this step's, the previous); sim_status: (W,) the
-    simulator's `Status` codes; constants: `task_constants`. Returns status (W,) int64 (the
-    simulator's, else LEFT_BOX when any agent is farther than max_tracking_error from its
-    reference, else OK), terms (6, W, A) in REWARD_TERMS order, reward (W, A) (their sum in
-    that order, as `envs.task.total_reward`), position and velocity errors (W, A), capped
-    at ERROR_CAP (non-finite: the cap). The world's end is every agent's.
-    """
-    max_err, alive, w_p, w_v, w_a, w_da, w_end, b2 = constants
-    pos_err = _capped(np.sqrt(_sq_dist(true_pos[:, agents] - ref_pos[:, agents])))
-    vel_err = _capped(np.sqrt(_sq_dist(true_vel[:, agents] - ref_vel[:, agents])))
-    left = ~np.all(pos_err <= max_err, axis=1)
-    status = np.where(sim_status != _OK, sim_status, np.where(left, _LEFT_BOX, _OK)).astype(np.int64)
-    ended = np.repeat((status != _OK)[:, None], len(agents), axis=1).astype(np.float64)  # (W, A) 1.0 / 0.0
-    terms = np.stack([
-        alive * (1.0 - ended), w_p * pos_err, w_v * vel_err, w_a * (_sq_dist(actions) / b2),
-        w_da * (_sq_dist(actions - last_action) / b2), w_end * ended,
-    ])  # fmt: skip
-    reward = np.zeros(pos_err.shape)
-    for term in terms:
-        reward = reward + term
-    return status, terms, reward, pos_err, vel_err
-
-
-def _capped(n: np.ndarray) -> np.ndarray:
-    return np.where(n <= ERROR_CAP, n, ERROR_CAP)
-
-
-@njit
-def _capped_distance(x, y):
-    """|x - y| of two (3,) vectors, summed x, y, z left to right; non-finite or above ERROR_CAP: the cap."""
-    dx, dy, dz = x[0] - y[0], x[1] - y[1], x[2] - y[2]
-    e = np.sqrt(dx * dx + dy * dy + dz * dz)
-    return e if e <= ERROR_CAP else ERROR_CAP
-
-
-@njit
-def _task_kernel(true_pos, true_vel, ref_pos, ref_vel, agents, actions, last_action, sim_status, constants,
-                 status, terms, reward, pos_err, vel_err):
-    """Compiled `task_terms`, written into status (W,), terms (6, W, A), reward, pos_err, vel_err (W, A)."""
-    W, A = pos_err.shape
-    max_err, alive, w_p, w_v = constants[0], constants[1], constants[2], constants[3]
-    w_a, w_da, w_end, b2 = constants[4], constants[5], constants[6], constants[7]
-    for w in range(W):
-        inside = True
-        for i in range(A):
-            a = agents[i]
-            pos_err[w, i] = _capped_distance(true_pos[w, a], ref_pos[w, a])
-            vel_err[w, i] = _capped_distance(true_vel[w, a], ref_vel[w, a])
-            inside = inside and pos_err[w, i] <= max_err
-        if sim_status[w] != _OK:
-            status[w] = sim_status[w]
-        elif not inside:
-            status[w] = _LEFT_BOX
-        else:
-            status[w] = _OK
-        ended = 1.0 if status[w] != _OK else 0.0
-        for i in range(A):
-            ax, ay, az = actions[w, i, 0], actions[w, i, 1], actions[w, i, 2]
-            dx, dy, dz = ax - last_action[w, i, 0], ay - last_action[w, i, 1], az - last_action[w, i, 2]
-            terms[0, w, i] = alive * (1.0 - ended)
-            terms[1, w, i] = w_p * pos_err[w, i]
-            terms[2, w, i] = w_v * vel_err[w, i]
-            terms[3, w, i] = w_a * ((ax * ax + ay * ay + az * az) / b2)
-            terms[4, w, i] = w_da * ((dx * dx + dy * dy + dz * dz) / b2)
-            terms[5, w, i] = w_end * ended
-            r = 0.0
-            for k in range(6):
-                r = r + terms[k, w, i]
-            reward[w, i] = r
 
 
 # ----------------------------------------------------------------------------- the envs

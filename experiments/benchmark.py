@@ -2,6 +2,10 @@
 
     python -m experiments.benchmark [--quick]
 
+Every measurement runs once per round (`--repeats` rounds), each right after a window of bare
+mj_step of its scene; a ratio is the median over rounds of the pair's ratio, a rate the median
+over rounds (see `run`). `targets` holds issue 12's targets for three of the ratios.
+
 Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop),
 closed_loop_serial_steps_per_s, real_time_factor_serial and serial_over_bare (one
 flight, the full stack with the trained equivariant model at 45 Hz, the stack a
@@ -10,7 +14,11 @@ batched_over_bare; the same with the oracle predictor under *_oracle; the same
 flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
 passes around Python calls, as before the fused tick) under *_readable, so that one
 run shows what the fused tick gains; the predictor's cost per call, the training
-time and the envs' speed. For the 5-vehicle preset (`formation5`, every wake on every
+time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
+and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
+native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
+(`mujoco.batch.Batch.step` of 64 worlds alone, no control: the ceiling of the batched
+ratios on this machine). For the 5-vehicle preset (`formation5`, every wake on every
 vehicle, the learned equivariant model summed over neighbours): bare_mj_step_per_s_formation5
 (plain mj_step of that scene), formation5_serial_over_bare and formation5_batched_over_bare.
 Nothing here is a pass/fail test: the numbers are written down and printed.
@@ -24,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import mujoco
+import mujoco.batch
 import numpy as np
 
 from core.params import LEADER_POSITION, RATES
@@ -44,64 +53,77 @@ LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 
 @dataclass(frozen=True)
 class BenchmarkArgs(CommonArgs):
-    seconds: float = arg(20.0, "simulated seconds per closed-loop measurement")
+    seconds: float = arg(20.0, "simulated seconds per window of one flight (and of bare mj_step); a batched "
+                               "window flies 4 / worlds of it")
     worlds: int = arg(64, "worlds in the batched measurement")
-    repeats: int = arg(3, "repetitions; the best (least disturbed) is reported")
+    repeats: int = arg(15, "rounds: each measurement once per round, paired with a bare window (medians reported)")
 
 
-def _best(fn, repeats: int) -> float:
-    """Fastest wall time of `repeats` runs of fn() (the least disturbed by other load)."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+# The issue's targets for the ratios (issue 12), written into results.json beside the measurements.
+TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "env_single_physics_over_bare": 0.3}
 
 
-def bare_mj_step_per_s(n_steps: int, repeats: int, preset: Any = None) -> float:
-    """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start)."""
+def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
+    """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start), in a
+    Python loop: what a user's own loop around MuJoCo costs."""
     scene = build_scene() if preset is None else preset.scene()
     data = mujoco.MjData(scene.model)
     start = [[0, 0, 2.5], [0, 0, 1.9]] if preset is None else preset.reference(1)(np.zeros(1)).pos[0]
     data.qpos[scene.qpos_adr[:, None] + np.arange(3)] = start
-
-    def run():
-        for _ in range(n_steps):
-            mujoco.mj_step(scene.model, data)
-
-    return n_steps / _best(run, repeats)
+    t0 = time.perf_counter()
+    for _ in range(n_steps):
+        mujoco.mj_step(scene.model, data)
+    return n_steps / (time.perf_counter() - t0)
 
 
-def closed_loop_steps_per_s(n_worlds: int, seconds: float, repeats: int, field: Any, predictor: Any,
-                            fast: bool = True, preset: Any = None) -> float:
-    """Physics steps per wall second, summed over worlds, full stack with `predictor` at 45 Hz
-    (the lemniscate 0.6 m below the leader, or `preset`'s flight); fast=False: the simulator's
-    readable path."""
+def mujoco_batch_steps_per_s(n_worlds: int, n_steps: int) -> float:
+    """World steps per wall second of `mujoco.batch.Batch.step` alone (all cores, no control, 10 steps
+    per call as the controller period): the physics' own ceiling for the batched ratios."""
+    batch = mujoco.batch.Batch(build_scene().model, n_worlds)
+    calls = max(1, n_steps // (10 * n_worlds))
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        batch.step(nstep=10)
+    return calls * 10 * n_worlds / (time.perf_counter() - t0)
+
+
+def closed_loop_sim(n_worlds: int, field: Any, predictor: Any, fast: bool = True, preset: Any = None) -> Simulator:
+    """The full stack with `predictor` at 45 Hz: the lemniscate 0.6 m below the leader, or `preset`'s
+    flight; fast=False: the simulator's readable path. One tick flown (first-call costs)."""
     if preset is None:
         ref = stack([Hover(LEADER, n_worlds=n_worlds), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=n_worlds)])
         scene = build_scene()
     else:
         ref, scene = preset.reference(n_worlds), preset.scene()
     sim = Simulator(scene, ref, list(range(n_worlds)), field=field, predictor=predictor, fast=fast)
+    sim.tick()
+    return sim
+
+
+def closed_loop_steps_per_s(sim: Simulator, seconds: float) -> float:
+    """Physics steps per wall second, summed over the worlds still flying, of `seconds` more of `sim`'s
+    flight (an ended world is not stepped, so it is not counted)."""
     n_ticks = int(round(seconds / sim.cfg.rates.control_dt))
-    sim.tick()  # warm-up: first-call costs (allocation, JIT caches)
-
-    def run():
-        for _ in range(n_ticks):
-            sim.tick()
-
-    wall = _best(run, repeats)
-    return n_ticks * sim.cfg.rates.physics_per_control * n_worlds / wall
+    flying = int(sim.active.sum())
+    t0 = time.perf_counter()
+    for _ in range(n_ticks):
+        sim.tick()
+    return n_ticks * sim.cfg.rates.physics_per_control * flying / (time.perf_counter() - t0)
 
 
 def run(args: BenchmarkArgs) -> dict:
+    """Every measurement once per round, `repeats` rounds, each right after a bare mj_step window of
+    its scene. This machine switches between a fast and a slow state every second or so (bare
+    mj_step windows of 50 ms measure about 165k or 270k steps/s), so a ratio is the median over
+    rounds of (rate / the bare rate just before it): both halves of a pair see the same state.
+    Rates are medians over the rounds."""
     field = load_field(args.field)
     seconds = 1.0 if args.quick else args.seconds
     repeats = 1 if args.quick else args.repeats
     worlds = min(args.worlds, 8) if args.quick else args.worlds
     physics_dt = build_scene().model.opt.timestep
     n_bare = int(seconds / physics_dt)
+    n_env = n_bare // 20  # env steps per window: about the wall time of a bare window
 
     r: dict[str, Any] = {"cpu_count": os.cpu_count(), "mujoco": mujoco.__version__, "quick": args.quick}
     # The stack a user runs has a trained model in the loop: train the equivariant model first
@@ -109,32 +131,58 @@ def run(args: BenchmarkArgs) -> dict:
     seconds_train, model = train_equivariant(0.5 if args.quick else 17.0, field)
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
-    r["bare_mj_step_per_s"] = bare_mj_step_per_s(n_bare, repeats)
-    for suffix, predictor in (("", learned), ("_oracle", OraclePredictor(field))):
-        serial = closed_loop_steps_per_s(1, seconds, repeats, field, predictor)
-        batched = closed_loop_steps_per_s(worlds, seconds, repeats, field, predictor)
-        r[f"closed_loop_serial_steps_per_s{suffix}"] = serial
-        r[f"real_time_factor_serial{suffix}"] = serial * physics_dt
-        r[f"serial_over_bare{suffix}"] = serial / r["bare_mj_step_per_s"]
-        r[f"closed_loop_batched_world_steps_per_s{suffix}"] = batched
-        r[f"batched_over_bare{suffix}"] = batched / r["bare_mj_step_per_s"]
-    for name, n_worlds in (("serial", 1), ("batched", worlds)):  # the same flights on the readable path
-        rate = closed_loop_steps_per_s(n_worlds, seconds, repeats, field, learned, fast=False)
-        key = "closed_loop_serial_steps_per_s_readable" if n_worlds == 1 else "closed_loop_batched_world_steps_per_s_readable"
-        r[key] = rate
-        r[f"{name}_over_bare_readable"] = rate / r["bare_mj_step_per_s"]
     five = make_preset("formation5")  # issue 10: the 5-vehicle preset against its own bare step
-    r["bare_mj_step_per_s_formation5"] = bare_mj_step_per_s(n_bare, repeats, five)
-    for name, n_worlds in (("serial", 1), ("batched", worlds)):
-        rate = closed_loop_steps_per_s(n_worlds, seconds, repeats, field, learned, preset=five)
-        r[f"formation5_{name}_world_steps_per_s"] = rate
-        r[f"formation5_{name}_over_bare"] = rate / r["bare_mj_step_per_s_formation5"]
+    batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
+    flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
+        "closed_loop_serial_steps_per_s": (closed_loop_sim(1, field, learned), seconds),
+        "closed_loop_batched_world_steps_per_s": (closed_loop_sim(worlds, field, learned), batched_seconds),
+        "closed_loop_serial_steps_per_s_oracle": (closed_loop_sim(1, field, OraclePredictor(field)), seconds),
+        "closed_loop_batched_world_steps_per_s_oracle": (
+            closed_loop_sim(worlds, field, OraclePredictor(field)), batched_seconds),
+        "closed_loop_serial_steps_per_s_readable": (closed_loop_sim(1, field, learned, fast=False), seconds),
+        "closed_loop_batched_world_steps_per_s_readable": (
+            closed_loop_sim(worlds, field, learned, fast=False), batched_seconds),
+        "formation5_serial_world_steps_per_s": (closed_loop_sim(1, field, learned, preset=five), seconds),
+        "formation5_batched_world_steps_per_s": (closed_loop_sim(worlds, field, learned, preset=five), batched_seconds),
+    }
+    per_env_step = RATES.physics_per_control
+    # key: (rate in physics steps per s (the envs': env steps x steps per env step), whose bare it is paired with)
+    measure: dict[str, tuple[Any, Any]] = {
+        "mujoco_batch_world_steps_per_s": (lambda: mujoco_batch_steps_per_s(worlds, n_bare * 4), None),
+        **{key: (lambda f=f, s=s: closed_loop_steps_per_s(f, s), five if key.startswith("formation5") else None)
+           for key, (f, s) in flights.items()},
+        "env_steps_per_s_single": (lambda: env_steps_per_s_single(n_env, repeats=1) * per_env_step, None),
+        "env_steps_per_s_vector64": (
+            lambda: env_steps_per_s_vector(worlds, max(1, n_env // worlds * 4), repeats=1) * per_env_step, None),
+    }
+    rates: dict[str, list[float]] = {key: [] for key in ("bare_mj_step_per_s", "bare_mj_step_per_s_formation5", *measure)}
+    ratios: dict[str, list[float]] = {key: [] for key in measure}
+    for _ in range(repeats):
+        for key, (fn, preset) in measure.items():
+            bare = bare_mj_step_per_s(n_bare, preset)
+            rate = fn()
+            rates["bare_mj_step_per_s" if preset is None else "bare_mj_step_per_s_formation5"].append(bare)
+            rates[key].append(rate)
+            ratios[key].append(rate / bare)
+    r.update({key: float(np.median(v)) for key, v in rates.items()})
+    for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
+        r[key] /= per_env_step
+    ratio = {key: float(np.median(v)) for key, v in ratios.items()}
+    for suffix in ("", "_oracle", "_readable"):
+        r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
+        r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
+    for suffix in ("", "_oracle"):
+        r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
+    r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
+    for name in ("serial", "batched"):
+        r[f"formation5_{name}_over_bare"] = ratio[f"formation5_{name}_world_steps_per_s"]
+    r["env_single_physics_over_bare"] = ratio["env_steps_per_s_single"]
+    r["env_vector64_physics_over_bare"] = ratio["env_steps_per_s_vector64"]
+    r["rounds"] = repeats
     r["batched_worlds"] = worlds
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
-    r["env_steps_per_s_single"] = env_steps_per_s_single(100 if args.quick else 2000, repeats=repeats)
-    r["env_steps_per_s_vector64"] = env_steps_per_s_vector(worlds, 20 if args.quick else 200, repeats=repeats)
-    r["env_vector64_physics_over_bare"] = r["env_steps_per_s_vector64"] * RATES.physics_per_control / r["bare_mj_step_per_s"]
+    r["targets"] = dict(TARGETS)
     return r
 
 

@@ -342,9 +342,21 @@ def render_force_maps(r: dict, label: str) -> str:
 
 
 def render_benchmark(r: dict, label: str) -> str:
+    parts = []
+    targets = r.get("targets") or {}
+    if targets:
+        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
+        ceiling = r.get("mujoco_batch_over_bare")
+        parts += [f"Issue 12's targets against the ratios measured in this run ({r.get('rounds')} rounds, each ratio "
+                  "the median over rounds of the rate over a bare `mj_step` window just before it):",
+                  _table(["ratio", "target", "measured", "met"], rows)]
+        if ceiling is not None:
+            parts.append(f"For scale: `mujoco.batch` stepping {r.get('batched_worlds')} worlds with no control at all "
+                         f"reaches {fmt(ceiling, 3)}x bare on this machine.")
     rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
-    return "\n\n".join([f"{r.get('cpu_count')} cores, mujoco {r.get('mujoco')}, {r.get('batched_worlds')} batched "
-                        f"worlds (`{label}`):", _table(["key", "value"], rows)])
+    parts += [f"{r.get('cpu_count')} cores, mujoco {r.get('mujoco')}, {r.get('batched_worlds')} batched "
+              f"worlds (`{label}`):", _table(["key", "value"], rows)]
+    return "\n\n".join(parts)
 
 
 def render_field_table(r: dict, label: str) -> str:

@@ -790,7 +790,7 @@ class _Plan:
             "ground": cfg.ground_clearance, "radius_xy": cfg.collision_radius_xy, "radius_z": cfg.collision_radius_z,
         }
         self.fc = np.array([float(fc[name]) for name in _FC])
-        self.physics_arrays = (ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)
+        self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
 
 
@@ -1087,7 +1087,7 @@ class Simulator:
             return self.tick(residual, override)
         else:
             row = self._tick_readable(residual, override)
-        self.row = row
+        self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
         return row
 
     def _tick_fused(self, plan: _Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
@@ -1096,10 +1096,9 @@ class Simulator:
         flat = np.empty(plan.row_size)
         n_sub, block = plan.n_sub, self.cfg.noise_block
         actions = (residual is not None) + 2 * (override is not None)
-        residual = plan.no_action if residual is None else np.require(residual, np.float64, ("C", "W"))
-        override = plan.no_action if override is None else np.require(override, np.float64, ("C", "W"))
-        args = (plan.tab, plan.fc, *plan.physics_arrays, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate,
-                residual, override, actions, flat)
+        residual = plan.no_action if residual is None else _kernel_array(residual)
+        override = plan.no_action if override is None else _kernel_array(override)
+        args = plan.leading_args + (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, residual, override, actions, flat)
         sub, diverged, n_ended = 0, None, 0
         chunks = plan.chunks
         caller_steps = plan.stepping == _STEP_CALLER
@@ -1247,6 +1246,12 @@ def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:
     if packed is None or packed.shape != (16,):
         return None
     return np.ascontiguousarray(packed, dtype=np.float64)
+
+
+def _kernel_array(x: np.ndarray) -> np.ndarray:
+    """x (float64) as the fused kernel reads it: C-contiguous and writeable (a copy only when it is not)."""
+    flags = x.flags
+    return x if flags.c_contiguous and flags.writeable else np.require(x, np.float64, ("C", "W"))
 
 
 def _as_batch(x: Any, shape: tuple[int, ...]) -> np.ndarray:

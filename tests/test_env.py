@@ -559,3 +559,48 @@ def test_lqr_and_turbulence_options_reach_the_simulator():
     assert not np.array_equal(base, run(lqr=LQRConfig(q=(0.2, 0.2, 2.0, 0.01, 0.01, 0.1, 1.0))))
     with pytest.raises(ValueError, match="turbulence: expected a sim.turbulence.OUTurbulence"):
         DownwashFollowerEnv(turbulence=0.1)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_observation_equals_the_readable_one(seed):
+    """`FollowerWorlds`' compiled observation against `envs.task.observation`, bit for bit: random
+    states (leader and follower in either scene slot), entries beyond their bounds, a diverged
+    (NaN) world; and each entry where OBS_SLICES puts it."""
+    from envs.observation import obs_bounds
+    from envs.task import _observe_kernel, observation
+    from trajectories import RefSample
+
+    rng = np.random.default_rng(seed)
+    W, V = 5, 3
+    pos, vel = rng.normal(scale=4, size=(W, V, 3)), rng.normal(scale=15, size=(W, V, 3))
+    rot = np.linalg.qr(rng.normal(size=(W, V, 3, 3)))[0]
+    ref = RefSample(rng.normal(size=(W, V, 3)), rng.normal(size=(W, V, 3)), rng.normal(scale=20, size=(W, V, 3)),
+                    np.zeros((W, V)), np.zeros((W, V)))
+    leader, follower = (2, 0) if seed % 2 else (0, 2)
+    pos[3, :] = np.nan
+    vel[1, follower] = [30.0, -30.0, 0.0]  # beyond the bound of 20 m/s, both ways
+    last = rng.uniform(-5, 5, (W, 3))
+    low, high = obs_bounds(5.0)
+    want = observation(pos, vel, rot, ref, leader, follower, last, low, high)
+    got = np.empty_like(want)
+    _observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, leader, follower, last, low, high, got)
+    np.testing.assert_array_equal(got, want)
+    assert (want == low).any() and (want == high).any() and np.isfinite(want).all()
+    assert np.all(want[3, OBS_SLICES["dp"]] == 0.0)  # the diverged world's NaN reads 0
+    w = 0
+    np.testing.assert_array_equal(want[w, OBS_SLICES["v_leader"]], np.clip(vel[w, leader], -20, 20))
+    np.testing.assert_array_equal(want[w, OBS_SLICES["leader_z_axis"]], rot[w, leader, :, 2])
+    np.testing.assert_array_equal(want[w, OBS_SLICES["last_action"]], last[w])
+
+
+def test_actions_are_clipped_as_numpy_clips_and_bad_ones_refused_before_stepping():
+    env = gym.make("DownwashFollower-v0").unwrapped
+    env.reset(seed=0)
+    worlds = env._worlds
+    a = np.array([7.5, -0.0, -12.0], np.float32)
+    np.testing.assert_array_equal(worlds.check_actions(a, (3,)), np.clip(a.astype(np.float64), -5.0, 5.0))
+    t = env.simulator.t.copy()
+    for bad in ([0.0, np.nan, 0.0], [np.inf, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="must be finite"):
+            env.step(np.array(bad, np.float32))
+    assert np.array_equal(env.simulator.t, t)  # nothing stepped

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from trajectories import (
+    Cached,
     Circle,
     Line,
     Offset,
@@ -16,6 +17,7 @@ from trajectories import (
     Reference,
     Transect,
     Waypoints,
+    TimeShifted,
     random_passes,
     stack,
 )
@@ -569,7 +571,10 @@ def test_stack_fills_in_place_exactly_like_sampling_each_reference():
         Hover(rng.normal(size=(W, 3))),
         Lemniscate(rng.normal(size=(W, 3)), rng.uniform(0.5, 2, W), rng.uniform(0.2, 1, W), rng.uniform(5, 30, W)),
         Transect(rng.normal(size=(W, 3)), rng.normal(size=W), rng.uniform(0.5, 2, W), rng.uniform(5, 30, W)),
+        # shifted by a per-world phase: in place through the inner reference, at t + t0
+        TimeShifted(Lemniscate(rng.normal(size=(W, 3)), 1.0, 0.5, 10.0, n_worlds=W), rng.uniform(0, 10, W)),
     ]
+    assert hasattr(refs[-1], "_sample_into")
 
     class Opaque:  # a Reference without the in-place fill: sampled and copied
         def __init__(self, ref):
@@ -606,3 +611,19 @@ def test_moving_leader_references_have_the_speed_and_geometry_asked_for():
         Circle([0, 0, 2.5], speed=0.0)
     with pytest.raises(ValueError, match=r"offset: expected 3 finite numbers"):
         Offset(c, [0.0, 0.6])
+
+
+def test_cached_reuses_a_sample_only_for_the_same_times():
+    """Cached returns its last sample for bit-identical times, and samples afresh otherwise, even when
+    the caller changed its times array in place (the simulator's clock)."""
+    lem = Lemniscate(np.zeros((3, 3)), 1.0, 0.5, 10.0, n_worlds=3)
+    cached = Cached(lem)
+    t = np.array([0.0, 1.0, 2.0])
+    first = cached(t)
+    assert cached(t.copy()) is first
+    t[1] = 1.5  # in place
+    second = cached(t)
+    assert second is not first
+    for a, b in zip(second, lem(t)):
+        np.testing.assert_array_equal(a, b)
+    assert cached(3.0) is not second and np.array_equal(cached(3.0).pos, lem(3.0).pos)

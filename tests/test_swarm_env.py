@@ -31,7 +31,7 @@ from envs.swarm import (
     obs_slices,
     parallel_env,
 )
-from envs.task import REWARD_TERMS
+from envs.task import ERROR_CAP, REWARD_TERMS, task_constants, task_kernel, task_terms
 from sim.field import DownwashField, pairwise_field
 from sim.flight import fly
 from sim.presets import make_preset
@@ -244,15 +244,15 @@ def test_compiled_reward_and_termination_equal_the_readable_ones(seed):
     actions, last = rng.uniform(-5, 5, (W, V - 1, 3)), rng.uniform(-5, 5, (W, V - 1, 3))
     sim_status = np.array([0, 0, 0, int(Status.GROUND), int(Status.DIVERGED), 0], np.int64)
     task = swarm.make_config({"max_tracking_error": 0.9, "alive_reward": 0.3, "action_cost_weight": 0.7})
-    constants = swarm.task_constants(task, 5.0)
-    status, terms, reward, pos_err, vel_err = swarm.task_terms(
+    constants = task_constants(task, 5.0)
+    status, terms, reward, pos_err, vel_err = task_terms(
         true_pos, true_vel, ref_pos, ref_vel, agents, actions, last, sim_status, constants)
     out = (np.empty(W, np.int64), np.empty((6, W, V - 1)), *(np.empty((W, V - 1)) for _ in range(3)))
-    swarm._task_kernel(true_pos, true_vel, ref_pos, ref_vel, agents, actions, last, sim_status, constants, *out)
+    task_kernel(true_pos, true_vel, ref_pos, ref_vel, agents, actions, last, sim_status, constants, *out)
     for got, want in zip(out, (status, terms, reward, pos_err, vel_err)):
         np.testing.assert_array_equal(got, want)
-    assert status[3] == Status.GROUND and status[4] == Status.DIVERGED and pos_err[4, 0] == swarm.ERROR_CAP
-    assert vel_err[5, -1] == swarm.ERROR_CAP
+    assert status[3] == Status.GROUND and status[4] == Status.DIVERGED and pos_err[4, 0] == ERROR_CAP
+    assert vel_err[5, -1] == ERROR_CAP
     for w in range(W):  # LEFT_BOX exactly where a live world has an agent outside the box
         if sim_status[w] == 0:
             assert (status[w] == Status.LEFT_BOX) == bool((pos_err[w] > 0.9).any())

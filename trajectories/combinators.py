@@ -104,6 +104,9 @@ class TimeShifted:
         self.ref, self.t0 = ref, t0
         self.n_worlds = ref.n_worlds
         self.duration = ref.duration
+        into = getattr(ref, "_sample_into", None)
+        if into is not None:  # stacked: write the slots in place too (see trajectories.base)
+            self._sample_into = lambda t, vec, ang, v: into(t + self.t0, vec, ang, v)
 
     def __call__(self, t: Any) -> RefSample:
         return self.ref(np.asarray(t, dtype=float) + self.t0)
@@ -121,14 +124,15 @@ class Cached:
         self.ref = ref
         self.n_worlds = ref.n_worlds
         self.duration = ref.duration
-        self._t: np.ndarray | None = None
+        self._key: tuple | None = None
         self._sample: RefSample | None = None
 
     def __call__(self, t: Any) -> RefSample:
         t = np.asarray(t, dtype=float)
-        if self._t is None or t.shape != self._t.shape or not np.array_equal(t, self._t):
+        key = (t.shape, t.tobytes())  # the times, bit for bit (a copy: the simulator's clock changes in place)
+        if key != self._key:
             self._sample = self.ref(t)
-            self._t = t.copy()  # the simulator updates its clock in place at reset
+            self._key = key
         return self._sample
 
 
