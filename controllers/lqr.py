@@ -196,8 +196,10 @@ class FeedbackLinearisedLQR:
         yaw + yaw_rate * lookahead (s). Writes into the buffers of `out`.
         """
         _command_setpoint_kernel(
-            state.pos, state.vel, state.yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat, residual,
-            override, self._Kt, lookahead, math.tan(self.max_tilt), self.min_vertical, *out,
+            state.pos, state.vel, state.yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat,
+            f_hat if residual is None else residual, f_hat if override is None else override,  # (unread when None)
+            residual is not None, override is not None, self._Kt, lookahead, math.tan(self.max_tilt),
+            self.min_vertical, *out,
         )
 
 
@@ -252,10 +254,12 @@ def _setpoint_one(ax, ay, az, yaw, tan_tilt, min_vertical, rot):
 
 @njit
 def _command_setpoint_kernel(
-    pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
-    Kt, lookahead, tan_tilt, min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
+    pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual,
+    use_override, Kt, lookahead, tan_tilt, min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
 ):
-    """Compiled body of `FeedbackLinearisedLQR.command_setpoint` on (W, V, ...) arrays."""
+    """Compiled body of `FeedbackLinearisedLQR.command_setpoint` on (W, V, ...) arrays; residual and
+    override (W, V, 3) are read only where use_residual / use_override say so (flags, not None
+    arguments: one compiled form serves every combination)."""
     W, V = pos.shape[0], pos.shape[1]
     err = np.empty(7)
     for w in range(W):
@@ -271,9 +275,9 @@ def _command_setpoint_kernel(
                     fb += err[j] * Kt[j, k]
                 if k < 3:
                     a = ref_acc[w, i, k] - fb - f_hat[w, i, k]
-                    if residual is not None:
+                    if use_residual:
                         a = a + residual[w, i, k]
-                    if override is not None and np.isfinite(override[w, i, k]):
+                    if use_override and np.isfinite(override[w, i, k]):
                         a = override[w, i, k]
                     acc_out[w, i, k] = a
                 else:

@@ -7,7 +7,8 @@ closer with the stage-0 equivariant model compensating; stage 2 flies at about
 wake, hovers at offsets, lemniscates), plus validation flights of the same kind from
 separate seeds. Labels are always the full downwash (f = a - u with u the command
 actually applied). After the last stage the final model of every kind in
-`MODEL_KINDS` is trained on all training data into the models folder.
+`MODEL_KINDS` is trained on all training data into the models folder, one forked
+process per core at once (each model bit-identical to one trained alone).
 
 Provenance. A collection is defined by its `provenance` record: the field, the
 scene, the simulator and its components, the collection settings, the training
@@ -28,10 +29,14 @@ from __future__ import annotations
 import json
 import logging
 import math
+import multiprocessing
+import multiprocessing.connection
+import os
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -171,6 +176,54 @@ def _train_and_save(kind: str, data: Dataset, train_dirs: list[Path], path: Path
     return history
 
 
+def _in_parallel(fn: Callable[[str], dict], items: Sequence[str]) -> Iterator[tuple[str, dict]]:
+    """(item, fn(item)) for every item, as each finishes, up to one forked process per core at once.
+
+    For independent trainings: each trains on one thread (`TrainConfig.num_threads`) from its
+    own seed, so a model is bit-identical to one trained in this process (a test checks), and
+    two cores train two at once. fn must write its own outputs (atomically); its result (small,
+    picklable) comes back through a pipe. Without fork (not Linux) or with one core: one after another.
+    """
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        for item in items:
+            yield item, fn(item)
+        return
+    ctx = multiprocessing.get_context("fork")
+    todo, running = list(items), {}
+    try:
+        while todo or running:
+            while todo and len(running) < workers:
+                item = todo.pop(0)
+                receive, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_run_child, args=(fn, item, send), daemon=True)
+                proc.start()
+                send.close()
+                running[receive] = (item, proc)
+            for receive in multiprocessing.connection.wait(list(running)):
+                item, proc = running.pop(receive)
+                try:
+                    ok, value = receive.recv()
+                except EOFError:
+                    ok, value = False, "the process ended without a result"
+                proc.join()
+                if not ok and proc.exitcode:
+                    value = f"{value} (exit code {proc.exitcode})"
+                if not ok:
+                    raise RuntimeError(f"{item}: {value}")
+                yield item, value
+    finally:
+        for _, proc in running.values():
+            proc.kill()
+
+
+def _run_child(fn: Callable[[str], dict], item: str, send: Any) -> None:
+    try:
+        send.send((True, fn(item)))
+    except BaseException:  # the parent raises it, with the child's traceback
+        send.send((False, traceback.format_exc()))
+
+
 def _val_rmse(checkpoint: Path, kind: str, val_data: Dataset) -> float:
     model, _ = load_checkpoint(checkpoint, expect_kind=kind)
     return rmse(model, val_data)[0]
@@ -261,13 +314,20 @@ def collect(
     val_dirs = [out / f"stage{k}" / "val" for k in range(len(STAGES))] if n_val else []
     finals = manifest.setdefault("final_models", {})
     models: dict[str, Any] = {}
+    missing = [kind for kind in MODEL_KINDS if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
+    if missing:
+        data = labelled(train_dirs)
+
+        def train_one(kind: str) -> dict:
+            path, t0 = models_dir / f"{kind}.pt", time.perf_counter()
+            history = _train_and_save(kind, data, train_dirs, path, cfg, record, {"stage": "final"})
+            return {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"]}
+
+        for kind, entry in _in_parallel(train_one, missing):
+            finals[kind] = entry
+            atomic_write_json(manifest_path, manifest)
     for kind in MODEL_KINDS:
         path = models_dir / f"{kind}.pt"
-        if not finals.get(kind) or not path.is_file():
-            t0 = time.perf_counter()
-            history = _train_and_save(kind, labelled(train_dirs), train_dirs, path, cfg, record, {"stage": "final"})
-            finals[kind] = {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"]}
-            atomic_write_json(manifest_path, manifest)
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
     floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)]) if val_dirs else None

@@ -49,7 +49,8 @@ one more (the controller's `command_setpoint`). The math stays in its module
 components. The fast path (`fast=True`, the default, taken when every component has a
 compiled form: `DownwashField` with scalar constants and linear aggregation, a
 `FeedbackLinearisedLQR`, a zero, oracle or compiled predictor (`sim.predictor.CompiledPredictor`))
-runs a whole controller tick as ONE compiled call, `_fused_kernel`, which calls the
+runs a whole controller tick as ONE compiled call, the fused kernel (`_make_fused_kernel`; one
+variant with and one without the wind passes), which calls the
 same passes, the field kernel and the predictor's C function, and steps the physics
 itself: `mj_step` on a single world's MjData (`sim.physics.mj_step_address`), or, for a
 `mujoco.batch.Batch`, each world's state row loaded into a scratch MjData, stepped and
@@ -274,7 +275,9 @@ def _hold_kernel(f_hat, pred, due, next_prediction, period):
     """Take the new prediction (W, V, 3) m/s^2 where due (W,) and schedule the next (s), in place."""
     for w in range(f_hat.shape[0]):
         if due[w]:
-            f_hat[w] = pred[w]
+            for i in range(f_hat.shape[1]):
+                for k in range(3):
+                    f_hat[w, i, k] = pred[w, i, k]
             next_prediction[w] = next_prediction[w] + period
 
 
@@ -468,7 +471,7 @@ _STEP_CALLER, _STEP_SERIAL, _STEP_ROWS = 0, 1, 2
 _TAB = (
     "W", "V", "block", "n_sub", "n_physics", "stepping", "step_fn", "set_state_fn", "get_state_fn", "model",
     "data", "warnings", "warning_stride", "state", "nstate", "state_spec", "batch_warnings", "n_warnings",
-    "predictor", "predictor_fn", "predictor_params", "predictor_iparams", "wind",
+    "predictor", "predictor_fn", "predictor_params", "predictor_iparams",
     "layout", "noise", "cursor", "pos_est", "vel_est", "t", "next_prediction", "due", "field_enabled", "turb",
     "rot_des", "yaw_rate_des", "thrust_acc", "mass_believed", "ap_gain", "active", "f_hat", "tick_index",
     "status_new", "kin", "quat", "rot", "quat_est", "rot_est", "yaw", "applied", "mean", "pred", "Kt",
@@ -479,7 +482,7 @@ _TAB = (
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
- _T_PRED, _T_PRED_FN, _T_PRED_PARAMS, _T_PRED_IPARAMS, _T_WIND,
+ _T_PRED, _T_PRED_FN, _T_PRED_PARAMS, _T_PRED_IPARAMS,
  _T_LAYOUT, _T_NOISE, _T_CURSOR, _T_POS_EST, _T_VEL_EST, _T_T, _T_NEXT_PRED, _T_DUE, _T_FIELD_ON, _T_TURB,
  _T_ROT_DES, _T_YAW_RATE_DES, _T_THRUST, _T_MASS_BELIEVED, _T_AP_GAIN, _T_ACTIVE, _T_F_HAT, _T_TICK_INDEX,
  _T_STATUS_NEW, _T_KIN, _T_QUAT, _T_ROT, _T_QUAT_EST, _T_ROT_EST, _T_YAW, _T_APPLIED, _T_MEAN, _T_PRED_OUT, _T_KT,
@@ -500,171 +503,183 @@ _PRED_ZERO, _PRED_ORACLE, _PRED_C = 0, 1, 2  # predictor codes: zero, oracle (fi
 
 
 @njit
+def _copy_into(dst, src):
+    """dst[...] = src for two (W, V, 3) arrays, element by element: a slice assignment from an array
+    makes numba compile its shape-mismatch message (string formatting), seconds of every fresh build."""
+    for w in range(dst.shape[0]):
+        for i in range(dst.shape[1]):
+            for k in range(dst.shape[2]):
+                dst[w, i, k] = src[w, i, k]
+
+
+@njit
 def _row_view(row, offset, n_worlds, trailing, w0, w1):
     """Worlds w0..w1-1 of a row field: row[offset:] read as (n_worlds, trailing) float64."""
     return row[offset:offset + n_worlds * trailing].reshape((n_worlds, trailing))[w0:w1]
 
 
-@njit
-def _fused_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
-                  residual, override, actions, row, sub_start, sub_stop, chunk):
-    """Autopilot ticks sub_start..sub_stop-1 of one controller tick for worlds chunk[0]..chunk[1]-1,
-    as the readable path runs them.
+def _make_fused_kernel(with_wind: bool):
+    """The fused kernel with or without the wind passes. `with_wind` is a constant of the closure, so
+    numba prunes the branches it does not take before typing: a flight without wind never
+    compiles the wind passes (seconds of every fresh build)."""
 
-    tab, fc: the plan's tables (`_TAB`, `_FC`); qpos, qvel, ctrl (W, n), xfrc (W, nbody, 6): the
-    live physics state; ref_*: the reference at the tick's start ((W, V, 3), (W, V));
-    residual, override: (W, V, 3) m/s^2 C-contiguous, as in `Simulator.tick`, each used only
-    where actions (bit 0: residual, bit 1: override) says so (always arrays: one compiled
-    form serves every combination); row: the tick's
-    flat row (`_row_layout`), written by sub-tick 0; chunk (4,) int64: first and last + 1
-    world, the address of this thread's scratch MjData and of its warnings (stepping
-    `_STEP_ROWS`). Worlds are independent: chunks run on separate threads. Unless the
-    caller steps the physics (`_STEP_CALLER`), each sub-tick also steps it, and once the
-    last sub-tick has run the status pass runs too: returns how many of the chunk's
-    worlds end (-1 when the status pass did not run; the caller steps and checks).
-    """
-    n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
-    w0, w1 = chunk[0], chunk[1]
-    W = w1 - w0
-    layout = carray(_i64p(tab[_T_LAYOUT]), (V, 7))
-    noise = carray(_f64p(tab[_T_NOISE]), (n_worlds, block, V, 9))[w0:w1]
-    cursor = carray(_i64p(tab[_T_CURSOR]), (n_worlds,))[w0:w1]
-    pos_est = carray(_f64p(tab[_T_POS_EST]), (n_worlds, V, 3))[w0:w1]
-    vel_est = carray(_f64p(tab[_T_VEL_EST]), (n_worlds, V, 3))[w0:w1]
-    t = carray(_f64p(tab[_T_T]), (n_worlds,))[w0:w1]
-    next_prediction = carray(_f64p(tab[_T_NEXT_PRED]), (n_worlds,))[w0:w1]
-    due = carray(_boolp(tab[_T_DUE]), (n_worlds,))[w0:w1]
-    field_on = carray(_boolp(tab[_T_FIELD_ON]), (n_worlds,))[w0:w1]
-    turb = carray(_f64p(tab[_T_TURB]), (n_worlds, V, 3))[w0:w1]
-    rot_des = carray(_f64p(tab[_T_ROT_DES]), (n_worlds, V, 3, 3))[w0:w1]
-    yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
-    thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
-    mass_believed = carray(_f64p(tab[_T_MASS_BELIEVED]), (n_worlds, V))[w0:w1]
-    ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (14, 4))
-    active = carray(_boolp(tab[_T_ACTIVE]), (n_worlds,))[w0:w1]
-    f_hat = carray(_f64p(tab[_T_F_HAT]), (n_worlds, V, 3))[w0:w1]
-    rot = carray(_f64p(tab[_T_ROT]), (n_worlds, V, 3, 3))[w0:w1]
-    rot_est = carray(_f64p(tab[_T_ROT_EST]), (n_worlds, V, 3, 3))[w0:w1]
-    pred = carray(_f64p(tab[_T_PRED_OUT]), (n_worlds, V, 3))[w0:w1]
-    Kt = carray(_f64p(tab[_T_KT]), (7, 4))
-    field_packed = carray(_f64p(tab[_T_FIELD_PACKED]), (16,))
-    qpos, qvel, ctrl, xfrc = qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1]
-    ref_pos, ref_vel, ref_acc = ref_pos[w0:w1], ref_vel[w0:w1], ref_acc[w0:w1]
-    ref_yaw, ref_yaw_rate = ref_yaw[w0:w1], ref_yaw_rate[w0:w1]
-    residual, override = residual[w0:w1], override[w0:w1]
-    dt = fc[_F_DT]
-    wind = tab[_T_WIND] != 0
-    stepping = tab[_T_STEPPING]
-    V3 = V * 3
-    u_cmd = _row_view(row, tab[_T_ROW_U_CMD], n_worlds, V3, w0, w1).reshape((W, V, 3))
-    kin_scratch = carray(_f64p(tab[_T_KIN]), (5, n_worlds, V, 3))
+    @njit
+    def _fused_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
+                      residual, override, actions, row, sub_start, sub_stop, chunk):
+        """Autopilot ticks sub_start..sub_stop-1 of one controller tick for worlds chunk[0]..chunk[1]-1,
+        as the readable path runs them.
 
-    for sub in range(sub_start, sub_stop):
-        first = sub == 0
-        if first:  # the first autopilot tick writes the row; later ones reuse scratch buffers
-            kin = row[tab[_T_ROW_KIN]:tab[_T_ROW_KIN] + 5 * n_worlds * V3].reshape((5, n_worlds, V, 3))[:, w0:w1]
-            quat = _row_view(row, tab[_T_ROW_QUAT], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
-            quat_est = _row_view(row, tab[_T_ROW_QUAT_EST], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
-            yaw = _row_view(row, tab[_T_ROW_YAW], n_worlds, V, w0, w1)
-            applied = _row_view(row, tab[_T_ROW_APPLIED], n_worlds, V3, w0, w1).reshape((W, V, 3))
-            mean = _row_view(row, tab[_T_ROW_MEAN], n_worlds, V3, w0, w1).reshape((W, V, 3))
-            row[tab[_T_ROW_T] + w0:tab[_T_ROW_T] + w1] = t
-        else:
-            kin = kin_scratch[:, w0:w1]
-            quat = carray(_f64p(tab[_T_QUAT]), (n_worlds, V, 4))[w0:w1]
-            quat_est = carray(_f64p(tab[_T_QUAT_EST]), (n_worlds, V, 4))[w0:w1]
-            yaw = carray(_f64p(tab[_T_YAW]), (n_worlds, V))[w0:w1]
-            applied = carray(_f64p(tab[_T_APPLIED]), (n_worlds, V, 3))[w0:w1]
-            mean = carray(_f64p(tab[_T_MEAN]), (n_worlds, V, 3))[w0:w1]
-        n_due = _sense_kernel(
-            qpos, qvel, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], fc[_F_KF_P], fc[_F_KF_V],
-            pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw,
-        )
-        pos, vel = kin[0], kin[1]
+        tab, fc: the plan's tables (`_TAB`, `_FC`); qpos, qvel, ctrl (W, n), xfrc (W, nbody, 6): the
+        live physics state; ref_*: the reference at the tick's start ((W, V, 3), (W, V));
+        residual, override: (W, V, 3) m/s^2 C-contiguous, as in `Simulator.tick`, each used only
+        where actions (bit 0: residual, bit 1: override) says so; row: the tick's
+        flat row (`_row_layout`), written by sub-tick 0; chunk (4,) int64: first and last + 1
+        world, the address of this thread's scratch MjData and of its warnings (stepping
+        `_STEP_ROWS`). Worlds are independent: chunks run on separate threads. Unless the
+        caller steps the physics (`_STEP_CALLER`), each sub-tick also steps it, and once the
+        last sub-tick has run the status pass runs too: returns how many of the chunk's
+        worlds end (-1 when the status pass did not run; the caller steps and checks).
+        """
+        n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
+        w0, w1 = chunk[0], chunk[1]
+        W = w1 - w0
+        layout = carray(_i64p(tab[_T_LAYOUT]), (V, 7))
+        noise = carray(_f64p(tab[_T_NOISE]), (n_worlds, block, V, 9))[w0:w1]
+        cursor = carray(_i64p(tab[_T_CURSOR]), (n_worlds,))[w0:w1]
+        pos_est = carray(_f64p(tab[_T_POS_EST]), (n_worlds, V, 3))[w0:w1]
+        vel_est = carray(_f64p(tab[_T_VEL_EST]), (n_worlds, V, 3))[w0:w1]
+        t = carray(_f64p(tab[_T_T]), (n_worlds,))[w0:w1]
+        next_prediction = carray(_f64p(tab[_T_NEXT_PRED]), (n_worlds,))[w0:w1]
+        due = carray(_boolp(tab[_T_DUE]), (n_worlds,))[w0:w1]
+        field_on = carray(_boolp(tab[_T_FIELD_ON]), (n_worlds,))[w0:w1]
+        turb = carray(_f64p(tab[_T_TURB]), (n_worlds, V, 3))[w0:w1]
+        rot_des = carray(_f64p(tab[_T_ROT_DES]), (n_worlds, V, 3, 3))[w0:w1]
+        yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
+        thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
+        mass_believed = carray(_f64p(tab[_T_MASS_BELIEVED]), (n_worlds, V))[w0:w1]
+        ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (14, 4))
+        active = carray(_boolp(tab[_T_ACTIVE]), (n_worlds,))[w0:w1]
+        f_hat = carray(_f64p(tab[_T_F_HAT]), (n_worlds, V, 3))[w0:w1]
+        rot = carray(_f64p(tab[_T_ROT]), (n_worlds, V, 3, 3))[w0:w1]
+        rot_est = carray(_f64p(tab[_T_ROT_EST]), (n_worlds, V, 3, 3))[w0:w1]
+        pred = carray(_f64p(tab[_T_PRED_OUT]), (n_worlds, V, 3))[w0:w1]
+        Kt = carray(_f64p(tab[_T_KT]), (7, 4))
+        field_packed = carray(_f64p(tab[_T_FIELD_PACKED]), (16,))
+        qpos, qvel, ctrl, xfrc = qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1]
+        ref_pos, ref_vel, ref_acc = ref_pos[w0:w1], ref_vel[w0:w1], ref_acc[w0:w1]
+        ref_yaw, ref_yaw_rate = ref_yaw[w0:w1], ref_yaw_rate[w0:w1]
+        residual, override = residual[w0:w1], override[w0:w1]
+        dt = fc[_F_DT]
+        stepping = tab[_T_STEPPING]
+        V3 = V * 3
+        u_cmd = _row_view(row, tab[_T_ROW_U_CMD], n_worlds, V3, w0, w1).reshape((W, V, 3))
+        kin_scratch = carray(_f64p(tab[_T_KIN]), (5, n_worlds, V, 3))
 
-        vel_air = vel
-        if wind:
-            if first:
-                air = _row_view(row, tab[_T_ROW_WIND], n_worlds, V3, w0, w1).reshape((W, V, 3))
-                wind_acc = _row_view(row, tab[_T_ROW_WIND_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3))
+        for sub in range(sub_start, sub_stop):
+            first = sub == 0
+            if first:  # the first autopilot tick writes the row; later ones reuse scratch buffers
+                kin = row[tab[_T_ROW_KIN]:tab[_T_ROW_KIN] + 5 * n_worlds * V3].reshape((5, n_worlds, V, 3))[:, w0:w1]
+                quat = _row_view(row, tab[_T_ROW_QUAT], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
+                quat_est = _row_view(row, tab[_T_ROW_QUAT_EST], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
+                yaw = _row_view(row, tab[_T_ROW_YAW], n_worlds, V, w0, w1)
+                applied = _row_view(row, tab[_T_ROW_APPLIED], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                mean = _row_view(row, tab[_T_ROW_MEAN], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                for w in range(W):
+                    row[tab[_T_ROW_T] + w0 + w] = t[w]
             else:
-                air = carray(_f64p(tab[_T_AIR]), (n_worlds, V, 3))[w0:w1]
-                wind_acc = carray(_f64p(tab[_T_WIND_ACC]), (n_worlds, V, 3))[w0:w1]
-            vel_air = carray(_f64p(tab[_T_VEL_AIR]), (n_worlds, V, 3))[w0:w1]
-            gust = carray(_f64p(tab[_T_GUST]), (n_worlds, 3, 2))[w0:w1]
-            wind_mean = carray(_f64p(tab[_T_WIND_MEAN]), (3,))
-            _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean, fc[_F_DRAG_GAIN],
-                               vel, air, vel_air, wind_acc)
-            _wind_advance_kernel(
-                gust, carray(_f64p(tab[_T_WIND_NOISE]), (n_worlds, block, 3, 2))[w0:w1], cursor, vel, dt, wind_mean,
-                carray(_f64p(tab[_T_WIND_SIGMA]), (3,)), carray(_f64p(tab[_T_WIND_LENGTH]), (3,)), fc[_F_MIN_AIRSPEED],
-                np.empty((3, 2, 2)), np.empty((3, 2, 2)),
+                kin = kin_scratch[:, w0:w1]
+                quat = carray(_f64p(tab[_T_QUAT]), (n_worlds, V, 4))[w0:w1]
+                quat_est = carray(_f64p(tab[_T_QUAT_EST]), (n_worlds, V, 4))[w0:w1]
+                yaw = carray(_f64p(tab[_T_YAW]), (n_worlds, V))[w0:w1]
+                applied = carray(_f64p(tab[_T_APPLIED]), (n_worlds, V, 3))[w0:w1]
+                mean = carray(_f64p(tab[_T_MEAN]), (n_worlds, V, 3))[w0:w1]
+            n_due = _sense_kernel(
+                qpos, qvel, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], fc[_F_KF_P], fc[_F_KF_V],
+                pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw,
             )
+            pos, vel = kin[0], kin[1]
 
-        if n_due:  # the predictor at 45 Hz, held
-            kind = tab[_T_PRED]
-            if kind == _PRED_ZERO:
-                pred[:] = 0.0
-            elif kind == _PRED_ORACLE:
-                pred[:] = _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,)))
-            else:  # every array here is a block of whole worlds of a C-contiguous (W, ...) array
-                _call_predictor(
-                    tab[_T_PRED_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
-                    pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, tab[_T_PRED_PARAMS], tab[_T_PRED_IPARAMS],
-                    pred.ctypes.data,
+            vel_air = vel
+            if with_wind:  # a constant: numba prunes the branch it does not take
+                if first:
+                    air = _row_view(row, tab[_T_ROW_WIND], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                    wind_acc = _row_view(row, tab[_T_ROW_WIND_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                else:
+                    air = carray(_f64p(tab[_T_AIR]), (n_worlds, V, 3))[w0:w1]
+                    wind_acc = carray(_f64p(tab[_T_WIND_ACC]), (n_worlds, V, 3))[w0:w1]
+                vel_air = carray(_f64p(tab[_T_VEL_AIR]), (n_worlds, V, 3))[w0:w1]
+                gust = carray(_f64p(tab[_T_GUST]), (n_worlds, 3, 2))[w0:w1]
+                wind_mean = carray(_f64p(tab[_T_WIND_MEAN]), (3,))
+                _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean, fc[_F_DRAG_GAIN],
+                                   vel, air, vel_air, wind_acc)
+                _wind_advance_kernel(
+                    gust, carray(_f64p(tab[_T_WIND_NOISE]), (n_worlds, block, 3, 2))[w0:w1], cursor, vel, dt, wind_mean,
+                    carray(_f64p(tab[_T_WIND_SIGMA]), (3,)), carray(_f64p(tab[_T_WIND_LENGTH]), (3,)), fc[_F_MIN_AIRSPEED],
+                    np.empty((3, 2, 2)), np.empty((3, 2, 2)),
                 )
-            _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
 
-        mean[:] = _pairwise_kernel(pos, vel_air, rot, field_packed)
+            if n_due:  # the predictor at 45 Hz, held
+                kind = tab[_T_PRED]
+                if kind == _PRED_ZERO:
+                    pred[:] = 0.0
+                elif kind == _PRED_ORACLE:
+                    _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,))))
+                else:  # every array here is a block of whole worlds of a C-contiguous (W, ...) array
+                    _call_predictor(
+                        tab[_T_PRED_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
+                        pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, tab[_T_PRED_PARAMS], tab[_T_PRED_IPARAMS],
+                        pred.ctypes.data,
+                    )
+                _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
 
-        if first:  # the LQR and feedback linearisation at 50 Hz
-            _row_view(row, tab[_T_ROW_REF_POS], n_worlds, V3, w0, w1).reshape((W, V, 3))[:] = ref_pos
-            _row_view(row, tab[_T_ROW_REF_VEL], n_worlds, V3, w0, w1).reshape((W, V, 3))[:] = ref_vel
-            _row_view(row, tab[_T_ROW_REF_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3))[:] = ref_acc
-            state = (kin[3], kin[4], yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat)
-            limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
-            if actions == 3:
-                _command_setpoint_kernel(*state, residual, override, *limits)
-            elif actions == 1:
-                _command_setpoint_kernel(*state, residual, None, *limits)
-            elif actions == 2:
-                _command_setpoint_kernel(*state, None, override, *limits)
-            else:
-                _command_setpoint_kernel(*state, None, None, *limits)
-            _row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3))[:] = f_hat
+            _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed))
 
-        _actuate_kernel(
-            field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], fc[_F_MASS], xfrc, layout,
-            qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, fc[_F_MAX_THRUST], ctrl,
-            pos_est, vel_est, dt, t, active, mean, applied, rot, u_cmd,
+            if first:  # the LQR and feedback linearisation at 50 Hz
+                _copy_into(_row_view(row, tab[_T_ROW_REF_POS], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_pos)
+                _copy_into(_row_view(row, tab[_T_ROW_REF_VEL], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_vel)
+                _copy_into(_row_view(row, tab[_T_ROW_REF_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_acc)
+                state = (kin[3], kin[4], yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat)
+                limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
+                _command_setpoint_kernel(*state, residual, override, (actions & 1) != 0, (actions & 2) != 0, *limits)
+                _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
+
+            _actuate_kernel(
+                field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], fc[_F_MASS], xfrc, layout,
+                qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, fc[_F_MAX_THRUST], ctrl,
+                pos_est, vel_est, dt, t, active, mean, applied, rot, u_cmd,
+            )
+            if with_wind:
+                _wind_force_kernel(xfrc, layout, fc[_F_MASS], wind_acc)
+            if stepping == _STEP_SERIAL:
+                if active[0]:
+                    for _ in range(tab[_T_NPHYS]):
+                        _call_mj_step(tab[_T_STEP_FN], tab[_T_MODEL], tab[_T_DATA])
+            elif stepping == _STEP_ROWS:
+                _step_rows(tab, active, w0, w1, chunk[2], chunk[3])
+
+        if stepping == _STEP_CALLER or sub_stop != tab[_T_NSUB]:
+            return -1
+        # the tick is complete: check every world of the chunk
+        diverged = carray(_boolp(tab[_T_DIVERGED]), (n_worlds,))[w0:w1]
+        if stepping == _STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
+            step = tab[_T_WARNING_STRIDE]
+            warnings = carray(_i32p(tab[_T_WARNINGS]), (_FATAL_MAX * step + 1,))
+            diverged[0] = warnings[_FATAL_0 * step] > 0 or warnings[_FATAL_1 * step] > 0 or warnings[_FATAL_2 * step] > 0
+        else:
+            batch_warnings = carray(_i32p(tab[_T_BATCH_WARNINGS]), (n_worlds, tab[_T_NWARNINGS], 2))
+            for w in range(W):  # as sim.physics._mark_fatal: counts since the world's reset
+                c = batch_warnings[w0 + w]
+                diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
+        return _status_kernel(
+            qpos, layout, qvel, diverged, active, carray(_i64p(tab[_T_TICK_INDEX]), (n_worlds,))[w0:w1],
+            fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
+            carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
         )
-        if wind:
-            _wind_force_kernel(xfrc, layout, fc[_F_MASS], wind_acc)
-        if stepping == _STEP_SERIAL:
-            if active[0]:
-                for _ in range(tab[_T_NPHYS]):
-                    _call_mj_step(tab[_T_STEP_FN], tab[_T_MODEL], tab[_T_DATA])
-        elif stepping == _STEP_ROWS:
-            _step_rows(tab, active, w0, w1, chunk[2], chunk[3])
 
-    if stepping == _STEP_CALLER or sub_stop != tab[_T_NSUB]:
-        return -1
-    # the tick is complete: check every world of the chunk
-    diverged = carray(_boolp(tab[_T_DIVERGED]), (n_worlds,))[w0:w1]
-    if stepping == _STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
-        step = tab[_T_WARNING_STRIDE]
-        warnings = carray(_i32p(tab[_T_WARNINGS]), (_FATAL_MAX * step + 1,))
-        diverged[0] = warnings[_FATAL_0 * step] > 0 or warnings[_FATAL_1 * step] > 0 or warnings[_FATAL_2 * step] > 0
-    else:
-        batch_warnings = carray(_i32p(tab[_T_BATCH_WARNINGS]), (n_worlds, tab[_T_NWARNINGS], 2))
-        for w in range(W):  # as sim.physics._mark_fatal: counts since the world's reset
-            c = batch_warnings[w0 + w]
-            diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
-    return _status_kernel(
-        qpos, layout, qvel, diverged, active, carray(_i64p(tab[_T_TICK_INDEX]), (n_worlds,))[w0:w1],
-        fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
-        carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
-    )
+    return _fused_kernel
+
+
+_FUSED_KERNELS = (_make_fused_kernel(False), _make_fused_kernel(True))  # by wind on
 
 
 @njit
@@ -739,7 +754,7 @@ class _Plan:
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub, n_physics=r.physics_per_autopilot,
-                   stepping=stepping, predictor=predictor_code, wind=int(sim._wind_on))
+                   stepping=stepping, predictor=predictor_code)
         chunks = np.zeros((n_threads, n_chunks, 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.linspace(0, W, n_chunks + 1).round().astype(np.int64)
         chunks[:, :, 0], chunks[:, :, 1] = bounds[:-1], bounds[1:]
@@ -791,6 +806,7 @@ class _Plan:
         }
         self.fc = np.array([float(fc[name]) for name in _FC])
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
+        self.kernel = _FUSED_KERNELS[int(sim._wind_on)]
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
 
 
@@ -1109,9 +1125,9 @@ class Simulator:
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
             if plan.n_threads == 1 and chunks.shape[1] == 1:
-                n_ended = _fused_kernel(*args, sub, stop, chunks[0, 0])
+                n_ended = plan.kernel(*args, sub, stop, chunks[0, 0])
             else:
-                n_ended = _run_chunks(args, sub, stop, chunks, plan.n_threads)
+                n_ended = _run_chunks(plan.kernel, args, sub, stop, chunks, plan.n_threads)
             self._cursor_max += stop - sub
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
@@ -1206,15 +1222,15 @@ _CHUNK_WORLDS = 8  # fewest worlds in a chunk of the fused kernel's work
 _CHUNKS_PER_THREAD = 4  # chunks per thread: a thread slowed by other load takes fewer of them
 
 
-def _run_chunks(args: tuple, sub: int, stop: int, chunks: np.ndarray, n_threads: int) -> int:
-    """`_fused_kernel` on every chunk of worlds, on n_threads threads (this one included) that take
+def _run_chunks(kernel: Any, args: tuple, sub: int, stop: int, chunks: np.ndarray, n_threads: int) -> int:
+    """The fused kernel on every chunk of worlds, on n_threads threads (this one included) that take
     the chunks in turn, each with its own scratch MjData (chunks (n_threads, n, 4), see `_Plan`;
     the worlds are independent; the kernel releases the GIL); returns the sum of its results,
     how many worlds ended."""
     todo = iter(range(chunks.shape[1]))  # shared: under the GIL each chunk is handed out once
 
     def work(thread: int) -> int:
-        return sum(_fused_kernel(*args, sub, stop, chunks[thread, c]) for c in todo)
+        return sum(kernel(*args, sub, stop, chunks[thread, c]) for c in todo)
 
     if n_threads == 1:
         return work(0)

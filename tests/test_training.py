@@ -122,3 +122,30 @@ def test_train_config_and_input_errors():
         train_model("equivariant", data, SimpleNamespace(**{**fields, "dp": np.zeros((400, 2))}), FAST)
     with pytest.raises(TypeError, match=r"val: missing array 'R_a'"):
         train_model("equivariant", data, SimpleNamespace(**{k: v for k, v in fields.items() if k != "R_a"}), FAST)
+
+
+def test_trainings_in_forked_processes_equal_trainings_here():
+    """The staged collection trains its final models one forked process per core at once
+    (`downwash.staged._in_parallel`): each model is bit-identical to one trained in this process
+    (even after this process trained with torch), and a child's error names its item."""
+    from downwash.staged import _in_parallel
+
+    data = field_dataset(2000, np.random.default_rng(4))
+    config = TrainConfig(max_epochs=3, min_steps=0, batch_size=256, seed=3)
+
+    def weights(kind: str) -> dict:
+        model, history = train_model(kind, data, None, config)
+        return {"state": {k: v.numpy().tobytes() for k, v in model.state_dict().items()}, "epochs": history["epochs"]}
+
+    kinds = ["deep", "equivariant", "shallow"]
+    here = {kind: weights(kind) for kind in kinds}
+    forked = dict(_in_parallel(weights, kinds))
+    assert forked == here
+
+    def fails(item: str) -> dict:
+        if item == "b":
+            raise ValueError("boom in b")
+        return {}
+
+    with pytest.raises(RuntimeError, match="(?s)b: .*boom in b"):
+        list(_in_parallel(fails, ["a", "b"]))
