@@ -295,7 +295,8 @@ def collect(
             entry["failed"] = [m for p in sorted(sdir.glob("*/flight_*.npz")) if (m := load_log(p).meta["message"])]
             atomic_write_json(manifest_path, manifest)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]
-        if not entry.get("model_done"):  # the stage-k model, deployed in stage k + 1
+        # the stage-k model, deployed in stage k + 1 (the last stage's would be the final model of its kind)
+        if k + 1 < len(STAGES) and not entry.get("model_done"):
             _train_and_save(DEPLOYED_KIND, labelled(train_dirs), train_dirs, sdir / f"{DEPLOYED_KIND}.pt", cfg,
                             record, {"stage": k})
             entry["model_done"] = True

@@ -48,7 +48,8 @@ one more (the controller's `command_setpoint`). The math stays in its module
 `sim.turbulence.OUTurbulence`, `sim.wind`); tests check the passes against the readable
 components. The fast path (`fast=True`, the default, taken when every component has a
 compiled form: `DownwashField` with scalar constants and linear aggregation, a
-`FeedbackLinearisedLQR`, a zero, oracle or compiled predictor (`sim.predictor.CompiledPredictor`))
+`FeedbackLinearisedLQR`, a zero, oracle or compiled predictor (`sim.predictor.CompiledPredictor`),
+or a `PerWorldPredictor` of those)
 runs a whole controller tick as ONE compiled call, the fused kernel (`_make_fused_kernel`; one
 variant with and one without the wind passes), which calls the
 same passes, the field kernel and the predictor's C function, and steps the physics
@@ -92,7 +93,7 @@ from sim.aggregation import LinearSuperposition, wake_field
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
 from sim.field import DownwashField, _pairwise_kernel, check_field
 from sim.physics import _FATAL_0, _FATAL_1, _FATAL_2, _SerialPhysics, make_physics
-from sim.predictor import CompiledPredictor, OraclePredictor, Predictor, ZeroPredictor
+from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
 from sim.scene import Scene
 from sim.turbulence import OUTurbulence
 from sim.wind import AIRFRAME, DrydenWind, coefficients_into, drag_gain_speed, gust_into, gust_step_into
@@ -476,7 +477,7 @@ _TAB = (
     "rot_des", "yaw_rate_des", "thrust_acc", "mass_believed", "ap_gain", "active", "f_hat", "tick_index",
     "status_new", "kin", "quat", "rot", "quat_est", "rot_est", "yaw", "applied", "mean", "pred", "Kt",
     "field_packed", "oracle_packed", "gust", "wind_noise", "wind_mean", "wind_sigma", "wind_length", "wind_axes",
-    "air", "vel_air", "wind_acc", "diverged",
+    "air", "vel_air", "wind_acc", "diverged", "pw_code", "pw_fn", "pw_params", "pw_iparams", "pw_oracle",
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
 )
@@ -487,7 +488,8 @@ _TAB = (
  _T_ROT_DES, _T_YAW_RATE_DES, _T_THRUST, _T_MASS_BELIEVED, _T_AP_GAIN, _T_ACTIVE, _T_F_HAT, _T_TICK_INDEX,
  _T_STATUS_NEW, _T_KIN, _T_QUAT, _T_ROT, _T_QUAT_EST, _T_ROT_EST, _T_YAW, _T_APPLIED, _T_MEAN, _T_PRED_OUT, _T_KT,
  _T_FIELD_PACKED, _T_ORACLE_PACKED, _T_GUST, _T_WIND_NOISE, _T_WIND_MEAN, _T_WIND_SIGMA, _T_WIND_LENGTH,
- _T_WIND_AXES, _T_AIR, _T_VEL_AIR, _T_WIND_ACC, _T_DIVERGED,
+ _T_WIND_AXES, _T_AIR, _T_VEL_AIR, _T_WIND_ACC, _T_DIVERGED, _T_PW_CODE, _T_PW_FN, _T_PW_PARAMS, _T_PW_IPARAMS,
+ _T_PW_ORACLE,
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
@@ -499,7 +501,8 @@ _FC = (
 (_F_SIGMA_P, _F_SIGMA_ATT, _F_KF_P, _F_KF_V, _F_OU_A, _F_OU_B, _F_INTENSITY, _F_MASS, _F_MAX_THRUST, _F_DT,
  _F_PRED_PERIOD, _F_LOOKAHEAD, _F_TAN_TILT, _F_MIN_VERTICAL, _F_MIN_AIRSPEED, _F_DRAG_GAIN,
  _F_MAX_DISTANCE, _F_GROUND, _F_RADIUS_XY, _F_RADIUS_Z) = range(len(_FC))
-_PRED_ZERO, _PRED_ORACLE, _PRED_C = 0, 1, 2  # predictor codes: zero, oracle (field kernel), C function
+# predictor codes: zero, oracle (field kernel), C function, and one of these per world (`PerWorldPredictor`)
+_PRED_ZERO, _PRED_ORACLE, _PRED_C, _PRED_PER_WORLD = 0, 1, 2, 3
 
 
 @njit
@@ -624,6 +627,26 @@ def _make_fused_kernel(with_wind: bool):
                     pred[:] = 0.0
                 elif kind == _PRED_ORACLE:
                     _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,))))
+                elif kind == _PRED_PER_WORLD:  # world by world, each its own predictor, as PerWorldPredictor
+                    pw_code = carray(_i64p(tab[_T_PW_CODE]), (n_worlds,))[w0:w1]
+                    pw_fn = carray(_i64p(tab[_T_PW_FN]), (n_worlds,))[w0:w1]
+                    pw_params = carray(_i64p(tab[_T_PW_PARAMS]), (n_worlds,))[w0:w1]
+                    pw_iparams = carray(_i64p(tab[_T_PW_IPARAMS]), (n_worlds,))[w0:w1]
+                    pw_oracle = carray(_f64p(tab[_T_PW_ORACLE]), (n_worlds, 16))[w0:w1]
+                    for w in range(W):
+                        if pw_code[w] == _PRED_ORACLE:
+                            _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1],
+                                                                       pw_oracle[w]))
+                        elif pw_code[w] == _PRED_C:  # one world: its rows of C-contiguous (W, ...) arrays
+                            _call_predictor(
+                                pw_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data, rot_est[w].ctypes.data,
+                                pos[w].ctypes.data, vel_air[w].ctypes.data, rot[w].ctypes.data, pw_params[w],
+                                pw_iparams[w], pred[w].ctypes.data,
+                            )
+                        else:
+                            for i in range(V):
+                                for k in range(3):
+                                    pred[w, i, k] = 0.0
                 else:  # every array here is a block of whole worlds of a C-contiguous (W, ...) array
                     _call_predictor(
                         tab[_T_PRED_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
@@ -725,7 +748,7 @@ class _Plan:
 
     def __init__(self, sim: "Simulator", stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
                  oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None, n_chunks: int,
-                 n_threads: int):
+                 n_threads: int, per_world: dict[str, Any] | None = None):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
         self.revision = ph.revision
@@ -749,6 +772,9 @@ class _Plan:
             "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
             "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool),
         }
+        per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W)
+        keep.update({name: a for name, a in per_world.items() if name.startswith("pw_")})
+        self.per_world = per_world  # keeps the worlds' predictors' functions and constants alive
         if compiled is not None:
             keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
@@ -994,9 +1020,14 @@ class Simulator:
             stepping = _STEP_ROWS if native is not None else _STEP_CALLER
             if native is None:
                 n_chunks = n_threads = 1
-        predictor, compiled, oracle_packed = self.predictor, None, np.zeros(16)
+        predictor, compiled, oracle_packed, per_world = self.predictor, None, np.zeros(16), None
         if type(predictor) is ZeroPredictor:
             code = _PRED_ZERO
+        elif type(predictor) is PerWorldPredictor:
+            per_world = _per_world_tables(predictor, self.W)
+            if per_world is None:
+                return None
+            code = _PRED_PER_WORLD
         elif type(predictor) is OraclePredictor:
             packed = _packed_field(predictor.field, predictor.aggregation)
             if packed is None:
@@ -1008,7 +1039,8 @@ class Simulator:
                 return None
             code = _PRED_C
         try:
-            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_chunks, n_threads)
+            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_chunks, n_threads,
+                         per_world)
         except _NoPlan:
             return None
 
@@ -1247,6 +1279,37 @@ def _thread_pool(n: int) -> ThreadPoolExecutor:
         size = max(n, os.cpu_count() or 1)
         _POOL.update(pid=os.getpid(), size=size, pool=ThreadPoolExecutor(max_workers=size, thread_name_prefix="sim-chunk"))
     return _POOL["pool"]
+
+
+def _per_world_tables(predictor: Any, W: int) -> dict[str, Any] | None:
+    """The fused kernel's tables for a `PerWorldPredictor` (a `ZeroPredictor`: all worlds zero): per
+    world its predictor's code, C function, constants' addresses and oracle field (pw_*), and
+    the compiled forms (kept alive); None when one of its predictors has no compiled form."""
+    if isinstance(predictor, PerWorldPredictor) and predictor.n_worlds != W:
+        return None  # the readable path names the mismatch
+    groups = predictor.groups if isinstance(predictor, PerWorldPredictor) else [np.arange(W)]
+    predictors = predictor.predictors if isinstance(predictor, PerWorldPredictor) else [predictor]
+    out: dict[str, Any] = {"pw_code": np.zeros(W, np.int64), "pw_fn": np.zeros(W, np.int64),
+                           "pw_params": np.zeros(W, np.int64), "pw_iparams": np.zeros(W, np.int64),
+                           "pw_oracle": np.zeros((W, 16)), "compiled": []}
+    for p, worlds in zip(predictors, groups):
+        if type(p) is ZeroPredictor:
+            continue
+        if type(p) is OraclePredictor:
+            packed = _packed_field(p.field, p.aggregation)
+            if packed is None:
+                return None
+            out["pw_code"][worlds], out["pw_oracle"][worlds] = _PRED_ORACLE, packed
+            continue
+        compiled = getattr(p, "compiled", lambda: None)()
+        if compiled is None:
+            return None
+        params = np.ascontiguousarray(compiled.params, dtype=np.float64)
+        iparams = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
+        out["compiled"].append((compiled, params, iparams))
+        out["pw_code"][worlds], out["pw_fn"][worlds] = _PRED_C, int(compiled.address)
+        out["pw_params"][worlds], out["pw_iparams"][worlds] = params.ctypes.data, iparams.ctypes.data
+    return out
 
 
 def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:

@@ -64,6 +64,17 @@ def _assert_same(fused, readable):
     assert np.array_equal(sim_f.physics.ctrl, sim_r.physics.ctrl, equal_nan=True)
 
 
+@pytest.mark.parametrize("W", [1, 16])  # 16: two chunks of worlds, the second from world 8
+def test_fused_equals_readable_with_a_predictor_per_world(scene, models, W):
+    """A `PerWorldPredictor` of zero, oracle and compiled learned predictors (the experiments' one
+    batch of many conditions) flies the fused path, world by world as the readable path."""
+    predictors = [ZeroPredictor(), OraclePredictor(DownwashField()), LearnedPredictor(models["equivariant"], clamp=6.0),
+                  LearnedPredictor(models["deep"]), LearnedPredictor(models["general"])]
+    assignment = np.arange(W) % len(predictors) if W > 1 else np.array([2])
+    pred = PerWorldPredictor(predictors, assignment)
+    _assert_same(*_fly_both(scene, W, 60, field=DownwashField(swirl=0.2), predictor=pred))
+
+
 @pytest.mark.parametrize("W", [1, 3])
 @pytest.mark.parametrize("predictor", ["zero", "oracle", "equivariant", "equivariant_general", "shallow", "deep"])
 def test_fused_equals_readable(scene, models, W, predictor):
@@ -158,7 +169,8 @@ def test_components_without_a_compiled_form_take_the_readable_path(scene, models
     W = 2
     cases = [
         dict(field=MomentumWake()),
-        dict(predictor=PerWorldPredictor([ZeroPredictor(), OraclePredictor(DownwashField())], np.array([0, 1]))),
+        dict(predictor=PerWorldPredictor([ZeroPredictor(), LearnedPredictor(models["equivariant"], backend="numpy")],
+                                         np.array([0, 1]))),
         dict(predictor=LearnedPredictor(models["equivariant"], backend="numpy")),
         dict(predictor=OraclePredictor(MomentumWake())),
         dict(aggregation=make_aggregation("velocity")),

@@ -11,7 +11,9 @@ command lines. Re-record only when a change is MEANT to move numbers, and say so
 in the commit message: the file is the proof that a refactor changed none.
 Re-recorded so far: once, for issue 9 (motion capture measures the attitude with
 noise; each collection flight draws from its own generator; lemniscates in both the
-training and the validation flights of a stage).
+training and the validation flights of a stage). Edited once by hand without moving a
+number: the last stage's model (never deployed; the same data as the final
+equivariant model) is no longer trained, so its checkpoint left the record.
 
 Digests of floating-point results are specific to the CPU's instruction set
 (numba, torch and NumPy pick kernels per ISA); a failure on a new kind of machine
