@@ -1160,7 +1160,7 @@ class Simulator:
                 n_ended = plan.kernel(*args, sub, stop, chunks[0, 0])
             else:
                 n_ended = _run_chunks(plan.kernel, args, sub, stop, chunks, plan.n_threads)
-            self._cursor_max += stop - sub
+            self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
                 diverged = d if diverged is None else diverged | d
@@ -1225,7 +1225,7 @@ class Simulator:
             _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
             if wind:
                 _wind_force_kernel(ph.xfrc_applied, self._layout, self.mass, wind_acc)
-            self._cursor_max += 1
+            self.__dict__["_cursor_max"] += 1
             d = ph.step(r.physics_per_autopilot, self.active)
             diverged = d if diverged is None else diverged | d
         self._check(diverged)
