@@ -91,6 +91,8 @@ _LAZY = {
     **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "envs.evaluation"),
     **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "envs.observation"),
     **dict.fromkeys(("REWARD_TERMS",), "envs.task"),
+    **dict.fromkeys(("SwarmEnv", "SwarmVectorEnv", "parallel_env"), "envs.swarm"),  # needs the multiagent extra
+    **dict.fromkeys(("logs_video", "write_conditions_video"), "envs.video"),  # needs the video extra
     **dict.fromkeys((
         "FollowerConfig", "make_config", "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS",
         "CONTROL_HZ_ALLOWED", "DEFAULT_MAX_EPISODE_STEPS", "DEFAULT_FIELD_RANDOMIZATION", "FIELD_RANDOMIZABLE",
