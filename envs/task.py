@@ -6,6 +6,11 @@ batched over worlds; Python loops over worlds happen only at reset. The single a
 the vector env both run it, and both draw episodes with `draw_episode`, which is
 why the vector env equals a `SyncVectorEnv` of single envs step for step.
 
+The reward and termination are `task_terms` (readable) and its compiled twin
+`task_kernel`, written for A agents so that the swarm env (`envs.swarm`, every
+follower an agent) runs the same code; here the one agent is the follower. The
+observation is `observation` and its compiled twin `_observe_kernel`.
+
 Shapes: W worlds, V vehicles (the scene's leader and follower); positions m,
 velocities m/s, accelerations and actions m/s^2, all world frame, z up.
 """

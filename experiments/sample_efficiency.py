@@ -3,7 +3,7 @@
     python -m experiments.sample_efficiency [--collection-dir DIR] [--trials N] [--workers N] [--quick]
 
 A preset of the sweep (`downwash.sweep`, `python -m experiments.sweep`) on one
-field (--field, default so2): the paper's minutes 0.5 to 15 plus the full training
+field (--field, default so2): minutes 1 to 15 (seven points) plus the full training
 set, --trials trials (seeds seed .. seed + trials - 1) and the paper's three
 models. Each stage is shortened proportionally; every model of a trial trains on
 the same data subset with the same seed, so the models are compared trial by
