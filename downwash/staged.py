@@ -32,6 +32,7 @@ import math
 import multiprocessing
 import multiprocessing.connection
 import os
+import sys
 import time
 import traceback
 from dataclasses import dataclass
@@ -182,10 +183,11 @@ def _in_parallel(fn: Callable[[str], dict], items: Sequence[str]) -> Iterator[tu
     For independent trainings: each trains on one thread (`TrainConfig.num_threads`) from its
     own seed, so a model is bit-identical to one trained in this process (a test checks), and
     two cores train two at once. fn must write its own outputs (atomically); its result (small,
-    picklable) comes back through a pipe. Without fork (not Linux) or with one core: one after another.
+    picklable) comes back through a pipe. Not on Linux (fork is unsafe on macOS, absent on Windows)
+    or with one core: one after another, in this process.
     """
     workers = min(len(items), os.cpu_count() or 1)
-    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+    if workers < 2 or not sys.platform.startswith("linux"):  # fork is the only start method without re-imports
         for item in items:
             yield item, fn(item)
         return
