@@ -742,12 +742,12 @@ class _Plan:
 
     Built from the simulator's current components (`Simulator._make_plan`); holding the
     arrays here keeps every address in the tables valid for the plan's lifetime.
-    chunks: (n_threads, n, 4) int64, the n world ranges as thread t runs them, with its scratch
-    MjData (see `_fused_kernel`); the threads take the ranges in turn (`_run_chunks`).
+    chunks: (n_threads, n, 4) int64, the n world ranges (`_chunk_sizes`) as thread t runs them, with
+    its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn (`_run_chunks`).
     """
 
     def __init__(self, sim: "Simulator", stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
-                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None, n_chunks: int,
+                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None,
                  n_threads: int, per_world: dict[str, Any] | None = None):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
@@ -781,8 +781,9 @@ class _Plan:
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub, n_physics=r.physics_per_autopilot,
                    stepping=stepping, predictor=predictor_code)
-        chunks = np.zeros((n_threads, n_chunks, 4), np.int64)  # as run by each thread: its own MjData
-        bounds = np.linspace(0, W, n_chunks + 1).round().astype(np.int64)
+        sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
+        chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
         chunks[:, :, 0], chunks[:, :, 1] = bounds[:-1], bounds[1:]
         if stepping == _STEP_SERIAL:
             step_fn, model, data, warnings = physics_native
@@ -1007,19 +1008,18 @@ class Simulator:
             return None
         if not isinstance(self.autopilot, Autopilot):
             return None
-        ph, n_chunks, n_threads = self.physics, 1, 1
+        ph, n_threads = self.physics, 1
         if isinstance(ph, _SerialPhysics):
             stepping, native = _STEP_SERIAL, ph.native_step()
             if native is None:
                 return None
         else:
-            # worlds in chunks of >= _CHUNK_WORLDS, a few per thread of the batch, each with its MjData
+            # worlds in chunks of >= _CHUNK_WORLDS on the batch's threads, each thread with its MjData
             n_threads = max(1, min(ph.batch.nthread, self.W // _CHUNK_WORLDS))
-            n_chunks = 1 if n_threads == 1 else min(self.W // _CHUNK_WORLDS, _CHUNKS_PER_THREAD * n_threads)
             native = ph.native_step(n_threads)
             stepping = _STEP_ROWS if native is not None else _STEP_CALLER
             if native is None:
-                n_chunks = n_threads = 1
+                n_threads = 1
         predictor, compiled, oracle_packed, per_world = self.predictor, None, np.zeros(16), None
         if type(predictor) is ZeroPredictor:
             code = _PRED_ZERO
@@ -1039,8 +1039,7 @@ class Simulator:
                 return None
             code = _PRED_C
         try:
-            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_chunks, n_threads,
-                         per_world)
+            return _Plan(self, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world)
         except _NoPlan:
             return None
 
@@ -1251,7 +1250,24 @@ class Simulator:
 
 
 _CHUNK_WORLDS = 4  # fewest worlds in a chunk of the fused kernel's work (12 worlds: 1.2x faster on 2 threads than 8)
-_CHUNKS_PER_THREAD = 4  # chunks per thread: a thread slowed by other load takes fewer of them
+
+
+def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
+    """Worlds per chunk, large first and halving (guided scheduling): a thread that starts late or
+    runs slower takes the small chunks at the end, so the threads finish together (64 worlds on
+    2 threads: 16, 16, 8, 8, 4, 4, 4, 4; 1.04x the 8 equal chunks, measured). One chunk for one thread."""
+    if n_threads == 1:
+        return [n_worlds]
+    sizes, left = [], n_worlds
+    while left > 0:
+        size = max(smallest, left // (2 * n_threads))
+        for _ in range(n_threads):
+            if left <= 0:
+                break
+            take = left if left - min(size, left) < smallest else min(size, left)  # no runt at the end
+            sizes.append(take)
+            left -= take
+    return sizes
 
 
 def _run_chunks(kernel: Any, args: tuple, sub: int, stop: int, chunks: np.ndarray, n_threads: int) -> int:

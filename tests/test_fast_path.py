@@ -4,6 +4,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from core.params import RATES
 from downwash.predictor import LearnedPredictor
@@ -13,7 +15,7 @@ from sim.fields.momentum import MomentumWake
 from sim.physics import mj_step_address
 from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
-from sim.simulator import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, Row, SimConfig, Simulator
+from sim.simulator import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, Row, SimConfig, Simulator, _chunk_sizes
 from sim.wind import DrydenWind
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from trajectories import Hover, Lemniscate, stack
@@ -111,10 +113,10 @@ def test_threads_and_models_of_their_own(scene, models):
     wind = DrydenWind(mean=(1.0, 0.0, 0.0), w20=5.0)
     fused, readable = _fly_both(scene, 33, 30, wind=wind, predictor=LearnedPredictor(models["equivariant"]), n_threads=2)
     plan = fused[1]._plan
-    assert plan.stepping == _STEP_ROWS and plan.n_threads == 2  # eight chunks of worlds on two threads
+    assert plan.stepping == _STEP_ROWS and plan.n_threads == 2  # chunks of worlds, large first, on two threads
     bounds = plan.chunks[1, :, :2]
-    assert plan.chunks.shape == (2, 8, 4) and bounds[0, 0] == 0 and bounds[-1, 1] == 33
-    assert np.array_equal(bounds[1:, 0], bounds[:-1, 1]) and np.all(np.diff(bounds, axis=1) >= 4)
+    assert np.array_equal(np.diff(bounds, axis=1)[:, 0], [8, 8, 4, 4, 4, 5]) and bounds[0, 0] == 0
+    assert np.array_equal(bounds[1:, 0], bounds[:-1, 1]) and bounds[-1, 1] == 33
     _assert_same(fused, readable)
     out = []
     for fast in (True, False):
@@ -224,3 +226,15 @@ def test_fly_logs_are_the_same_on_both_paths(scene, models):
         for name in a.arrays:
             assert a[name].shape == b[name].shape and np.array_equal(a[name], b[name]), name
         assert {k: v for k, v in a.meta.items() if k != "code"} == {k: v for k, v in b.meta.items() if k != "code"}
+
+
+@given(st.integers(1, 600), st.integers(1, 8), st.integers(1, 16))
+def test_chunks_cover_every_world_once_largest_first(n_worlds, n_threads, smallest):
+    """Guided chunks: they add up to the batch, none below the smallest size (unless the batch is),
+    and sizes never grow except the last, which absorbs a remainder below the smallest size."""
+    sizes = _chunk_sizes(n_worlds, n_threads, smallest)
+    assert sum(sizes) == n_worlds and all(s >= min(smallest, n_worlds) for s in sizes)
+    assert all(a >= b for a, b in zip(sizes[:-2], sizes[1:-1]))
+    assert sizes[-1] < 2 * max(smallest, sizes[-2] if len(sizes) > 1 else 0) or len(sizes) == 1
+    if n_threads == 1:
+        assert sizes == [n_worlds]
