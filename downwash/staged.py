@@ -183,11 +183,12 @@ def _in_parallel(fn: Callable[[str], dict], items: Sequence[str]) -> Iterator[tu
     For independent trainings: each trains on one thread (`TrainConfig.num_threads`) from its
     own seed, so a model is bit-identical to one trained in this process (a test checks), and
     two cores train two at once. fn must write its own outputs (atomically); its result (small,
-    picklable) comes back through a pipe. Not on Linux (fork is unsafe on macOS, absent on Windows)
-    or with one core: one after another, in this process.
+    picklable) comes back through a pipe. Not on Linux (fork is unsafe on macOS, absent on Windows),
+    with one core, or inside a daemonic process: one after another, in this process.
     """
     workers = min(len(items), os.cpu_count() or 1)
-    if workers < 2 or not sys.platform.startswith("linux"):  # fork is the only start method without re-imports
+    # fork is the only start method without re-imports; a daemonic process may not have children
+    if workers < 2 or not sys.platform.startswith("linux") or multiprocessing.current_process().daemon:
         for item in items:
             yield item, fn(item)
         return

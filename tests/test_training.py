@@ -1,6 +1,7 @@
 """Training on data labelled by the true field: learning, determinism, early stopping, flight splits."""
 
 import dataclasses
+import multiprocessing
 from types import SimpleNamespace
 
 import numpy as np
@@ -149,3 +150,12 @@ def test_trainings_in_forked_processes_equal_trainings_here():
 
     with pytest.raises(RuntimeError, match="(?s)b: .*boom in b"):
         list(_in_parallel(fails, ["a", "b"]))
+
+    # inside a daemonic process (which may not have children) it trains one after another instead
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=lambda: queue.put(dict(_in_parallel(weights, ["shallow", "equivariant"]))),
+                       daemon=True)
+    proc.start()
+    assert queue.get(timeout=120) == {kind: here[kind] for kind in ("shallow", "equivariant")}
+    proc.join()
