@@ -30,7 +30,7 @@ from downwash.models import MODEL_KINDS, DownwashModel, make_model
 
 __all__ = [
     "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint",
-    "read_metadata", "sidecar_path",
+    "read_metadata", "read_payload", "write_checkpoint", "sidecar_path",
 ]
 
 CHECKPOINT_FORMAT = "downwash-model"
@@ -121,8 +121,10 @@ def _check_payload(path: Path, desc: Any, state: Any) -> tuple[str, str, dict]:
     return kind, feature_set, architecture
 
 
-def _read(path: Path) -> tuple[dict, dict]:
-    """(payload, metadata record) of a checkpoint, through the safe loader; CheckpointError naming the file."""
+def read_payload(path: Path, fmt: str, version: int, hints: dict[str, str] | None = None) -> tuple[dict, dict]:
+    """(payload, metadata record) of a checkpoint that `write_checkpoint` wrote in format `fmt`,
+    version `version`, through the safe loader; CheckpointError naming the file otherwise.
+    hints: format -> what to say when the file holds that other format instead."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -141,10 +143,13 @@ def _read(path: Path) -> tuple[dict, dict]:
     except _CORRUPT_PICKLE_ERRORS as e:
         raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): "
                               f"{type(e).__name__}: {e}") from e
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {CHECKPOINT_VERSION}")
+    found = payload.get("format") if isinstance(payload, dict) else None
+    if found in (hints or {}) and found != fmt:
+        raise CheckpointError(f"{path}: {hints[found]}")
+    if found != fmt:
+        raise CheckpointError(f"{path}: not a {fmt!r} checkpoint of this project")
+    if payload.get("version") != version:
+        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {version}")
     try:
         record = json.loads(payload["meta_json"])
     except (KeyError, TypeError, json.JSONDecodeError) as e:
@@ -152,6 +157,11 @@ def _read(path: Path) -> tuple[dict, dict]:
     if not isinstance(record, dict):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: not a record")
     return payload, record
+
+
+def _read(path: Path) -> tuple[dict, dict]:
+    """(payload, metadata record) of a two-vehicle model checkpoint (`read_payload`)."""
+    return read_payload(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
 
 
 def read_metadata(path: str | os.PathLike) -> dict[str, Any]:

@@ -46,10 +46,7 @@ against the torch model, which stays the readable reference and the training pat
 from __future__ import annotations
 
 import copy
-import json
 import os
-import pickle
-import zipfile
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -61,13 +58,7 @@ from core.errors import CheckpointError, ConfigError
 from core.provenance import differences
 from core.state import VehicleStates
 from core.validate import count, positive_float
-from downwash.checkpoint import (
-    _CORRUPT_PICKLE_ERRORS,
-    MAX_WIDTH,
-    _unpickling_reason,
-    load_checkpoint,
-    write_checkpoint,
-)
+from downwash.checkpoint import CHECKPOINT_FORMAT, MAX_WIDTH, load_checkpoint, read_payload, write_checkpoint
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
 from downwash.predictor import LearnedPredictor
 from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, count_parameters, make_model
@@ -605,37 +596,13 @@ def save_swarm_checkpoint(path: str | os.PathLike, model: SwarmModel, neighbours
 
 
 def _read(path: Path) -> tuple[dict, dict]:
-    """(payload, record) through the safe loader (weights_only); CheckpointError naming the file."""
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    try:
-        is_zip = zipfile.is_zipfile(path)
-    except (zipfile.BadZipFile, OSError, ValueError) as e:
-        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): {e}") from e
-    if not is_zip:
-        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file)")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise CheckpointError(f"{path}: refused by the safe loader (weights_only=True): it holds objects other than "
-                              f"tensors and plain containers ({_unpickling_reason(e)})") from e
-    except _CORRUPT_PICKLE_ERRORS as e:
-        raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): "
-                              f"{type(e).__name__}: {e}") from e
-    if isinstance(payload, dict) and payload.get("format") == "downwash-model":
-        raise CheckpointError(f"{path}: a two-vehicle model checkpoint, not a swarm model; wrap it with "
-                              "downwash.swarm_models.wrap_pairwise (kind 'summed_pairwise')")
-    if not isinstance(payload, dict) or payload.get("format") != SWARM_CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not a {SWARM_CHECKPOINT_FORMAT!r} checkpoint of this project")
-    if payload.get("version") != SWARM_CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads "
-                              f"{SWARM_CHECKPOINT_VERSION}")
-    try:
-        record = json.loads(payload["meta_json"])
-    except (KeyError, TypeError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
+    """(payload, record) of a swarm model checkpoint (`downwash.checkpoint.read_payload`), its model
+    record and state dict checked; CheckpointError naming the file."""
+    payload, record = read_payload(path, SWARM_CHECKPOINT_FORMAT, SWARM_CHECKPOINT_VERSION, hints={
+        CHECKPOINT_FORMAT: "a two-vehicle model checkpoint, not a swarm model; wrap it with "
+                           "downwash.swarm_models.wrap_pairwise (kind 'summed_pairwise')"})
     state = payload.get("state_dict")
-    if not isinstance(record, dict) or not isinstance(record.get("model"), dict):
+    if not isinstance(record.get("model"), dict):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: no model record")
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                               for k, v in state.items()):
