@@ -391,28 +391,18 @@ def _wind_force_kernel(xfrc, layout, mass, wind_acc):
 # kernel. Every address comes from an array or object that the `_Plan` keeps alive.
 
 
-@intrinsic
-def _f64p(typingctx, addr):
-    sig = types.CPointer(types.float64)(types.intp)
-    return sig, lambda context, builder, sig, args: builder.inttoptr(args[0], context.get_value_type(sig.return_type))
+def _pointer_intrinsic(dtype: types.Type):
+    """A compiled function: an integer address -> a typed pointer (`carray` reads it as an array)."""
+
+    @intrinsic
+    def pointer(typingctx, addr):
+        sig = types.CPointer(dtype)(types.intp)
+        return sig, lambda context, builder, sig, args: builder.inttoptr(args[0], context.get_value_type(sig.return_type))
+
+    return pointer
 
 
-@intrinsic
-def _i64p(typingctx, addr):
-    sig = types.CPointer(types.int64)(types.intp)
-    return sig, lambda context, builder, sig, args: builder.inttoptr(args[0], context.get_value_type(sig.return_type))
-
-
-@intrinsic
-def _i32p(typingctx, addr):
-    sig = types.CPointer(types.int32)(types.intp)
-    return sig, lambda context, builder, sig, args: builder.inttoptr(args[0], context.get_value_type(sig.return_type))
-
-
-@intrinsic
-def _boolp(typingctx, addr):
-    sig = types.CPointer(types.boolean)(types.intp)
-    return sig, lambda context, builder, sig, args: builder.inttoptr(args[0], context.get_value_type(sig.return_type))
+_f64p, _i64p, _i32p, _boolp = (_pointer_intrinsic(t) for t in (types.float64, types.int64, types.int32, types.boolean))
 
 
 _VOIDP = ir.IntType(8).as_pointer()
