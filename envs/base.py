@@ -19,7 +19,7 @@ from envs.rendering import Renderer
 from envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
-__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options"]
+__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_reset_plan"]
 
 RENDER_MODES = ("rgb_array",)
 
@@ -39,6 +39,29 @@ def check_reset_options(options: Mapping[str, Any] | None, allowed: tuple[str, .
         if unknown:
             what = ", ".join(allowed) if allowed else "none (configure episodes through the env's options)"
             raise ValueError(f"reset options: unknown {unknown}; allowed: {what}")
+
+
+def vector_reset_plan(n_worlds: int, seed: Any, options: Mapping[str, Any] | None) -> tuple[list[int | None], np.ndarray]:
+    """(a seed or None per world, the worlds to reset (n_worlds,) bool) of a vector env's
+    `reset(seed=..., options=...)`: seed None, an int s (world i gets s + i) or one per world;
+    options only ``{"reset_mask": mask}``. ValueError naming what is wrong."""
+    if seed is None:
+        seeds: list[int | None] = [None] * n_worlds
+    elif isinstance(seed, (int, np.integer)):
+        seeds = [int(seed) + i for i in range(n_worlds)]
+    else:
+        seeds = list(seed)
+        if len(seeds) != n_worlds:
+            raise ValueError(f"seed: a list of seeds needs one per world ({n_worlds}), got {len(seeds)}")
+    options = dict(options or {})
+    mask = options.pop("reset_mask", None)
+    check_reset_options(options, allowed=("reset_mask",))
+    if mask is None:
+        return seeds, np.ones(n_worlds, bool)
+    mask = np.asarray(mask)
+    if mask.shape != (n_worlds,) or mask.dtype != np.bool_ or not mask.any():
+        raise ValueError(f"reset options['reset_mask']: expected a bool array ({n_worlds},) with a True, got {mask!r}")
+    return seeds, mask
 
 
 class FollowerEnvBase:

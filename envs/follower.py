@@ -21,7 +21,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from core.validate import count
-from envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces
+from envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, vector_reset_plan
 from envs.config import DEFAULT_MAX_EPISODE_STEPS
 from envs.task import draw_episode, episode_info
 
@@ -202,24 +202,9 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
         N = self.num_envs
-        if seed is None:
-            seeds: list[int | None] = [None] * N
-        elif isinstance(seed, (int, np.integer)):
+        seeds, mask = vector_reset_plan(N, seed, options)
+        if isinstance(seed, (int, np.integer)):
             super().reset(seed=int(seed))
-            seeds = [int(seed) + i for i in range(N)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != N:
-                raise ValueError(f"seed: a list of seeds needs one per world ({N}), got {len(seeds)}")
-        options = dict(options or {})
-        mask = options.pop("reset_mask", None)
-        check_reset_options(options, allowed=("reset_mask",))
-        if mask is None:
-            mask = np.ones(N, bool)
-        else:
-            mask = np.asarray(mask)
-            if mask.shape != (N,) or mask.dtype != np.bool_ or not mask.any():
-                raise ValueError(f"reset options['reset_mask']: expected a bool array ({N},) with a True, got {mask!r}")
         worlds = np.flatnonzero(mask)
         for w in worlds:
             if seeds[w] is not None:

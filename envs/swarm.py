@@ -125,7 +125,7 @@ from core.provenance import describe
 from core.roles import MAX_VEHICLES, Role
 from core.status import Status
 from core.validate import count, number
-from envs.base import RENDER_MODES
+from envs.base import RENDER_MODES, vector_reset_plan
 from envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
 from envs.observation import OBSERVATION, ObsEntry
 from envs.rendering import Renderer
@@ -784,24 +784,7 @@ class SwarmVectorEnv(_SwarmBase):
 
     def reset(self, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
         N = self.n_worlds
-        if seed is None:
-            seeds: list[int | None] = [None] * N
-        elif isinstance(seed, (int, np.integer)):
-            seeds = [int(seed) + k for k in range(N)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != N:
-                raise ValueError(f"seed: a list of seeds needs one per world ({N}), got {len(seeds)}")
-        options = dict(options or {})
-        mask = options.pop("reset_mask", None)
-        if options:
-            raise ValueError(f"reset options: unknown {sorted(options)}; allowed: reset_mask")
-        if mask is None:
-            mask = np.ones(N, bool)
-        else:
-            mask = np.asarray(mask)
-            if mask.shape != (N,) or mask.dtype != np.bool_ or not mask.any():
-                raise ValueError(f"reset options['reset_mask']: expected a bool array ({N},) with a True, got {mask!r}")
+        seeds, mask = vector_reset_plan(N, seed, options)
         worlds = np.flatnonzero(mask)
         for w in worlds:
             if seeds[w] is not None:
