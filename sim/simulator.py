@@ -56,7 +56,8 @@ same passes, the field kernel and the predictor's C function, and steps the phys
 itself: `mj_step` on a single world's MjData (`sim.physics.mj_step_address`), or, for a
 `mujoco.batch.Batch`, each world's state row loaded into a scratch MjData, stepped and
 saved, as the batch does it (`_BatchPhysics.native_step`), with the worlds split into
-chunks that run on parallel threads (the kernel releases the GIL). A batch whose worlds
+chunks that the caller's thread and its helper threads take from one atomic counter, all
+inside compiled code (`sim.fork_join`: no Python lock per tick or chunk). A batch whose worlds
 have models of their own (`set_body_mass`) is stepped by the batch between one call
 per autopilot tick. Per call the kernel gets one table of buffer addresses (`_Plan`)
 instead of some hundred arguments (numba checks each argument's type on every call,
@@ -70,9 +71,7 @@ does. tests/test_fast_path.py checks that both paths fly bit-identical logs.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterator, NamedTuple, Sequence
 
@@ -89,6 +88,7 @@ from core.jit import njit
 from core.params import QUAD, RATES, QuadParams, Rates
 from core.state import VehicleStates
 from core.status import Status
+from sim import fork_join
 from sim.aggregation import LinearSuperposition, wake_field
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
 from sim.field import DownwashField, _pairwise_kernel, check_field
@@ -460,7 +460,7 @@ _STEP_CALLER, _STEP_SERIAL, _STEP_ROWS = 0, 1, 2
 
 # The plan's integer table `tab` (int64): sizes, codes, addresses and row offsets, in this order.
 _TAB = (
-    "W", "V", "block", "n_sub", "n_physics", "stepping", "step_fn", "set_state_fn", "get_state_fn", "model",
+    "W", "V", "block", "n_helpers", "n_sub", "n_physics", "stepping", "step_fn", "set_state_fn", "get_state_fn", "model",
     "data", "warnings", "warning_stride", "state", "nstate", "state_spec", "batch_warnings", "n_warnings",
     "predictor", "predictor_fn", "predictor_params", "predictor_iparams",
     "layout", "noise", "cursor", "pos_est", "vel_est", "t", "next_prediction", "due", "field_enabled", "turb",
@@ -471,7 +471,7 @@ _TAB = (
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
 )
-(_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
+(_T_W, _T_V, _T_BLOCK, _T_N_HELPERS, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
  _T_PRED, _T_PRED_FN, _T_PRED_PARAMS, _T_PRED_IPARAMS,
  _T_LAYOUT, _T_NOISE, _T_CURSOR, _T_POS_EST, _T_VEL_EST, _T_T, _T_NEXT_PRED, _T_DUE, _T_FIELD_ON, _T_TURB,
@@ -517,22 +517,9 @@ def _make_fused_kernel(with_wind: bool):
     compiles the wind passes (seconds of every fresh build)."""
 
     @njit
-    def _fused_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
+    def _chunk_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
                       residual, override, actions, row, sub_start, sub_stop, chunk):
-        """Autopilot ticks sub_start..sub_stop-1 of one controller tick for worlds chunk[0]..chunk[1]-1,
-        as the readable path runs them.
-
-        tab, fc: the plan's tables (`_TAB`, `_FC`); qpos, qvel, ctrl (W, n), xfrc (W, nbody, 6): the
-        live physics state; ref_*: the reference at the tick's start ((W, V, 3), (W, V));
-        residual, override: (W, V, 3) m/s^2 C-contiguous, as in `Simulator.tick`, each used only
-        where actions (bit 0: residual, bit 1: override) says so; row: the tick's
-        flat row (`_row_layout`), written by sub-tick 0; chunk (4,) int64: first and last + 1
-        world, the address of this thread's scratch MjData and of its warnings (stepping
-        `_STEP_ROWS`). Worlds are independent: chunks run on separate threads. Unless the
-        caller steps the physics (`_STEP_CALLER`), each sub-tick also steps it, and once the
-        last sub-tick has run the status pass runs too: returns how many of the chunk's
-        worlds end (-1 when the status pass did not run; the caller steps and checks).
-        """
+        """One chunk of worlds, chunk[0]..chunk[1]-1, with its thread's scratch MjData (chunk[2], chunk[3])."""
         n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
         w0, w1 = chunk[0], chunk[1]
         W = w1 - w0
@@ -671,7 +658,7 @@ def _make_fused_kernel(with_wind: bool):
                 _step_rows(tab, active, w0, w1, chunk[2], chunk[3])
 
         if stepping == _STEP_CALLER or sub_stop != tab[_T_NSUB]:
-            return -1
+            return 0
         # the tick is complete: check every world of the chunk
         diverged = carray(_boolp(tab[_T_DIVERGED]), (n_worlds,))[w0:w1]
         if stepping == _STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
@@ -688,6 +675,62 @@ def _make_fused_kernel(with_wind: bool):
             fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
             carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
         )
+
+    @njit
+    def _fused_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
+                      residual, override, actions, row, sub_start, sub_stop, chunks, ctl, role):
+        """Autopilot ticks sub_start..sub_stop-1 of one controller tick for the chunks of worlds this
+        thread takes, as the readable path runs them.
+
+        tab, fc: the plan's tables (`_TAB`, `_FC`); qpos, qvel, ctrl (W, n), xfrc (W, nbody, 6): the
+        live physics state; ref_*: the reference at the tick's start ((W, V, 3), (W, V));
+        residual, override: (W, V, 3) m/s^2 C-contiguous, as in `Simulator.tick`, each used only
+        where actions (bit 0: residual, bit 1: override) says so; row: the tick's
+        flat row (`_row_layout`), written by sub-tick 0; chunks (n, 4) int64: per chunk its first
+        and last + 1 world, the address of this thread's scratch MjData and of its warnings
+        (stepping `_STEP_ROWS`). Worlds are independent: chunks run on separate threads.
+        Unless the caller steps the physics (`_STEP_CALLER`), each sub-tick also steps it,
+        and once the last sub-tick has run the status pass runs too. ctl, role: see
+        `sim.fork_join`: alone (SOLO) this call runs every chunk; as MAIN it publishes the
+        tick, takes chunks with the helpers and joins them; as HELPER + t it serves ticks
+        (the tick's arguments passed to it are placeholders of their types) until idle.
+        Returns how many worlds ended (0 when the status pass did not run), or what
+        `sim.fork_join` says for a helper or an unjoined caller.
+        """
+        n_worlds, V = tab[_T_W], tab[_T_V]
+        helper = role >= fork_join.HELPER
+        total = 0
+        while True:  # a helper: once per tick it serves; the others: once
+            if helper:
+                code = fork_join.await_tick(ctl, role - fork_join.HELPER)
+                if code != 1:
+                    return code
+                ref_pos = carray(_f64p(ctl[fork_join.ARG_REF_POS]), (n_worlds, V, 3))
+                ref_vel = carray(_f64p(ctl[fork_join.ARG_REF_VEL]), (n_worlds, V, 3))
+                ref_acc = carray(_f64p(ctl[fork_join.ARG_REF_ACC]), (n_worlds, V, 3))
+                ref_yaw = carray(_f64p(ctl[fork_join.ARG_REF_YAW]), (n_worlds, V))
+                ref_yaw_rate = carray(_f64p(ctl[fork_join.ARG_REF_YAW_RATE]), (n_worlds, V))
+                residual = carray(_f64p(ctl[fork_join.ARG_RESIDUAL]), (n_worlds, V, 3))
+                override = carray(_f64p(ctl[fork_join.ARG_OVERRIDE]), (n_worlds, V, 3))
+                row = carray(_f64p(ctl[fork_join.ARG_ROW]), (ctl[fork_join.ARG_ROW_SIZE],))
+                actions = ctl[fork_join.ARG_ACTIONS]
+                sub_start, sub_stop = ctl[fork_join.ARG_SUB_START], ctl[fork_join.ARG_SUB_STOP]
+            elif role == fork_join.MAIN:
+                fork_join.publish(ctl, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, row,
+                                  actions, sub_start, sub_stop)
+            for taken in range(chunks.shape[0]):  # alone: every chunk in turn; else those the shared counter gives
+                i = taken if role == fork_join.SOLO else fork_join.fetch_add(ctl.ctypes.data + 8 * fork_join.NEXT, 1)
+                if i >= chunks.shape[0]:
+                    break
+                total += _chunk_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw,
+                                       ref_yaw_rate, residual, override, actions, row, sub_start, sub_stop, chunks[i])
+            if helper:
+                fork_join.report(ctl, total)
+                total = 0
+            elif role == fork_join.MAIN:
+                return fork_join.join(ctl, total, tab[_T_N_HELPERS])
+            else:
+                return total
 
     return _fused_kernel
 
@@ -733,7 +776,8 @@ class _Plan:
     Built from the simulator's current components (`Simulator._make_plan`); holding the
     arrays here keeps every address in the tables valid for the plan's lifetime.
     chunks: (n_threads, n, 4) int64, the n world ranges (`_chunk_sizes`) as thread t runs them, with
-    its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn (`_run_chunks`).
+    its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn from one
+    counter (`sim.fork_join`).
     """
 
     def __init__(self, sim: "Simulator", stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
@@ -769,8 +813,8 @@ class _Plan:
             keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
         tab = dict.fromkeys(_TAB, 0)
-        tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub, n_physics=r.physics_per_autopilot,
-                   stepping=stepping, predictor=predictor_code)
+        tab.update(W=W, V=V, block=cfg.noise_block, n_helpers=n_threads - 1, n_sub=self.n_sub,
+                   n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code)
         sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])
@@ -825,6 +869,33 @@ class _Plan:
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
         self.kernel = _FUSED_KERNELS[int(sim._wind_on)]
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
+        self.ctl = fork_join.new_control()
+        self.helpers: fork_join.Helpers | None = None  # started at the first tick on several threads
+
+    def run_threads(self, args: tuple, sub: int, stop: int) -> int:
+        """Autopilot ticks sub..stop-1 on this thread and its helpers (`sim.fork_join`); returns how
+        many worlds ended."""
+        helpers = self.helpers
+        if helpers is None or not helpers.alive:  # first use, or a forked child (no threads of its own)
+            helpers = self.helpers = self._start_helpers()
+        helpers.wake()
+        n_ended = self.kernel(*args, sub, stop, self.chunks[0], self.ctl, fork_join.MAIN)
+        return helpers.join() if n_ended == fork_join.NOT_JOINED else n_ended
+
+    def _start_helpers(self) -> fork_join.Helpers:
+        """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData. What they
+        hold must not refer to the plan, which stops them when it is collected."""
+        self.ctl = ctl = fork_join.new_control()
+        W, V = self.no_action.shape[:2]
+        kernel, chunks = self.kernel, self.chunks
+        # placeholders of the tick's arguments (a helper reads the tick's own from ctl)
+        fixed = self.leading_args + (np.zeros((W, V, 3)),) * 3 + (np.zeros((W, V)),) * 2 + (np.zeros((W, V, 3)),) * 2 \
+            + (0, np.zeros(1), 0, 0)
+
+        def serve(t: int) -> int:
+            return kernel(*fixed, chunks[t + 1], ctl, fork_join.HELPER + t)
+
+        return fork_join.Helpers(self.n_threads - 1, serve, ctl, owner=self)
 
 
 # Assigning one of these attributes of a Simulator rebinds its compiled passes at the next tick
@@ -1135,7 +1206,8 @@ class Simulator:
         actions = (residual is not None) + 2 * (override is not None)
         residual = plan.no_action if residual is None else _kernel_array(residual)
         override = plan.no_action if override is None else _kernel_array(override)
-        args = plan.leading_args + (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, residual, override, actions, flat)
+        refs = tuple(_kernel_array(x) for x in (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate))
+        args = plan.leading_args + refs + (residual, override, actions, flat)
         sub, diverged, n_ended = 0, None, 0
         chunks = plan.chunks
         caller_steps = plan.stepping == _STEP_CALLER
@@ -1145,10 +1217,10 @@ class Simulator:
             # the rest of the tick in one call (up to a refill of the noise blocks), unless the
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
-            if plan.n_threads == 1 and chunks.shape[1] == 1:
-                n_ended = plan.kernel(*args, sub, stop, chunks[0, 0])
+            if plan.n_threads == 1:
+                n_ended = plan.kernel(*args, sub, stop, chunks[0], plan.ctl, fork_join.SOLO)
             else:
-                n_ended = _run_chunks(plan.kernel, args, sub, stop, chunks, plan.n_threads)
+                n_ended = plan.run_threads(args, sub, stop)
             self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
@@ -1258,33 +1330,6 @@ def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
             sizes.append(take)
             left -= take
     return sizes
-
-
-def _run_chunks(kernel: Any, args: tuple, sub: int, stop: int, chunks: np.ndarray, n_threads: int) -> int:
-    """The fused kernel on every chunk of worlds, on n_threads threads (this one included) that take
-    the chunks in turn, each with its own scratch MjData (chunks (n_threads, n, 4), see `_Plan`;
-    the worlds are independent; the kernel releases the GIL); returns the sum of its results,
-    how many worlds ended."""
-    todo = iter(range(chunks.shape[1]))  # shared: under the GIL each chunk is handed out once
-
-    def work(thread: int) -> int:
-        return sum(kernel(*args, sub, stop, chunks[thread, c]) for c in todo)
-
-    if n_threads == 1:
-        return work(0)
-    pool = _thread_pool(n_threads - 1)
-    others = [pool.submit(work, t) for t in range(1, n_threads)]
-    return work(0) + sum(f.result() for f in others)
-_POOL: dict[str, Any] = {"pid": None, "pool": None, "size": 0}
-
-
-def _thread_pool(n: int) -> ThreadPoolExecutor:
-    """The process's pool of threads for the fused kernel's chunks (at least n threads); a new one
-    in a forked child, whose copy of the parent's pool has no threads."""
-    if _POOL["pid"] != os.getpid() or _POOL["size"] < n:
-        size = max(n, os.cpu_count() or 1)
-        _POOL.update(pid=os.getpid(), size=size, pool=ThreadPoolExecutor(max_workers=size, thread_name_prefix="sim-chunk"))
-    return _POOL["pool"]
 
 
 def _per_world_tables(predictor: Any, W: int) -> dict[str, Any] | None:
