@@ -517,166 +517,6 @@ def _make_fused_kernel(with_wind: bool):
     compiles the wind passes (seconds of every fresh build)."""
 
     @njit
-    def _chunk_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
-                      residual, override, actions, row, sub_start, sub_stop, chunk):
-        """One chunk of worlds, chunk[0]..chunk[1]-1, with its thread's scratch MjData (chunk[2], chunk[3])."""
-        n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
-        w0, w1 = chunk[0], chunk[1]
-        W = w1 - w0
-        layout = carray(_i64p(tab[_T_LAYOUT]), (V, 7))
-        noise = carray(_f64p(tab[_T_NOISE]), (n_worlds, block, V, 9))[w0:w1]
-        cursor = carray(_i64p(tab[_T_CURSOR]), (n_worlds,))[w0:w1]
-        pos_est = carray(_f64p(tab[_T_POS_EST]), (n_worlds, V, 3))[w0:w1]
-        vel_est = carray(_f64p(tab[_T_VEL_EST]), (n_worlds, V, 3))[w0:w1]
-        t = carray(_f64p(tab[_T_T]), (n_worlds,))[w0:w1]
-        next_prediction = carray(_f64p(tab[_T_NEXT_PRED]), (n_worlds,))[w0:w1]
-        due = carray(_boolp(tab[_T_DUE]), (n_worlds,))[w0:w1]
-        field_on = carray(_boolp(tab[_T_FIELD_ON]), (n_worlds,))[w0:w1]
-        turb = carray(_f64p(tab[_T_TURB]), (n_worlds, V, 3))[w0:w1]
-        rot_des = carray(_f64p(tab[_T_ROT_DES]), (n_worlds, V, 3, 3))[w0:w1]
-        yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
-        thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
-        mass_believed = carray(_f64p(tab[_T_MASS_BELIEVED]), (n_worlds, V))[w0:w1]
-        ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (14, 4))
-        active = carray(_boolp(tab[_T_ACTIVE]), (n_worlds,))[w0:w1]
-        f_hat = carray(_f64p(tab[_T_F_HAT]), (n_worlds, V, 3))[w0:w1]
-        rot = carray(_f64p(tab[_T_ROT]), (n_worlds, V, 3, 3))[w0:w1]
-        rot_est = carray(_f64p(tab[_T_ROT_EST]), (n_worlds, V, 3, 3))[w0:w1]
-        pred = carray(_f64p(tab[_T_PRED_OUT]), (n_worlds, V, 3))[w0:w1]
-        Kt = carray(_f64p(tab[_T_KT]), (7, 4))
-        field_packed = carray(_f64p(tab[_T_FIELD_PACKED]), (16,))
-        qpos, qvel, ctrl, xfrc = qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1]
-        ref_pos, ref_vel, ref_acc = ref_pos[w0:w1], ref_vel[w0:w1], ref_acc[w0:w1]
-        ref_yaw, ref_yaw_rate = ref_yaw[w0:w1], ref_yaw_rate[w0:w1]
-        residual, override = residual[w0:w1], override[w0:w1]
-        dt = fc[_F_DT]
-        stepping = tab[_T_STEPPING]
-        V3 = V * 3
-        u_cmd = _row_view(row, tab[_T_ROW_U_CMD], n_worlds, V3, w0, w1).reshape((W, V, 3))
-        kin_scratch = carray(_f64p(tab[_T_KIN]), (5, n_worlds, V, 3))
-
-        for sub in range(sub_start, sub_stop):
-            first = sub == 0
-            if first:  # the first autopilot tick writes the row; later ones reuse scratch buffers
-                kin = row[tab[_T_ROW_KIN]:tab[_T_ROW_KIN] + 5 * n_worlds * V3].reshape((5, n_worlds, V, 3))[:, w0:w1]
-                quat = _row_view(row, tab[_T_ROW_QUAT], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
-                quat_est = _row_view(row, tab[_T_ROW_QUAT_EST], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
-                yaw = _row_view(row, tab[_T_ROW_YAW], n_worlds, V, w0, w1)
-                applied = _row_view(row, tab[_T_ROW_APPLIED], n_worlds, V3, w0, w1).reshape((W, V, 3))
-                mean = _row_view(row, tab[_T_ROW_MEAN], n_worlds, V3, w0, w1).reshape((W, V, 3))
-                for w in range(W):
-                    row[tab[_T_ROW_T] + w0 + w] = t[w]
-            else:
-                kin = kin_scratch[:, w0:w1]
-                quat = carray(_f64p(tab[_T_QUAT]), (n_worlds, V, 4))[w0:w1]
-                quat_est = carray(_f64p(tab[_T_QUAT_EST]), (n_worlds, V, 4))[w0:w1]
-                yaw = carray(_f64p(tab[_T_YAW]), (n_worlds, V))[w0:w1]
-                applied = carray(_f64p(tab[_T_APPLIED]), (n_worlds, V, 3))[w0:w1]
-                mean = carray(_f64p(tab[_T_MEAN]), (n_worlds, V, 3))[w0:w1]
-            n_due = _sense_kernel(
-                qpos, qvel, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], fc[_F_KF_P], fc[_F_KF_V],
-                pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw,
-            )
-            pos, vel = kin[0], kin[1]
-
-            vel_air = vel
-            if with_wind:  # a constant: numba prunes the branch it does not take
-                if first:
-                    air = _row_view(row, tab[_T_ROW_WIND], n_worlds, V3, w0, w1).reshape((W, V, 3))
-                    wind_acc = _row_view(row, tab[_T_ROW_WIND_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3))
-                else:
-                    air = carray(_f64p(tab[_T_AIR]), (n_worlds, V, 3))[w0:w1]
-                    wind_acc = carray(_f64p(tab[_T_WIND_ACC]), (n_worlds, V, 3))[w0:w1]
-                vel_air = carray(_f64p(tab[_T_VEL_AIR]), (n_worlds, V, 3))[w0:w1]
-                gust = carray(_f64p(tab[_T_GUST]), (n_worlds, 3, 2))[w0:w1]
-                wind_mean = carray(_f64p(tab[_T_WIND_MEAN]), (3,))
-                _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean, fc[_F_DRAG_GAIN],
-                                   vel, air, vel_air, wind_acc)
-                _wind_advance_kernel(
-                    gust, carray(_f64p(tab[_T_WIND_NOISE]), (n_worlds, block, 3, 2))[w0:w1], cursor, vel, dt, wind_mean,
-                    carray(_f64p(tab[_T_WIND_SIGMA]), (3,)), carray(_f64p(tab[_T_WIND_LENGTH]), (3,)), fc[_F_MIN_AIRSPEED],
-                    np.empty((3, 2, 2)), np.empty((3, 2, 2)),
-                )
-
-            if n_due:  # the predictor at 45 Hz, held
-                kind = tab[_T_PRED]
-                if kind == _PRED_ZERO:
-                    pred[:] = 0.0
-                elif kind == _PRED_ORACLE:
-                    _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,))))
-                elif kind == _PRED_PER_WORLD:  # world by world, each its own predictor, as PerWorldPredictor
-                    pw_code = carray(_i64p(tab[_T_PW_CODE]), (n_worlds,))[w0:w1]
-                    pw_fn = carray(_i64p(tab[_T_PW_FN]), (n_worlds,))[w0:w1]
-                    pw_params = carray(_i64p(tab[_T_PW_PARAMS]), (n_worlds,))[w0:w1]
-                    pw_iparams = carray(_i64p(tab[_T_PW_IPARAMS]), (n_worlds,))[w0:w1]
-                    pw_oracle = carray(_f64p(tab[_T_PW_ORACLE]), (n_worlds, 16))[w0:w1]
-                    for w in range(W):
-                        if pw_code[w] == _PRED_ORACLE:
-                            _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1],
-                                                                       pw_oracle[w]))
-                        elif pw_code[w] == _PRED_C:  # one world: its rows of C-contiguous (W, ...) arrays
-                            _call_predictor(
-                                pw_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data, rot_est[w].ctypes.data,
-                                pos[w].ctypes.data, vel_air[w].ctypes.data, rot[w].ctypes.data, pw_params[w],
-                                pw_iparams[w], pred[w].ctypes.data,
-                            )
-                        else:
-                            for i in range(V):
-                                for k in range(3):
-                                    pred[w, i, k] = 0.0
-                else:  # every array here is a block of whole worlds of a C-contiguous (W, ...) array
-                    _call_predictor(
-                        tab[_T_PRED_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
-                        pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, tab[_T_PRED_PARAMS], tab[_T_PRED_IPARAMS],
-                        pred.ctypes.data,
-                    )
-                _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
-
-            _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed))
-
-            if first:  # the LQR and feedback linearisation at 50 Hz
-                _copy_into(_row_view(row, tab[_T_ROW_REF_POS], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_pos)
-                _copy_into(_row_view(row, tab[_T_ROW_REF_VEL], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_vel)
-                _copy_into(_row_view(row, tab[_T_ROW_REF_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_acc)
-                state = (kin[3], kin[4], yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat)
-                limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
-                _command_setpoint_kernel(*state, residual, override, (actions & 1) != 0, (actions & 2) != 0, *limits)
-                _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
-
-            _actuate_kernel(
-                field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], fc[_F_MASS], xfrc, layout,
-                qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, fc[_F_MAX_THRUST], ctrl,
-                pos_est, vel_est, dt, t, active, mean, applied, rot, u_cmd,
-            )
-            if with_wind:
-                _wind_force_kernel(xfrc, layout, fc[_F_MASS], wind_acc)
-            if stepping == _STEP_SERIAL:
-                if active[0]:
-                    for _ in range(tab[_T_NPHYS]):
-                        _call_mj_step(tab[_T_STEP_FN], tab[_T_MODEL], tab[_T_DATA])
-            elif stepping == _STEP_ROWS:
-                _step_rows(tab, active, w0, w1, chunk[2], chunk[3])
-
-        if stepping == _STEP_CALLER or sub_stop != tab[_T_NSUB]:
-            return 0
-        # the tick is complete: check every world of the chunk
-        diverged = carray(_boolp(tab[_T_DIVERGED]), (n_worlds,))[w0:w1]
-        if stepping == _STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
-            step = tab[_T_WARNING_STRIDE]
-            warnings = carray(_i32p(tab[_T_WARNINGS]), (_FATAL_MAX * step + 1,))
-            diverged[0] = warnings[_FATAL_0 * step] > 0 or warnings[_FATAL_1 * step] > 0 or warnings[_FATAL_2 * step] > 0
-        else:
-            batch_warnings = carray(_i32p(tab[_T_BATCH_WARNINGS]), (n_worlds, tab[_T_NWARNINGS], 2))
-            for w in range(W):  # as sim.physics._mark_fatal: counts since the world's reset
-                c = batch_warnings[w0 + w]
-                diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
-        return _status_kernel(
-            qpos, layout, qvel, diverged, active, carray(_i64p(tab[_T_TICK_INDEX]), (n_worlds,))[w0:w1],
-            fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
-            carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
-        )
-
-    @njit
     def _fused_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate,
                       residual, override, actions, row, sub_start, sub_stop, chunks, ctl, role):
         """Autopilot ticks sub_start..sub_stop-1 of one controller tick for the chunks of worlds this
@@ -697,7 +537,10 @@ def _make_fused_kernel(with_wind: bool):
         Returns how many worlds ended (0 when the status pass did not run), or what
         `sim.fork_join` says for a helper or an unjoined caller.
         """
-        n_worlds, V = tab[_T_W], tab[_T_V]
+        n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
+        dt = fc[_F_DT]
+        stepping = tab[_T_STEPPING]
+        V3 = V * 3
         helper = role >= fork_join.HELPER
         total = 0
         while True:  # a helper: once per tick it serves; the others: once
@@ -719,11 +562,162 @@ def _make_fused_kernel(with_wind: bool):
                 fork_join.publish(ctl, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, row,
                                   actions, sub_start, sub_stop)
             for taken in range(chunks.shape[0]):  # alone: every chunk in turn; else those the shared counter gives
-                i = taken if role == fork_join.SOLO else fork_join.fetch_add(ctl.ctypes.data + 8 * fork_join.NEXT, 1)
-                if i >= chunks.shape[0]:
+                ci = taken if role == fork_join.SOLO else fork_join.fetch_add(ctl.ctypes.data + 8 * fork_join.NEXT, 1)
+                if ci >= chunks.shape[0]:
                     break
-                total += _chunk_kernel(tab, fc, qpos, qvel, ctrl, xfrc, ref_pos, ref_vel, ref_acc, ref_yaw,
-                                       ref_yaw_rate, residual, override, actions, row, sub_start, sub_stop, chunks[i])
+                # chunk ci: worlds w0..w1-1, with this thread's scratch MjData (chunk[2], chunk[3])
+                chunk = chunks[ci]
+                w0, w1 = chunk[0], chunk[1]
+                W = w1 - w0
+                layout = carray(_i64p(tab[_T_LAYOUT]), (V, 7))
+                noise = carray(_f64p(tab[_T_NOISE]), (n_worlds, block, V, 9))[w0:w1]
+                cursor = carray(_i64p(tab[_T_CURSOR]), (n_worlds,))[w0:w1]
+                pos_est = carray(_f64p(tab[_T_POS_EST]), (n_worlds, V, 3))[w0:w1]
+                vel_est = carray(_f64p(tab[_T_VEL_EST]), (n_worlds, V, 3))[w0:w1]
+                t = carray(_f64p(tab[_T_T]), (n_worlds,))[w0:w1]
+                next_prediction = carray(_f64p(tab[_T_NEXT_PRED]), (n_worlds,))[w0:w1]
+                due = carray(_boolp(tab[_T_DUE]), (n_worlds,))[w0:w1]
+                field_on = carray(_boolp(tab[_T_FIELD_ON]), (n_worlds,))[w0:w1]
+                turb = carray(_f64p(tab[_T_TURB]), (n_worlds, V, 3))[w0:w1]
+                rot_des = carray(_f64p(tab[_T_ROT_DES]), (n_worlds, V, 3, 3))[w0:w1]
+                yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
+                thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
+                mass_believed = carray(_f64p(tab[_T_MASS_BELIEVED]), (n_worlds, V))[w0:w1]
+                ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (14, 4))
+                active = carray(_boolp(tab[_T_ACTIVE]), (n_worlds,))[w0:w1]
+                f_hat = carray(_f64p(tab[_T_F_HAT]), (n_worlds, V, 3))[w0:w1]
+                rot = carray(_f64p(tab[_T_ROT]), (n_worlds, V, 3, 3))[w0:w1]
+                rot_est = carray(_f64p(tab[_T_ROT_EST]), (n_worlds, V, 3, 3))[w0:w1]
+                pred = carray(_f64p(tab[_T_PRED_OUT]), (n_worlds, V, 3))[w0:w1]
+                Kt = carray(_f64p(tab[_T_KT]), (7, 4))
+                field_packed = carray(_f64p(tab[_T_FIELD_PACKED]), (16,))
+                qpos_w, qvel_w, ctrl_w, xfrc_w = qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1]
+                ref_pos_w, ref_vel_w, ref_acc_w = ref_pos[w0:w1], ref_vel[w0:w1], ref_acc[w0:w1]
+                ref_yaw_w, ref_yaw_rate_w = ref_yaw[w0:w1], ref_yaw_rate[w0:w1]
+                residual_w, override_w = residual[w0:w1], override[w0:w1]
+                u_cmd = _row_view(row, tab[_T_ROW_U_CMD], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                kin_scratch = carray(_f64p(tab[_T_KIN]), (5, n_worlds, V, 3))
+
+                for sub in range(sub_start, sub_stop):
+                    first = sub == 0
+                    if first:  # the first autopilot tick writes the row; later ones reuse scratch buffers
+                        kin = row[tab[_T_ROW_KIN]:tab[_T_ROW_KIN] + 5 * n_worlds * V3].reshape((5, n_worlds, V, 3))[:, w0:w1]
+                        quat = _row_view(row, tab[_T_ROW_QUAT], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
+                        quat_est = _row_view(row, tab[_T_ROW_QUAT_EST], n_worlds, V * 4, w0, w1).reshape((W, V, 4))
+                        yaw = _row_view(row, tab[_T_ROW_YAW], n_worlds, V, w0, w1)
+                        applied = _row_view(row, tab[_T_ROW_APPLIED], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                        mean = _row_view(row, tab[_T_ROW_MEAN], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                        for w in range(W):
+                            row[tab[_T_ROW_T] + w0 + w] = t[w]
+                    else:
+                        kin = kin_scratch[:, w0:w1]
+                        quat = carray(_f64p(tab[_T_QUAT]), (n_worlds, V, 4))[w0:w1]
+                        quat_est = carray(_f64p(tab[_T_QUAT_EST]), (n_worlds, V, 4))[w0:w1]
+                        yaw = carray(_f64p(tab[_T_YAW]), (n_worlds, V))[w0:w1]
+                        applied = carray(_f64p(tab[_T_APPLIED]), (n_worlds, V, 3))[w0:w1]
+                        mean = carray(_f64p(tab[_T_MEAN]), (n_worlds, V, 3))[w0:w1]
+                    n_due = _sense_kernel(
+                        qpos_w, qvel_w, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], fc[_F_KF_P], fc[_F_KF_V],
+                        pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw,
+                    )
+                    pos, vel = kin[0], kin[1]
+
+                    vel_air = vel
+                    if with_wind:  # a constant: numba prunes the branch it does not take
+                        if first:
+                            air = _row_view(row, tab[_T_ROW_WIND], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                            wind_acc = _row_view(row, tab[_T_ROW_WIND_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3))
+                        else:
+                            air = carray(_f64p(tab[_T_AIR]), (n_worlds, V, 3))[w0:w1]
+                            wind_acc = carray(_f64p(tab[_T_WIND_ACC]), (n_worlds, V, 3))[w0:w1]
+                        vel_air = carray(_f64p(tab[_T_VEL_AIR]), (n_worlds, V, 3))[w0:w1]
+                        gust = carray(_f64p(tab[_T_GUST]), (n_worlds, 3, 2))[w0:w1]
+                        wind_mean = carray(_f64p(tab[_T_WIND_MEAN]), (3,))
+                        _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean, fc[_F_DRAG_GAIN],
+                                           vel, air, vel_air, wind_acc)
+                        _wind_advance_kernel(
+                            gust, carray(_f64p(tab[_T_WIND_NOISE]), (n_worlds, block, 3, 2))[w0:w1], cursor, vel, dt, wind_mean,
+                            carray(_f64p(tab[_T_WIND_SIGMA]), (3,)), carray(_f64p(tab[_T_WIND_LENGTH]), (3,)), fc[_F_MIN_AIRSPEED],
+                            np.empty((3, 2, 2)), np.empty((3, 2, 2)),
+                        )
+
+                    if n_due:  # the predictor at 45 Hz, held
+                        kind = tab[_T_PRED]
+                        if kind == _PRED_ZERO:
+                            pred[:] = 0.0
+                        elif kind == _PRED_ORACLE:
+                            _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,))))
+                        elif kind == _PRED_PER_WORLD:  # world by world, each its own predictor, as PerWorldPredictor
+                            pw_code = carray(_i64p(tab[_T_PW_CODE]), (n_worlds,))[w0:w1]
+                            pw_fn = carray(_i64p(tab[_T_PW_FN]), (n_worlds,))[w0:w1]
+                            pw_params = carray(_i64p(tab[_T_PW_PARAMS]), (n_worlds,))[w0:w1]
+                            pw_iparams = carray(_i64p(tab[_T_PW_IPARAMS]), (n_worlds,))[w0:w1]
+                            pw_oracle = carray(_f64p(tab[_T_PW_ORACLE]), (n_worlds, 16))[w0:w1]
+                            for w in range(W):
+                                if pw_code[w] == _PRED_ORACLE:
+                                    _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1],
+                                                                               pw_oracle[w]))
+                                elif pw_code[w] == _PRED_C:  # one world: its rows of C-contiguous (W, ...) arrays
+                                    _call_predictor(
+                                        pw_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data, rot_est[w].ctypes.data,
+                                        pos[w].ctypes.data, vel_air[w].ctypes.data, rot[w].ctypes.data, pw_params[w],
+                                        pw_iparams[w], pred[w].ctypes.data,
+                                    )
+                                else:
+                                    for i in range(V):
+                                        for k in range(3):
+                                            pred[w, i, k] = 0.0
+                        else:  # every array here is a block of whole worlds of a C-contiguous (W, ...) array
+                            _call_predictor(
+                                tab[_T_PRED_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
+                                pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, tab[_T_PRED_PARAMS], tab[_T_PRED_IPARAMS],
+                                pred.ctypes.data,
+                            )
+                        _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
+
+                    _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed))
+
+                    if first:  # the LQR and feedback linearisation at 50 Hz
+                        _copy_into(_row_view(row, tab[_T_ROW_REF_POS], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_pos_w)
+                        _copy_into(_row_view(row, tab[_T_ROW_REF_VEL], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_vel_w)
+                        _copy_into(_row_view(row, tab[_T_ROW_REF_ACC], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_acc_w)
+                        state = (kin[3], kin[4], yaw, ref_pos_w, ref_vel_w, ref_acc_w, ref_yaw_w, ref_yaw_rate_w, f_hat)
+                        limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
+                        _command_setpoint_kernel(*state, residual_w, override_w, (actions & 1) != 0, (actions & 2) != 0, *limits)
+                        _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
+
+                    _actuate_kernel(
+                        field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], fc[_F_MASS], xfrc_w, layout,
+                        qvel_w, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, fc[_F_MAX_THRUST], ctrl_w,
+                        pos_est, vel_est, dt, t, active, mean, applied, rot, u_cmd,
+                    )
+                    if with_wind:
+                        _wind_force_kernel(xfrc_w, layout, fc[_F_MASS], wind_acc)
+                    if stepping == _STEP_SERIAL:
+                        if active[0]:
+                            for _ in range(tab[_T_NPHYS]):
+                                _call_mj_step(tab[_T_STEP_FN], tab[_T_MODEL], tab[_T_DATA])
+                    elif stepping == _STEP_ROWS:
+                        _step_rows(tab, active, w0, w1, chunk[2], chunk[3])
+
+                if stepping == _STEP_CALLER or sub_stop != tab[_T_NSUB]:
+                    continue
+                # the tick is complete: check every world of the chunk
+                diverged = carray(_boolp(tab[_T_DIVERGED]), (n_worlds,))[w0:w1]
+                if stepping == _STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
+                    step = tab[_T_WARNING_STRIDE]
+                    warnings = carray(_i32p(tab[_T_WARNINGS]), (_FATAL_MAX * step + 1,))
+                    diverged[0] = warnings[_FATAL_0 * step] > 0 or warnings[_FATAL_1 * step] > 0 or warnings[_FATAL_2 * step] > 0
+                else:
+                    batch_warnings = carray(_i32p(tab[_T_BATCH_WARNINGS]), (n_worlds, tab[_T_NWARNINGS], 2))
+                    for w in range(W):  # as sim.physics._mark_fatal: counts since the world's reset
+                        c = batch_warnings[w0 + w]
+                        diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
+                total += _status_kernel(
+                    qpos_w, layout, qvel_w, diverged, active, carray(_i64p(tab[_T_TICK_INDEX]), (n_worlds,))[w0:w1],
+                    fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
+                    carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
+                )
             if helper:
                 fork_join.report(ctl, total)
                 total = 0
