@@ -161,7 +161,7 @@ class Helpers:
                                           name=f"sim-helper-{t}") for t in range(n_helpers)]
         for thread in self._threads:
             thread.start()
-        weakref.finalize(owner, _stop, ctl, self._cond)
+        weakref.finalize(owner, _stop, ctl, self._cond, self.pid)
 
     @property
     def alive(self) -> bool:
@@ -189,12 +189,16 @@ def _serve_loop(serve: Callable[[int], int], t: int, ctl: np.ndarray, cond: thre
     while serve(t) != EXIT:  # idle: park until the caller posts a tick it has not served
         with cond:
             ctl[PARKED] += 1
+            # under the GIL, either the caller's `wake` sees PARKED or this test sees its POSTED:
+            # no tick is missed (the timeout is only a safety net)
             while ctl[POSTED] == ctl[SEEN + t * _LINE] and not ctl[EXIT_FLAG]:
-                cond.wait(0.005)  # the notify is the fast way; the timeout a safety net
+                cond.wait(1.0)
             ctl[PARKED] -= 1
 
 
-def _stop(ctl: np.ndarray, cond: threading.Condition) -> None:
+def _stop(ctl: np.ndarray, cond: threading.Condition, pid: int) -> None:
+    if os.getpid() != pid:  # a forked child's copy: its threads do not exist, and cond may be held
+        return
     ctl[EXIT_FLAG] = 1
     ctl[POSTED] += 1
     ctl[GEN] += 1  # spinning helpers see a new generation, then the exit flag

@@ -1200,7 +1200,9 @@ class Simulator:
         actions = (residual is not None) + 2 * (override is not None)
         residual = plan.no_action if residual is None else _kernel_array(residual)
         override = plan.no_action if override is None else _kernel_array(override)
-        refs = tuple(_kernel_array(x) for x in (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate))
+        refs = (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate)
+        if plan.n_threads > 1:  # the helpers read them by address, as C-contiguous arrays
+            refs = tuple(_kernel_array(x) for x in refs)
         args = plan.leading_args + refs + (residual, override, actions, flat)
         sub, diverged, n_ended = 0, None, 0
         chunks = plan.chunks
