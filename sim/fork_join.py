@@ -48,9 +48,10 @@ GEN, NEXT, DONE, RESULT, EXIT_FLAG, POSTED, PARKED = (i * _LINE for i in range(7
 SEEN = 7 * _LINE  # + t: the generation helper t served last (one line each)
 _MAX_HELPERS = 64
 ARG = SEEN + _MAX_HELPERS * _LINE  # the tick's arguments, written by the caller
-(ARG_REF_POS, ARG_REF_VEL, ARG_REF_ACC, ARG_REF_YAW, ARG_REF_YAW_RATE, ARG_RESIDUAL, ARG_OVERRIDE, ARG_ROW,
- ARG_ROW_SIZE, ARG_ACTIONS, ARG_SUB_START, ARG_SUB_STOP) = range(ARG, ARG + 12)
-CONTROL_SIZE = ARG + 12
+(ARG_TAB, ARG_TAB_SIZE, ARG_FC, ARG_FC_SIZE, ARG_CHUNKS, ARG_N_CHUNKS, ARG_REF_POS, ARG_REF_VEL, ARG_REF_ACC,
+ ARG_REF_YAW, ARG_REF_YAW_RATE, ARG_RESIDUAL, ARG_OVERRIDE, ARG_ROW, ARG_ROW_SIZE, ARG_ACTIONS, ARG_SUB_START,
+ ARG_SUB_STOP) = range(ARG, ARG + 18)
+CONTROL_SIZE = ARG + 18
 
 # spins of a helper waiting for a tick before it parks (about a millisecond here), and of the
 # caller waiting for its helpers before it checks on them from Python
@@ -90,9 +91,14 @@ def new_control() -> np.ndarray:
 
 
 @njit
-def publish(ctl, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, row, actions, sub_start, sub_stop):
+def publish(ctl, tab, fc, chunks, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, row, actions,
+            sub_start, sub_stop):
     """Role MAIN: write the tick's arguments, reset the chunk counter and the results, then start the
-    helpers (the generation's atomic increment orders every write before it)."""
+    helpers (the generation's atomic increment orders every write before it). chunks: the
+    caller's (n, 4) table, the first of the (n_threads, n, 4) array whose next ones are the
+    helpers' (helper t reads table t + 1)."""
+    ctl[ARG_TAB], ctl[ARG_TAB_SIZE], ctl[ARG_FC], ctl[ARG_FC_SIZE] = tab.ctypes.data, tab.shape[0], fc.ctypes.data, fc.shape[0]
+    ctl[ARG_CHUNKS], ctl[ARG_N_CHUNKS] = chunks.ctypes.data, chunks.shape[0]
     ctl[ARG_REF_POS], ctl[ARG_REF_VEL], ctl[ARG_REF_ACC] = ref_pos.ctypes.data, ref_vel.ctypes.data, ref_acc.ctypes.data
     ctl[ARG_REF_YAW], ctl[ARG_REF_YAW_RATE] = ref_yaw.ctypes.data, ref_yaw_rate.ctypes.data
     ctl[ARG_RESIDUAL], ctl[ARG_OVERRIDE] = residual.ctypes.data, override.ctypes.data
@@ -156,6 +162,7 @@ class Helpers:
             raise ValueError(f"n_helpers: expected 1..{_MAX_HELPERS}, got {n_helpers}")
         self.ctl, self.n = ctl, n_helpers
         self.pid = os.getpid()
+        self.key: Any = None  # what the owner started them for (it starts new ones when that changes)
         self._cond = threading.Condition()
         self._threads = [threading.Thread(target=_serve_loop, args=(serve, t, ctl, self._cond), daemon=True,
                                           name=f"sim-helper-{t}") for t in range(n_helpers)]

@@ -533,21 +533,24 @@ def _make_fused_kernel(with_wind: bool):
         and once the last sub-tick has run the status pass runs too. ctl, role: see
         `sim.fork_join`: alone (SOLO) this call runs every chunk; as MAIN it publishes the
         tick, takes chunks with the helpers and joins them; as HELPER + t it serves ticks
-        (the tick's arguments passed to it are placeholders of their types) until idle.
+        (from the control block: the arguments passed to it, but for the physics state, are
+        placeholders of their types) until idle.
         Returns how many worlds ended (0 when the status pass did not run), or what
         `sim.fork_join` says for a helper or an unjoined caller.
         """
-        n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
-        dt = fc[_F_DT]
-        stepping = tab[_T_STEPPING]
-        V3 = V * 3
         helper = role >= fork_join.HELPER
         total = 0
         while True:  # a helper: once per tick it serves; the others: once
-            if helper:
+            if helper:  # the tick's arguments, as the caller published them
                 code = fork_join.await_tick(ctl, role - fork_join.HELPER)
                 if code != 1:
                     return code
+                tab = carray(_i64p(ctl[fork_join.ARG_TAB]), (ctl[fork_join.ARG_TAB_SIZE],))
+                fc = carray(_f64p(ctl[fork_join.ARG_FC]), (ctl[fork_join.ARG_FC_SIZE],))
+                n_chunks = ctl[fork_join.ARG_N_CHUNKS]
+                own = ctl[fork_join.ARG_CHUNKS] + (role - fork_join.HELPER + 1) * n_chunks * 4 * 8
+                chunks = carray(_i64p(own), (n_chunks, 4))
+                n_worlds, V = tab[_T_W], tab[_T_V]
                 ref_pos = carray(_f64p(ctl[fork_join.ARG_REF_POS]), (n_worlds, V, 3))
                 ref_vel = carray(_f64p(ctl[fork_join.ARG_REF_VEL]), (n_worlds, V, 3))
                 ref_acc = carray(_f64p(ctl[fork_join.ARG_REF_ACC]), (n_worlds, V, 3))
@@ -559,8 +562,12 @@ def _make_fused_kernel(with_wind: bool):
                 actions = ctl[fork_join.ARG_ACTIONS]
                 sub_start, sub_stop = ctl[fork_join.ARG_SUB_START], ctl[fork_join.ARG_SUB_STOP]
             elif role == fork_join.MAIN:
-                fork_join.publish(ctl, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, row,
-                                  actions, sub_start, sub_stop)
+                fork_join.publish(ctl, tab, fc, chunks, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual,
+                                  override, row, actions, sub_start, sub_stop)
+            n_worlds, V, block = tab[_T_W], tab[_T_V], tab[_T_BLOCK]
+            dt = fc[_F_DT]
+            stepping = tab[_T_STEPPING]
+            V3 = V * 3
             for taken in range(chunks.shape[0]):  # alone: every chunk in turn; else those the shared counter gives
                 ci = taken if role == fork_join.SOLO else fork_join.fetch_add(ctl.ctypes.data + 8 * fork_join.NEXT, 1)
                 if ci >= chunks.shape[0]:
@@ -730,6 +737,7 @@ def _make_fused_kernel(with_wind: bool):
 
 
 _FUSED_KERNELS = (_make_fused_kernel(False), _make_fused_kernel(True))  # by wind on
+_NO_CONTROL = fork_join.new_control()  # the control block of a call alone, which never reads it
 
 
 @njit
@@ -863,33 +871,6 @@ class _Plan:
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
         self.kernel = _FUSED_KERNELS[int(sim._wind_on)]
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
-        self.ctl = fork_join.new_control()
-        self.helpers: fork_join.Helpers | None = None  # started at the first tick on several threads
-
-    def run_threads(self, args: tuple, sub: int, stop: int) -> int:
-        """Autopilot ticks sub..stop-1 on this thread and its helpers (`sim.fork_join`); returns how
-        many worlds ended."""
-        helpers = self.helpers
-        if helpers is None or not helpers.alive:  # first use, or a forked child (no threads of its own)
-            helpers = self.helpers = self._start_helpers()
-        helpers.wake()
-        n_ended = self.kernel(*args, sub, stop, self.chunks[0], self.ctl, fork_join.MAIN)
-        return helpers.join() if n_ended == fork_join.NOT_JOINED else n_ended
-
-    def _start_helpers(self) -> fork_join.Helpers:
-        """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData. What they
-        hold must not refer to the plan, which stops them when it is collected."""
-        self.ctl = ctl = fork_join.new_control()
-        W, V = self.no_action.shape[:2]
-        kernel, chunks = self.kernel, self.chunks
-        # placeholders of the tick's arguments (a helper reads the tick's own from ctl)
-        fixed = self.leading_args + (np.zeros((W, V, 3)),) * 3 + (np.zeros((W, V)),) * 2 + (np.zeros((W, V, 3)),) * 2 \
-            + (0, np.zeros(1), 0, 0)
-
-        def serve(t: int) -> int:
-            return kernel(*fixed, chunks[t + 1], ctl, fork_join.HELPER + t)
-
-        return fork_join.Helpers(self.n_threads - 1, serve, ctl, owner=self)
 
 
 # Assigning one of these attributes of a Simulator rebinds its compiled passes at the next tick
@@ -1214,9 +1195,9 @@ class Simulator:
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
             if plan.n_threads == 1:
-                n_ended = plan.kernel(*args, sub, stop, chunks[0], plan.ctl, fork_join.SOLO)
+                n_ended = plan.kernel(*args, sub, stop, chunks[0], _NO_CONTROL, fork_join.SOLO)
             else:
-                n_ended = plan.run_threads(args, sub, stop)
+                n_ended = self._run_threads(plan, args, sub, stop)
             self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
@@ -1227,6 +1208,37 @@ class Simulator:
         elif n_ended:
             self._end_worlds(self._status_new)
         return Row(flat, plan.row_layout)
+
+    def _run_threads(self, plan: _Plan, args: tuple, sub: int, stop: int) -> int:
+        """Autopilot ticks sub..stop-1 on this thread and the helpers (`sim.fork_join`); returns how
+        many worlds ended. The helpers serve every plan of this simulator (a plan is rebuilt
+        when a component changes, e.g. at each autoreset of an env with randomised fields)."""
+        helpers = self.__dict__.get("_helpers")
+        if helpers is None or not helpers.alive or helpers.key != (plan.kernel, plan.n_threads):
+            helpers = self._start_helpers(plan)  # first use, or a forked child (no threads of its own)
+        helpers.wake()
+        n_ended = plan.kernel(*args, sub, stop, plan.chunks[0], helpers.ctl, fork_join.MAIN)
+        return helpers.join() if n_ended == fork_join.NOT_JOINED else n_ended
+
+    def _start_helpers(self, plan: _Plan) -> fork_join.Helpers:
+        """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever
+        the plan (each tick's tables come through the control block). What they hold must not
+        refer to the simulator, which stops them when it is collected."""
+        ctl = fork_join.new_control()
+        W, V = self.W, self.V
+        kernel = plan.kernel
+        # placeholders of the arguments but the physics state's (a helper reads the tick's own from ctl)
+        fixed = (np.zeros(len(_TAB), np.int64), np.zeros(len(_FC))) + plan.leading_args[2:] \
+            + (np.zeros((W, V, 3)),) * 3 + (np.zeros((W, V)),) * 2 + (np.zeros((W, V, 3)),) * 2 \
+            + (0, np.zeros(1), 0, 0, np.zeros((1, 4), np.int64))
+
+        def serve(t: int) -> int:
+            return kernel(*fixed, ctl, fork_join.HELPER + t)
+
+        helpers = fork_join.Helpers(plan.n_threads - 1, serve, ctl, owner=self)
+        helpers.key = (kernel, plan.n_threads)
+        self.__dict__["_helpers"] = helpers
+        return helpers
 
     def _tick_readable(self, residual: np.ndarray | None, override: np.ndarray | None) -> dict[str, np.ndarray]:
         """One controller tick as compiled passes around the Python components (see the module docstring)."""

@@ -68,12 +68,30 @@ def test_idle_helpers_park_and_wake_for_the_next_tick(scene):
     a, b = (Simulator(scene, _reference(W), list(range(W)), n_threads=n) for n in (1, 2))
     a.tick(), b.tick()
     deadline = time.monotonic() + 5.0
-    while b._plan.ctl[fork_join.PARKED] != 1 and time.monotonic() < deadline:
+    while b._helpers.ctl[fork_join.PARKED] != 1 and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert b._plan.ctl[fork_join.PARKED] == 1  # no tick for a while: the helper left its spin
+    assert b._helpers.ctl[fork_join.PARKED] == 1  # no tick for a while: the helper left its spin
     for _ in range(5):
         a.tick(), b.tick()
     assert np.array_equal(a.physics.qpos, b.physics.qpos)
+
+
+def test_helpers_serve_every_plan_of_their_simulator(scene):
+    """A replaced component rebuilds the plan (an env does it at each autoreset with randomised
+    fields): the same helper threads serve the new plan, and the flights stay equal."""
+    W = 16
+    a, b = (Simulator(scene, _reference(W), list(range(W)), n_threads=n) for n in (1, 2))
+    a.tick(), b.tick()
+    helpers, threads = b._helpers, len(_helper_threads())
+    for k in range(6):
+        enabled = np.arange(W) % (k + 2) != 0
+        for sim in (a, b):
+            sim.field_enabled = enabled.copy()  # a bound input: the next tick binds a new plan
+        plan = b._plan
+        rows = [dict(sim.tick()) for sim in (a, b)]
+        assert b._plan is not plan and b._helpers is helpers and len(_helper_threads()) == threads
+        for name in rows[0]:
+            assert np.array_equal(rows[0][name], rows[1][name]), (k, name)
 
 
 def test_helpers_stop_with_their_simulator(scene):
