@@ -168,11 +168,15 @@ class Helpers:
                                           name=f"sim-helper-{t}") for t in range(n_helpers)]
         for thread in self._threads:
             thread.start()
-        weakref.finalize(owner, _stop, ctl, self._cond, self.pid)
+        self._finalizer = weakref.finalize(owner, _stop, ctl, self._cond, self.pid)
 
     @property
     def alive(self) -> bool:
         return self.pid == os.getpid() and all(t.is_alive() for t in self._threads)
+
+    def stop(self) -> None:
+        """Ask the threads to end (as when the owner is collected); they end within one spin."""
+        self._finalizer()
 
     def wake(self) -> None:
         """Before a MAIN call: count the tick as posted, and wake the parked helpers."""

@@ -1224,9 +1224,12 @@ class Simulator:
         """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever
         the plan (each tick's tables come through the control block). What they hold must not
         refer to the simulator, which stops them when it is collected."""
+        previous = self.__dict__.get("_helpers")
+        if previous is not None:
+            previous.stop()  # (nothing in a forked child, whose copy has no threads)
         ctl = fork_join.new_control()
         W, V = self.W, self.V
-        kernel = plan.kernel
+        kernel = plan.kernel  # and the physics state: the same arrays for every plan of this simulator
         # placeholders of the arguments but the physics state's (a helper reads the tick's own from ctl)
         fixed = (np.zeros(len(_TAB), np.int64), np.zeros(len(_FC))) + plan.leading_args[2:] \
             + (np.zeros((W, V, 3)),) * 3 + (np.zeros((W, V)),) * 2 + (np.zeros((W, V, 3)),) * 2 \
