@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.jit import njit
-from core.params import QUAD, QuadParams
+from downwash_core.jit import njit
+from downwash_core.params import QUAD, QuadParams
 
 __all__ = ["mixer_matrix", "Autopilot", "rotor_thrusts"]
 

@@ -18,11 +18,12 @@ from typing import Any, NamedTuple
 import control
 import numpy as np
 
-from core.errors import ConfigError
-from core.geometry import wrap_angle
-from core.jit import njit
-from core.params import GRAVITY
-from core.state import RefSample
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import wrap_angle
+from downwash_core.jit import njit
+from downwash_core.numerics import cpu_independent, matmul_rows
+from downwash_core.params import GRAVITY
+from downwash_core.state import RefSample
 
 __all__ = [
     "DEFAULT_Q",
@@ -123,12 +124,15 @@ def _check_weight(M: np.ndarray, n: int, name: str, definite: bool) -> np.ndarra
 
 
 def lqr_gain(Q: np.ndarray = DEFAULT_Q, R: np.ndarray = DEFAULT_R) -> np.ndarray:
-    """Continuous-time LQR gain K (4, 7) of the double integrator from `control.lqr`."""
+    """Continuous-time LQR gain K (4, 7) of the double integrator from `control.lqr`.
+
+    Rounded to float32 precision (`downwash_core.numerics.cpu_independent`): LAPACK's last bits
+    differ between CPUs, and flights must not."""
     Q = _check_weight(Q, 7, "Q", definite=False)
     R = _check_weight(R, 4, "R", definite=True)
     A, B = double_integrator()
     K, _, _ = control.lqr(A, B, Q, R)
-    return np.asarray(K)
+    return cpu_independent(K)
 
 
 class LQRCommand(NamedTuple):
@@ -168,7 +172,7 @@ class FeedbackLinearisedLQR:
         err = np.concatenate(
             [state.pos - ref.pos, state.vel - ref.vel, wrap_angle(state.yaw - ref.yaw)[..., None]], axis=-1
         )
-        fb = err @ self._Kt  # (..., 4) = K (x - x_ref)
+        fb = matmul_rows(err, self._Kt)  # (..., 4) = K (x - x_ref)
         acc = ref.acc - fb[..., :3]
         if f_hat is not None:
             acc = acc - f_hat

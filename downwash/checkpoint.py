@@ -24,8 +24,8 @@ from typing import Any
 
 import torch
 
-from core.errors import CheckpointError
-from core.io import atomic_write_bytes, to_json
+from downwash_core.errors import CheckpointError
+from downwash_core.io import atomic_write_bytes, to_json
 from downwash.models import MODEL_KINDS, DownwashModel, make_model
 
 __all__ = [

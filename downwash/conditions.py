@@ -17,14 +17,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from downwash.models import MODEL_KINDS
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
 from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
 from sim.scene import Scene
-from trajectories import Reference
+from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
 

@@ -16,11 +16,11 @@ from typing import Sequence
 
 import numpy as np
 
-from core.errors import DataError
-from core.provenance import differences
+from downwash_core.errors import DataError
+from downwash_core.provenance import differences
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, MODEL_INPUTS, SAMPLE_SCHEMA, labels_from_log
 from sim.logs import load_log
-from core.params import RATES
+from downwash_core.params import RATES
 
 # The log metadata every flight of one data set must share: what the labels mean depends on it.
 FLIGHT_PROVENANCE = ("field", "scene", "config", "controller", "turbulence")

@@ -116,7 +116,7 @@ import torch
 from torch import nn
 from torch.optim.adam import adam as _adam_functional
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from downwash.datasets import split_by_flight
 from downwash.features import assemble
 from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, make_model

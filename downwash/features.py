@@ -5,7 +5,7 @@ or ``torch``, picked from the arguments): NumPy arrays in give NumPy arrays out,
 torch tensors in give torch tensors out (differentiable). Only operations with the
 same meaning in both libraries are used (``xp.sqrt``, ``xp.stack``,
 ``xp.concatenate``, arithmetic, indexing); the two primitives that differ are
-wrapped once: `_dot` (np.vecdot / torch.linalg.vecdot) and `_sqrt0` (a square
+wrapped once: `downwash_core.geometry.dot` (a component-by-component sum, the same bits on every CPU) and `_sqrt0` (a square
 root whose torch gradient stays finite at 0).
 
 Raw per-sample inputs (leader ``a`` = Alpha, follower ``b`` = Bravo)::
@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from core.geometry import dot
+from downwash_core.geometry import dot
 
 __all__ = [
     "R_EPS",

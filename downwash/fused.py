@@ -19,7 +19,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from core.jit import njit
+from downwash_core.jit import njit
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, R_EPS, V_EPS
 from sim.predictor import PREDICTOR_SIGNATURE
 

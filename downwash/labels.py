@@ -29,8 +29,8 @@ import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from core.errors import ConfigError
-from core.geometry import quat_to_mat
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import quat_to_mat
 from sim.logs import FlightLog, load_log
 
 __all__ = [

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 
 from downwash.features import (
     FEATURE_SETS,

@@ -20,7 +20,8 @@ from downwash.checkpoint import load_checkpoint
 from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
 from downwash.fused import feature_code, pack_abi, pack_layers, predict_address, predict_into
 from downwash.models import DownwashModel
-from core.state import VehicleStates
+from downwash_core.state import VehicleStates
+from downwash_core.numerics import matmul_rows
 from sim.predictor import CompiledPredictor
 
 __all__ = ["LearnedPredictor"]
@@ -128,11 +129,11 @@ class LearnedPredictor:
         x, basis = model_inputs(self.feature_set, dp, v_a, v_b, R_a)
         h = x
         for w, b in self._layers[:-1]:
-            h = h @ w
+            h = matmul_rows(h, w)
             h += b
             np.maximum(h, _ZERO, out=h)
         w, b = self._layers[-1]
-        f = h @ w + b
+        f = matmul_rows(h, w) + b
         if basis is not None:
             f = assemble(f, basis)
         s = x[..., self._depth_col] if self._depth_col is not None else depth(dp, R_a)

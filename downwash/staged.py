@@ -3,7 +3,7 @@
 Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
 0.5 m with the stage-1 model. Each stage is ~5.7 minutes of varied flights
-(`trajectories.collection_reference`: randomised passes through and beside the
+(`downwash_trajectories.collection_reference`: randomised passes through and beside the
 wake, hovers at offsets, lemniscates), plus validation flights of the same kind from
 separate seeds. Labels are always the full downwash (f = a - u with u the command
 actually applied). After the last stage the final model of every kind in
@@ -42,10 +42,10 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 
 from controllers.lqr import FeedbackLinearisedLQR
-from core.errors import ConfigError, DataError
-from core.io import atomic_write_json
-from core.params import LEADER_POSITION
-from core.provenance import code_version, describe, differences, fingerprint
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.io import atomic_write_json
+from downwash_core.params import LEADER_POSITION
+from downwash_core.provenance import code_version, describe, differences, fingerprint
 from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
 from downwash.datasets import Dataset, concatenate, find_logs, load_dataset
 from downwash.labels import label_noise_floor
@@ -58,7 +58,7 @@ from sim.predictor import ZeroPredictor
 from sim.scene import build_scene
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
-from trajectories import LEMNISCATE_SHARE, collection_reference
+from downwash_trajectories import LEMNISCATE_SHARE, collection_reference
 
 __all__ = [
     "STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "provenance", "pipeline_dirs", "collect",

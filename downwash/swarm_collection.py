@@ -11,7 +11,7 @@ swarm stages add vehicles deeper in the stack:
     stage 4: a third follower at 1.55-1.85 m, flown with the deep-sets equivariant model
              trained on the two-vehicle data and stage 3.
 
-Every follower flies the collection patterns of `trajectories.collection_reference`
+Every follower flies the collection patterns of `downwash_trajectories.collection_reference`
 (passes through and beside the wakes, lemniscates) within its own depth band, so no two
 vehicles ever share a height (the bands are 0.25 m apart: no collision is possible).
 After the last stage, each trainable kind of `downwash.swarm_models` is trained twice:
@@ -44,11 +44,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from core.errors import ConfigError, DataError
-from core.io import atomic_write_json
-from core.params import LEADER_POSITION
-from core.provenance import describe, differences, fingerprint
-from core.roles import VEHICLE_NAMES, Role
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.io import atomic_write_json
+from downwash_core.params import LEADER_POSITION
+from downwash_core.provenance import describe, differences, fingerprint
+from downwash_core.roles import VEHICLE_NAMES, Role
 from downwash.staged import STAGES, train_config
 from downwash.train import TrainConfig
 from downwash.swarm_data import NeighbourSet, concatenate_swarm, load_swarm_dataset
@@ -57,7 +57,7 @@ from downwash.swarm_train import save_trained, swarm_rmse, train_swarm_model
 from sim.flight import fly
 from sim.logs import load_log, save_log
 from sim.scene import build_scene
-from trajectories import Hover, collection_reference, stack
+from downwash_trajectories import Hover, collection_reference, stack
 
 __all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_train_config",
            "swarm_provenance", "pair_models_key", "collect_swarm", "swarm_model_path"]

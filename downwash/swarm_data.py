@@ -40,12 +40,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError, DataError
-from core.geometry import quat_to_mat
-from core.params import RATES
-from core.provenance import describe, differences
-from core.roles import MAX_VEHICLES
-from core.validate import count, positive_float
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.params import RATES
+from downwash_core.provenance import describe, differences
+from downwash_core.roles import MAX_VEHICLES
+from downwash_core.validate import count, positive_float
 from downwash.datasets import Dataset, find_logs
 from downwash.labels import (
     DEFAULT_POLYORDER,

@@ -54,10 +54,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.errors import CheckpointError, ConfigError
-from core.provenance import differences
-from core.state import VehicleStates
-from core.validate import count, positive_float
+from downwash_core.errors import CheckpointError, ConfigError
+from downwash_core.provenance import differences
+from downwash_core.state import VehicleStates
+from downwash_core.validate import count, positive_float
 from downwash.checkpoint import CHECKPOINT_FORMAT, MAX_WIDTH, load_checkpoint, read_payload, write_checkpoint
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
 from downwash.predictor import LearnedPredictor

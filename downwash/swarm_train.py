@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from core.errors import ConfigError, DataError
-from core.validate import count
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.validate import count
 from downwash.datasets import split_by_flight
 from downwash.swarm_data import SwarmDataset, merge_provenance
 from downwash.swarm_models import (

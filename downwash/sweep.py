@@ -34,7 +34,7 @@ Each cell's result is cached as one JSON file named by its key, the `fingerprint
 of `Cell.record`: the collection's provenance key (field, scene, simulator,
 collection and its seed), the model kind, the minutes, the seed, the training
 config and `CELL_VERSION` (the rules above). The code version is recorded in the
-file, not in the key, as for collections (`core.provenance`). Files are written
+file, not in the key, as for collections (`downwash_core.provenance`). Files are written
 atomically, so a killed sweep leaves only whole cells, and a rerun computes only
 the missing ones.
 
@@ -70,9 +70,9 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError, DataError
-from core.io import atomic_write_json
-from core.provenance import code_version, fingerprint
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.io import atomic_write_json
+from downwash_core.provenance import code_version, fingerprint
 from downwash.datasets import Dataset, concatenate, find_logs, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS

@@ -35,18 +35,18 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from core.params import LEADER_POSITION, RATES
-from core.state import VehicleStates
+from downwash_core.params import LEADER_POSITION, RATES
+from downwash_core.state import VehicleStates
 from downwash.datasets import Dataset
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, train_model
-from envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
+from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.predictor import OraclePredictor
 from sim.presets import make_preset
 from sim.scene import build_scene
 from sim.simulator import Simulator
-from trajectories import Hover, Lemniscate, stack
+from downwash_trajectories import Hover, Lemniscate, stack
 
 LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 

@@ -17,9 +17,9 @@ from typing import Any, Sequence, TypeVar
 
 from tqdm import tqdm
 
-from core.errors import ConfigError
-from core.io import atomic_write_json
-from core.provenance import code_version, describe, fingerprint
+from downwash_core.errors import ConfigError
+from downwash_core.io import atomic_write_json
+from downwash_core.provenance import code_version, describe, fingerprint
 from downwash.staged import CollectionConfig, pipeline_dirs, provenance
 from sim.field import check_field
 from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec

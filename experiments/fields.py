@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from core.provenance import describe
+from downwash_core.provenance import describe
 from downwash.conditions import CONDITIONS
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 from sim.fields.registry import FIELDS
 

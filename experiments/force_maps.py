@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from downwash.checkpoint import load_checkpoint
 from downwash.models import MODEL_KINDS
 from downwash.staged import ensure_models

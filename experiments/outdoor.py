@@ -23,16 +23,16 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.params import LEADER_POSITION
-from core.provenance import describe
+from downwash_core.errors import ConfigError
+from downwash_core.params import LEADER_POSITION
+from downwash_core.provenance import describe
 from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
 from downwash.staged import ensure_models
 from experiments.common import (WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind, parse_args,
                                 resolve_pipeline, setup_logging, write_results)
 from sim.metrics import aggregate_conditions, tracking_errors
 from sim.scene import build_scene
-from trajectories import Circle, Line, Offset, stack
+from downwash_trajectories import Circle, Line, Offset, stack
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 

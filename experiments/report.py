@@ -19,7 +19,6 @@ import json
 import math
 import os
 import platform
-import stat
 import sys
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -27,8 +26,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from core.errors import ConfigError
-from core.io import atomic_write_bytes, atomic_write_json, to_json
+from downwash_core.errors import ConfigError
+from downwash_core.io import atomic_write_bytes, atomic_write_json, to_json
 from downwash.conditions import CONDITIONS
 from experiments.common import CommonArgs, arg, parse_args
 from sim.fields.registry import FIELDS
@@ -451,9 +450,7 @@ def main(argv=None) -> str:
     copied = copy_results(args.runs, args.results) if args.runs else []
     new = rewrite_readme(text, render(args.results))
     if new != text:
-        mode = readme.stat().st_mode
         atomic_write_bytes(readme, new.encode())
-        os.chmod(readme, stat.S_IMODE(mode))  # the temporary file's 0600 would replace the README's mode
     print(f"copied {', '.join(copied) or 'nothing'} into {args.results}/; {readme} "
           + ("rewritten" if new != text else "unchanged"))
     return new

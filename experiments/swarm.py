@@ -30,8 +30,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.provenance import describe, fingerprint
+from downwash_core.errors import ConfigError
+from downwash_core.provenance import describe, fingerprint
 from downwash.staged import ensure_models
 from downwash.swarm_collection import (DATA_MIXES, SwarmCollectionConfig, collect_swarm, pair_models_key,
                                        swarm_model_path, swarm_provenance)
@@ -116,7 +116,7 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
 def run(args: SwarmArgs) -> dict:
     presets, laws = _validate(args)
     if args.video:
-        from envs.video import check_video_output  # imageio and an OpenGL context only when asked for
+        from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
 
         check_video_output(args.video, presets[0].scene())
     p = resolve_pipeline(args)
@@ -163,7 +163,7 @@ def run(args: SwarmArgs) -> dict:
     print(_table(results))
     print(f"\nwrote {path} and one folder per preset in {out}/")
     if args.video and first_logs is not None:
-        from envs.video import logs_video
+        from downwash_envs.video import logs_video
 
         preset, per_condition = first_logs
         n = logs_video(args.video, preset.scene(), {c: L[0] for c, L in per_condition.items()}, field=p.field,

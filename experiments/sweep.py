@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.io import atomic_write_bytes
+from downwash_core.io import atomic_write_bytes
 from downwash.sweep import PAPER_MINUTES, PAPER_MODELS, check_execution, claim_text, grid_from_text, markdown, minute_labels, plot_field, run_sweep, table_rows
 from experiments.common import CommonArgs, PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 

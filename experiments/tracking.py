@@ -9,7 +9,7 @@ experiment's reference and its shape options (each becomes a command-line flag);
 the conditions are those of `downwash.conditions`. Writes results.json (DESIGN
 section 10), prints a table and saves the figures beside it. `--video PATH` also writes
 an mp4 of every condition's first seed side by side, the leader's wake drawn
-(`envs.video`; needs `pip install -e ".[video]"` and an OpenGL backend, checked before
+(`downwash_envs.video`; needs `pip install -e ".[video]"` and an OpenGL backend, checked before
 any flight).
 """
 
@@ -23,14 +23,14 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.params import LEADER_POSITION, SEPARATION_RANGE
+from downwash_core.errors import ConfigError
+from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
 from downwash.staged import ensure_models
 from experiments.common import WIND_HELP, PipelineArgs, load_wind, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
 from sim.metrics import aggregate_conditions, tracking_errors
 from sim.scene import build_scene
-from trajectories import Hover, make_reference, stack
+from downwash_trajectories import Hover, make_reference, stack
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -42,7 +42,7 @@ class Track:
     """One tracking experiment: the follower's reference and its shape options."""
 
     doc: str  # the experiment's description (its --help)
-    reference: str  # a name of `trajectories.make_reference`
+    reference: str  # a name of `downwash_trajectories.make_reference`
     period: float  # s, one period: the default flight length
     shape: dict[str, tuple[float, str]]  # option -> (default, help), passed to the reference
 
@@ -102,7 +102,7 @@ def run(track: str, args: Any) -> dict:
     wind = load_wind(args.wind)
     scene = build_scene()
     if args.video:
-        from envs.video import check_video_output  # imageio and an OpenGL context only when asked for
+        from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
 
         check_video_output(args.video, scene)
     p = resolve_pipeline(args)
@@ -137,7 +137,7 @@ def run(track: str, args: Any) -> dict:
 
 def _video(path: str, scene, per_cond_logs: dict, field) -> None:
     """The first seed of every condition side by side (at most 4 per row), the wake drawn."""
-    from envs.video import logs_video
+    from downwash_envs.video import logs_video
 
     t0 = time.perf_counter()
     n = logs_video(path, scene, {c: clogs[0] for c, clogs in per_cond_logs.items()}, field=field,

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import ConfigError, DataError
+from downwash_core.errors import ConfigError, DataError
 from downwash.checkpoint import save_checkpoint
 from downwash.datasets import find_logs, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS, count_parameters
 from downwash.staged import train_config
 from downwash.train import rmse, train_model
-from core.provenance import describe, differences
+from downwash_core.provenance import describe, differences
 from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
 
 __all__ = ["TrainArgs", "run", "main"]

@@ -13,16 +13,5 @@ Modules (import them directly):
 - `sim.predictor`: the slot through which a downwash model reaches the loop
 
 `import sim` imports neither gymnasium nor torch: the Gymnasium environments live
-in `envs` (`import envs` registers their ids).
+in `downwash_envs` (`import downwash_envs` registers their ids).
 """
-
-import sys as _sys
-
-if "gymnasium" in _sys.modules and "envs" not in _sys.modules:
-    # Backward compatibility: the env ids used to be registered by `import sim`, and
-    # `gymnasium.make("sim:DownwashFollower-v0")` imports this package to find them. They
-    # now live in `envs`; register them the old way only when gymnasium is already loaded,
-    # so that importing sim never pulls in gymnasium itself.
-    import importlib as _importlib
-
-    _importlib.import_module("envs")

@@ -53,10 +53,10 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.geometry import dot as _dot
-from core.jit import njit
-from core.validate import number
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import dot as _dot
+from downwash_core.jit import njit
+from downwash_core.validate import number
 from sim.field import pairwise_field, pairwise_forces
 from sim.fields.registry import field_parameters
 
@@ -234,7 +234,7 @@ class WakeShielding:
 
     eta (-, [0, 1]): the fraction of the wake removed by a shield on the axis.
     radius (m): lateral reach of a shield from i's axis; 0.25 m ~ the shield's rotor tips
-        (arm + rotor radius = 0.13 m, core.params.QUAD) plus the wake's half-width near
+        (arm + rotor radius = 0.13 m, downwash_core.params.QUAD) plus the wake's half-width near
         the vehicles (~0.1-0.2 m: DownwashField's sigma = 0.10 + 0.12 s); L(0.13 m) = 0.53.
     ramp (m): depth over which a shield fades in below i and out above j (~ a rotor
         diameter plus the vehicle's height), so that g is continuous.

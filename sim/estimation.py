@@ -2,7 +2,7 @@
 
 Motion capture measures every vehicle's position (white noise per axis) and attitude
 (the true attitude turned by a small random body-frame rotation, white per sample:
-`core.geometry.perturb_quat`) at the autopilot rate (100 Hz, DESIGN: 100-120 Hz).
+`downwash_core.geometry.perturb_quat`) at the autopilot rate (100 Hz, DESIGN: 100-120 Hz).
 The controller's heading, the learned models and the labels use the measured
 attitude; the true one is for the field, the oracle and diagnostics only (the
 autopilot flies on its own onboard attitude, which we take as exact).
@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from core.errors import ConfigError
-from core.jit import njit
+from downwash_core.errors import ConfigError
+from downwash_core.jit import njit
+from downwash_core.numerics import cpu_independent
 
 __all__ = ["MocapConfig", "steady_state_gain", "kalman_gain_sequence", "MocapKalmanFilter", "kf_predict", "kf_update"]
 
@@ -52,10 +53,13 @@ def _model(dt: float, q_acc: float, r_pos: float):
 
 
 def steady_state_gain(dt: float, cfg: MocapConfig = MocapConfig()) -> np.ndarray:
-    """Steady-state Kalman gain (2,) [position, velocity] per axis for measurements every dt s."""
+    """Steady-state Kalman gain (2,) [position, velocity] per axis for measurements every dt s.
+
+    Rounded to float32 precision (`downwash_core.numerics.cpu_independent`): the Riccati solve's
+    last bits differ between CPUs, and flights must not."""
     F, _, Qn, H, Rn = _model(dt, cfg.process_accel_noise, cfg.position_noise)
     P = scipy.linalg.solve_discrete_are(F.T, H.T, Qn, Rn)  # prior covariance
-    return (P @ H.T @ np.linalg.inv(H @ P @ H.T + Rn)).ravel()
+    return cpu_independent((P @ H.T @ np.linalg.inv(H @ P @ H.T + Rn)).ravel())
 
 
 def kalman_gain_sequence(dt: float, n: int, cfg: MocapConfig = MocapConfig(), p0: float = 1.0) -> np.ndarray:

@@ -36,10 +36,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.geometry import dot as _dot
-from core.jit import njit
-from core.validate import check_trailing_shapes
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import dot as _dot
+from downwash_core.jit import njit
+from downwash_core.validate import check_trailing_shapes
 
 __all__ = ["DownwashField", "pairwise_field", "pairwise_forces", "check_field"]
 

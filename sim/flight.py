@@ -7,9 +7,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.provenance import code_version, describe
-from core.status import Status
+from downwash_core.errors import ConfigError
+from downwash_core.provenance import code_version, describe
+from downwash_core.status import Status
 from sim.aggregation import LinearSuperposition
 from sim.logs import ARRAY_SPECS, FlightLog
 from sim.scene import Scene

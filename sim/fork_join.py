@@ -34,7 +34,7 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from core.jit import njit
+from downwash_core.jit import njit
 
 __all__ = ["Helpers", "SOLO", "MAIN", "HELPER", "IDLE", "EXIT", "NOT_JOINED", "new_control", "fetch_add", "load"]
 

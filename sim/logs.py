@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import LogError
-from core.io import atomic_write_bytes, to_json
-from core.status import Status
+from downwash_core.errors import LogError
+from downwash_core.io import atomic_write_bytes, to_json
+from downwash_core.status import Status
 
 __all__ = [
     "SCHEMA_VERSION",

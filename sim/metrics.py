@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.status import Status
+from downwash_core.errors import ConfigError
+from downwash_core.status import Status
 from sim.logs import FlightLog
 
 __all__ = [

@@ -17,7 +17,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from core.jit import njit
+from downwash_core.jit import njit
 
 __all__ = ["Physics", "make_physics", "mj_step_address"]
 

@@ -19,8 +19,8 @@ from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 import numpy as np
 from numba import types as _nb
 
-from core.errors import ConfigError
-from core.state import VehicleStates
+from downwash_core.errors import ConfigError
+from downwash_core.state import VehicleStates
 from sim.aggregation import wake_field
 
 __all__ = [

@@ -29,13 +29,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.params import LEADER_POSITION
-from core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
+from downwash_core.errors import ConfigError
+from downwash_core.params import LEADER_POSITION
+from downwash_core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
 from sim.scene import Scene, build_scene, check_clearance
-from trajectories.base import Reference
-from trajectories.combinators import StackedReference, TimeShifted, stack
-from trajectories.primitives import Circle, Hover, Lemniscate, Transect
+from downwash_trajectories.base import Reference
+from downwash_trajectories.combinators import StackedReference, TimeShifted, stack
+from downwash_trajectories.primitives import Circle, Hover, Lemniscate, Transect
 
 __all__ = ["Preset", "PRESETS", "make_preset", "parse_preset_spec", "SWARM_SIZES"]
 

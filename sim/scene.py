@@ -14,9 +14,9 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from core.errors import ConfigError, DataError
-from core.params import GRAVITY, RATES, Rates
-from core.roles import DEFAULT_VEHICLES, MAX_VEHICLES, MIN_VEHICLES, Role
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.params import GRAVITY, RATES, Rates
+from downwash_core.roles import DEFAULT_VEHICLES, MAX_VEHICLES, MIN_VEHICLES, Role
 
 __all__ = ["QUAD_XML", "DEFAULT_VEHICLES", "Scene", "build_scene", "check_clearance", "load_quad_spec"]
 

@@ -1,6 +1,6 @@
 """The multi-rate stepping loop: physics, autopilot, field, wind, motion capture, controller, predictor.
 
-Rates (core.params.Rates): physics 500 Hz; autopilot, downwash field, wind and motion
+Rates (downwash_core.params.Rates): physics 500 Hz; autopilot, downwash field, wind and motion
 capture on the 100 Hz autopilot grid; the LQR at 50 Hz; the predictor at 45 Hz,
 evaluated at the first autopilot tick after each 1/45 s and held in between.
 
@@ -82,12 +82,12 @@ from numba.core.extending import intrinsic
 
 from controllers.autopilot import Autopilot, rotor_thrusts
 from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint, _command_setpoint_kernel
-from core.errors import ConfigError
-from core.geometry import perturb_quat_into, quat_to_rot
-from core.jit import njit
-from core.params import QUAD, RATES, QuadParams, Rates
-from core.state import VehicleStates
-from core.status import Status
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import perturb_quat_into, quat_to_rot
+from downwash_core.jit import njit
+from downwash_core.params import QUAD, RATES, QuadParams, Rates
+from downwash_core.state import VehicleStates
+from downwash_core.status import Status
 from sim import fork_join
 from sim.aggregation import LinearSuperposition, wake_field
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
@@ -225,7 +225,7 @@ def _sense_kernel(
     Writes kin (5, W, V, 3) [true position m, true velocity m/s (world), mocap position m,
     posterior position m, posterior velocity m/s], quat (W, V, 4) (w, x, y, z) and
     rot (W, V, 3, 3) body to world (true), quat_est and rot_est (the mocap attitude,
-    `core.geometry.perturb_quat` of the truth by sigma_att * noise), yaw_meas (W, V) rad
+    `downwash_core.geometry.perturb_quat` of the truth by sigma_att * noise), yaw_meas (W, V) rad
     (its heading), and due (W,) bool: the predictor is due (t >= next_prediction, 1 ns
     slack). Returns how many worlds are due.
     """
@@ -261,7 +261,7 @@ def _sense_kernel(
 @njit
 def _true_states_kernel(qpos, qvel, layout, pos, vel, rot):
     """pos, vel (W, V, 3) and rot (W, V, 3, 3) from qpos (W, nq), qvel (W, nv) at the addresses of
-    layout (V, 7); the attitude as `core.geometry.quat_to_mat_fast` (no normalisation)."""
+    layout (V, 7); the attitude as `downwash_core.geometry.quat_to_mat_fast` (no normalisation)."""
     for w in range(pos.shape[0]):
         for i in range(pos.shape[1]):
             a, b = layout[i, _QPOS], layout[i, _QVEL]
@@ -883,7 +883,7 @@ _BOUND_INPUTS = frozenset({"field", "predictor", "controller", "autopilot", "tur
 class Simulator:
     """W worlds of V vehicles flying the full stack; advance one controller tick at a time.
 
-    reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`trajectories.stack`).
+    reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`downwash_trajectories.stack`).
     seeds: one int per world; a world's noise comes only from its own generators.
     config: `SimConfig` (vehicle, rates, motion capture, failure checks).
     Components (each defaults to the paper's):

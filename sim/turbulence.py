@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 
 __all__ = ["OUTurbulence"]
 

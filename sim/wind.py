@@ -62,10 +62,11 @@ from typing import Any
 import numpy as np
 from scipy.special import gammainc
 
-from core.errors import ConfigError
-from core.jit import njit
-from core.params import LEADER_POSITION
-from core.validate import number
+from downwash_core.errors import ConfigError
+from downwash_core.jit import njit
+from downwash_core.params import LEADER_POSITION
+from downwash_core.validate import number
+from downwash_core.numerics import matmul_rows, matvec
 
 __all__ = [
     "DrydenWind", "AirframeDrag", "AIRFRAME", "AIR_DENSITY", "drag_acceleration", "wind_at", "FT", "KT",
@@ -271,12 +272,12 @@ class DrydenWind:
         """
         A, B, _ = self.coefficients(dt, airspeed)
         state, xi = np.asarray(state, dtype=np.float64), np.asarray(xi, dtype=np.float64)
-        return (A @ state[..., None])[..., 0] + (B @ xi[..., None])[..., 0]
+        return matvec(A, state) + matvec(B, xi)
 
     def gust(self, state) -> np.ndarray:
         """The gust (..., 3) m/s in the world frame from the state (..., 3, 2)."""
         g_axis = (np.asarray(state, dtype=np.float64) * _C_AXIS).sum(axis=-1)  # (..., 3) u, v, w
-        return g_axis @ self.axes()
+        return matmul_rows(g_axis, self.axes())
 
     def stationary_state(self, xi) -> np.ndarray:
         """A state (..., 3, 2) drawn from the stationary distribution (any airspeed) with draws xi (..., 3, 2).
@@ -288,7 +289,7 @@ class DrydenWind:
         L = np.zeros((3, 2, 2))
         L[0, 0, 0] = sigma[0]
         L[1:] = (sigma[1:, None, None] / math.sqrt(2.0)) * np.array([[1.0, 0.0], [0.5, 0.5]])
-        return (L @ np.asarray(xi, dtype=np.float64)[..., None])[..., 0]
+        return matvec(L, np.asarray(xi, dtype=np.float64))
 
     def wind(self, state) -> np.ndarray:
         """The air velocity (..., 3) m/s, world frame: mean + gust(state)."""

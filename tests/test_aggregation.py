@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from sim import field as field_module
 from sim.aggregation import (
     AGGREGATIONS,

@@ -21,9 +21,9 @@ def test_import_contract_is_kept():
 @pytest.mark.parametrize(
     "module, banned",
     [
-        ("core.geometry", ("torch", "gymnasium", "matplotlib")),
-        ("core.validate", ("torch", "gymnasium", "matplotlib")),
-        ("trajectories", ("torch", "gymnasium", "matplotlib")),
+        ("downwash_core.geometry", ("torch", "gymnasium", "matplotlib")),
+        ("downwash_core.validate", ("torch", "gymnasium", "matplotlib")),
+        ("downwash_trajectories", ("torch", "gymnasium", "matplotlib")),
         # python-control itself imports matplotlib, so the controller and the loop load it
         ("controllers.lqr", ("torch", "gymnasium")),
         ("sim.flight", ("torch", "gymnasium")),
@@ -59,7 +59,7 @@ def test_readme_architecture_table_lists_every_module():
     for line in section.splitlines():
         if line.startswith("| `"):
             listed.add(line.split("`")[1])
-    packages = ("core", "trajectories", "controllers", "sim", "downwash", "envs")
+    packages = ("downwash_core", "downwash_trajectories", "controllers", "sim", "downwash", "downwash_envs")
     modules = set()
     for pkg in packages:
         for path in (ROOT / pkg).rglob("*.py"):  # subpackages too (sim.fields.momentum)
@@ -72,12 +72,12 @@ def test_readme_architecture_table_lists_every_module():
 
 
 def test_readme_observation_table_is_the_generated_one():
-    from envs.observation import markdown_table
+    from downwash_envs.observation import markdown_table
 
     assert markdown_table() in (ROOT / "README.md").read_text()
 
 
 def test_readme_swarm_observation_table_is_the_generated_one():
-    from envs.swarm import markdown_table
+    from downwash_envs.swarm import markdown_table
 
     assert markdown_table() in (ROOT / "README.md").read_text()

@@ -6,9 +6,9 @@ import pytest
 
 from controllers.autopilot import Autopilot, mixer_matrix
 from controllers.lqr import attitude_setpoint
-from core.params import GRAVITY, QUAD
+from downwash_core.params import GRAVITY, QUAD
 from sim.scene import build_scene
-from core.geometry import quat_to_mat_fast as quat_to_mat
+from downwash_core.geometry import quat_to_mat_fast as quat_to_mat
 
 
 def test_level_hover_gives_equal_hover_thrust():

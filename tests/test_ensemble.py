@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from downwash.checkpoint import load_checkpoint, save_checkpoint
 from downwash.ensemble import train_ensemble
 from downwash.models import MODEL_KINDS, DownwashModel

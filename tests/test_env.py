@@ -1,7 +1,7 @@
-"""The Gymnasium envs: registration, API contracts, vector == sync, determinism and bit identity with the
+"""The Gymnasium downwash_envs: registration, API contracts, vector == sync, determinism and bit identity with the
 pre-refactor code, reward terms, episode ends, the documented observation table, rendering."""
 
-import hashlib
+import importlib.util
 import inspect
 import json
 import os
@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 import warnings
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -16,9 +17,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
-import envs
-from core.status import Status
-from envs import (
+import downwash_envs
+from downwash_core.status import Status
+from downwash_envs import (
     OBS_DIM,
     REWARD_TERMS,
     DownwashFollowerEnv,
@@ -27,7 +28,7 @@ from envs import (
     env_steps_per_s_vector,
     evaluate_lqr,
 )
-from envs.observation import OBS_SLICES, markdown_table
+from downwash_envs.observation import OBS_SLICES, markdown_table
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OBS = {"dp": slice(0, 3), "pos_error": slice(9, 12), "vel_error": slice(12, 15),
@@ -61,15 +62,15 @@ def test_import_is_light_and_module_qualified_ids_work():
         import json, sys
         import sim
         sim_pulls_gym = "gymnasium" in sys.modules
-        import envs, gymnasium as gym
-        heavy = [m for m in ("torch", "mujoco", "envs.follower", "sim.env") if m in sys.modules]
+        import downwash_envs, gymnasium as gym
+        heavy = [m for m in ("torch", "mujoco", "downwash_envs.follower") if m in sys.modules]
         print(json.dumps([sim_pulls_gym, heavy, sorted(i for i in gym.registry if i.startswith("DownwashFollower"))]))
     """)
     sim_pulls_gym, heavy, ids = json.loads(out)
     assert not sim_pulls_gym  # `import sim` does not import gymnasium
     assert heavy == []  # registration imports gymnasium's registry only
-    assert ids == sorted(envs.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
-    for module in ("envs", "sim"):  # "sim:" is the former id, kept for compatibility
+    assert ids == sorted(downwash_envs.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
+    for module in ("downwash_envs",):
         out = _run_python(f"""
             import sys, gymnasium as gym
             assert "{module}" not in sys.modules
@@ -77,14 +78,7 @@ def test_import_is_light_and_module_qualified_ids_work():
             obs, _ = env.reset(seed=0)
             print(obs.shape, env.spec.max_episode_steps, type(env.unwrapped).__module__, "torch" in sys.modules)
         """)
-        assert out.strip() == "(30,) 500 envs.follower False", (module, out)
-
-
-def test_sim_env_is_a_deprecated_alias():
-    sys.modules.pop("sim.env", None)  # the warning is issued when the module is first imported
-    with pytest.warns(DeprecationWarning, match="envs"):
-        from sim.env import DownwashFollowerEnv as Old, evaluate_lqr as old_evaluate_lqr
-    assert Old is DownwashFollowerEnv and old_evaluate_lqr is evaluate_lqr
+        assert out.strip() == "(30,) 500 downwash_envs.follower False", (module, out)
 
 
 def test_make_and_make_vec_give_the_documented_spaces():
@@ -103,7 +97,7 @@ def test_make_and_make_vec_give_the_documented_spaces():
     assert gym.spec("DownwashFollowerPasses-v0").max_episode_steps == 1000
 
 
-@pytest.mark.parametrize("env_id", envs.ENV_IDS)
+@pytest.mark.parametrize("env_id", downwash_envs.ENV_IDS)
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_check_env(env_id, mode):
     env = gym.make(env_id, action_mode=mode)
@@ -208,62 +202,26 @@ def test_same_seed_same_actions_bit_identical():
     assert not all(np.array_equal(x, y) for x, y in zip(a, c))
 
 
-# Digests of observations, rewards, flags and infos. First recorded from the pre-refactor code
-# (sim/env.py at commit fe45b63) to prove the re-layering changed no number; re-recorded once,
-# on purpose, when motion capture gained attitude noise (issue 9: every noise stream moved).
-# Re-record only with a change that is meant to move numbers, and say so in its commit.
-# Each case: reset(seed=7), 50 steps of uniform random actions from default_rng(1); the single
-# env resets when an episode ends, the vector env autoresets (3 worlds).
-GOLDEN_DIGESTS = {
-    "lemniscate": ("DownwashFollower-v0", {}, False,
-                   "7d1467ce2a2935eb47cd725d72128af8a35302a9332174a7b4fbb07034b9649c"),
-    "passes": ("DownwashFollowerPasses-v0", {}, False,
-               "9095a3221b4877b8d7a47f0b4138e66bde48eb86b3ba6c3c2407db35d435ee85"),
-    "acceleration_hover_randomised": ("DownwashFollower-v0", dict(
-        action_mode="acceleration", reference="hover", separation=(0.4, 0.8), max_tracking_error=0.5,
-        field_randomization="default", mass_randomization=(0.8, 1.2)), False,
-        "397ba81360cd17e8d1da83058a96016f78b2b1bb27645bf3987bf12b41fc09f0"),
-    "vector_transect_oracle_25hz": ("DownwashFollower-v0", dict(
-        reference="transect", predictor="oracle", control_hz=25, max_episode_steps=20), True,
-        "647fe8b1d1759d2b049227ac4b8bf4a138ea0e9589ae82895d80715e5e1c07b1"),
-}
+_spec = importlib.util.spec_from_file_location("golden_envs", Path(__file__).parent / "golden" / "env_digests.py")
+golden_envs = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(golden_envs)
+GOLDEN_ENVS = json.loads(golden_envs.GOLDEN.read_text())["digests"]
 
 
-def _digest(env_id: str, opts: dict, vector: bool, steps: int = 50) -> str:
-    def add_info(info):
-        for k in sorted(info):
-            h.update(k.encode())
-            h.update(np.asarray(info[k]).astype(np.float64).tobytes())
-
-    h = hashlib.sha256()
-    rng = np.random.default_rng(1)
-    if vector:
-        env = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point", **opts)
-        high, shape = env.single_action_space.high, (3, 3)
-    else:
-        env = gym.make(env_id, **opts)
-        high, shape = env.action_space.high, (3,)
-    obs, info = env.reset(seed=7)
-    h.update(obs.tobytes())
-    add_info(info)
-    for _ in range(steps):
-        obs, reward, term, trunc, info = env.step(rng.uniform(-high, high, shape).astype(np.float32))
-        h.update(obs.tobytes())
-        h.update(np.asarray([reward], np.float64).tobytes())
-        h.update(np.asarray([term, trunc], bool).tobytes())
-        add_info(info)
-        if not vector and (term or trunc):
-            obs, info = env.reset()
-            h.update(obs.tobytes())
-            add_info(info)
-    env.close()
-    return h.hexdigest()
-
-
-@pytest.mark.parametrize("case", sorted(GOLDEN_DIGESTS))
+@pytest.mark.parametrize("case", sorted(golden_envs.CASES))
 def test_envs_are_bit_identical_to_the_golden_record(case):
-    env_id, opts, vector, expected = GOLDEN_DIGESTS[case]
-    assert _digest(env_id, opts, vector) == expected
+    """No learned model flies in these downwash_envs: the same bits on every CPU (tests/golden/env_digests.py)."""
+    assert golden_envs.digest(case) == GOLDEN_ENVS[case]
+
+
+@pytest.mark.parametrize("kernel", golden_envs.machine.runnable_blas_kernels())
+def test_env_digests_do_not_depend_on_the_blas_kernel(kernel):
+    """Under every OpenBLAS kernel this CPU can run, the envs give the recorded bits."""
+    env = dict(os.environ, OPENBLAS_CORETYPE=kernel)
+    proc = subprocess.run([sys.executable, str(golden_envs.__file__), "--print"], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == GOLDEN_ENVS
 
 
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
@@ -308,13 +266,13 @@ def test_reset_observation_matches_the_table():
 
 
 def test_docstring_observation_table_is_the_layout():
-    """The table in DownwashFollowerEnv's docstring is the one generated from envs.observation.OBSERVATION."""
+    """The table in DownwashFollowerEnv's docstring is the one generated from downwash_envs.observation.OBSERVATION."""
     doc = inspect.getdoc(DownwashFollowerEnv)
     lines = doc.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| index |"))
     end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
     assert "\n".join(lines[start:end]) == markdown_table()
-    assert markdown_table().count("\n") == 1 + len(envs.OBSERVATION)  # header, rule, one row per entry
+    assert markdown_table().count("\n") == 1 + len(downwash_envs.OBSERVATION)  # header, rule, one row per entry
     assert f"({OBS_DIM},)" in doc
 
 
@@ -479,7 +437,7 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         import json, warnings
         import numpy as np, gymnasium as gym
         from gymnasium.utils.env_checker import check_env
-        import envs
+        import downwash_envs
         env = gym.make("DownwashFollower-v0", render_mode="rgb_array", reference="transect", random_phase=False)
         env.reset(seed=0)
         for _ in range(5):
@@ -512,7 +470,7 @@ def test_rendering_chooses_egl_on_a_headless_machine():
         import json, os
         import mujoco  # reads MUJOCO_GL (unset) now
         import numpy as np
-        from envs import DownwashFollowerEnv
+        from downwash_envs import DownwashFollowerEnv
         env = DownwashFollowerEnv(render_mode="rgb_array", render_width=160, render_height=120)
         env.reset(seed=0)
         env.step(np.zeros(3, np.float32))
@@ -528,7 +486,7 @@ def test_rendering_chooses_egl_on_a_headless_machine():
 def test_rendering_without_a_backend_names_mujoco_gl():
     out = _run_python("""
         import numpy as np
-        from envs import DownwashFollowerEnv
+        from downwash_envs import DownwashFollowerEnv
         env = DownwashFollowerEnv(render_mode="rgb_array")
         env.reset(seed=0)
         try:
@@ -563,12 +521,12 @@ def test_lqr_and_turbulence_options_reach_the_simulator():
 
 @pytest.mark.parametrize("seed", range(3))
 def test_compiled_observation_equals_the_readable_one(seed):
-    """`FollowerWorlds`' compiled observation against `envs.task.observation`, bit for bit: random
+    """`FollowerWorlds`' compiled observation against `downwash_envs.task.observation`, bit for bit: random
     states (leader and follower in either scene slot), entries beyond their bounds, a diverged
     (NaN) world; and each entry where OBS_SLICES puts it."""
-    from envs.observation import obs_bounds
-    from envs.task import _observe_kernel, observation
-    from trajectories import RefSample
+    from downwash_envs.observation import obs_bounds
+    from downwash_envs.task import _observe_kernel, observation
+    from downwash_trajectories import RefSample
 
     rng = np.random.default_rng(seed)
     W, V = 5, 3

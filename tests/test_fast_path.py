@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from core.params import RATES
+from downwash_core.params import RATES
 from downwash.predictor import LearnedPredictor
 from sim.aggregation import make_aggregation
 from sim.field import DownwashField
@@ -18,7 +18,7 @@ from sim.scene import build_scene
 from sim.simulator import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, Row, SimConfig, Simulator, _chunk_sizes
 from sim.wind import DrydenWind
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
-from trajectories import Hover, Lemniscate, stack
+from downwash_trajectories import Hover, Lemniscate, stack
 
 LEADER = np.array([0.0, 0.0, 2.5])
 
@@ -202,7 +202,7 @@ def test_rows_are_views_of_one_flat_array_and_mj_step_is_found(scene):
 
 @pytest.mark.parametrize("W", [1, 3])
 def test_true_states_are_the_readable_indexing(scene, W):
-    from core.geometry import quat_to_mat_fast
+    from downwash_core.geometry import quat_to_mat_fast
 
     sim = Simulator(scene, _lemniscate(W), list(range(W)))
     for _ in range(5):

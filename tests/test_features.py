@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from core import geometry
+from downwash_core import geometry
 from downwash import features as F
 
 # Our z-up world (x, y, z up) and a FLU body; the paper's NED world and FRD body.

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy.spatial.transform import Rotation
 
-from core.errors import ConfigError
-from core.geometry import quat_to_mat
-from core.provenance import describe
-from core.status import Status
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.provenance import describe
+from downwash_core.status import Status
 from experiments.common import load_field
 from sim.field import DownwashField, check_field
 from sim.fields import FIELDS, MomentumWake, make_field, register_field, resolve_field_spec
@@ -247,8 +247,8 @@ def test_experiment_lists_the_fields(tmp_path, capsys):
 
 
 def test_envs_accept_a_field_name():
-    from envs.config import build_field, make_config
-    from envs.follower import DownwashFollowerEnv
+    from downwash_envs.config import build_field, make_config
+    from downwash_envs.follower import DownwashFollowerEnv
 
     assert isinstance(build_field("momentum"), MomentumWake)
     assert make_config({"field": "so2-c4", "swirl": 0.2}).field == "so2-c4"  # knobs on a so2 name: fine
@@ -273,7 +273,7 @@ def test_envs_accept_a_field_name():
 def test_short_flight_under_a_hovering_leader(name):
     from sim.flight import fly
     from sim.scene import build_scene
-    from trajectories import Hover, stack
+    from downwash_trajectories import Hover, stack
 
     leader = np.array([0.0, 0.0, 2.5])
     ref = stack([Hover(leader, n_worlds=1), Hover(leader - [0.05, 0.0, 0.7], n_worlds=1)])

@@ -10,11 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from core.jit import njit
+from downwash_core.jit import njit
 from sim import fork_join
 from sim.scene import build_scene
 from sim.simulator import Simulator
-from trajectories import Hover, Lemniscate, stack
+from downwash_trajectories import Hover, Lemniscate, stack
 
 LEADER = np.array([0.0, 0.0, 2.5])
 

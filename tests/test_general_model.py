@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from core import geometry
-from core.state import VehicleStates
+from downwash_core import geometry
+from downwash_core.state import VehicleStates
 from downwash.datasets import Dataset
 from downwash.models import EquivariantModel, GeneralEquivariantModel, count_parameters
 from downwash.predictor import LearnedPredictor

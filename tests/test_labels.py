@@ -5,7 +5,7 @@ import pytest
 from scipy.signal import savgol_coeffs
 
 from downwash.datasets import Dataset, concatenate, load_dataset, shorten_per_stage, split_by_flight
-from core.geometry import quat_to_mat as quat_to_rotmat
+from downwash_core.geometry import quat_to_mat as quat_to_rotmat
 from downwash.labels import (
     DEFAULT_POLYORDER,
     DEFAULT_WINDOW,
@@ -15,7 +15,7 @@ from downwash.labels import (
     labels_from_log,
 )
 from sim.logs import ARRAY_SPECS, FlightLog, LogError, save_log
-from core.params import RATES
+from downwash_core.params import RATES
 
 DT = RATES.control_dt  # 50 Hz controller ticks
 MOCAP_NOISE = 0.5e-3  # m, standard deviation per axis

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from trajectories import Hover, Transect, stack
+from downwash_trajectories import Hover, Transect, stack
 from downwash.datasets import Dataset
 from downwash.labels import label_noise_floor, labels_from_log
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.field import DownwashField
 from sim.flight import fly
-from core.params import LEADER_POSITION, RATES
+from downwash_core.params import LEADER_POSITION, RATES
 from sim.scene import build_scene
 
 LEADER = np.array(LEADER_POSITION)

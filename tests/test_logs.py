@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from core.io import atomic_write_json
+from downwash_core.io import atomic_write_json
 from sim.logs import ARRAY_SPECS, SCHEMA_VERSION, FlightLog, LogError, load_log, save_log
 
 

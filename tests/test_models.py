@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from core import geometry
+from downwash_core import geometry
 from downwash import features as F
 from downwash.models import MODEL_KINDS, DeepSNMLP, EquivariantModel, ShallowMLP, count_parameters, make_model
 from downwash.predictor import LearnedPredictor

@@ -14,9 +14,9 @@ import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from core.errors import ConfigError
-from core.params import GRAVITY, QUAD
-from core.provenance import describe
+from downwash_core.errors import ConfigError
+from downwash_core.params import GRAVITY, QUAD
+from downwash_core.provenance import describe
 from sim.field import DownwashField
 from sim.fields import MomentumWake, rotor_thrust_ratio
 

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from experiments.common import load_wind
 
 

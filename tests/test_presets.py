@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
-from core.roles import MAX_VEHICLES, Role
+from downwash_core.errors import ConfigError
+from downwash_core.roles import MAX_VEHICLES, Role
 from sim.presets import PRESETS, make_preset
 from sim.scene import build_scene, check_clearance
 

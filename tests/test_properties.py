@@ -26,9 +26,9 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from core.errors import CheckpointError
-from core.geometry import quat_to_mat
-from core.status import Status
+from downwash_core.errors import CheckpointError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.status import Status
 from downwash.checkpoint import load_checkpoint, save_checkpoint
 from downwash.features import (
     FEATURE_SETS,

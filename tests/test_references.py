@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trajectories import (
+from downwash_trajectories import (
     Cached,
     Circle,
     Line,
@@ -547,7 +547,7 @@ def test_unknown_keywords_raise_type_error(make):
 
 
 def test_mixed_routes_worlds_to_their_references():
-    from trajectories import Mixed
+    from downwash_trajectories import Mixed
 
     lem = Lemniscate(np.zeros(3), n_worlds=2)
     hov = Hover(np.array([[1.0, 2.0, 3.0]]))

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from core.errors import ConfigError
-from core.io import atomic_write_json
+from downwash_core.errors import ConfigError
+from downwash_core.io import atomic_write_json
 from experiments import report
 from experiments.common import parse_args, write_results
 from experiments.report import BEGIN, END, fmt, pct, render, rewrite_readme, section_of

@@ -4,8 +4,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from core.errors import DataError
-from core.params import GRAVITY, QUAD, RATES
+from downwash_core.errors import DataError
+from downwash_core.params import GRAVITY, QUAD, RATES
 from sim.scene import QUAD_XML, build_scene
 
 

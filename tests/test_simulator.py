@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from trajectories import Hover, Lemniscate, stack
+from downwash_trajectories import Hover, Lemniscate, stack
 from sim.field import DownwashField
 from sim.flight import fly
 from sim.logs import ARRAY_SPECS, load_log, save_log
 from sim.metrics import tracking_metrics
 from sim.predictor import OraclePredictor
 from sim.scene import build_scene
-from core.status import Status
+from downwash_core.status import Status
 from sim.simulator import Simulator
 
 STATUS_OK, STATUS_DIVERGED, STATUS_GROUND, STATUS_VEHICLE = Status.OK, Status.DIVERGED, Status.GROUND, Status.VEHICLE
@@ -84,7 +84,7 @@ def test_predictor_runs_at_45_hz_and_is_held(scene):
     assert 80 <= changes <= 90  # held between updates; 50 Hz ticks see ~45 new values per s
     # compensation enters the command: u = a_ref - K (x_est - x_ref) - f_hat, row by row
     from controllers.lqr import ControllerState, FeedbackLinearisedLQR
-    from core.state import RefSample
+    from downwash_core.state import RefSample
 
     zeros = np.zeros(L["yaw_est"].shape)  # the lemniscate's yaw and yaw rate
     ref = RefSample(L["ref_pos"], L["ref_vel"], L["ref_acc"], zeros, zeros)
@@ -128,7 +128,7 @@ def test_fused_kernels_equal_the_readable_components(scene):
     """The compiled sense / actuate passes of one autopilot tick against quat_to_mat,
     perturb_quat (the motion-capture attitude), MocapKalmanFilter, the turbulence law and
     Autopilot, on random states (bit for bit where the arithmetic is the same)."""
-    from core.geometry import perturb_quat, quat_to_mat, yaw_of
+    from downwash_core.geometry import perturb_quat, quat_to_mat, yaw_of
     from sim.simulator import _actuate_kernel, _Sensed, _sense_kernel
 
     W, V = 3, scene.n_vehicles
@@ -206,7 +206,7 @@ def test_rows_are_fresh_and_never_written_again(scene):
 def test_oracle_sees_the_truth_and_per_world_routing_keeps_each_predictor_to_its_worlds():
     """The oracle evaluates the field at the TRUE states whatever the estimates say; PerWorldPredictor
     hands each predictor only its own worlds, estimates and truth alike."""
-    from core.state import VehicleStates
+    from downwash_core.state import VehicleStates
     from sim.field import pairwise_field
     from sim.predictor import PerWorldPredictor, ZeroPredictor
 

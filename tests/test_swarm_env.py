@@ -1,4 +1,4 @@
-"""The multi-agent swarm env (envs.swarm): PettingZoo's API test, determinism, batched == serial,
+"""The multi-agent swarm env (downwash_envs.swarm): PettingZoo's API test, determinism, batched == serial,
 the neighbour observation's properties, zero action == the baseline flight, shared episode ends,
 bad input, the documented table, rendering."""
 
@@ -16,12 +16,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pettingzoo.test import parallel_api_test
 
-import envs.swarm as swarm
+import downwash_envs.swarm as swarm
 from controllers.lqr import FeedbackLinearisedLQR
-from core.errors import ConfigError
-from core.geometry import quat_to_mat
-from core.status import Status
-from envs.swarm import (
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.status import Status
+from downwash_envs.swarm import (
     NEIGHBOUR_DIM,
     OWN_DIM,
     SwarmEnv,
@@ -31,7 +31,7 @@ from envs.swarm import (
     obs_slices,
     parallel_env,
 )
-from envs.task import ERROR_CAP, REWARD_TERMS, task_constants, task_kernel, task_terms
+from downwash_envs.task import ERROR_CAP, REWARD_TERMS, task_constants, task_kernel, task_terms
 from sim.field import DownwashField, pairwise_field
 from sim.flight import fly
 from sim.presets import make_preset
@@ -409,7 +409,7 @@ def test_rendering_frames_the_swarm():
     code = """
         import json
         import numpy as np
-        from envs.swarm import parallel_env, SwarmVectorEnv
+        from downwash_envs.swarm import parallel_env, SwarmVectorEnv
         env = parallel_env(preset="stack3", render_mode="rgb_array", render_width=160, render_height=120)
         env.reset(seed=0)
         env.step({a: np.zeros(3, np.float32) for a in env.agents})

@@ -10,11 +10,11 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core import geometry
-from core.errors import CheckpointError, ConfigError, DataError
-from core.params import LEADER_POSITION
-from core.provenance import differences
-from core.state import VehicleStates
+from downwash_core import geometry
+from downwash_core.errors import CheckpointError, ConfigError, DataError
+from downwash_core.params import LEADER_POSITION
+from downwash_core.provenance import differences
+from downwash_core.state import VehicleStates
 from downwash.checkpoint import save_checkpoint
 from downwash.labels import labels_from_log
 from downwash.predictor import LearnedPredictor
@@ -48,7 +48,7 @@ from sim.logs import save_log
 from sim.scene import build_scene
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from test_features import random_rotations
-from trajectories import Hover, Transect, stack
+from downwash_trajectories import Hover, Transect, stack
 
 LEADER = np.array(LEADER_POSITION)
 LINEAR = {"type": "sim.aggregation.LinearSuperposition", "name": "linear"}

@@ -21,7 +21,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from downwash.sweep import FULL, Claim, SweepGrid, bootstrap_ci, paired_comparison, plan_cells, run_sweep
 from experiments.common import PipelineArgs, parse_args, resolve_pipeline
 

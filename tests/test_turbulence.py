@@ -18,7 +18,7 @@ import math
 import numpy as np
 import pytest
 
-import trajectories
+import downwash_trajectories
 from sim.flight import fly
 from sim.scene import build_scene
 from sim.turbulence import OUTurbulence
@@ -180,8 +180,8 @@ Z_SIM = 4.0  # tolerance in standard errors for the ~2950-row flight
 def _hover_flight(turbulence: OUTurbulence | None = None):
     """The follower hovering 0.6 m directly below a leader hovering at (0, 0, 2.5) m."""
     leader = np.array([0.0, 0.0, 2.5])
-    reference = trajectories.stack(
-        [trajectories.Hover(leader, n_worlds=1), trajectories.Hover(leader - [0.0, 0.0, 0.6], n_worlds=1)]
+    reference = downwash_trajectories.stack(
+        [downwash_trajectories.Hover(leader, n_worlds=1), downwash_trajectories.Hover(leader - [0.0, 0.0, 0.6], n_worlds=1)]
     )
     components = {} if turbulence is None else {"turbulence": turbulence}
     (log,) = fly(build_scene(), reference, [0], FLIGHT_S, **components)

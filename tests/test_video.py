@@ -1,7 +1,7 @@
-"""Videos of flights (`envs.video`): frame timing, tiles, the drawn wake, the mp4 read back,
+"""Videos of flights (`downwash_envs.video`): frame timing, tiles, the drawn wake, the mp4 read back,
 bad inputs, atomic writes, and `--video` on the tracking experiments.
 
-Rendering runs in this process through `envs.rendering.ensure_gl_backend` (EGL when headless);
+Rendering runs in this process through `downwash_envs.rendering.ensure_gl_backend` (EGL when headless);
 a missing backend is a failure here, as in tests/test_env.py.
 """
 
@@ -19,8 +19,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.errors import ConfigError
-from envs.video import CameraView, TiledRenderer, Trajectory, frame_rows, logs_video, render_frames, wake_width, \
+from downwash_core.errors import ConfigError
+from downwash_envs.video import CameraView, TiledRenderer, Trajectory, frame_rows, logs_video, render_frames, wake_width, \
     write_conditions_video, write_video
 from sim.field import DownwashField
 from sim.scene import build_scene
@@ -282,14 +282,14 @@ def _python(code, env_vars=None, cwd=ROOT):
 
 
 def test_tracking_imports_no_writer_without_video_and_checks_video_before_flying(tmp_path):
-    """The default run loads neither imageio nor envs.video; a bad --video path, or no OpenGL
+    """The default run loads neither imageio nor downwash_envs.video; a bad --video path, or no OpenGL
     backend (MUJOCO_GL=disable), is a ConfigError before any flight."""
     proc = _python("""
         import json, sys
         from pathlib import Path
         import experiments.tracking as tracking
-        from core.errors import ConfigError
-        loaded = sorted(m for m in ("imageio", "envs.video") if m in sys.modules)
+        from downwash_core.errors import ConfigError
+        loaded = sorted(m for m in ("imageio", "downwash_envs.video") if m in sys.modules)
         errors = []
         for video in ("v.avi", "v.mp4"):
             try:

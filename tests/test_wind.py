@@ -31,8 +31,8 @@ import scipy.signal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.errors import ConfigError
-from core.provenance import describe
+from downwash_core.errors import ConfigError
+from downwash_core.provenance import describe
 from sim.fields.momentum import MomentumWake
 from sim.wind import DrydenWind, drag_acceleration, wind_at
 

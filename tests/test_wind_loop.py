@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from controllers.lqr import FeedbackLinearisedLQR
-from core.errors import ConfigError
-from core.geometry import quat_to_mat
-from core.params import QUAD
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.params import QUAD
 from sim.estimation import MocapConfig, MocapKalmanFilter
 from sim.field import DownwashField, pairwise_field
 from sim.flight import fly
@@ -15,7 +15,7 @@ from sim.predictor import OraclePredictor
 from sim.scene import build_scene
 from sim.simulator import WIND_STREAM, Simulator, _wind_advance_kernel, _wind_sense_kernel
 from sim.wind import AIRFRAME, DrydenWind, drag_acceleration
-from trajectories import Hover, Lemniscate, stack
+from downwash_trajectories import Hover, Lemniscate, stack
 
 LEADER = np.array([0.0, 0.0, 2.5])
 GUSTY = DrydenWind(mean=(2.0, -1.0, 0.0), w20=6.0)

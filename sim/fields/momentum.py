@@ -84,10 +84,10 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.geometry import dot as _dot
-from core.params import GRAVITY, QUAD
-from core.validate import count, number
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import dot as _dot
+from downwash_core.params import GRAVITY, QUAD
+from downwash_core.validate import count, number
 from sim.wind import AIRFRAME, drag_acceleration
 
 __all__ = ["MomentumWake", "rotor_thrust_ratio", "PROFILE_A"]

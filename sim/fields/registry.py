@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Callable, Mapping
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 from sim.field import DownwashField
 from sim.fields.momentum import MomentumWake
 

@@ -9,7 +9,7 @@
   the paper's future work), in a straight line or around a horizontal circle.
 
 Each serves W worlds (each world may have its own parameters) and has a compiled
-`_sample_into` for stacking (see `trajectories.base`); the tests check every
+`_sample_into` for stacking (see `downwash_trajectories.base`); the tests check every
 derivative against finite differences.
 """
 
@@ -18,10 +18,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
-from core.jit import njit
-from core.validate import positive_float, scalar_or_world, vec3
-from trajectories.base import (
+from downwash_core.errors import ConfigError
+from downwash_core.jit import njit
+from downwash_core.validate import positive_float, scalar_or_world, vec3
+from downwash_trajectories.base import (
     RefSample,
     duration_of,
     empty_sample,

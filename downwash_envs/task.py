@@ -7,7 +7,7 @@ the vector env both run it, and both draw episodes with `draw_episode`, which is
 why the vector env equals a `SyncVectorEnv` of single envs step for step.
 
 The reward and termination are `task_terms` (readable) and its compiled twin
-`task_kernel`, written for A agents so that the swarm env (`envs.swarm`, every
+`task_kernel`, written for A agents so that the swarm env (`downwash_envs.swarm`, every
 follower an agent) runs the same code; here the one agent is the follower. The
 observation is `observation` and its compiled twin `_observe_kernel`.
 
@@ -25,14 +25,14 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from controllers.lqr import FeedbackLinearisedLQR
-from core.jit import njit
-from core.status import Status
-from envs.config import FIELD_KNOBS, FollowerConfig, build_field
-from envs.observation import OBS_DIM, OBS_SLICES, OBSERVATION, obs_bounds
+from downwash_core.jit import njit
+from downwash_core.status import Status
+from downwash_envs.config import FIELD_KNOBS, FollowerConfig, build_field
+from downwash_envs.observation import OBS_DIM, OBS_SLICES, OBSERVATION, obs_bounds
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.scene import Scene, build_scene
 from sim.simulator import Simulator
-from trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
+from downwash_trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
 
 __all__ = [
     "REWARD_TERMS", "INFO_KEYS", "ERROR_CAP", "Episode", "draw_episode", "nominal_episode", "episode_info",
@@ -115,7 +115,7 @@ class StepOutcome(NamedTuple):
     terminated: np.ndarray  # (W,) bool: the status is not OK
     reward: np.ndarray  # (W,): the sum of the reward terms in REWARD_TERMS order
     values: np.ndarray  # (len(INFO_KEYS) - 1, W) float64: INFO_KEYS' reward terms and errors (m, m/s; capped)
-    status: np.ndarray  # (W,) int64 `core.status.Status` codes
+    status: np.ndarray  # (W,) int64 `downwash_core.status.Status` codes
 
     def info(self) -> dict[str, np.ndarray]:
         """INFO_KEYS -> (W,) arrays."""
@@ -262,7 +262,7 @@ class FollowerWorlds:
 
     # ---------------------------------------------------------------- observation
     def observe(self, fresh: bool = True) -> np.ndarray:
-        """(W, OBS_DIM) float64, the layout of `envs.observation.OBSERVATION`, clipped to its bounds.
+        """(W, OBS_DIM) float64, the layout of `downwash_envs.observation.OBSERVATION`, clipped to its bounds.
 
         fresh=False reuses the attitudes and reference of the last step (no reset since).
         """
@@ -377,7 +377,7 @@ def observation(
     pos_est: np.ndarray, vel_est: np.ndarray, rot: np.ndarray, ref: Any, leader: int, follower: int,
     last_action: np.ndarray, low: np.ndarray, high: np.ndarray,
 ) -> np.ndarray:
-    """(W, OBS_DIM): the readable observation in `envs.observation.OBSERVATION`'s layout, clipped to
+    """(W, OBS_DIM): the readable observation in `downwash_envs.observation.OBSERVATION`'s layout, clipped to
     [low, high], NaN (only a diverged world's) read as 0; `FollowerWorlds` runs its compiled twin
     `_observe_kernel`, which a test compares with this bit for bit.
 

@@ -13,10 +13,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.config import FollowerConfig, make_config
-from envs.observation import obs_bounds
-from envs.rendering import Renderer
-from envs.task import FollowerWorlds
+from downwash_envs.config import FollowerConfig, make_config
+from downwash_envs.observation import obs_bounds
+from downwash_envs.rendering import Renderer
+from downwash_envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
 __all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_reset_plan"]

@@ -8,8 +8,8 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
-from envs.config import DEFAULT_MAX_EPISODE_STEPS
-from envs.follower import DownwashFollowerVectorEnv
+from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
+from downwash_envs.follower import DownwashFollowerVectorEnv
 
 __all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"]
 

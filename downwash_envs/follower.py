@@ -1,7 +1,7 @@
-"""The follower envs: `DownwashFollowerEnv` (gymnasium.Env) and `DownwashFollowerVectorEnv`.
+"""The follower downwash_envs: `DownwashFollowerEnv` (gymnasium.Env) and `DownwashFollowerVectorEnv`.
 
-Two thin classes on one engine (`envs.task.FollowerWorlds`, shared through
-`envs.base.FollowerEnvBase`):
+Two thin classes on one engine (`downwash_envs.task.FollowerWorlds`, shared through
+`downwash_envs.base.FollowerEnvBase`):
 
 - `DownwashFollowerEnv`: a `gymnasium.Env` (one world, plain `MjData`).
 - `DownwashFollowerVectorEnv`: a native `gymnasium.vector.VectorEnv` whose worlds
@@ -20,10 +20,10 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from core.validate import count
-from envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, vector_reset_plan
-from envs.config import DEFAULT_MAX_EPISODE_STEPS
-from envs.task import draw_episode, episode_info
+from downwash_core.validate import count
+from downwash_envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, vector_reset_plan
+from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
+from downwash_envs.task import draw_episode, episode_info
 
 __all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
 
@@ -47,7 +47,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     Box, float64, (30,); the vehicle's own knowledge: positions and velocities are
     the Kalman-filtered motion-capture estimates at the observation time, attitudes
     the onboard (true) ones; the reference is sampled at the same time. The layout
-    is `envs.observation.OBSERVATION` (this table is `envs.observation.markdown_table()`,
+    is `downwash_envs.observation.OBSERVATION` (this table is `downwash_envs.observation.markdown_table()`,
     which a test checks):
 
     | index | name            | meaning                                           | unit  | frame | bound |
@@ -86,7 +86,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     ## Episode end
     terminated: collision with the ground or the leader, divergence (NaN, MuJoCo
     instability), or the follower farther than `max_tracking_error` (default 1 m)
-    from its reference (the tracking box). ``info["status"]`` is a `core.status.Status`
+    from its reference (the tracking box). ``info["status"]`` is a `downwash_core.status.Status`
     code: 0 ok, 1 diverged, 2 ground collision, 3 vehicle collision, 4 left the box
     (`Status(code).label` gives the name).
     truncated: by gymnasium's TimeLimit at the registered max_episode_steps.
@@ -98,7 +98,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     and ``velocity_error`` (m/s) (true state, capped), ``status``.
 
     ## Options
-    See `envs.config.FollowerConfig` (every field is a keyword); unknown names raise
+    See `downwash_envs.config.FollowerConfig` (every field is a keyword); unknown names raise
     TypeError naming the allowed ones, bad values ValueError naming the allowed range.
     `reset(options=...)` takes no options. Randomness: every episode draws its
     parameters and its noise seed from `self.np_random`.
@@ -106,7 +106,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     ## Rendering
     ``render_mode="rgb_array"``: `render()` returns a (render_height, render_width, 3)
     uint8 frame; on a headless Linux machine EGL is chosen automatically (see
-    `envs.rendering`).
+    `downwash_envs.rendering`).
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}

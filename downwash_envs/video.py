@@ -1,6 +1,6 @@
 """Videos of flights: one tile per condition, side by side, the leaders' wakes drawn, written as mp4.
 
-    from envs.video import Trajectory, logs_video
+    from downwash_envs.video import Trajectory, logs_video
     logs_video("runs/lemniscate/flight.mp4", scene, {c: clogs[0] for c, clogs in per_condition.items()})
 
 Each tile renders one condition's logged state (an `MjData` set to the logged positions
@@ -29,7 +29,6 @@ import contextlib
 import copy
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping, Sequence
@@ -37,11 +36,12 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 import mujoco
 import numpy as np
 
-from core.errors import ConfigError
-from core.params import RATES
-from core.roles import Role
-from core.validate import count, positive_float
-from envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS, ensure_gl_backend
+from downwash_core.errors import ConfigError
+from downwash_core.io import atomic_path
+from downwash_core.params import RATES
+from downwash_core.roles import Role
+from downwash_core.validate import count, positive_float
+from downwash_envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS, ensure_gl_backend
 from sim.field import DownwashField
 from sim.scene import Scene
 
@@ -57,7 +57,7 @@ _WAKE_RGB = (0.35, 0.6, 1.0)
 _WAKE_ALPHA = (0.28, 0.06)  # at the top and at the bottom of the wake: it weakens with depth
 _PATH_POINTS = 120  # line segments per reference path
 _PATH_RGBA = (0.2, 0.9, 0.2, 1.0)
-_REF_RADIUS = 0.03  # m, the current reference point (as envs.rendering)
+_REF_RADIUS = 0.03  # m, the current reference point (as downwash_envs.rendering)
 _BACKGROUND = 40  # grey level of an unused grid cell
 _SUFFIXES = (".mp4",)
 _GROUND = "ground"  # the scene's floor (sim.scene)
@@ -384,7 +384,7 @@ def render_frames(scene: Scene, trajectories: Sequence[Trajectory], reference: n
                   dt: float = RATES.control_dt, fps: float = 25.0, width: int = 320, height: int = 240,
                   columns: int | None = None, wake_vehicles: Sequence[int] | None = None,
                   wake: tuple[float, float] | None = None) -> Iterator[np.ndarray]:
-    """The video's frames, one at a time: (H, W, 3) uint8, tiles in the order of `trajectories`.
+    """The video's frames, one at a time: (H, W, 3) uint8, tiles in the order of `downwash_trajectories`.
 
     reference: (T_ref, V, 3) m, the vehicles' references on the same `dt` rows (e.g. a log's
     `ref_pos`), or None. The path of every vehicle whose reference moves is drawn, with its
@@ -434,35 +434,30 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: floa
     check_writer()
     import imageio.v2 as imageio
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
     n, shape, writer = 0, None, None
-    try:
-        # macro_block_size 2: yuv420p needs even sizes, and the frames are made even, so none is resized
-        writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=quality,
-                                    pixelformat="yuv420p", macro_block_size=2, ffmpeg_log_level="error")
-        for f in frames:
-            f = np.asarray(f)
-            if f.dtype != np.uint8 or f.ndim != 3 or f.shape[2] != 3 or f.shape[0] % 2 or f.shape[1] % 2:
-                raise ConfigError(f"frame {n}: expected (H, W, 3) uint8 with H and W even, got {f.shape} {f.dtype}")
-            if shape is not None and f.shape != shape:
-                raise ConfigError(f"frame {n}: size {f.shape} differs from the first frame's {shape}")
-            shape = f.shape
-            writer.append_data(f)
-            n += 1
-        writer.close()
-        if n == 0:
-            raise ConfigError("frames: expected one or more frames, got none")
-        os.replace(tmp, path)
-    except BaseException:
-        # close now: imageio's writer left open would finish the file when it is garbage-collected
-        if writer is not None:
-            with contextlib.suppress(Exception):
-                writer.close()
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        try:
+            # macro_block_size 2: yuv420p needs even sizes, and the frames are made even, so none is resized
+            writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=quality,
+                                        pixelformat="yuv420p", macro_block_size=2, ffmpeg_log_level="error")
+            for f in frames:
+                f = np.asarray(f)
+                if f.dtype != np.uint8 or f.ndim != 3 or f.shape[2] != 3 or f.shape[0] % 2 or f.shape[1] % 2:
+                    raise ConfigError(f"frame {n}: expected (H, W, 3) uint8 with H and W even, got {f.shape} {f.dtype}")
+                if shape is not None and f.shape != shape:
+                    raise ConfigError(f"frame {n}: size {f.shape} differs from the first frame's {shape}")
+                shape = f.shape
+                writer.append_data(f)
+                n += 1
+            writer.close()
+            if n == 0:
+                raise ConfigError("frames: expected one or more frames, got none")
+        except BaseException:
+            # close now: imageio's writer left open would finish the file when it is garbage-collected
+            if writer is not None:
+                with contextlib.suppress(Exception):
+                    writer.close()
+            raise
     return n
 
 

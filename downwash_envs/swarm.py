@@ -4,14 +4,14 @@
 `SwarmVectorEnv` steps W such worlds at once on one `mujoco.batch.Batch` and returns
 per-agent arrays with a leading world axis. Both are thin views of one engine,
 `SwarmWorlds` (W = 1 for the ParallelEnv), the multi-agent sibling of
-`envs.task.FollowerWorlds`: the flight is the full stack of `sim.simulator.Simulator`
+`downwash_envs.task.FollowerWorlds`: the flight is the full stack of `sim.simulator.Simulator`
 on a `sim.presets` scene, every vehicle's wake acting on every other vehicle and
 combined by the aggregation law (`sim.aggregation`). World k of
 `SwarmVectorEnv.reset(seed=s)` is, bit for bit, `SwarmEnv.reset(seed=s + k)` (a test).
 
 Example::
 
-    from envs.swarm import parallel_env, SwarmVectorEnv
+    from downwash_envs.swarm import parallel_env, SwarmVectorEnv
 
     env = parallel_env(preset="stack3", field="so2")
     obs, infos = env.reset(seed=0)                      # {"bravo": (41,), "charlie": (41,)}
@@ -35,7 +35,7 @@ missing or an unknown agent raise ValueError before any stepping.
 Box, float64, (21 + 10 K,) per agent, K = `max_neighbours` (default: every other
 vehicle, V - 1). Positions and velocities are the vehicles' Kalman-filtered
 motion-capture estimates, attitudes the onboard (true) ones, as in the single env
-(whose entries the own block reuses, `envs.observation.OBSERVATION`). Then K
+(whose entries the own block reuses, `downwash_envs.observation.OBSERVATION`). Then K
 neighbour slots, one per other vehicle (the leader included), nearest first by the
 estimated distance |dp| (ties in scene order); slots beyond the V - 1 others are
 padding, all zero with mask 0; with K < V - 1 only the K nearest are seen. Slot k
@@ -59,8 +59,8 @@ table is `markdown_table()` (a test checks it):
 Entries are clipped to their bound; a diverged world's NaN reads 0.
 
 ## Reward
-Per agent, the single env's terms (`envs.task.REWARD_TERMS`, same default weights),
-each in ``info["reward_<term>"]`` and summed in that order (as `envs.task.task_terms`): alive bonus,
+Per agent, the single env's terms (`downwash_envs.task.REWARD_TERMS`, same default weights),
+each in ``info["reward_<term>"]`` and summed in that order (as `downwash_envs.task.task_terms`): alive bonus,
 -w_p |e_p|, -w_v |e_v| (agent's true position / velocity error, capped at 10),
 -w_a |a|^2 / b^2, -w_da |a - a_prev|^2 / b^2, and the termination penalty. The world
 is shared, so its end is shared: every agent loses the alive bonus and pays the
@@ -76,7 +76,7 @@ round(duration * control_hz) steps. The ParallelEnv then empties `agents`.
 ## Info
 reset: ``sim_seed`` (the world's noise seed) and ``phase`` (s, the start time within
 the preset's references; 0 unless `random_phase`). step: the reward terms,
-``position_error`` (m), ``velocity_error`` (m/s), ``status`` (a `core.status.Status`
+``position_error`` (m), ``velocity_error`` (m/s), ``status`` (a `downwash_core.status.Status`
 code), and the true downwash on the agent during the step's first autopilot tick
 (the flight log row's): ``field_mean`` and ``field_applied`` (mean + turbulence),
 (3,) m/s^2, world frame.
@@ -87,17 +87,17 @@ code), and the true downwash on the agent during the step's first autopilot tick
 docs/fields.md) or object; `aggregation`: a `sim.aggregation` law spec ("linear", ...);
 `max_neighbours`: K in 1-7 (None: V - 1); `duration`: s; `random_phase`: start each
 episode at a drawn time of the preset's period (a custom `Preset` must then keep its
-vehicles apart over the whole period, as the built-in ones do); and these `envs.config.FollowerConfig`
+vehicles apart over the whole period, as the built-in ones do); and these `downwash_envs.config.FollowerConfig`
 options, validated there: action_bound, control_hz, predictor ("none" | "oracle"),
 max_tracking_error, the reward weights, sim_config, lqr, turbulence, render_width,
-render_height. Unknown names raise TypeError, bad values `core.errors.ConfigError`,
+render_height. Unknown names raise TypeError, bad values `downwash_core.errors.ConfigError`,
 both before anything is built. `reset(options=...)`: the ParallelEnv takes none (any
 given are ignored with a warning: PettingZoo's API test passes some), the vector env
 ``{"reset_mask": (W,) bool}``.
 
 ## Rendering
 ``render_mode="rgb_array"``: one (render_height, render_width, 3) uint8 frame per
-world (`envs.rendering`, EGL picked when headless), the camera framing the leader and
+world (`downwash_envs.rendering`, EGL picked when headless), the camera framing the leader and
 the vehicle farthest from it; the leader is tinted orange, bravo cyan.
 
 Not provided: a global `state()` for centralised critics, and an AEC (`env()`) form.
@@ -119,23 +119,23 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from controllers.lqr import FeedbackLinearisedLQR
-from core.errors import ConfigError
-from core.jit import njit
-from core.provenance import describe
-from core.roles import MAX_VEHICLES, Role
-from core.status import Status
-from core.validate import count, number
-from envs.base import RENDER_MODES, vector_reset_plan
-from envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
-from envs.observation import OBSERVATION, ObsEntry
-from envs.rendering import Renderer
-from envs.task import REWARD_TERMS, squared_norm, task_constants, task_kernel
+from downwash_core.errors import ConfigError
+from downwash_core.jit import njit
+from downwash_core.provenance import describe
+from downwash_core.roles import MAX_VEHICLES, Role
+from downwash_core.status import Status
+from downwash_core.validate import count, number
+from downwash_envs.base import RENDER_MODES, vector_reset_plan
+from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
+from downwash_envs.observation import OBSERVATION, ObsEntry
+from downwash_envs.rendering import Renderer
+from downwash_envs.task import REWARD_TERMS, squared_norm, task_constants, task_kernel
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.presets import Preset, make_preset
 from sim.scene import Scene, build_scene
 from sim.simulator import Simulator
-from trajectories import Cached, TimeShifted
+from downwash_trajectories import Cached, TimeShifted
 
 __all__ = [
     "SHARED_OPTIONS", "OWN_OBSERVATION", "NEIGHBOUR_OBSERVATION", "OWN_DIM", "NEIGHBOUR_DIM",
@@ -145,7 +145,7 @@ __all__ = [
     "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env",
 ]  # fmt: skip
 
-# The FollowerConfig options that mean the same here (validated by envs.config); the
+# The FollowerConfig options that mean the same here (validated by downwash_envs.config); the
 # single env's reference, separation, knobs and randomisations do not apply to a preset.
 SHARED_OPTIONS = (
     "action_bound", "control_hz", "predictor", "max_tracking_error", *REWARD_WEIGHTS,
@@ -366,7 +366,7 @@ class SwarmConfig:
 
     preset: the resolved `sim.presets.Preset`; aggregation: a `sim.aggregation` spec, law: its law;
     max_neighbours: K; duration: s, truncation time; random_phase: draw the start time;
-    task: the shared options as an `envs.config.FollowerConfig` (its other fields are
+    task: the shared options as an `downwash_envs.config.FollowerConfig` (its other fields are
     its defaults and unused); field: the field object.
     """
 
@@ -432,7 +432,7 @@ def make_swarm_config(
         raise ConfigError(f"aggregation: {aggregation!r} needs the simulator's aggregation slot; allowed: linear")
     V = preset.n_vehicles
     K = V - 1 if max_neighbours is None else count("max_neighbours", max_neighbours, 1, MAX_VEHICLES - 1)
-    task = make_config({"field": field, **options})  # the shared options, checked by envs.config
+    task = make_config({"field": field, **options})  # the shared options, checked by downwash_envs.config
     if duration is None:
         duration = float(preset.duration)
     else:

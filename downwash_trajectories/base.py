@@ -13,9 +13,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
-from core.state import RefSample
-from core.validate import count
+from downwash_core.errors import ConfigError
+from downwash_core.state import RefSample
+from downwash_core.validate import count
 
 __all__ = ["RefSample", "Reference", "resolve_n_worlds", "leading_sizes", "sample_times", "zero_yaw",
            "duration_of", "empty_sample", "single"]

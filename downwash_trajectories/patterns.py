@@ -9,15 +9,17 @@ Randomness only through the `numpy.random.Generator` passed in.
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
-from core.validate import count, ordered_range, positive_float, vec3
-from trajectories.combinators import Mixed, StackedReference, stack
-from trajectories.primitives import MIN_JERK_PEAK, Hover, Lemniscate, Waypoints
+from downwash_core.errors import ConfigError
+from downwash_core.validate import count, ordered_range, positive_float, vec3
+from downwash_trajectories.combinators import Mixed, StackedReference, stack
+from downwash_trajectories.primitives import MIN_JERK_PEAK, Hover, Lemniscate, Waypoints
 
 __all__ = ["SPEED_RANGE", "LEMNISCATE_SHARE", "random_passes", "collection_reference"]
 
@@ -132,7 +134,7 @@ def random_passes(
             return dur
 
         def reposition(p: np.ndarray) -> float:
-            dist = float(np.linalg.norm(p - pts[-1]))
+            dist = math.dist(p, pts[-1])  # not np.linalg.norm: a BLAS dot, CPU-dependent bits
             return move_to(p, max(MIN_JERK_PEAK * dist / reposition_speed, min_move_time), "reposition")
 
         if st is not None:
@@ -164,7 +166,7 @@ def random_passes(
                 else:
                     pts.append(p_a)
                     dwl.append(0.0)
-                dist = float(np.linalg.norm(p_b - p_a))
+                dist = math.dist(p_b, p_a)
                 total += move_to(p_b, MIN_JERK_PEAK * dist / speed, "pass")
             n_items += 1
         all_pts.append(np.array(pts))

@@ -16,7 +16,7 @@ from types import ModuleType
 
 import numpy as np
 
-from core.jit import njit
+from downwash_core.jit import njit
 
 __all__ = [
     "dot",
@@ -34,9 +34,16 @@ __all__ = [
 
 
 def dot(a, b, xp: ModuleType = np):
-    """Dot product over the last axis (...,): one generalised-ufunc call (np.vecdot,
-    torch.linalg.vecdot), whose per-row sum has the same order whatever the batch size."""
-    return np.vecdot(a, b) if xp is np else xp.linalg.vecdot(a, b)
+    """Dot product over the last axis (...,), summed component by component in index order.
+
+    Not np.vecdot or torch.linalg.vecdot: their inner loops are BLAS or SIMD kernels that
+    each CPU sums in its own order, and a flight must have the same bits on every CPU
+    (`downwash_core.numerics`). This order is the compiled kernels' (`a0 b0 + a1 b1 + a2 b2`), and
+    it is the same whatever the batch size."""
+    total = a[..., 0] * b[..., 0]
+    for k in range(1, a.shape[-1]):
+        total = total + a[..., k] * b[..., k]
+    return total
 
 
 def quat_to_mat(quat, xp: ModuleType = np):

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
+from downwash_core.errors import ConfigError
 
 __all__ = [
     "choice",

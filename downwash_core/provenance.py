@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.io import to_json
+from downwash_core.errors import ConfigError
+from downwash_core.io import to_json
 
 __all__ = ["KEY_EXCLUDES", "describe", "fingerprint", "differences", "code_version"]
 

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
-from core.validate import choice
-from trajectories.base import Reference
-from trajectories.primitives import Circle, Hover, Lemniscate, Line, Transect
+from downwash_core.errors import ConfigError
+from downwash_core.validate import choice
+from downwash_trajectories.base import Reference
+from downwash_trajectories.primitives import Circle, Hover, Lemniscate, Line, Transect
 
 __all__ = ["REFERENCES", "REFERENCE_KWARGS", "make_reference"]
 

@@ -6,9 +6,9 @@ through or beside the leader's wake, flying the full stack of `sim.simulator`
 ground-truth downwash field with turbulence). The agent commands the follower's
 acceleration once per controller period.
 
-Importing `envs` registers the ids with gymnasium and imports nothing else (no
+Importing `downwash_envs` registers the ids with gymnasium and imports nothing else (no
 MuJoCo, no torch: the entry points are strings). Without a prior import, use the
-module-qualified id ``gymnasium.make("envs:DownwashFollower-v0")``; the former
+module-qualified id ``gymnasium.make("downwash_envs:DownwashFollower-v0")``; the former
 ``"sim:DownwashFollower-v0"`` still works.
 
 - ``DownwashFollower-v0``: the paper's lemniscate beneath the leader, 0.6 m below
@@ -16,11 +16,11 @@ module-qualified id ``gymnasium.make("envs:DownwashFollower-v0")``; the former
 - ``DownwashFollowerPasses-v0``: randomised passes and hovers through and beside
   the wake (the staged data collection's patterns), 0.5-1.2 m below, 1000 steps.
 
-Every option of `envs.config.FollowerConfig` is a `make` keyword; `action_mode` is
+Every option of `downwash_envs.config.FollowerConfig` is a `make` keyword; `action_mode` is
 ``"residual"`` (default) or ``"acceleration"``. Example::
 
     import gymnasium as gym
-    import envs  # registers the ids
+    import downwash_envs  # registers the ids
 
     env = gym.make("DownwashFollower-v0", action_mode="residual", separation=0.5)
     obs, info = env.reset(seed=0)
@@ -37,24 +37,24 @@ Every option of `envs.config.FollowerConfig` is a `make` keyword; `action_mode` 
 The built-in LQR with and without the oracle (action 0 in residual mode; the
 oracle is the env option ``predictor="oracle"``)::
 
-    from envs import evaluate_lqr
+    from downwash_envs import evaluate_lqr
     base = evaluate_lqr(oracle=False, seed=0)
     oracle = evaluate_lqr(oracle=True, seed=0)
     print(base["pos_err_3d_mean"], oracle["pos_err_3d_mean"])
 
 Modules (one role each):
 
-- `envs.config`: `FollowerConfig` (the options), `make_config`, allowed values
-- `envs.observation`: the observation layout, its bounds and its markdown table
-- `envs.task`: episodes, the batched task (`FollowerWorlds`): observation, reward, termination
-- `envs.rendering`: offscreen frames (EGL chosen automatically when headless)
-- `envs.base`: what the single and the vector env share
-- `envs.follower`: `DownwashFollowerEnv` and `DownwashFollowerVectorEnv`
-- `envs.evaluation`: `evaluate_lqr` and the env speed benchmarks
-- `envs.swarm`: the multi-agent env (PettingZoo `SwarmEnv` via `parallel_env`, batched `SwarmVectorEnv`)
-- `envs.video`: mp4 of flights, conditions side by side, the wake drawn
+- `downwash_envs.config`: `FollowerConfig` (the options), `make_config`, allowed values
+- `downwash_envs.observation`: the observation layout, its bounds and its markdown table
+- `downwash_envs.task`: episodes, the batched task (`FollowerWorlds`): observation, reward, termination
+- `downwash_envs.rendering`: offscreen frames (EGL chosen automatically when headless)
+- `downwash_envs.base`: what the single and the vector env share
+- `downwash_envs.follower`: `DownwashFollowerEnv` and `DownwashFollowerVectorEnv`
+- `downwash_envs.evaluation`: `evaluate_lqr` and the env speed benchmarks
+- `downwash_envs.swarm`: the multi-agent env (PettingZoo `SwarmEnv` via `parallel_env`, batched `SwarmVectorEnv`)
+- `downwash_envs.video`: mp4 of flights, conditions side by side, the wake drawn
 
-The public names of these modules are also attributes of `envs`, imported on first use.
+The public names of these modules are also attributes of `downwash_envs`, imported on first use.
 """
 
 from __future__ import annotations
@@ -77,26 +77,26 @@ for _id, (_kwargs, _steps) in _SPECS.items():
     if _id not in _registry:  # re-imports (importlib.reload) must not warn about overriding
         _register(
             id=_id,
-            entry_point="envs.follower:DownwashFollowerEnv",
-            vector_entry_point="envs.follower:DownwashFollowerVectorEnv",
+            entry_point="downwash_envs.follower:DownwashFollowerEnv",
+            vector_entry_point="downwash_envs.follower:DownwashFollowerVectorEnv",
             max_episode_steps=_steps,
             kwargs=_kwargs,
         )
 del _id, _kwargs, _steps
 
 # public name -> the module that defines it; imported on first access (PEP 562), so that
-# `import envs` stays light
+# `import downwash_envs` stays light
 _LAZY = {
-    **dict.fromkeys(("DownwashFollowerEnv", "DownwashFollowerVectorEnv"), "envs.follower"),
-    **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "envs.evaluation"),
-    **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "envs.observation"),
-    **dict.fromkeys(("REWARD_TERMS",), "envs.task"),
-    **dict.fromkeys(("SwarmEnv", "SwarmVectorEnv", "parallel_env"), "envs.swarm"),  # needs the multiagent extra
-    **dict.fromkeys(("logs_video", "write_conditions_video"), "envs.video"),  # needs the video extra
+    **dict.fromkeys(("DownwashFollowerEnv", "DownwashFollowerVectorEnv"), "downwash_envs.follower"),
+    **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "downwash_envs.evaluation"),
+    **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "downwash_envs.observation"),
+    **dict.fromkeys(("REWARD_TERMS",), "downwash_envs.task"),
+    **dict.fromkeys(("SwarmEnv", "SwarmVectorEnv", "parallel_env"), "downwash_envs.swarm"),  # needs the multiagent extra
+    **dict.fromkeys(("logs_video", "write_conditions_video"), "downwash_envs.video"),  # needs the video extra
     **dict.fromkeys((
         "FollowerConfig", "make_config", "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS",
         "CONTROL_HZ_ALLOWED", "DEFAULT_MAX_EPISODE_STEPS", "DEFAULT_FIELD_RANDOMIZATION", "FIELD_RANDOMIZABLE",
-    ), "envs.config"),
+    ), "downwash_envs.config"),
 }  # fmt: skip
 
 __all__ = ["ENV_IDS", *_LAZY]
@@ -105,7 +105,7 @@ __all__ = ["ENV_IDS", *_LAZY]
 def __getattr__(name: str) -> Any:
     module = _LAZY.get(name)
     if module is None:
-        raise AttributeError(f"module 'envs' has no attribute {name!r}")
+        raise AttributeError(f"module 'downwash_envs' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value  # later lookups skip this function
     return value

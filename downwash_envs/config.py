@@ -2,7 +2,7 @@
 
 Every field of `FollowerConfig` is a `gymnasium.make` keyword. `make_config` turns
 keyword options into a validated config: an unknown name raises TypeError listing
-the allowed ones, a bad value `core.errors.ConfigError` (a ValueError) naming the
+the allowed ones, a bad value `downwash_core.errors.ConfigError` (a ValueError) naming the
 option and its allowed range, before anything is built.
 """
 
@@ -17,15 +17,15 @@ from typing import Any, Mapping
 import numpy as np
 
 from controllers.lqr import LQRConfig
-from core.errors import ConfigError
-from core.params import LEADER_POSITION, SEPARATION_RANGE
-from core.validate import choice, count, number, pair
+from downwash_core.errors import ConfigError
+from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
+from downwash_core.validate import choice, count, number, pair
 from sim.field import DownwashField, check_field
 from sim.fields.registry import FIELDS, resolve_field_spec
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
-from trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
-from trajectories import make_reference, random_passes
+from downwash_trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
+from downwash_trajectories import make_reference, random_passes
 
 __all__ = [
     "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS", "CONTROL_HZ_ALLOWED",
@@ -39,13 +39,13 @@ PREDICTORS = ("none", "oracle")
 DEFAULT_ACTION_BOUND = MappingProxyType({"residual": 5.0, "acceleration": 10.0})  # m/s^2, per axis
 MAX_ACTION_BOUND = 20.0  # m/s^2, largest accepted action_bound
 # Hz, controller (= env step) rates offered; those dividing the autopilot grid (100 Hz
-# with the default core.params.RATES: all of them) are accepted.
+# with the default downwash_core.params.RATES: all of them) are accepted.
 CONTROL_HZ_ALLOWED = (10, 20, 25, 50, 100)
 MIN_FOLLOWER_HEIGHT = 0.3  # m, the lowest reference height a leader position / separation may give
 DEFAULT_MAX_EPISODE_STEPS = 500  # env steps (10 s at 50 Hz)
 
 # Shape parameters each reference accepts in `reference_kwargs`: those of
-# `trajectories.make_reference`, plus "passes" (per-episode `random_passes` patterns), whose
+# `downwash_trajectories.make_reference`, plus "passes" (per-episode `random_passes` patterns), whose
 # parameters are random_passes' keywords except those the env sets itself.
 _PASSES_SET_BY_ENV = ("rng", "n_worlds", "center", "depth_range", "n_segments", "start")
 REFERENCE_KWARGS = MappingProxyType({
@@ -86,7 +86,7 @@ class FollowerConfig:
             acceleration; allowed (0, 20]). Actions outside are clipped.
         reference: "hover" | "lemniscate" | "transect" | "passes" (the follower's path).
         reference_kwargs: shape parameters of the reference, passed to
-            `trajectories`: hover {offset (3,) m from the point below the
+            `downwash_trajectories`: hover {offset (3,) m from the point below the
             leader}; lemniscate {half_length, half_width (m), period (s)}; transect
             {x_offset, half_length (m), period (s)}; passes {speed_range (m/s),
             max_offset, pass_half_length (m), duration (s, default 60; afterwards the

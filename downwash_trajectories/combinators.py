@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from core.errors import ConfigError
-from trajectories.base import RefSample, Reference, empty_sample, sample_times
+from downwash_core.errors import ConfigError
+from downwash_trajectories.base import RefSample, Reference, empty_sample, sample_times
 
 __all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached", "Offset"]
 
@@ -105,7 +105,7 @@ class TimeShifted:
         self.n_worlds = ref.n_worlds
         self.duration = ref.duration
         into = getattr(ref, "_sample_into", None)
-        if into is not None:  # stacked: write the slots in place too (see trajectories.base)
+        if into is not None:  # stacked: write the slots in place too (see downwash_trajectories.base)
             self._sample_into = lambda t, vec, ang, v: into(t + self.t0, vec, ang, v)
 
     def __call__(self, t: Any) -> RefSample:

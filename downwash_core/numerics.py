@@ -1,0 +1,54 @@
+"""Numbers that come out the same on every CPU.
+
+OpenBLAS and LAPACK pick their kernels per CPU (`OPENBLAS_CORETYPE` says which), and
+different kernels sum in different orders: a Riccati solve gives gains that differ in
+their last bits from one machine to the next. A flight is chaotic enough to carry
+such a bit to every later sample. So:
+
+- the per-step kernels call no BLAS: their small products are explicit loops in the
+  compiled kernels, and `matmul_rows`, `matvec` and `downwash_core.geometry.dot` (elementwise
+  NumPy in a fixed order, whose results IEEE 754 fixes) in the readable ones;
+- a gain solved once at set-up goes through `cpu_independent`, which rounds it to
+  float32 precision (24 significant bits, about 7 digits). Two kernels' answers differ
+  by a few float64 ulps, about 2^-27 of a float32 step, so they round to the same
+  value except with a probability of about 1e-8 per number; the gain itself moves by
+  at most 3e-8 of its value, far below anything a flight can feel. Entries below
+  1e-9 of the largest are the solve's round-off where the answer is zero (a
+  decoupled gain's off-diagonal blocks), different on every CPU: they become 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ROUND_OFF", "cpu_independent", "matmul_rows", "matvec"]
+
+
+ROUND_OFF = 1e-9  # relative to the largest entry: smaller entries are a solve's round-off
+
+
+def cpu_independent(x) -> np.ndarray:
+    """`x` as float64, rounded to the nearest float32, round-off zeroed: the same bits
+    whichever BLAS kernel made it."""
+    x = np.asarray(x, dtype=np.float64)
+    scale = float(np.max(np.abs(x))) if x.size else 0.0
+    x = np.where(np.abs(x) < ROUND_OFF * scale, 0.0, x)
+    return x.astype(np.float32).astype(np.float64)
+
+
+def matmul_rows(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """`x @ m` for x (..., n) and m (n, k), summed over n in index order (the compiled
+    kernels' order), with no BLAS: the same bits on every CPU."""
+    acc = x[..., 0, None] * m[0]
+    for i in range(1, m.shape[0]):
+        acc = acc + x[..., i, None] * m[i]
+    return acc
+
+
+def matvec(m: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """`(m @ x[..., None])[..., 0]` for m (..., k, n) and x (..., n), summed over n in index
+    order, with no BLAS: the same bits on every CPU."""
+    acc = m[..., :, 0] * x[..., None, 0]
+    for i in range(1, m.shape[-1]):
+        acc = acc + m[..., :, i] * x[..., None, i]
+    return acc
