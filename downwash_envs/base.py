@@ -25,10 +25,11 @@ RENDER_MODES = ("rgb_array",)
 
 
 def make_spaces(cfg: FollowerConfig) -> tuple[spaces.Box, spaces.Box]:
-    """(observation Box (OBS_DIM,) float64, action Box (3,) float32 m/s^2) of one world."""
+    """(observation Box (OBS_DIM,) float32, action Box [-1, 1]^3 float32) of one world; an action
+    of 1 is `cfg.bound` m/s^2."""
     low, high = obs_bounds(cfg.bound)
-    obs = spaces.Box(low, high, dtype=np.float64)
-    act = spaces.Box(-cfg.bound, cfg.bound, shape=(3,), dtype=np.float32)
+    obs = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+    act = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
     return obs, act
 
 
@@ -67,7 +68,8 @@ def vector_reset_plan(n_worlds: int, seed: Any, options: Mapping[str, Any] | Non
 class FollowerEnvBase:
     """Shared state: `config`, `render_mode`, `metadata["render_fps"]`, `_worlds`, `_renderer`.
 
-    The env class defines `metadata` (with ``"render_modes": RENDER_MODES``).
+    The env class defines `metadata` (with ``"render_modes": RENDER_MODES``, plus ``"human"`` for
+    MuJoCo's interactive viewer, `downwash_envs.viewer`, whose window `_renderer` then holds).
     """
 
     config: FollowerConfig
@@ -75,8 +77,14 @@ class FollowerEnvBase:
 
     def _setup(self, options: Mapping[str, Any], render_mode: str | None, n_worlds: int, n_threads: int = 0) -> None:
         """Validate the options and the render mode, build the task; the spaces are the caller's."""
-        if render_mode is not None and render_mode not in RENDER_MODES:
-            raise ValueError(f"render_mode: got {render_mode!r}; allowed: None, {', '.join(RENDER_MODES)}")
+        modes = type(self).metadata.get("render_modes", RENDER_MODES)  # "human" where the class lists it
+        if render_mode is not None and render_mode not in modes:
+            raise ValueError(f"render_mode: got {render_mode!r}; allowed: None, {', '.join(modes)}")
+        if render_mode == "human":  # MuJoCo's viewer (downwash_envs.viewer): no display fails here, before any work
+            from downwash_envs import viewer
+
+            viewer.check_display("render_mode='human'")
+            viewer.render_on_step(self)
         self.config = cfg = make_config(options)
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": cfg.control_hz}  # one frame per env step
@@ -97,6 +105,13 @@ class FollowerEnvBase:
         """One (height, width, 3) uint8 frame per world; None (and a warning) without a render_mode."""
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
+            return None
+        if self.render_mode == "human":  # the window shows the first world; render() returns None
+            if self._renderer is None:
+                from downwash_envs.viewer import Viewer
+
+                self._renderer = Viewer.of_simulator(self._worlds.sim, what="render_mode='human'")
+            self._renderer.show_world(self._worlds.sim, worlds[0], pace=self.dt)
             return None
         if self._renderer is None:
             self._renderer = Renderer(self._worlds.scene, self.config.render_width, self.config.render_height)

@@ -73,11 +73,11 @@ def _best_rate(fn: Callable[[], int], repeats: int) -> float:
 
 
 def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int = 0, **options: Any) -> float:
-    """Env steps per wall second of one `gymnasium.make("DownwashFollower-v0")` (with its
+    """Env steps per wall second of one `gymnasium.make("downwash/Follower-v1")` (with its
     wrappers), random actions, resets included; the best of `repeats` runs. The actions are
     drawn from the action space before the clock starts: the env's cost, not the sampler's
     (`Box.sample` alone costs about a third of an env step)."""
-    env = gym.make("DownwashFollower-v0", **options)
+    env = gym.make("downwash/Follower-v1", **options)
     env.action_space.seed(seed)
     actions = [env.action_space.sample() for _ in range(n_steps)]
     env.reset(seed=seed)
@@ -100,7 +100,7 @@ def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: i
     """Env steps (summed over worlds) per wall second of the native vector env
     (`gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`), random actions drawn
     before the clock starts, autoresets included; the best of `repeats` runs."""
-    envs = gym.make_vec("DownwashFollower-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
+    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
     envs.action_space.seed(seed)
     actions = [envs.action_space.sample() for _ in range(n_steps)]
     envs.reset(seed=seed)

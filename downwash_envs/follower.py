@@ -32,9 +32,10 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     """The follower tracks a reference below a hovering leader, in the leader's downwash.
 
     ## Actions
-    Box(-b, b, (3,), float32), m/s^2, world frame (z up), b = `action_bound`
-    (default 5 in residual mode, 10 in acceleration mode); clipped to the box; NaN,
-    inf or a wrong shape raise ValueError before any stepping.
+    Box(-1, 1, (3,), float32), world frame (z up), normalised: action x b is the
+    acceleration in m/s^2, b = `action_bound` (default 5 in residual mode, 10 in
+    acceleration mode); clipped to the box; NaN, inf or a wrong shape raise ValueError
+    before any stepping.
 
     - ``residual``: added to the follower's LQR acceleration command
       `u = a_ref - K (x - x_ref) - f_hat`; action 0 is the plain LQR (the
@@ -44,7 +45,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
       tilt limited to 35 deg, vertical specific force >= 0.25 g).
 
     ## Observation
-    Box, float64, (30,); the vehicle's own knowledge: positions and velocities are
+    Box, float32, (30,); the vehicle's own knowledge: positions and velocities are
     the Kalman-filtered motion-capture estimates at the observation time, attitudes
     the onboard (true) ones; the reference is sampled at the same time. The layout
     is `downwash_envs.observation.OBSERVATION` (this table is `downwash_envs.observation.markdown_table()`,
@@ -107,6 +108,13 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     ``render_mode="rgb_array"``: `render()` returns a (render_height, render_width, 3)
     uint8 frame; on a headless Linux machine EGL is chosen automatically (see
     `downwash_envs.rendering`).
+
+    ## Version history
+    - v1: ids in the ``downwash`` namespace (``downwash/Follower-v1``,
+      ``downwash/FollowerPasses-v1``); observations float32; actions normalised to
+      [-1, 1] (x `action_bound` m/s^2); flights bit-identical on every CPU.
+    - v0 (``DownwashFollower-v0``, ``DownwashFollowerPasses-v0``): float64 observations,
+      actions in m/s^2.
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}

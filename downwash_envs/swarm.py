@@ -1,6 +1,7 @@
 """A multi-agent swarm env: every follower of an N-vehicle preset is an agent (PettingZoo).
 
-`SwarmEnv` is a `pettingzoo.ParallelEnv` (make it with `parallel_env(...)`);
+`SwarmEnv` is a `pettingzoo.ParallelEnv` (make it with `parallel_env(...)`, or `env(...)`
+for PettingZoo's AEC API);
 `SwarmVectorEnv` steps W such worlds at once on one `mujoco.batch.Batch` and returns
 per-agent arrays with a leading world axis. Both are thin views of one engine,
 `SwarmWorlds` (W = 1 for the ParallelEnv), the multi-agent sibling of
@@ -14,25 +15,27 @@ Example::
     from downwash_envs.swarm import parallel_env, SwarmVectorEnv
 
     env = parallel_env(preset="stack3", field="so2")
-    obs, infos = env.reset(seed=0)                      # {"bravo": (41,), "charlie": (41,)}
+    obs, infos = env.reset(seed=0)                      # {"follower_0": (41,), "follower_1": (41,)}
     while env.agents:
         actions = {a: env.action_space(a).sample() for a in env.agents}
         obs, rewards, terminations, truncations, infos = env.step(actions)
 
     vec = SwarmVectorEnv(64, preset="stack3")
-    obs, infos = vec.reset(seed=0)                      # {"bravo": (64, 41), ...}
+    obs, infos = vec.reset(seed=0)                      # {"follower_0": (64, 41), ...}
     obs, rewards, terminations, truncations, infos = vec.step({a: np.zeros((64, 3)) for a in vec.agents})
 
 ## Agents and actions
-The agents are the preset's followers, by vehicle name (`stack3`: bravo, charlie);
-the top vehicle, the leader, flies its plain LQR. An agent's action is Box(-b, b, (3,),
-float32), m/s^2, world frame: a residual acceleration added to its LQR command, as
-the single env's residual mode (b = `action_bound`, default 5); action 0 is the
-baseline controller. Actions are clipped to the box; NaN, inf, a wrong shape, a
+The agents are the preset's followers, named by role and rank in scene order
+(`stack3`: follower_0 = bravo, follower_1 = charlie), so that libraries which group
+agents by name (TorchRL, BenchMARL) put them in one group; the top vehicle, the
+leader, flies its plain LQR. An agent's action is Box(-1, 1, (3,), float32), world
+frame, normalised: a residual acceleration of action x b m/s^2 added to its LQR
+command, as the single env's residual mode (b = `action_bound`, default 5); action 0
+is the baseline controller. Actions are clipped to the box; NaN, inf, a wrong shape, a
 missing or an unknown agent raise ValueError before any stepping.
 
 ## Observation
-Box, float64, (21 + 10 K,) per agent, K = `max_neighbours` (default: every other
+Box, float32, (21 + 10 K,) per agent, K = `max_neighbours` (default: every other
 vehicle, V - 1). Positions and velocities are the vehicles' Kalman-filtered
 motion-capture estimates, attitudes the onboard (true) ones, as in the single env
 (whose entries the own block reuses, `downwash_envs.observation.OBSERVATION`). Then K
@@ -142,7 +145,7 @@ __all__ = [
     "observation_layout", "obs_dim", "obs_slices", "obs_bounds", "markdown_table",
     "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
     "draw_swarm_episode",
-    "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env",
+    "agent_names", "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env", "env",
 ]  # fmt: skip
 
 # The FollowerConfig options that mean the same here (validated by downwash_envs.config); the
@@ -472,6 +475,20 @@ def _scene(vehicles: tuple[tuple[str, Role], ...]) -> Scene:
 # ----------------------------------------------------------------------------- the batched task
 
 
+def agent_names(preset: Any, vehicles: Sequence[str]) -> tuple[str, ...]:
+    """The agents' names by role and rank, `follower_0`, `follower_1`, ... in scene order: the
+    vehicles' own names (bravo, charlie) would put each agent in a group of its own in
+    libraries that group agents by the prefix before the last `_` (TorchRL, BenchMARL)."""
+    role_of = {name: role.value for name, role in preset.vehicles}
+    counts: dict[str, int] = {}
+    names = []
+    for v in vehicles:
+        role = role_of[v]
+        names.append(f"{role}_{counts.get(role, 0)}")
+        counts[role] = counts.get(role, 0) + 1
+    return tuple(names)
+
+
 class SwarmWorlds:
     """W worlds of the swarm task on one Simulator: per-world episodes, batched obs and reward.
 
@@ -484,8 +501,8 @@ class SwarmWorlds:
         self.W = W = int(n_worlds)
         preset, task = cfg.preset, cfg.task
         self.scene = scene = _scene(tuple(preset.vehicles))
-        self.agents = cfg.agents
-        self.agent_index = np.array([scene.vehicles.index(a) for a in self.agents], dtype=np.int64)
+        self.agent_index = np.array([scene.vehicles.index(a) for a in cfg.agents], dtype=np.int64)
+        self.agents = agent_names(preset, cfg.agents)
         base = task.sim_base
         per_control = int(round(1.0 / (base.rates.autopilot_dt * task.control_hz)))
         rates = dataclasses.replace(base.rates, autopilot_per_control=per_control)
@@ -560,18 +577,20 @@ class SwarmWorlds:
                     out[:, i] = self._check_one(agent, actions[agent], shape)
         else:
             out = out.reshape(self.W, A, 3)
-        return np.clip(out, -self.bound, self.bound, out=out)
+        np.clip(out, -1.0, 1.0, out=out)
+        out *= self.bound  # normalised -> m/s^2
+        return out
 
     @staticmethod
     def _check_one(agent: str, action: Any, shape: tuple[int, ...]) -> np.ndarray:
         try:
             a = np.array(action, dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"action of {agent}: expected a float array {shape} (m/s^2), got {action!r}") from None
+            raise ValueError(f"action of {agent}: expected a float array {shape} in [-1, 1], got {action!r}") from None
         if a.shape != shape:
-            raise ValueError(f"action of {agent}: expected shape {shape} (m/s^2, world frame), got {a.shape}")
+            raise ValueError(f"action of {agent}: expected shape {shape} (world frame, in [-1, 1]), got {a.shape}")
         if not np.all(np.isfinite(a)):
-            raise ValueError(f"action of {agent}: must be finite (m/s^2), got {a.tolist()}")
+            raise ValueError(f"action of {agent}: must be finite (in [-1, 1]), got {a.tolist()}")
         return a
 
     def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
@@ -610,7 +629,7 @@ class SwarmWorlds:
 
     # ---------------------------------------------------------------- observation
     def observe(self, fresh: bool = True) -> np.ndarray:
-        """(W, A, D) float64 in `observation_layout(K)`, clipped to its bounds (NaN -> 0).
+        """(W, A, D) float32 in `observation_layout(K)`, clipped to its bounds (NaN -> 0).
 
         fresh=False reuses the attitudes and reference of the last step (no reset since).
         """
@@ -622,7 +641,7 @@ class SwarmWorlds:
         o = np.empty((self.W, self.agent_index.size, obs_dim(self.K)))
         _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index, self._others,
                         self.last_action, self.obs_low, self.obs_high, o)
-        return o
+        return o.astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- the envs
@@ -641,16 +660,17 @@ class _SwarmBase:
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": cfg.task.control_hz}
         self._worlds = SwarmWorlds(cfg, n_worlds, n_threads)
-        self.possible_agents: list[str] = list(cfg.agents)
+        self.possible_agents: list[str] = list(self._worlds.agents)
         low, high = obs_bounds(cfg.max_neighbours, cfg.bound)
         # one space object per agent, returned as is each time (PettingZoo's API test checks identity)
-        self.observation_spaces = {a: spaces.Box(low, high, dtype=np.float64) for a in self.possible_agents}
-        self.action_spaces = {a: spaces.Box(-cfg.bound, cfg.bound, (3,), np.float32) for a in self.possible_agents}
+        self.observation_spaces = {a: spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+                                   for a in self.possible_agents}
+        self.action_spaces = {a: spaces.Box(-1.0, 1.0, (3,), np.float32) for a in self.possible_agents}
         self.max_steps = cfg.max_steps
         self._renderer: Renderer | None = None
 
     def observation_space(self, agent: str) -> spaces.Box:
-        """Box (obs_dim(K),) float64 of one agent in one world."""
+        """Box (obs_dim(K),) float32 of one agent in one world."""
         return self.observation_spaces[agent]
 
     def action_space(self, agent: str) -> spaces.Box:
@@ -845,3 +865,11 @@ def parallel_env(
     """The PettingZoo ParallelEnv (PettingZoo's module convention); options as `make_swarm_config`."""
     return SwarmEnv(render_mode=render_mode, preset=preset, field=field, aggregation=aggregation,
                     max_neighbours=max_neighbours, duration=duration, **options)
+
+
+def env(**options: Any) -> Any:
+    """The same env through PettingZoo's AEC API (agents act in turn; PettingZoo's module
+    convention): `parallel_env(**options)` converted by `pettingzoo.utils.parallel_to_aec`."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(parallel_env(**options))

@@ -220,15 +220,17 @@ class FollowerWorlds:
 
     # ---------------------------------------------------------------- step
     def check_actions(self, action: Any, shape: tuple[int, ...]) -> np.ndarray:
-        """Validate (shape, finite) and clip to the bound; ValueError before any stepping."""
+        """Validate (shape, finite), clip to [-1, 1] and scale by the bound: the action in m/s^2;
+        ValueError before any stepping."""
         try:
             a = np.array(action, dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"action: expected a float array of shape {shape} (m/s^2), got {action!r}") from None
+            raise ValueError(f"action: expected a float array of shape {shape} in [-1, 1], got {action!r}") from None
         if a.shape != shape:
-            raise ValueError(f"action: expected shape {shape} (m/s^2, world frame), got {a.shape}")
-        if not _clip_finite(a.reshape(-1), self.bound):
-            raise ValueError(f"action: must be finite (m/s^2), got {a.tolist()}")
+            raise ValueError(f"action: expected shape {shape} (world frame, in [-1, 1]), got {a.shape}")
+        if not _clip_finite(a.reshape(-1), 1.0):
+            raise ValueError(f"action: must be finite (in [-1, 1]), got {a.tolist()}")
+        a *= self.bound
         return a
 
     def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> StepOutcome:
@@ -262,7 +264,7 @@ class FollowerWorlds:
 
     # ---------------------------------------------------------------- observation
     def observe(self, fresh: bool = True) -> np.ndarray:
-        """(W, OBS_DIM) float64, the layout of `downwash_envs.observation.OBSERVATION`, clipped to its bounds.
+        """(W, OBS_DIM) float32, the layout of `downwash_envs.observation.OBSERVATION`, clipped to its bounds.
 
         fresh=False reuses the attitudes and reference of the last step (no reset since).
         """
@@ -275,7 +277,7 @@ class FollowerWorlds:
         o = np.empty((self.W, OBS_DIM))
         _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.i_leader, self.i_follower,
                         self.last_action, self.obs_low, self.obs_high, o)
-        return o
+        return o.astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- reward, termination, observation

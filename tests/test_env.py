@@ -64,17 +64,17 @@ def test_import_is_light_and_module_qualified_ids_work():
         sim_pulls_gym = "gymnasium" in sys.modules
         import downwash_envs, gymnasium as gym
         heavy = [m for m in ("torch", "mujoco", "downwash_envs.follower") if m in sys.modules]
-        print(json.dumps([sim_pulls_gym, heavy, sorted(i for i in gym.registry if i.startswith("DownwashFollower"))]))
+        print(json.dumps([sim_pulls_gym, heavy, sorted(i for i in gym.registry if i.startswith("downwash/"))]))
     """)
     sim_pulls_gym, heavy, ids = json.loads(out)
     assert not sim_pulls_gym  # `import sim` does not import gymnasium
     assert heavy == []  # registration imports gymnasium's registry only
-    assert ids == sorted(downwash_envs.ENV_IDS) == ["DownwashFollower-v0", "DownwashFollowerPasses-v0"]
+    assert ids == sorted(downwash_envs.ENV_IDS) == ["downwash/Follower-v1", "downwash/FollowerPasses-v1"]
     for module in ("downwash_envs",):
         out = _run_python(f"""
             import sys, gymnasium as gym
             assert "{module}" not in sys.modules
-            env = gym.make("{module}:DownwashFollower-v0")
+            env = gym.make("{module}:downwash/Follower-v1")
             obs, _ = env.reset(seed=0)
             print(obs.shape, env.spec.max_episode_steps, type(env.unwrapped).__module__, "torch" in sys.modules)
         """)
@@ -82,19 +82,25 @@ def test_import_is_light_and_module_qualified_ids_work():
 
 
 def test_make_and_make_vec_give_the_documented_spaces():
-    env = gym.make("DownwashFollower-v0")
+    env = gym.make("downwash/Follower-v1")
     assert isinstance(env.unwrapped, DownwashFollowerEnv)
     assert env.observation_space.shape == (OBS_DIM,) == (30,)
-    assert env.action_space.shape == (3,) and env.action_space.high[0] == 5.0
-    assert gym.make("DownwashFollower-v0", action_mode="acceleration").action_space.high[0] == 10.0
-    envs = gym.make_vec("DownwashFollower-v0", num_envs=2)  # the vector entry point by default
+    # float32 throughout (no check_env warning); actions normalised, the bound is physical
+    assert env.observation_space.dtype == np.float32 and env.action_space.dtype == np.float32
+    assert env.action_space.shape == (3,) and env.action_space.high.tolist() == [1.0] * 3
+    assert env.action_space.low.tolist() == [-1.0] * 3
+    assert env.unwrapped.config.bound == 5.0
+    assert gym.make("downwash/Follower-v1", action_mode="acceleration").unwrapped.config.bound == 10.0
+    obs, _ = env.reset(seed=0)
+    assert obs.dtype == np.float32 and env.step(env.action_space.sample())[0].dtype == np.float32
+    envs = gym.make_vec("downwash/Follower-v1", num_envs=2)  # the vector entry point by default
     assert isinstance(envs, DownwashFollowerVectorEnv)
     assert envs.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
     assert envs.observation_space.shape == (2, 30) and envs.action_space.shape == (2, 3)
     assert envs.single_observation_space == env.observation_space
     assert envs.single_action_space == env.action_space
     assert envs.max_episode_steps == 500
-    assert gym.spec("DownwashFollowerPasses-v0").max_episode_steps == 1000
+    assert gym.spec("downwash/FollowerPasses-v1").max_episode_steps == 1000
 
 
 @pytest.mark.parametrize("env_id", downwash_envs.ENV_IDS)
@@ -125,9 +131,9 @@ def test_vector_env_equals_sync_vector_env(case):
     across autoresets after both termination and truncation."""
     n, horizon = 3, 25
     opts = VECTOR_CASES[case]
-    vec = gym.make_vec("DownwashFollower-v0", num_envs=n, vectorization_mode="vector_entry_point",
+    vec = gym.make_vec("downwash/Follower-v1", num_envs=n, vectorization_mode="vector_entry_point",
                        max_episode_steps=horizon, **opts)
-    syn = gym.make_vec("DownwashFollower-v0", num_envs=n, vectorization_mode="sync",
+    syn = gym.make_vec("downwash/Follower-v1", num_envs=n, vectorization_mode="sync",
                        max_episode_steps=horizon, **opts)
     assert isinstance(vec, DownwashFollowerVectorEnv) and isinstance(syn, SyncVectorEnv)
     o1, i1 = vec.reset(seed=11)
@@ -195,10 +201,10 @@ def _rollout(env, seed, n, action_seed=0):
 def test_same_seed_same_actions_bit_identical():
     opts = dict(reference="passes", separation=(0.5, 1.0), field_randomization="default",
                 mass_randomization=(0.9, 1.1), max_episode_steps=15)
-    a = _rollout(gym.make("DownwashFollower-v0", **opts), 3, 40)
-    b = _rollout(gym.make("DownwashFollower-v0", **opts), 3, 40)
+    a = _rollout(gym.make("downwash/Follower-v1", **opts), 3, 40)
+    b = _rollout(gym.make("downwash/Follower-v1", **opts), 3, 40)
     assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
-    c = _rollout(gym.make("DownwashFollower-v0", **opts), 4, 40)
+    c = _rollout(gym.make("downwash/Follower-v1", **opts), 4, 40)
     assert not all(np.array_equal(x, y) for x, y in zip(a, c))
 
 
@@ -226,7 +232,7 @@ def test_env_digests_do_not_depend_on_the_blas_kernel(kernel):
 
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
-    env = gym.make("DownwashFollower-v0", action_mode=mode, reference="lemniscate", separation=0.4,
+    env = gym.make("downwash/Follower-v1", action_mode=mode, reference="lemniscate", separation=0.4,
                    max_tracking_error=0.5, max_episode_steps=40)
     env.action_space.seed(1)
     obs, _ = env.reset(seed=1)
@@ -242,7 +248,9 @@ def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
         assert info["reward_termination"] == (-50.0 if term else 0.0)
         assert info["reward_position"] == pytest.approx(-2.0 * info["position_error"])
         assert info["reward_action"] <= 0.0 and info["reward_action_rate"] <= 0.0
-        assert np.array_equal(obs[OBS["last_action"]], action.astype(np.float64))
+        # last_action: the normalised action times the bound, m/s^2 (in float32)
+        bound = env.unwrapped.config.bound
+        assert np.array_equal(obs[OBS["last_action"]], (action.astype(np.float64) * bound).astype(np.float32))
         assert np.linalg.norm(obs[OBS["follower_z_axis"]]) == pytest.approx(1.0)
         if term or trunc:
             ends += 1
@@ -277,17 +285,20 @@ def test_docstring_observation_table_is_the_layout():
 
 
 def test_actions_reach_the_controller():
-    """Residual: added to the LQR command; acceleration: replaces it; the leader keeps its LQR."""
-    a = np.array([0.5, -1.0, 2.0], np.float32)
+    """Residual: added to the LQR command; acceleration: replaces it; the leader keeps its LQR.
+    An action is normalised: a_physical = action x bound."""
+    normalised = np.array([0.1, -0.2, 0.4], np.float32)
     cmds = {}
-    for mode, action in (("residual", np.zeros(3, np.float32)), ("residual", a), ("acceleration", a)):
+    for mode, action in (("residual", np.zeros(3, np.float32)), ("residual", normalised),
+                         ("acceleration", normalised)):
         env = DownwashFollowerEnv(action_mode=mode)
         env.reset(seed=5)
         env.step(action)
         cmds[mode, float(action[0])] = env.simulator.row["u_cmd"][0]  # (V, 3): leader, follower
-    base, res, acc = cmds["residual", 0.0], cmds["residual", 0.5], cmds["acceleration", 0.5]
-    assert np.allclose(res[1] - base[1], a, atol=1e-12)
-    assert np.array_equal(acc[1], a.astype(np.float64))
+    x = float(normalised[0])
+    base, res, acc = cmds["residual", 0.0], cmds["residual", x], cmds["acceleration", x]
+    assert np.allclose(res[1] - base[1], normalised.astype(np.float64) * 5.0, atol=1e-12)  # residual bound 5
+    assert np.array_equal(acc[1], normalised.astype(np.float64) * 10.0)  # acceleration bound 10
     assert np.array_equal(res[0], base[0]) and np.array_equal(acc[0], base[0])
     # out-of-range actions are clipped to the documented bound
     env = DownwashFollowerEnv(action_mode="acceleration")
@@ -314,7 +325,7 @@ def test_invalid_actions_raise_before_stepping():
 
 def test_bad_options_name_the_allowed_values():
     with pytest.raises(TypeError, match="allowed: .*separation"):
-        gym.make("DownwashFollower-v0", sepration=0.5)
+        gym.make("downwash/Follower-v1", sepration=0.5)
     cases = [
         (dict(separation=0.1), "separation.*0.3"),
         (dict(separation=(0.5, 2.5)), "separation"),
@@ -361,7 +372,7 @@ def test_bad_options_name_the_allowed_values():
                                           ((10.0, 0.0, 0.0), Status.LEFT_BOX)])
 def test_termination_on_collision_and_leaving_the_box(push, status):
     box = 1.0 if status == Status.LEFT_BOX else 5.0
-    env = gym.make("DownwashFollower-v0", action_mode="acceleration", reference="hover", separation=0.4,
+    env = gym.make("downwash/Follower-v1", action_mode="acceleration", reference="hover", separation=0.4,
                    max_tracking_error=box)
     env.reset(seed=0)
     for _ in range(150):
@@ -373,11 +384,11 @@ def test_termination_on_collision_and_leaving_the_box(push, status):
 
 
 def test_truncation_at_the_horizon_and_next_step_autoreset():
-    env = gym.make("DownwashFollower-v0", max_episode_steps=5)
+    env = gym.make("downwash/Follower-v1", max_episode_steps=5)
     env.reset(seed=0)
     truncs = [env.step(np.zeros(3, np.float32))[3] for _ in range(5)]
     assert truncs == [False] * 4 + [True]
-    envs = gym.make_vec("DownwashFollower-v0", num_envs=2, max_episode_steps=5)
+    envs = gym.make_vec("downwash/Follower-v1", num_envs=2, max_episode_steps=5)
     first, _ = envs.reset(seed=0)
     for k in range(5):
         obs, rew, term, trunc, info = envs.step(np.zeros((2, 3), np.float32))
@@ -438,7 +449,7 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         import numpy as np, gymnasium as gym
         from gymnasium.utils.env_checker import check_env
         import downwash_envs
-        env = gym.make("DownwashFollower-v0", render_mode="rgb_array", reference="transect", random_phase=False)
+        env = gym.make("downwash/Follower-v1", render_mode="rgb_array", reference="transect", random_phase=False)
         env.reset(seed=0)
         for _ in range(5):
             env.step(np.zeros(3, np.float32))
@@ -446,12 +457,12 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         r, g, b = (f[..., i].astype(int) for i in range(3))
         orange = int(((r > 150) & (g > 60) & (g < 170) & (b < 70)).sum())  # leader hull
         cyan = int(((r < 80) & (g > 120) & (b > 130)).sum())  # follower hull
-        envs = gym.make_vec("DownwashFollower-v0", num_envs=2, render_mode="rgb_array")
+        envs = gym.make_vec("downwash/Follower-v1", num_envs=2, render_mode="rgb_array")
         envs.reset(seed=0)
         frames = envs.render()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            check_env(gym.make("DownwashFollower-v0").unwrapped)  # includes the render-mode checks
+            check_env(gym.make("downwash/Follower-v1").unwrapped)  # includes the render-mode checks
         print(json.dumps({"shape": list(f.shape), "dtype": str(f.dtype), "std": float(f.std()),
                           "orange": orange, "cyan": cyan, "n_frames": len(frames),
                           "frame_shape": list(frames[1].shape)}))
@@ -552,7 +563,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
 
 
 def test_actions_are_clipped_as_numpy_clips_and_bad_ones_refused_before_stepping():
-    env = gym.make("DownwashFollower-v0").unwrapped
+    env = gym.make("downwash/Follower-v1").unwrapped
     env.reset(seed=0)
     worlds = env._worlds
     a = np.array([7.5, -0.0, -12.0], np.float32)

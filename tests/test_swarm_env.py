@@ -56,15 +56,16 @@ def test_pettingzoo_parallel_api(preset):
         warnings.simplefilter("ignore")  # the checker's reset(options={"options": 1}) draws our warning
         parallel_api_test(env, num_cycles=60)
     n_vehicles = make_preset(preset).n_vehicles
-    assert env.possible_agents == [name for name, _ in make_preset(preset).vehicles[1:]]
-    assert env.observation_space("bravo").shape == (OWN_DIM + NEIGHBOUR_DIM * (n_vehicles - 1),)
+    # named by role and rank (one group in TorchRL/BenchMARL), in scene order
+    assert env.possible_agents == [f"follower_{k}" for k in range(make_preset(preset).n_vehicles - 1)]
+    assert env.observation_space("follower_0").shape == (OWN_DIM + NEIGHBOUR_DIM * (n_vehicles - 1),)
 
 
 def test_rollout_stays_in_the_spaces_and_reward_is_the_sum_of_its_terms():
     env = parallel_env(preset="formation5", max_neighbours=6)  # 4 others, 2 padded slots
     rng = np.random.default_rng(0)
     obs, infos = env.reset(seed=3)
-    assert set(infos["bravo"]) == {"sim_seed", "phase"}
+    assert set(infos["follower_0"]) == {"sim_seed", "phase"}
     for _ in range(40):
         for a, o in obs.items():
             assert env.observation_space(a).contains(o), a
@@ -114,8 +115,8 @@ def test_same_seed_same_actions_same_trajectory_bit_for_bit():
     assert len(a) == 61
     _assert_same(a, b)
     c = _rollout(parallel_env(preset="stack3", random_phase=True), seed=8, n_steps=5, action_seed=1)
-    assert not np.array_equal(a[5][0]["bravo"], c[5][0]["bravo"])  # the seed matters
-    assert a[0][1]["bravo"]["phase"] != c[0][1]["bravo"]["phase"]
+    assert not np.array_equal(a[5][0]["follower_0"], c[5][0]["follower_0"])  # the seed matters
+    assert a[0][1]["follower_0"]["phase"] != c[0][1]["follower_0"]["phase"]
     # the provenance is stable JSON, and names what differs
     d = [json.dumps(swarm.make_swarm_config(preset=p, random_phase=True).describe()) for p in ("stack3", "stack3", "stack4")]
     assert d[0] == d[1] != d[2]
@@ -270,19 +271,22 @@ def test_env_observation_is_the_documented_layout_of_the_estimated_state():
     pe, ve, rot, ref = sim.pos_est[0], sim.vel_est[0], sim.true_states().rot[0], sim.reference(sim.t)
     assert not np.array_equal(pe, sim.true_states().pos[0])  # estimates, not the truth
     s = obs_slices(5)
-    assert len(obs["charlie"]) == obs_dim(5) == 71
-    for name in env.possible_agents:
-        i = env.simulator.scene.vehicles.index(name)
+    assert len(obs["follower_1"]) == obs_dim(5) == 71
+    def f32(x):  # the observation is float32: the float64 state rounded once
+        return np.asarray(x, np.float64).astype(np.float32)
+
+    for a, name in enumerate(env.possible_agents):
+        i = int(env._worlds.agent_index[a])  # the vehicle this agent flies
         o = obs[name]
-        np.testing.assert_array_equal(o[s["pos_error"]], pe[i] - ref.pos[0, i])
-        np.testing.assert_array_equal(o[s["v_follower"]], ve[i])
-        np.testing.assert_array_equal(o[s["follower_z_axis"]], rot[i, :, 2])
+        np.testing.assert_array_equal(o[s["pos_error"]], f32(pe[i] - ref.pos[0, i]))
+        np.testing.assert_array_equal(o[s["v_follower"]], f32(ve[i]))
+        np.testing.assert_array_equal(o[s["follower_z_axis"]], f32(rot[i, :, 2]))
         others = [j for j in range(4) if j != i]
         d = sorted((np.linalg.norm(pe[i] - pe[j]), j) for j in others)
         for k, (_, j) in enumerate(d):
             assert o[s[f"n{k}_mask"]][0] == 1.0
-            np.testing.assert_array_equal(o[s[f"n{k}_dp"]], pe[i] - pe[j])
-            np.testing.assert_array_equal(o[s[f"n{k}_z_axis"]], rot[j, :, 2])
+            np.testing.assert_array_equal(o[s[f"n{k}_dp"]], f32(pe[i] - pe[j]))
+            np.testing.assert_array_equal(o[s[f"n{k}_z_axis"]], f32(rot[j, :, 2]))
         assert o[s["n3_mask"]][0] == 0.0 and not o[s["n3_mask"].start:].any()
 
 
@@ -303,7 +307,7 @@ def test_zero_action_flies_the_baseline_controller_bit_for_bit():
         env.step({a: np.zeros(3, np.float32) for a in env.agents})
         pos.append(env.simulator.true_states().pos[0].copy())
     preset = make_preset("stack3")
-    log, = fly(preset.scene(), preset.reference(1), [info["bravo"]["sim_seed"]], (T + 1) * env.dt,
+    log, = fly(preset.scene(), preset.reference(1), [info["follower_0"]["sim_seed"]], (T + 1) * env.dt,
                field=DownwashField(), controller=FeedbackLinearisedLQR())
     np.testing.assert_array_equal(np.array(pos), log.arrays["pos"][1:T + 1])
 
@@ -315,8 +319,8 @@ def test_info_field_is_the_true_field_on_each_agent():
         before = env.simulator.true_states()  # the step's first autopilot tick senses this state
         _, _, _, _, infos = env.step({a: np.zeros(3, np.float32) for a in env.agents})
     mean = pairwise_field(DownwashField(), before.pos, before.vel, before.rot)[0]
-    np.testing.assert_array_equal(infos["bravo"]["field_mean"], mean[1])
-    np.testing.assert_array_equal(infos["charlie"]["field_mean"], mean[2])
+    np.testing.assert_array_equal(infos["follower_0"]["field_mean"], mean[1])
+    np.testing.assert_array_equal(infos["follower_1"]["field_mean"], mean[2])
     assert mean[1, 2] < -0.3  # bravo is in alpha's downwash
 
 
@@ -325,13 +329,13 @@ def test_a_collision_ends_the_world_for_every_agent():
     env = parallel_env(preset="stack3", action_bound=20.0, max_tracking_error=5.0)
     env.reset(seed=0)
     for _ in range(200):
-        down = np.array([0.0, 0.0, -20.0], np.float32)
-        obs, rew, term, trunc, infos = env.step({"bravo": np.zeros(3, np.float32), "charlie": down})
+        down = np.array([0.0, 0.0, -1.0], np.float32)  # normalised: -20 m/s^2
+        obs, rew, term, trunc, infos = env.step({"follower_0": np.zeros(3, np.float32), "follower_1": down})
         if not env.agents:
             break
-    assert term == {"bravo": True, "charlie": True} and not any(trunc.values())
-    assert infos["charlie"]["status"] == infos["bravo"]["status"] == int(Status.GROUND)
-    assert infos["charlie"]["reward_termination"] == -50.0 and infos["charlie"]["reward_alive"] == 0.0
+    assert term == {"follower_0": True, "follower_1": True} and not any(trunc.values())
+    assert infos["follower_1"]["status"] == infos["follower_0"]["status"] == int(Status.GROUND)
+    assert infos["follower_1"]["reward_termination"] == -50.0 and infos["follower_1"]["reward_alive"] == 0.0
     with pytest.raises(RuntimeError, match="reset"):
         env.step({})
 
@@ -349,7 +353,7 @@ def test_a_nonlinear_aggregation_reaches_the_flight():
         env.reset(seed=0)
         for _ in range(3):
             *_, infos = env.step({a: np.zeros(3, np.float32) for a in env.agents})
-        fields[law] = infos["delta"]["field_mean"]
+        fields[law] = infos["follower_2"]["field_mean"]
     assert not np.allclose(fields["linear"], fields["shielding"], rtol=0.0, atol=1e-6)
 
 
@@ -385,18 +389,18 @@ def test_bad_names_and_actions():
         parallel_env(render_mode="human")
     env = parallel_env(preset="stack3")
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=r"missing \['charlie'\]"):
-        env.step({"bravo": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"missing \['follower_1'\]"):
+        env.step({"follower_0": np.zeros(3)})
     with pytest.raises(ValueError, match=r"unexpected \['alpha'\]"):
-        env.step({"bravo": np.zeros(3), "charlie": np.zeros(3), "alpha": np.zeros(3)})
+        env.step({"follower_0": np.zeros(3), "follower_1": np.zeros(3), "alpha": np.zeros(3)})
     with pytest.raises(ValueError, match="finite"):
-        env.step({"bravo": np.array([np.nan, 0, 0]), "charlie": np.zeros(3)})
+        env.step({"follower_0": np.array([np.nan, 0, 0]), "follower_1": np.zeros(3)})
     with pytest.raises(ValueError, match=r"shape \(3,\)"):
-        env.step({"bravo": np.zeros(2), "charlie": np.zeros(3)})
+        env.step({"follower_0": np.zeros(2), "follower_1": np.zeros(3)})
     vec = SwarmVectorEnv(2, preset="stack3")
     vec.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(2, 3\)"):
-        vec.step({"bravo": np.zeros(3), "charlie": np.zeros(3)})
+        vec.step({"follower_0": np.zeros(3), "follower_1": np.zeros(3)})
     with pytest.raises(ValueError, match="reset_mask"):
         vec.reset(options={"reset_mask": np.zeros(2, bool)})
 

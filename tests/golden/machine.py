@@ -16,7 +16,7 @@ PACKAGES = ("numpy", "scipy", "numba", "llvmlite", "mujoco", "torch", "control",
 # OpenBLAS kernels by the CPU flags they need (OPENBLAS_CORETYPE values); a kernel whose
 # flags the CPU lacks would die of an illegal instruction, so it is not offered.
 BLAS_KERNELS = {
-    "Prescott": ("sse3",),
+    "Prescott": ("pni",),  # SSE3 ("pni" in /proc/cpuinfo)
     "Nehalem": ("sse4_2",),
     "Sandybridge": ("avx",),
     "Haswell": ("avx2", "fma"),
