@@ -107,7 +107,9 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     ## Rendering
     ``render_mode="rgb_array"``: `render()` returns a (render_height, render_width, 3)
     uint8 frame; on a headless Linux machine EGL is chosen automatically (see
-    `downwash_envs.rendering`).
+    `downwash_envs.rendering`). ``render_mode="human"``: MuJoCo's passive viewer with
+    the leader's wake drawn, synced at each step (`downwash_envs.viewer`); without a
+    display it fails at construction, saying what to do.
 
     ## Version history
     - v1: ids in the ``downwash`` namespace (``downwash/Follower-v1``,
@@ -117,7 +119,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
       actions in m/s^2.
     """
 
-    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}
+    metadata = {"render_modes": [*RENDER_MODES, "human"], "render_fps": 50}
 
     def __init__(self, render_mode: str | None = None, **options: Any):
         self._setup(options, render_mode, n_worlds=1)
@@ -162,7 +164,7 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
     the masked worlds. `render()` returns one frame per world.
     """
 
-    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50, "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata = {"render_modes": [*RENDER_MODES, "human"], "render_fps": 50, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(
         self,
