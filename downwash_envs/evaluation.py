@@ -11,7 +11,7 @@ import numpy as np
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.follower import DownwashFollowerVectorEnv
 
-__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"]
+__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector", "sb3_rollout_steps_per_s"]
 
 
 def evaluate_lqr(
@@ -113,4 +113,44 @@ def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: i
 
     rate = _best_rate(run, repeats)
     envs.close()
+    return rate
+
+
+def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, native: bool = True, repeats: int = 3,
+                            seed: int = 0, torch_threads: int = 1, **options: Any) -> float:
+    """Env steps (summed over worlds) per wall second of stable-baselines3's PPO rollout
+    collection (`collect_rollouts`: the policy's forward pass, the env steps, the buffer),
+    through the native vector env (`downwash_envs.sb3`, native=True) or through SB3's
+    `DummyVecEnv` of `num_envs` single envs (native=False, what SB3 users get without the
+    adapter); the best of `repeats` rollouts of `n_steps` steps. Needs the `rl` extra.
+
+    torch_threads: torch's intra-op threads during the measurement (restored after);
+    one suits a small MLP policy, and on a small machine more take the simulator's cores."""
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from downwash_envs.sb3 import make_vec_env
+
+    if native:
+        venv = make_vec_env("downwash/Follower-v1", num_envs=num_envs, seed=seed, **options)
+    else:
+        venv = DummyVecEnv([lambda: gym.make("downwash/Follower-v1", **options) for _ in range(num_envs)])
+        venv.seed(seed)
+    model = PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=n_steps, seed=seed, device="cpu")
+    _, callback = model._setup_learn(n_steps * num_envs * (repeats + 1), callback=None)
+    callback.on_training_start(locals(), globals())
+
+    def run() -> int:
+        model.collect_rollouts(model.env, callback, model.rollout_buffer, n_rollout_steps=n_steps)
+        return n_steps * num_envs
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(torch_threads)
+    try:
+        model.collect_rollouts(model.env, callback, model.rollout_buffer, n_rollout_steps=8)  # warm-up
+        rate = _best_rate(run, repeats)
+    finally:
+        torch.set_num_threads(threads)
+    venv.close()
     return rate

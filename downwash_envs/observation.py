@@ -3,7 +3,7 @@
 `OBSERVATION` lists the entries in order; the observation vector (float64,
 `OBS_DIM` values) is their concatenation. `OBS_SLICES` (index ranges),
 `obs_bounds` (the Box bounds) and `markdown_table` (the table in
-`downwash_envs.follower.DownwashFollowerEnv`'s docstring and the README, which tests compare
+`downwash_envs.follower.DownwashFollowerEnv`'s docstring and docs/envs.md, which tests compare
 with it) all read this one tuple, so adding or changing an entry changes them all.
 
 Positions and velocities are the vehicle's own knowledge (Kalman-filtered motion

@@ -29,24 +29,16 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import mujoco
-import mujoco.batch
 import numpy as np
 
 from downwash_core.params import LEADER_POSITION, RATES
-from downwash_core.state import VehicleStates
-from downwash.datasets import Dataset
-from downwash.predictor import LearnedPredictor
-from downwash.train import TrainConfig, train_model
-from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
-from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
-from sim.predictor import OraclePredictor
-from sim.presets import make_preset
-from sim.scene import build_scene
-from sim.simulator import Simulator
-from downwash_trajectories import Hover, Lemniscate, stack
+from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results, script
+
+if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
+    from downwash.predictor import LearnedPredictor
+    from sim.simulator import Simulator
 
 LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 
@@ -66,6 +58,10 @@ TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "env_single_physic
 def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
     """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start), in a
     Python loop: what a user's own loop around MuJoCo costs."""
+    import mujoco
+
+    from sim.scene import build_scene
+
     scene = build_scene() if preset is None else preset.scene()
     data = mujoco.MjData(scene.model)
     start = [[0, 0, 2.5], [0, 0, 1.9]] if preset is None else preset.reference(1)(np.zeros(1)).pos[0]
@@ -79,6 +75,10 @@ def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
 def mujoco_batch_steps_per_s(n_worlds: int, n_steps: int) -> float:
     """World steps per wall second of `mujoco.batch.Batch.step` alone (all cores, no control, 10 steps
     per call as the controller period): the physics' own ceiling for the batched ratios."""
+    import mujoco.batch
+
+    from sim.scene import build_scene
+
     batch = mujoco.batch.Batch(build_scene().model, n_worlds)
     calls = max(1, n_steps // (10 * n_worlds))
     t0 = time.perf_counter()
@@ -90,6 +90,10 @@ def mujoco_batch_steps_per_s(n_worlds: int, n_steps: int) -> float:
 def closed_loop_sim(n_worlds: int, field: Any, predictor: Any, fast: bool = True, preset: Any = None) -> Simulator:
     """The full stack with `predictor` at 45 Hz: the lemniscate 0.6 m below the leader, or `preset`'s
     flight; fast=False: the simulator's readable path. One tick flown (first-call costs)."""
+    from downwash_trajectories import Hover, Lemniscate, stack
+    from sim.scene import build_scene
+    from sim.simulator import Simulator
+
     if preset is None:
         ref = stack([Hover(LEADER, n_worlds=n_worlds), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=n_worlds)])
         scene = build_scene()
@@ -117,6 +121,14 @@ def run(args: BenchmarkArgs) -> dict:
     mj_step windows of 50 ms measure about 165k or 270k steps/s), so a ratio is the median over
     rounds of (rate / the bare rate just before it): both halves of a pair see the same state.
     Rates are medians over the rounds."""
+    import mujoco
+
+    from downwash.predictor import LearnedPredictor
+    from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
+    from sim.predictor import OraclePredictor
+    from sim.presets import make_preset
+    from sim.scene import build_scene
+
     field = load_field(args.field)
     seconds = 1.0 if args.quick else args.seconds
     repeats = 1 if args.quick else args.repeats
@@ -189,6 +201,8 @@ def run(args: BenchmarkArgs) -> dict:
 def predictor_us_per_call(predictor: LearnedPredictor, n_worlds: int, n_calls: int) -> float:
     """Microseconds per call of a learned model in the predictor slot, at the states of n_worlds
     followers below a leader, with estimated states that differ from the true ones."""
+    from downwash_core.state import VehicleStates
+
     rng = np.random.default_rng(0)
     pos = LEADER + rng.normal(scale=0.3, size=(n_worlds, 2, 3))
     pos[:, 1, 2] -= 0.6
@@ -208,6 +222,9 @@ def train_equivariant(minutes: float, field: Any) -> tuple[float, Any]:
     with labels = true field + 0.1 m/s^2 noise: training cost depends on the sample count,
     not on where the labels came from.
     """
+    from downwash.datasets import Dataset
+    from downwash.train import TrainConfig, train_model
+
     rng = np.random.default_rng(0)
     n = int(minutes * 60 * 50)
     dp = np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), -rng.uniform(0.4, 1.8, n)], axis=1)
@@ -230,6 +247,9 @@ def main(argv=None) -> dict:
     print(format_table(rows, ["key", "value"]))
     print(f"\nwrote {path}")
     return results
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

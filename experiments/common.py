@@ -2,7 +2,13 @@
 
 Each experiment declares a frozen dataclass of arguments (typed, defaulted, with a
 one-line `help`), parsed once in `main()`; the parsed config and seed are written
-beside the results.
+beside the results. Any option may also come from a TOML file (`--config FILE.toml`,
+keys are the long option names); a flag on the command line overrides the file.
+
+Importing this module is cheap (no torch, numba, mujoco or matplotlib), and so is
+importing an experiment: they load the heavy stack inside the functions that need it,
+so that `--help` and a bad option answer at once. The choices the help lists come from
+the static copies below, which tests/test_cli.py ties to their registries.
 """
 
 from __future__ import annotations
@@ -11,25 +17,36 @@ import argparse
 import dataclasses
 import logging
 import sys
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence, TypeVar
-
-from tqdm import tqdm
+from typing import Any, Callable, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError
-from downwash_core.io import atomic_write_json
-from downwash_core.provenance import code_version, describe, fingerprint
-from downwash.staged import CollectionConfig, pipeline_dirs, provenance
-from sim.field import check_field
-from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec
 
 __all__ = [
-    "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field", "resolve_pipeline",
-    "write_results", "format_table", "setup_logging",
+    "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
+    "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "setup_logging", "CONDITIONS", "MODEL_KINDS",
+    "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
 A = TypeVar("A")
+
+# The names the options take, copied from their registries so that `--help` needs none of
+# the heavy imports behind them (tests/test_cli.py checks each against its source).
+CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant",
+              "equivariant_general")  # downwash.conditions.CONDITIONS
+MODEL_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")  # downwash.models.MODEL_KINDS
+FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum")  # sim.fields.registry.FIELDS
+DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
+PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5")  # sim.presets.PRESETS
+AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS
+WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
+PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep.PAPER_MINUTES
+PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep.PAPER_MODELS
+
+FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
+                 f"lists their parameters), or MODULE:FACTORY returning a field object")
 
 
 def arg(default: Any, help: str) -> Any:
@@ -44,8 +61,7 @@ class CommonArgs:
     out: str = arg("", "output folder (default runs/<experiment>)")
     seed: int = arg(0, "base seed; world k of a run uses seed + k")
     quick: bool = arg(False, "tiny budget for smoke tests")
-    field: str = arg("", "the ground-truth field: NAME[:KEY=VALUE,...] of the registry (python -m experiments.fields "
-                         "lists them; default so2) or MODULE:FACTORY returning a field object")
+    field: str = arg("", f"the ground-truth field (default {DEFAULT_FIELD}): {FIELD_CHOICES}")
 
 
 @dataclass(frozen=True)
@@ -62,7 +78,7 @@ class PipelineArgs(CommonArgs):
 class Pipeline:
     """The resolved collection an experiment uses: its settings, field, provenance and folders."""
 
-    config: CollectionConfig
+    config: Any  # downwash.staged.CollectionConfig
     field: Any
     record: dict
     collection_dir: Path
@@ -70,6 +86,8 @@ class Pipeline:
 
     def provenance(self) -> dict:
         """For results.json: what the numbers came from."""
+        from downwash_core.provenance import fingerprint
+
         return {"pipeline_key": fingerprint(self.record), "collection_dir": str(self.collection_dir),
                 "models_dir": str(self.models_dir), "pipeline": self.record}
 
@@ -77,6 +95,8 @@ class Pipeline:
 def resolve_pipeline(args: PipelineArgs, **settings: Any) -> Pipeline:
     """The field (checked), the collection settings (seed and --quick from args, plus `settings`)
     and the folders: the ones given, or those keyed by the provenance."""
+    from downwash.staged import CollectionConfig, pipeline_dirs, provenance
+
     field = load_field(args.field)
     config = CollectionConfig(seed=args.seed, quick=args.quick, **settings)
     record = provenance(config, field)
@@ -85,18 +105,91 @@ def resolve_pipeline(args: PipelineArgs, **settings: Any) -> Pipeline:
                     Path(args.models_dir or models_dir))
 
 
-def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, description: str = "") -> A:
-    """Build an argparse parser from the dataclass `cls`, parse, and fill the default --out."""
-    parser = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description)
+_KINDS = {"int": int, "float": float, "str": str, "bool": bool}
+
+
+def _kind(f: dataclasses.Field) -> type:
+    """The option's type (int, float, str or bool), from its annotation (a type or its name)."""
+    return _KINDS.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+
+
+def _option(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def build_parser(cls: type, name: str, description: str = "") -> argparse.ArgumentParser:
+    """The argparse parser of the dataclass `cls`: one long option per field, plus --config."""
+    parser = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     for f in dataclasses.fields(cls):
-        flag = "--" + f.name.replace("_", "-")
         help_text = f.metadata.get("help", "")
-        if f.type in (bool, "bool"):
-            parser.add_argument(flag, action="store_true", help=help_text)
+        if _kind(f) is bool:  # --no-X undoes an X = true of the config file
+            parser.add_argument(_option(f.name), action=argparse.BooleanOptionalAction, default=f.default,
+                                help=help_text)
         else:
-            conv = {"int": int, "float": float, "str": str}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
-            parser.add_argument(flag, type=conv, default=f.default, help=f"{help_text} (default: {f.default})")
+            parser.add_argument(_option(f.name), type=_kind(f), default=f.default,
+                                help=f"{help_text} (default: {f.default})" if f.default != "" else help_text)
+    parser.add_argument("--config", metavar="FILE.toml", default="",
+                        help="read options from this TOML file (keys: the long option names, with - or _); "
+                             "flags on the command line override it")
+    return parser
+
+
+def read_config(path: str | Path, cls: type) -> dict[str, Any]:
+    """{field name: value} from the TOML file `path`, each key an option of `cls` and each value
+    of its type; ConfigError naming the file, the key and the allowed options otherwise."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    allowed = ", ".join(f.name.replace("_", "-") for f in fields.values())
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"--config {path}: no such file") from None
+    except OSError as e:
+        raise ConfigError(f"--config {path}: cannot read it ({e.strerror or e})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"--config {path}: not valid TOML ({e})") from None
+    values: dict[str, Any] = {}
+    for key, value in raw.items():
+        name = key.replace("-", "_")
+        if name not in fields:
+            raise ConfigError(f"--config {path}: unknown key {key!r}; allowed: {allowed}")
+        if name in values:
+            raise ConfigError(f"--config {path}: key {key!r} given twice (with - and with _)")
+        kind = _kind(fields[name])
+        ok = (isinstance(value, bool) if kind is bool else
+              isinstance(value, (int, float)) and not isinstance(value, bool) if kind is float else
+              isinstance(value, int) and not isinstance(value, bool) if kind is int else isinstance(value, str))
+        if not ok:
+            raise ConfigError(f"--config {path}: {key} = {value!r}: expected {_EXPECTED[kind]}, got a TOML "
+                              f"{_toml_type(value)} ({_option(name)}: {fields[name].metadata.get('help', '')})")
+        values[name] = float(value) if kind is float else value
+    return values
+
+
+_EXPECTED = {bool: "a boolean (true or false)", int: "an integer", float: "a number", str: "a string"}
+
+
+def _toml_type(value: Any) -> str:
+    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
+            dict: "table"}.get(type(value), type(value).__name__)
+
+
+def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, description: str = "") -> A:
+    """Parse the command line into the dataclass `cls` and fill the default --out.
+
+    With `--config FILE.toml`, the file's values replace the defaults and the flags given
+    override the file. A bad file, an unknown key or a value of the wrong type is a usage
+    error (exit 2) naming the file, the key and the allowed options, before any work.
+    """
+    parser = build_parser(cls, name, description)
     ns = parser.parse_args(argv)
+    if ns.config:
+        try:
+            parser.set_defaults(**read_config(ns.config, cls))
+        except ConfigError as e:
+            parser.error(str(e))
+        ns = parser.parse_args(argv)
     values = {f.name: getattr(ns, f.name) for f in dataclasses.fields(cls)}
     if not values.get("out"):
         values["out"] = str(Path("runs") / name)
@@ -111,13 +204,17 @@ def load_field(spec: str) -> Any:
     `momentum:thrust_scale=1.2`), or a MODULE:FACTORY import path whose factory returns
     the field object (`mypkg.fields:make`). `python -m experiments.fields` lists the names.
     """
+    from downwash_core.provenance import describe
+    from sim.field import check_field
+    from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec
+
     obj = resolve_field_spec(spec, label="--field")
     check_field(obj, name=f"--field {spec or DEFAULT_FIELD}")
     describe(obj)  # a field that cannot be fingerprinted stops here, before any work
     return obj
 
 
-WIND_HELP = ("ambient wind: off (default), or a MIL-F-8785C severity light|moderate|severe|calm (calm: no gusts) "
+WIND_HELP = (f"ambient wind: off (default), or a MIL-F-8785C severity {'|'.join(WIND_SEVERITIES)}|calm (calm: no gusts) "
              "with an optional mean wind, e.g. light:mean=2,0,0 (m/s, world frame, air moving toward +x)")
 
 
@@ -153,6 +250,9 @@ def load_wind(spec: str) -> Any:
 def write_results(out: str | Path, results: dict, args: Any, provenance: dict | None = None) -> Path:
     """Atomically write results.json into `out`: the parsed arguments, the provenance (code
     version, field, seed base, plus `provenance`) and the results."""
+    from downwash_core.io import atomic_write_json
+    from downwash_core.provenance import code_version
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     record = {"code": code_version(), "seed": args.seed, "field_spec": args.field or "built-in", **(provenance or {})}
@@ -177,6 +277,19 @@ def format_table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def script(main: Callable[[], Any]) -> Callable[[], None]:
+    """The console-script entry point ([project.scripts] in pyproject.toml) of an experiment's
+    `main`: runs it on the command line and returns None, so that a finished run exits 0
+    (`main` returns its results to Python callers, which a console script would pass to
+    sys.exit as an error)."""
+
+    def entry() -> None:
+        main()
+
+    entry.__doc__ = f"Run {main.__module__} from the command line."
+    return entry
+
+
 def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
@@ -190,10 +303,12 @@ class ProgressBar:
 
     def __init__(self, label: str, unit: str = "it"):
         self.label, self.unit = label, unit
-        self._bar: tqdm | None = None
+        self._bar: Any = None  # a tqdm bar, made on the first call
 
     def __call__(self, done: int, total: int) -> None:
         if self._bar is None:
+            from tqdm import tqdm
+
             self._bar = tqdm(total=total, desc=self.label, unit=self.unit, disable=not sys.stderr.isatty(),
                              dynamic_ncols=True, leave=True)
         self._bar.update(done - self._bar.n)

@@ -28,11 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from downwash_core.provenance import describe
-from downwash.conditions import CONDITIONS
 from downwash_core.errors import ConfigError
-from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
-from sim.fields.registry import FIELDS
+from experiments.common import (CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field, parse_args,
+                                setup_logging, write_results, script)
 
 __all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
 
@@ -45,13 +43,16 @@ class FieldsArgs(CommonArgs):
     """--seed and --quick apply to --run only (the listing flies nothing)."""
 
     run: bool = arg(False, "run the main job (python -m experiments.lemniscate) on every registered field")
-    only: str = arg("", "with --run: a comma list of registered field names (default: all of them)")
+    only: str = arg("", f"with --run: a comma list of registered field names, of {', '.join(FIELD_NAMES)} "
+                        "(default: all of them)")
     fresh: bool = arg(False, "with --run: collect and train from scratch into <out>/pipeline/<field> "
                              "instead of reusing the keyed pipeline folders")
 
 
 def listing() -> list[dict]:
     """[{name, description, symmetry, parameters: {name: type}, preset: {name: value}}] in registry order."""
+    from sim.fields.registry import FIELDS
+
     return [
         {"name": e.name, "description": e.description, "symmetry": e.symmetry,
          "parameters": {k: t.__name__ for k, t in e.params.items()}, "preset": dict(e.preset)}
@@ -86,6 +87,8 @@ def run_every_field(args: FieldsArgs, out: Path) -> dict:
 
 
 def _selected(only: str) -> list[str]:
+    from sim.fields.registry import FIELDS
+
     names = [n.strip() for n in only.split(",") if n.strip()] or list(FIELDS)
     unknown = [n for n in names if n not in FIELDS]
     if unknown:
@@ -107,6 +110,8 @@ def run(args: FieldsArgs) -> dict:
     _selected(args.only)  # before any work
     results: dict = {"fields": listing()}
     if args.field:  # resolved and checked before anything is written
+        from downwash_core.provenance import describe
+
         results["selected"] = {"spec": args.field, "field": describe(load_field(args.field))}
     print(format_table([(f["name"], f["description"], f["symmetry"]) for f in results["fields"]],
                        ("name", "description", "symmetry")))
@@ -130,6 +135,9 @@ def run(args: FieldsArgs) -> dict:
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
     return run(parse_args(FieldsArgs, "fields", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

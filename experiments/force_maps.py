@@ -20,11 +20,7 @@ from typing import Any
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash.checkpoint import load_checkpoint
-from downwash.models import MODEL_KINDS
-from downwash.staged import ensure_models
-from downwash.train import predict
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results, script
 
 __all__ = ["ForceMapArgs", "run", "main"]
 
@@ -42,6 +38,8 @@ def _evaluate(fn: Any, dp: np.ndarray, v_b: np.ndarray) -> np.ndarray:
 
 
 def _model_fn(model: Any):
+    from downwash.train import predict
+
     def fn(p_a, v_a, R_a, p_b, v_b):
         data = SimpleNamespace(dp=p_b - p_a, v_a=v_a, v_b=v_b, R_a=np.ascontiguousarray(R_a))
         return predict(model, data)
@@ -51,6 +49,10 @@ def _model_fn(model: Any):
 
 def run(args: ForceMapArgs) -> dict:
     import matplotlib
+
+    from downwash.checkpoint import load_checkpoint
+    from downwash.models import MODEL_KINDS
+    from downwash.staged import ensure_models
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -143,6 +145,9 @@ def run(args: ForceMapArgs) -> dict:
 def main(argv=None) -> dict:
     setup_logging()
     return run(parse_args(ForceMapArgs, "force_maps", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

@@ -25,14 +25,8 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from downwash_core.provenance import describe
-from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
-from downwash.staged import ensure_models
-from experiments.common import (WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind, parse_args,
-                                resolve_pipeline, setup_logging, write_results)
-from sim.metrics import aggregate_conditions, tracking_errors
-from sim.scene import build_scene
-from downwash_trajectories import Circle, Line, Offset, stack
+from experiments.common import (CONDITIONS, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind,
+                                parse_args, resolve_pipeline, setup_logging, write_results, script)
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -54,6 +48,8 @@ class OutdoorArgs(PipelineArgs):
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
+    from downwash.conditions import parse_conditions
+
     conditions = parse_conditions(args.conditions)
     checks = [
         (args.leader in LEADERS, f"--leader: unknown {args.leader!r}; allowed: {', '.join(LEADERS)}"),
@@ -72,6 +68,8 @@ def _validate(args: OutdoorArgs) -> list[str]:
 
 
 def _leader_reference(args: OutdoorArgs, W: int):
+    from downwash_trajectories import Circle, Line
+
     top = np.array(LEADER_POSITION)
     if args.leader == "circle":
         return Circle(top, radius=args.radius, speed=args.speed, n_worlds=W)
@@ -81,6 +79,13 @@ def _leader_reference(args: OutdoorArgs, W: int):
 
 def run(args: OutdoorArgs) -> dict:
     """Fly every condition x seed with the moving leader and the wind; write results, table and figure."""
+    from downwash.conditions import fly_conditions, learned
+    from downwash.staged import ensure_models
+    from downwash_core.provenance import describe
+    from downwash_trajectories import Offset, stack
+    from sim.metrics import aggregate_conditions
+    from sim.scene import build_scene
+
     conditions = _validate(args)
     wind = load_wind(args.wind)
     p = resolve_pipeline(args)
@@ -138,6 +143,8 @@ def _table(results: dict, wind_spec: str) -> str:
 def _figure(out: Path, per_condition: dict, results: dict) -> None:
     import matplotlib
 
+    from sim.metrics import tracking_errors
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -161,6 +168,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
         args = dataclasses.replace(args, seeds=1, duration=min(args.duration, 2.0))
     return run(args)
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

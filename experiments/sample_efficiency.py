@@ -27,10 +27,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import Any
+
 from downwash_core.errors import ConfigError
-from downwash_core.io import atomic_write_bytes
-from downwash.sweep import PAPER_MINUTES, PAPER_MODELS, SweepGrid, check_execution, claim_text, grid_from_text, markdown, minute_labels, plot_field, run_sweep, table_rows
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
+from experiments.common import (MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, PipelineArgs, ProgressBar, arg,
+                                format_table, parse_args, resolve_pipeline, setup_logging, write_results, script)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]
 
@@ -41,15 +42,17 @@ MINUTES = PAPER_MINUTES  # plus the full set
 class EfficiencyArgs(PipelineArgs):
     trials: int = arg(10, "trials per point (different data subsets and seeds; --quick: at most 2)")
     minutes: str = arg(",".join(f"{m:g}" for m in MINUTES), "comma list of training minutes; the full set is always added")
-    models: str = arg(",".join(PAPER_MODELS), "comma list of model kinds")
+    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(MODEL_KINDS)}")
     workers: int = arg(0, "CPUs of the local Ray that trains the models (0: all cores)")
     address: str = arg("", "address of a running Ray cluster; default: a local Ray")
     cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with experiments.sweep)")
     batch: int = arg(5, "models per Ray task, trained as one ensemble (5 is the fastest per model on 2 cores)")
 
 
-def grid_of(args: EfficiencyArgs) -> SweepGrid:
-    """The sweep this preset runs (ConfigError before any work)."""
+def grid_of(args: EfficiencyArgs) -> Any:
+    """The sweep this preset runs, a `downwash.sweep.SweepGrid` (ConfigError before any work)."""
+    from downwash.sweep import SweepGrid, grid_from_text
+
     if isinstance(args.trials, bool) or args.trials < 1:
         raise ConfigError(f"--trials: expected >= 1, got {args.trials}")
     trials = min(args.trials, 2) if args.quick else args.trials
@@ -60,6 +63,9 @@ def grid_of(args: EfficiencyArgs) -> SweepGrid:
 
 
 def run(args: EfficiencyArgs) -> dict:
+    from downwash.sweep import check_execution, claim_text, markdown, minute_labels, plot_field, run_sweep, table_rows
+    from downwash_core.io import atomic_write_bytes
+
     t_start = time.perf_counter()
     grid = grid_of(args)
     check_execution(args.workers, args.batch)
@@ -99,6 +105,9 @@ def run(args: EfficiencyArgs) -> dict:
 def main(argv=None) -> dict:
     setup_logging()
     return run(parse_args(EfficiencyArgs, "sample_efficiency", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

@@ -16,8 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from downwash.staged import collect
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
+from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results, script
 
 __all__ = ["StagedArgs", "run", "main"]
 
@@ -34,6 +33,8 @@ class StagedArgs(PipelineArgs):
 
 def run(args: StagedArgs) -> dict:
     """Collect all stages (resuming), train the final models; print and write the results."""
+    from downwash.staged import collect
+
     p = resolve_pipeline(args, stage_minutes=args.stage_minutes, val_ratio=args.val_ratio,
                          flight_seconds=args.flight_seconds, clamp=args.clamp, threads=args.threads,
                          batch_flights=args.batch_flights)
@@ -54,6 +55,9 @@ def run(args: StagedArgs) -> dict:
 def main(argv=None) -> dict:
     setup_logging()
     return run(parse_args(StagedArgs, "staged_collection", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

@@ -31,18 +31,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.provenance import describe, fingerprint
-from downwash.staged import ensure_models
-from downwash.swarm_collection import (DATA_MIXES, SwarmCollectionConfig, collect_swarm, pair_models_key,
-                                       swarm_model_path, swarm_provenance)
-from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, wrap_pairwise
-from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline,
-                                setup_logging, write_results)
-from sim.aggregation import make_aggregation
-from sim.flight import fly
-from sim.metrics import aggregate_conditions, follower_metrics
-from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
-from sim.presets import make_preset
+from experiments.common import (AGGREGATIONS, PRESETS, PipelineArgs, ProgressBar, arg, format_table, parse_args,
+                                resolve_pipeline, setup_logging, write_results, script)
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -51,15 +41,18 @@ DEFAULT_PRESETS = "stack3,stack4,swap,formation5"
 
 def conditions() -> list[str]:
     """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix."""
+    from downwash.swarm_collection import DATA_MIXES
+    from downwash.swarm_models import TRAINABLE_SWARM_KINDS
+
     return ["baseline", "oracle", "summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SWARM_KINDS for m in DATA_MIXES]
 
 
 @dataclass(frozen=True)
 class SwarmArgs(PipelineArgs):
-    presets: str = arg(DEFAULT_PRESETS, "comma list of presets (python -c 'import sim.presets as p; print(p.PRESETS)'"
-                                        "; stack:n=N takes N = 2-8)")
+    presets: str = arg(DEFAULT_PRESETS, f"comma list of presets: {', '.join(PRESETS)} (stack:n=N takes N = 2-8, "
+                                        "and spacing=)")
     aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
-                                               "(linear, velocity, shielding, with optional :KEY=VALUE)")
+                                               f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)")
     seeds: int = arg(3, "flights per condition, preset and law")
     duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)")
     swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)")
@@ -84,6 +77,9 @@ def _split(text: str, label: str) -> list[str]:
 
 
 def _validate(args: SwarmArgs) -> tuple[list, list]:
+    from sim.aggregation import make_aggregation
+    from sim.presets import make_preset
+
     presets = [make_preset(p) for p in _split(args.presets, "presets")]  # ConfigError for a bad name or N
     laws = [(a, make_aggregation(a)) for a in _split(args.aggregations, "aggregations")]
     if args.seeds < 1:
@@ -97,6 +93,10 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
 
 def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, pair_models_dir: Path,
                 neighbours) -> list:
+    from downwash.swarm_collection import swarm_model_path
+    from downwash.swarm_models import SwarmPredictor, wrap_pairwise
+    from sim.predictor import OraclePredictor, ZeroPredictor
+
     out = []
     for c in names:
         if c == "baseline":
@@ -114,6 +114,13 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
 
 
 def run(args: SwarmArgs) -> dict:
+    from downwash.staged import ensure_models
+    from downwash.swarm_collection import SwarmCollectionConfig, collect_swarm, pair_models_key, swarm_provenance
+    from downwash_core.provenance import describe, fingerprint
+    from sim.flight import fly
+    from sim.metrics import aggregate_conditions, follower_metrics
+    from sim.predictor import PerWorldPredictor
+
     presets, laws = _validate(args)
     if args.video:
         from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
@@ -226,6 +233,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.quick:
         args = dataclasses.replace(args, seeds=1)
     return run(args)
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

@@ -27,18 +27,19 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from downwash_core.io import atomic_write_bytes
-from downwash.sweep import PAPER_MINUTES, PAPER_MODELS, check_execution, claim_text, grid_from_text, markdown, minute_labels, plot_field, run_sweep, table_rows
-from experiments.common import CommonArgs, PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
+from experiments.common import (FIELD_NAMES, MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
+                                ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging,
+                                write_results, script)
 
 __all__ = ["SweepArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
 class SweepArgs(CommonArgs):
-    field: str = arg("", "the fields, separated by ';': each NAME[:KEY=VALUE,...] of the registry (python -m "
-                         "experiments.fields lists them; '' is so2) or MODULE:FACTORY")
-    models: str = arg(",".join(PAPER_MODELS), "comma list of model kinds")
+    field: str = arg("", "the fields, separated by ';': each NAME[:KEY=VALUE,...] with NAME one of "
+                         f"{', '.join(FIELD_NAMES)} (python -m experiments.fields lists their parameters; '' is "
+                         "so2) or MODULE:FACTORY")
+    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(MODEL_KINDS)}")
     minutes: str = arg(",".join(f"{m:g}" for m in PAPER_MINUTES), "comma list of training minutes; the full set "
                                                                     "is always added")
     seeds: str = arg(",".join(str(s) for s in range(10)), "comma list of trial seeds (each one data subset and "
@@ -51,6 +52,10 @@ class SweepArgs(CommonArgs):
 
 
 def run(args: SweepArgs) -> dict:
+    from downwash.sweep import (check_execution, claim_text, grid_from_text, markdown, minute_labels, plot_field,
+                                run_sweep, table_rows)
+    from downwash_core.io import atomic_write_bytes
+
     t_start = time.perf_counter()
     grid = grid_from_text(args.field, args.models, args.minutes, args.seeds, args.quick)
     check_execution(args.workers, args.batch)
@@ -87,6 +92,9 @@ def run(args: SweepArgs) -> dict:
 def main(argv=None) -> dict:
     setup_logging()
     return run(parse_args(SweepArgs, "sweep", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

@@ -25,12 +25,8 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
-from downwash.conditions import CONDITIONS, fly_conditions, learned, parse_conditions
-from downwash.staged import ensure_models
-from experiments.common import WIND_HELP, PipelineArgs, load_wind, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results
-from sim.metrics import aggregate_conditions, tracking_errors
-from sim.scene import build_scene
-from downwash_trajectories import Hover, make_reference, stack
+from experiments.common import (CONDITIONS, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind,
+                                parse_args, resolve_pipeline, setup_logging, write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -84,6 +80,8 @@ def args_class(track: str) -> type:
 
 def _validate(args: TrackingArgs) -> list[str]:
     """Check every option before any flight starts; returns the condition list."""
+    from downwash.conditions import parse_conditions
+
     conditions = parse_conditions(args.conditions)
     lo, hi = SEPARATION_RANGE
     if not lo <= args.separation <= hi:
@@ -97,6 +95,12 @@ def _validate(args: TrackingArgs) -> list[str]:
 
 def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
+    from downwash.conditions import fly_conditions, learned
+    from downwash.staged import ensure_models
+    from downwash_trajectories import Hover, make_reference, stack
+    from sim.metrics import aggregate_conditions
+    from sim.scene import build_scene
+
     spec = TRACKS[track]
     conditions = _validate(args)
     wind = load_wind(args.wind)
@@ -176,6 +180,8 @@ COLORS = {"no_downwash": "0.5", "baseline": "tab:red", "oracle": "k", "shallow":
 
 def _figures(out: Path, name: str, per_cond_logs: dict) -> None:
     import matplotlib
+
+    from sim.metrics import tracking_errors
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

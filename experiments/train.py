@@ -18,14 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
-from downwash.checkpoint import save_checkpoint
-from downwash.datasets import find_logs, load_dataset, shorten_per_stage
-from downwash.labels import label_noise_floor
-from downwash.models import MODEL_KINDS, count_parameters
-from downwash.staged import train_config
-from downwash.train import rmse, train_model
-from downwash_core.provenance import describe, differences
-from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results
+from experiments.common import (MODEL_KINDS, CommonArgs, arg, format_table, load_field, parse_args, setup_logging,
+                                write_results, script)
 
 __all__ = ["TrainArgs", "run", "main"]
 
@@ -41,6 +35,14 @@ class TrainArgs(CommonArgs):
 
 
 def run(args: TrainArgs) -> dict:
+    from downwash.checkpoint import save_checkpoint
+    from downwash.datasets import find_logs, load_dataset, shorten_per_stage
+    from downwash.labels import label_noise_floor
+    from downwash.models import MODEL_KINDS, count_parameters
+    from downwash.staged import train_config
+    from downwash.train import rmse, train_model
+    from downwash_core.provenance import describe, differences
+
     if args.model not in MODEL_KINDS:
         raise ConfigError(f"--model: unknown {args.model!r}; allowed: {', '.join(MODEL_KINDS)}")
     if not args.logs or not args.val_logs:
@@ -90,6 +92,9 @@ def run(args: TrainArgs) -> dict:
 def main(argv=None) -> dict:
     setup_logging()
     return run(parse_args(TrainArgs, "train", argv, __doc__))
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":

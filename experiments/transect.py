@@ -5,7 +5,18 @@
 The `transect` entry of the table in `experiments.tracking`, which holds the logic.
 """
 
-from experiments.tracking import main
+from typing import Sequence
+
+from experiments.common import script
+from experiments.tracking import main as run_track
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """The transect on the command line (or `argv`); returns its results."""
+    return run_track("transect", argv)
+
+
+cli = script(main)  # the console script (pyproject.toml)
 
 if __name__ == "__main__":
-    main("transect")
+    main()

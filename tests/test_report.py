@@ -1,4 +1,5 @@
-"""`python -m experiments.report`: the README's measured results come from results files, never typed.
+"""`python -m experiments.report`: the docs' results page and the README's headline table come from
+results files, never typed.
 
 Fake results files are written through `experiments.common.write_results` with each
 experiment's own argument class, in the shapes the experiments write; one real quick
@@ -18,7 +19,8 @@ from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json
 from experiments import report
 from experiments.common import parse_args, write_results
-from experiments.report import BEGIN, END, fmt, pct, render, rewrite_readme, section_of
+from experiments.report import BEGIN, END, HEADLINE_BEGIN, HEADLINE_END, HEADLINE_HEADING, fmt, pct, render, \
+    render_headline, rewrite_section, section_of
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ("shallow", "deep", "equivariant")
@@ -117,8 +119,9 @@ def _write_fakes(runs: Path, names=None) -> dict:
     return written
 
 
-README = ("# Title\n\nintro text  \n\n## Measured results\n\nhand-typed 0.105 numbers\n\n### sub\n\nmore\n\n"
+README = ("# Title\n\nintro text  \n\n## Headline results\n\nhand-typed 0.105 numbers\n\n### sub\n\nmore\n\n"
           "## After\n\ntail\n")
+HEADLINE = (HEADLINE_BEGIN, HEADLINE_END, HEADLINE_HEADING)
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +137,11 @@ def transect_run(tmp_path_factory):
 
 def _main(work: Path, *extra: str) -> str:
     return report.main(["--runs", str(work / "runs"), "--results", str(work / "results"),
-                        "--readme", str(work / "README.md"), *extra])
+                        "--docs", str(work / "docs" / "results.md"), "--readme", str(work / "README.md"), *extra])
+
+
+def _docs(work: Path) -> str:
+    return (work / "docs" / "results.md").read_text()
 
 
 def test_fmt_and_pct():
@@ -153,7 +160,16 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
     for name in (*written, "transect"):  # the committed copy is the experiment's file, byte for byte
         assert (work / "results" / f"{name}.json").read_bytes() == (work / "runs" / name / "results.json").read_bytes()
     text = render(work / "results")
-    assert section_of((work / "README.md").read_text()) == text
+    assert section_of(_docs(work)) == text and _docs(work).startswith(report.RESULTS_PAGE.split(BEGIN)[0] + BEGIN)
+    headline = render_headline(work / "results", "docs/results.md")
+    assert section_of((work / "README.md").read_text(), HEADLINE_BEGIN, HEADLINE_END) == headline
+    assert "[results page](docs/results.md)" in headline and "| condition | lemniscate | transect |" in headline
+    lem, tra = written["lemniscate"]["conditions"], json.loads((work / "results" / "transect.json").read_text())
+    row = next(line for line in headline.splitlines() if line.startswith("| `oracle`"))
+    assert f"| {fmt(lem['oracle']['pos_err_3d_mean'])} ({pct(lem['oracle']['improvement_pos_3d'])}) |" in row
+    assert f"| {fmt(tra['conditions']['oracle']['pos_err_3d_mean'])} (" in row
+    assert "| `shallow` | " in headline and "| - |" in headline  # the quick transect flew no model
+    assert "equivariant 0.105" in headline and "it holds." in headline
     for name in report.EXPERIMENTS:
         assert f"results/{name}.json" in text and "No results yet" not in text
     meta = json.loads((work / "results" / "report.json").read_text())["files"]
@@ -225,59 +241,70 @@ def test_missing_files_are_named(tmp_path):
     nothing = render(tmp_path / "nowhere")
     assert nothing.count("No results yet for") == len(report.EXPERIMENTS)
     assert "No results have been copied yet" in nothing
+    assert "No tracking results yet" in render_headline(tmp_path / "nowhere")
+    assert "No tracking results yet" in (tmp_path / "README.md").read_text()
 
 
-def test_readme_rewrite_keeps_the_outside_and_is_idempotent(tmp_path):
-    first = rewrite_readme(README, "one\n")
-    head, tail = README.split("\n## Measured results\n")[0], "## After\n\ntail\n"
-    assert first == (head + "\n## Measured results\n\n" + BEGIN + "\none\n" + END + "\n\n" + tail)
-    assert "hand-typed" not in first and rewrite_readme(first, "one\n") == first
-    second = rewrite_readme(first, "two\nlines\n")
-    assert second.replace(f"{BEGIN}\ntwo\nlines\n{END}", f"{BEGIN}\none\n{END}") == first
-    assert section_of(second) == "two\nlines\n"
-    at_end = rewrite_readme("# T\n\n## Measured results\n\nold\n", "x\n")
-    assert at_end == f"# T\n\n## Measured results\n\n{BEGIN}\nx\n{END}\n"
-    for bad in ("# no heading\n", f"## Measured results\n{END}\n{BEGIN}\n",
-                "## Measured results\n## Measured results\n"):
+def test_rewrite_keeps_the_outside_and_is_idempotent(tmp_path):
+    B, E = HEADLINE_BEGIN, HEADLINE_END
+    first = rewrite_section(README, "one\n", *HEADLINE)
+    head, tail = README.split("\n## Headline results\n")[0], "## After\n\ntail\n"
+    assert first == (head + "\n## Headline results\n\n" + B + "\none\n" + E + "\n\n" + tail)
+    assert "hand-typed" not in first and rewrite_section(first, "one\n", *HEADLINE) == first
+    second = rewrite_section(first, "two\nlines\n", *HEADLINE)
+    assert second.replace(f"{B}\ntwo\nlines\n{E}", f"{B}\none\n{E}") == first
+    assert section_of(second, B, E) == "two\nlines\n" and section_of(second) is None
+    at_end = rewrite_section("# T\n\n## Headline results\n\nold\n", "x\n", *HEADLINE)
+    assert at_end == f"# T\n\n## Headline results\n\n{B}\nx\n{E}\n"
+    # the results page: the section goes below its level-1 heading, '## ' headings included
+    page = rewrite_section("# Results\n\n## Speed\n\nold\n", "## Speed\n\nnew\n")
+    assert page == f"# Results\n\n{BEGIN}\n## Speed\n\nnew\n{END}\n" and section_of(page) == "## Speed\n\nnew\n"
+    for bad in ("# no heading\n", f"## Headline results\n{E}\n{B}\n",
+                "## Headline results\n## Headline results\n"):
         with pytest.raises(ConfigError):
-            rewrite_readme(bad, "x\n")
+            rewrite_section(bad, "x\n", *HEADLINE)
 
     _write_fakes(tmp_path / "runs", names={"force_maps"})
     (tmp_path / "README.md").write_text(README)
     _main(tmp_path)
-    once = (tmp_path / "README.md").read_bytes()
+    once = _docs(tmp_path)
     _main(tmp_path, "--runs", "")  # re-render only
-    assert (tmp_path / "README.md").read_bytes() == once
+    assert _docs(tmp_path) == once
     record_path = tmp_path / "results" / "report.json"  # an old copy date, to see whether a rerun touches it
     record = json.loads(record_path.read_text())
     record["files"]["force_maps"]["copied"] = "2000-01-01 00:00 UTC"
     atomic_write_json(record_path, record)
     _main(tmp_path, "--runs", "")
-    once = (tmp_path / "README.md").read_bytes()
-    _main(tmp_path)  # the unchanged file copied again: its record, and so the README, stay as they were
-    assert (tmp_path / "README.md").read_bytes() == once and b"2000-01-01 00:00 UTC" in once
+    once = _docs(tmp_path)
+    _main(tmp_path)  # the unchanged file copied again: its record, and so the page, stay as they were
+    assert _docs(tmp_path) == once and "2000-01-01 00:00 UTC" in once
     results = tmp_path / "runs" / "force_maps" / "results.json"
     results.write_text(results.read_text().replace('"speed": 0.5', '"speed": 0.25'))
     _main(tmp_path)  # a changed file is copied with a new record
-    assert b"2000-01-01" not in (tmp_path / "README.md").read_bytes()
+    assert "2000-01-01" not in _docs(tmp_path)
 
 
 def test_check_fails_on_a_stale_section_and_passes_after_regeneration(tmp_path):
-    _write_fakes(tmp_path / "runs", names={"force_maps", "benchmark"})
-    readme = tmp_path / "README.md"
+    _write_fakes(tmp_path / "runs", names={"force_maps", "benchmark", "lemniscate"})
+    readme, docs = tmp_path / "README.md", tmp_path / "docs" / "results.md"
     readme.write_text(README)
-    with pytest.raises(SystemExit) as e:  # no markers yet: stale
+    with pytest.raises(SystemExit) as e:  # no markers yet, no results page: stale
         _main(tmp_path, "--check")
     assert e.value.code == 1 and readme.read_text() == README and not (tmp_path / "results").exists()
+    assert not docs.exists()
     _main(tmp_path)
     _main(tmp_path, "--check")
-    stale = readme.read_text().replace(fmt(0.0521), "0.0999")  # a hand-typed edit inside the markers
-    readme.write_text(stale)
-    with pytest.raises(SystemExit):
+    for page, number in ((docs, fmt(0.0521)), (readme, fmt(0.09461))):  # a hand-typed edit inside the markers
+        good = page.read_text()
+        stale = good.replace(number, "0.0999")
+        assert stale != good
+        page.write_text(stale)
+        with pytest.raises(SystemExit):
+            _main(tmp_path, "--check")
+        assert page.read_text() == stale
+        _main(tmp_path, "--runs", "")
         _main(tmp_path, "--check")
-    assert readme.read_text() == stale
-    _main(tmp_path, "--runs", "")
-    _main(tmp_path, "--check")
+        assert page.read_text() == good
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "garbage", "foreign"])
@@ -295,12 +322,18 @@ def test_bad_runs_folder_fails_before_writing(tmp_path, case):
     with pytest.raises(ConfigError, match=re.escape(message)):
         _main(tmp_path)
     assert not (tmp_path / "results").exists() and (tmp_path / "README.md").read_text() == README
+    assert not (tmp_path / "docs").exists()
 
 
-def test_committed_readme_section_is_generated_from_committed_results():
-    """The guard: README numbers are never typed by hand. Regenerate with `python -m experiments.report`."""
-    text = (ROOT / "README.md").read_text()
-    assert text.count(BEGIN) == 1 and text.count(END) == 1
-    assert text.index("\n## Measured results\n") < text.index(BEGIN)
-    assert section_of(text) == render(ROOT / "results")
-    assert rewrite_readme(text, render(ROOT / "results")) == text
+def test_committed_pages_are_generated_from_committed_results():
+    """The guard: result numbers are never typed by hand, neither in the docs' results page nor in the
+    README's headline table. Regenerate both with `python -m experiments.report --runs ''`."""
+    page = (ROOT / "docs" / "results.md").read_text()
+    assert page.count(BEGIN) == 1 and page.count(END) == 1 and page.startswith("# Results\n")
+    assert section_of(page) == render(ROOT / "results")
+    readme = (ROOT / "README.md").read_text()
+    assert readme.count(HEADLINE_BEGIN) == 1 and readme.count(HEADLINE_END) == 1
+    assert readme.index(f"\n{HEADLINE_HEADING}\n") < readme.index(HEADLINE_BEGIN)
+    assert section_of(readme, HEADLINE_BEGIN, HEADLINE_END) == render_headline(ROOT / "results", "docs/results.md")
+    report.main(["--runs", "", "--results", str(ROOT / "results"), "--docs", str(ROOT / "docs" / "results.md"),
+                 "--readme", str(ROOT / "README.md"), "--check"])
