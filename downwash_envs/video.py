@@ -206,6 +206,28 @@ def check_video_output(path: str | os.PathLike, scene: Scene) -> Path:
     return path
 
 
+def decorated(scene: Scene, wake_vehicles: Sequence[int] | None = None, wake: tuple[float, float] | None = None
+              ) -> tuple[Any, list[int], tuple[float, float]]:
+    """What the videos and the viewer draw: (a copy of the scene's model with the vehicles tinted by
+    role (the physics model is untouched), the vehicles whose wake is drawn (default: the
+    leaders), the wake's (width0 m, width_slope -) (default `wake_width()`)); ConfigError
+    naming a bad vehicle index or width."""
+    V = scene.n_vehicles
+    if wake_vehicles is None:
+        wake_vehicles = [v for v, r in enumerate(scene.roles) if r == Role.LEADER]
+    vehicles = [int(v) for v in wake_vehicles]
+    if any(not 0 <= v < V for v in vehicles):
+        raise ConfigError(f"wake_vehicles: {list(wake_vehicles)} must be vehicle indices in [0, {V - 1}]")
+    width = wake_width() if wake is None else (positive_float("wake width0", wake[0], "m"),
+                                               positive_float("wake width_slope", wake[1], "-", allow_zero=True))
+    model = copy.copy(scene.model)
+    for v, role in enumerate(scene.roles):
+        rgba = _LEADER_RGBA if role == Role.LEADER else _FOLLOWER_RGBA
+        for g in _TINTED_GEOMS:
+            model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
+    return model, vehicles, width
+
+
 class TiledRenderer:
     """Frames of several conditions at once: one `width` x `height` tile each, `columns` per row.
 
@@ -223,21 +245,9 @@ class TiledRenderer:
         self.columns = self.n_tiles if columns is None else count("columns", columns, lo=1)
         self.columns = min(self.columns, self.n_tiles)
         self.rows = math.ceil(self.n_tiles / self.columns)
-        V = scene.n_vehicles
-        if wake_vehicles is None:
-            wake_vehicles = [v for v, r in enumerate(scene.roles) if r == Role.LEADER]
-        self.wake_vehicles = [int(v) for v in wake_vehicles]
-        if any(not 0 <= v < V for v in self.wake_vehicles):
-            raise ConfigError(f"wake_vehicles: {list(wake_vehicles)} must be vehicle indices in [0, {V - 1}]")
-        self.wake = wake_width() if wake is None else (positive_float("wake width0", wake[0], "m"),
-                                                       positive_float("wake width_slope", wake[1], "-", allow_zero=True))
+        model, self.wake_vehicles, self.wake = decorated(scene, wake_vehicles, wake)  # + a larger offscreen buffer
         self.scene = scene
 
-        model = copy.copy(scene.model)  # tinted, larger offscreen buffer; the physics model is untouched
-        for v, role in enumerate(scene.roles):
-            rgba = _LEADER_RGBA if role == Role.LEADER else _FOLLOWER_RGBA
-            for g in _TINTED_GEOMS:
-                model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), self.width)
         model.vis.global_.offheight = max(int(model.vis.global_.offheight), self.height)
         # No shadow map: with Mesa's software EGL it costs several times the rest of a frame, and the

@@ -21,7 +21,6 @@ viewer runs only under ``mjpython``.
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 import os
@@ -34,12 +33,10 @@ import mujoco
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.roles import Role
-from downwash_core.validate import positive_float
-from downwash_envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS
+from downwash_envs.rendering import _REF_RGBA
 from downwash_envs.video import (
     _PATH_RGBA, _REF_RADIUS, _WAKE_ALPHA, _WAKE_RGB, _WAKE_SEGMENTS, _WAKE_START, WAKE_DEPTH, CameraView,
-    _add_geom, _add_line, wake_width,
+    _add_geom, _add_line, decorated, wake_width,
 )
 from sim.scene import Scene
 from sim.simulator import Simulator
@@ -96,20 +93,8 @@ class Viewer:
     def __init__(self, scene: Scene, wake: tuple[float, float] | None = None,
                  wake_vehicles: Sequence[int] | None = None, what: str = "the viewer"):
         check_display(what)
-        V = scene.n_vehicles
-        if wake_vehicles is None:
-            wake_vehicles = [v for v, r in enumerate(scene.roles) if r == Role.LEADER]
-        self.wake_vehicles = [int(v) for v in wake_vehicles]
-        if any(not 0 <= v < V for v in self.wake_vehicles):
-            raise ConfigError(f"wake_vehicles: {list(wake_vehicles)} must be vehicle indices in [0, {V - 1}]")
-        self.wake = wake_width() if wake is None else (positive_float("wake width0", wake[0], "m"),
-                                                       positive_float("wake width_slope", wake[1], "-", allow_zero=True))
+        model, self.wake_vehicles, self.wake = decorated(scene, wake_vehicles, wake)
         self.scene = scene
-        model = copy.copy(scene.model)  # tinted copy; the physics model is untouched
-        for v, role in enumerate(scene.roles):
-            rgba = _LEADER_RGBA if role == Role.LEADER else _FOLLOWER_RGBA
-            for g in _TINTED_GEOMS:
-                model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
         self.model, self.data = model, mujoco.MjData(model)
         self._last_sync: float | None = None
         self._handle, self._threads = _launch(model, self.data, what)

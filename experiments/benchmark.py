@@ -4,7 +4,7 @@
 
 Every measurement runs once per round (`--repeats` rounds), each right after a window of bare
 mj_step of its scene; a ratio is the median over rounds of the pair's ratio, a rate the median
-over rounds (see `run`). `targets` holds issue 12's targets for three of the ratios.
+over rounds (see `run`). `targets` holds the project's speed targets for four of the ratios.
 
 Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop),
 closed_loop_serial_steps_per_s, real_time_factor_serial and serial_over_bare (one
@@ -18,9 +18,14 @@ time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrap
 and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
 native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
 (`mujoco.batch.Batch.step` of 64 worlds alone, no control: the ceiling of the batched
-ratios on this machine). For the 5-vehicle preset (`formation5`, every wake on every
+ratios on the machine measured). For the 5-vehicle preset (`formation5`, every wake on every
 vehicle, the learned equivariant model summed over neighbours): bare_mj_step_per_s_formation5
 (plain mj_step of that scene), formation5_serial_over_bare and formation5_batched_over_bare.
+RL glue: stable-baselines3's PPO rollout collection (the policy's forward pass and the
+env steps) through the native vector env and its adapter against SB3's own DummyVecEnv
+of single envs, 16 worlds each, paired and alternated: sb3_rollout_steps_per_s_native,
+sb3_rollout_steps_per_s_dummy and sb3_native_over_dummy (torch at one thread, as the
+examples run it), and sb3_native_over_dummy_torch_default_threads (torch at its default).
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -51,8 +56,9 @@ class BenchmarkArgs(CommonArgs):
     repeats: int = arg(15, "rounds: each measurement once per round, paired with a bare window (medians reported)")
 
 
-# The issue's targets for the ratios (issue 12), written into results.json beside the measurements.
-TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "env_single_physics_over_bare": 0.3}
+# The project's targets for the ratios, written into results.json beside the measurements.
+TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "env_single_physics_over_bare": 0.3,
+           "sb3_native_over_dummy": 2.0}
 
 
 def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
@@ -143,7 +149,7 @@ def run(args: BenchmarkArgs) -> dict:
     seconds_train, model = train_equivariant(0.5 if args.quick else 17.0, field)
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
-    five = make_preset("formation5")  # issue 10: the 5-vehicle preset against its own bare step
+    five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
     batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
     flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
         "closed_loop_serial_steps_per_s": (closed_loop_sim(1, field, learned), seconds),
@@ -194,8 +200,33 @@ def run(args: BenchmarkArgs) -> dict:
     r["batched_worlds"] = worlds
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
+    r.update(sb3_rollouts(4 if args.quick else 16, 16 if args.quick else 256, 1 if args.quick else 3))
     r["targets"] = dict(TARGETS)
     return r
+
+
+def sb3_rollouts(num_envs: int, n_steps: int, rounds: int) -> dict[str, Any]:
+    """SB3's rollout collection through the native vector env against DummyVecEnv, alternated
+    `rounds` times (median rates and median paired ratio); empty without stable-baselines3."""
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        return {}
+    import torch
+
+    from downwash_envs.evaluation import sb3_rollout_steps_per_s
+
+    out: dict[str, Any] = {"sb3_worlds": num_envs}
+    for suffix, threads in (("", 1), ("_torch_default_threads", torch.get_num_threads())):
+        native, dummy = [], []
+        for _ in range(rounds):
+            native.append(sb3_rollout_steps_per_s(num_envs, n_steps, native=True, repeats=1, torch_threads=threads))
+            dummy.append(sb3_rollout_steps_per_s(num_envs, n_steps, native=False, repeats=1, torch_threads=threads))
+        out[f"sb3_rollout_steps_per_s_native{suffix}"] = float(np.median(native))
+        out[f"sb3_rollout_steps_per_s_dummy{suffix}"] = float(np.median(dummy))
+        out[f"sb3_native_over_dummy{suffix}"] = float(np.median(np.array(native) / np.array(dummy)))
+        out[f"sb3_torch_threads{suffix}"] = threads
+    return out
 
 
 def predictor_us_per_call(predictor: LearnedPredictor, n_worlds: int, n_calls: int) -> float:

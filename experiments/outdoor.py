@@ -31,7 +31,7 @@ from experiments.common import (CONDITIONS, WIND_HELP, PipelineArgs, ProgressBar
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
 LEADERS = ("circle", "line")
-SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the sustained-speed regime)
+SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor, sustained-speed regime)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,8 @@ then renders from `results/` alone the full results into the docs' results page
 (between the markers BEGIN and END) and a short headline table into the README
 (between HEADLINE_BEGIN and HEADLINE_END). Rendering reads only `results/`, so the
 committed files always regenerate the committed pages (a test checks this).
-`--check` writes nothing and exits 1 when either page differs from what `results/`
+`--check` writes nothing and exits 1 when a results file was made by code older than
+the last commit that moved a golden number (`tests/golden/`), or when either page differs from what `results/`
 renders; `--runs ''` skips the copy and only re-renders. The common options (--out,
 --seed, --quick, --field) are accepted for the shared contract and not used.
 """
@@ -21,6 +22,7 @@ import json
 import math
 import os
 import platform
+import subprocess
 import sys
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -127,6 +129,54 @@ def load_results(results_dir: str | Path) -> tuple[dict[str, dict], dict]:
     """({name: results} for the files present in results_dir, the report.json record or {})."""
     found = {n: _read(p) for n in [*EXPERIMENTS, "report"] if (p := Path(results_dir) / f"{n}.json").is_file()}
     return found, found.pop("report", {})
+
+
+# The golden records (tests/golden/): the commit that last changed one moved a number of the
+# pipeline on purpose, and results made by older code no longer describe this code.
+GOLDEN_FILES = ("tests/golden/pipeline.json", "tests/golden/env_digests.json")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _git(repo: Path, *args: str) -> subprocess.CompletedProcess | None:
+    try:
+        return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def code_commit(results: Any) -> str | None:
+    """The commit recorded in a results file's provenance (`code.commit`, wherever it sits)."""
+    if isinstance(results, dict):
+        code = results.get("code")
+        if isinstance(code, dict) and code.get("commit"):
+            return str(code["commit"])
+        for value in results.values():
+            if (found := code_commit(value)) is not None:
+                return found
+    return None
+
+
+def stale_results(found: dict[str, dict], repo: Path = REPO) -> list[str]:
+    """The results files made by code older than the last commit that moved a golden number:
+    "<name>: why". Empty outside a git checkout or in a shallow clone (no history to compare)."""
+    shallow = _git(repo, "rev-parse", "--is-shallow-repository")
+    last = _git(repo, "log", "-1", "--format=%H", "--", *GOLDEN_FILES)
+    if shallow is None or shallow.stdout.strip() != "false" or last is None or last.returncode != 0 \
+            or not last.stdout.strip():
+        return []
+    golden = last.stdout.strip()
+    stale = []
+    for name, results in found.items():
+        commit = code_commit(results)
+        if commit is None:
+            stale.append(f"{name}: records no code commit")
+            continue
+        rc = _git(repo, "merge-base", "--is-ancestor", golden, commit)
+        if rc is not None and rc.returncode == 1:
+            stale.append(f"{name}: made at {commit[:10]}, before {golden[:10]} moved the golden numbers")
+        elif rc is None or rc.returncode != 0:
+            stale.append(f"{name}: its commit {commit[:10]} is not in this repository's history")
+    return stale
 
 
 def machine() -> dict[str, Any]:
@@ -537,6 +587,11 @@ def main(argv=None) -> str:
         if stale:
             print(f"{', '.join(stale)}: the results differ from what {args.results}/ renders; run "
                   f"`python -m experiments.report --runs ''` to regenerate", file=sys.stderr)
+            raise SystemExit(1)
+        old = stale_results(load_results(args.results)[0])
+        if old:
+            print("results made by code older than the golden records: " + "; ".join(old)
+                  + ". Rerun those experiments and `python -m experiments.report`", file=sys.stderr)
             raise SystemExit(1)
         print(f"{args.docs} and {args.readme}: the results match {args.results}/")
         return pages[1][1]

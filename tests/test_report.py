@@ -337,3 +337,27 @@ def test_committed_pages_are_generated_from_committed_results():
     assert section_of(readme, HEADLINE_BEGIN, HEADLINE_END) == render_headline(ROOT / "results", "docs/results.md")
     report.main(["--runs", "", "--results", str(ROOT / "results"), "--docs", str(ROOT / "docs" / "results.md"),
                  "--readme", str(ROOT / "README.md"), "--check"])
+
+
+def test_results_older_than_the_golden_records_are_stale(tmp_path):
+    """`--check` refuses results whose code predates the last commit that moved a golden number."""
+    import subprocess
+
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=tmp_path, capture_output=True, text=True, check=True).stdout.strip()
+
+    git("init", "-q")
+    git("config", "user.email", "t@t"), git("config", "user.name", "t")
+    (tmp_path / "code.py").write_text("1\n")
+    git("add", "."), git("commit", "-qm", "code")
+    old = git("rev-parse", "HEAD")
+    (tmp_path / "tests" / "golden").mkdir(parents=True)
+    (tmp_path / "tests" / "golden" / "pipeline.json").write_text("{}\n")
+    git("add", "."), git("commit", "-qm", "moves a golden number")
+    new = git("rev-parse", "HEAD")
+    found = {"lemniscate": {"provenance": {"code": {"commit": old}}}, "transect": {"code": {"commit": new}},
+             "benchmark": {}, "swarm": {"provenance": {"code": {"commit": "f" * 40}}}}
+    stale = report.stale_results(found, repo=tmp_path)
+    assert [s.split(":")[0] for s in stale] == ["lemniscate", "benchmark", "swarm"]
+    assert "before" in stale[0] and "no code commit" in stale[1] and "not in this repository" in stale[2]
+    assert report.stale_results({"transect": found["transect"]}, repo=tmp_path) == []
