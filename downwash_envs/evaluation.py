@@ -11,7 +11,7 @@ import numpy as np
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.follower import DownwashFollowerVectorEnv
 
-__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector", "sb3_rollout_steps_per_s"]
+__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector", "SB3_BACKENDS", "sb3_rollout_steps_per_s"]
 
 
 def evaluate_lqr(
@@ -116,13 +116,18 @@ def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: i
     return rate
 
 
-def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, native: bool = True, repeats: int = 3,
+SB3_BACKENDS = ("native", "sync", "dummy")
+
+
+def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, backend: str = "native", repeats: int = 3,
                             seed: int = 0, torch_threads: int = 1, **options: Any) -> float:
     """Env steps (summed over worlds) per wall second of stable-baselines3's PPO rollout
-    collection (`collect_rollouts`: the policy's forward pass, the env steps, the buffer),
-    through the native vector env (`downwash_envs.sb3`, native=True) or through SB3's
-    `DummyVecEnv` of `num_envs` single envs (native=False, what SB3 users get without the
-    adapter); the best of `repeats` rollouts of `n_steps` steps. Needs the `rl` extra.
+    collection (`collect_rollouts`: the policy's forward pass, the env steps, the buffer)
+    through `backend`: "native", the native vector env through the adapter
+    (`downwash_envs.sb3`); "sync", Gymnasium's `SyncVectorEnv` of `num_envs` single envs
+    through the same adapter; "dummy", SB3's own `DummyVecEnv` of single envs (what SB3
+    users get without the adapter). The best of `repeats` rollouts of `n_steps` steps.
+    Needs the `rl` extra.
 
     torch_threads: torch's intra-op threads during the measurement (restored after);
     one suits a small MLP policy, and on a small machine more take the simulator's cores."""
@@ -130,13 +135,18 @@ def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, native: b
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from downwash_envs.sb3 import make_vec_env
+    from downwash_envs.sb3 import SB3VecEnv, make_vec_env
 
-    if native:
-        venv = make_vec_env("downwash/Follower-v1", num_envs=num_envs, seed=seed, **options)
+    if backend not in SB3_BACKENDS:
+        raise ValueError(f"backend: expected one of {list(SB3_BACKENDS)}, got {backend!r}")
+    fns = [lambda: gym.make("downwash/Follower-v1", **options) for _ in range(num_envs)]
+    if backend == "native":
+        venv = make_vec_env("downwash/Follower-v1", num_envs=num_envs, **options)
+    elif backend == "sync":
+        venv = SB3VecEnv(gym.vector.SyncVectorEnv(fns))
     else:
-        venv = DummyVecEnv([lambda: gym.make("downwash/Follower-v1", **options) for _ in range(num_envs)])
-        venv.seed(seed)
+        venv = DummyVecEnv(fns)
+    venv.seed(seed)
     model = PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=n_steps, seed=seed, device="cpu")
     _, callback = model._setup_learn(n_steps * num_envs * (repeats + 1), callback=None)
     callback.on_training_start(locals(), globals())

@@ -49,6 +49,26 @@ def test_adapter_gives_the_episodes_of_dummy_vec_env():
     dummy.close()
 
 
+def test_adapter_over_sync_vector_env_gives_the_same_episodes():
+    """The adapter serves any next-step-autoreset vector env: Gymnasium's SyncVectorEnv of the
+    single envs gives the native env's episodes through it."""
+    n, seed = 2, 5
+    native = make_vec_env("downwash/Follower-v1", num_envs=n, seed=seed, **OPTIONS)
+    sync = SB3VecEnv(gym.vector.SyncVectorEnv([lambda: gym.make("downwash/Follower-v1", **OPTIONS)] * n))
+    sync.seed(seed)
+    np.testing.assert_array_equal(native.reset(), sync.reset())
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        actions[0] = np.clip(actions[0] + [0.9, 0.0, 0.0], -1, 1)
+        (oa, ra, da, ia), (ob, rb, db, ib) = native.step(actions), sync.step(actions)
+        np.testing.assert_array_equal(oa, ob)
+        np.testing.assert_array_equal(ra, rb)
+        np.testing.assert_array_equal(da, db)
+        for i in np.flatnonzero(da):
+            np.testing.assert_array_equal(ia[i]["terminal_observation"], ib[i]["terminal_observation"])
+
+
 def test_sb3_checker_passes_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
