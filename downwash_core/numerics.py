@@ -28,12 +28,15 @@ ROUND_OFF = 1e-9  # relative to the largest entry: smaller entries are a solve's
 
 
 def cpu_independent(x) -> np.ndarray:
-    """`x` as float64, rounded to the nearest float32, round-off zeroed: the same bits
-    whichever BLAS kernel made it."""
+    """`x` as float64 rounded to 24 significant bits (float32's precision, in float64's
+    range), round-off zeroed: the same bits whichever BLAS kernel made it."""
     x = np.asarray(x, dtype=np.float64)
     scale = float(np.max(np.abs(x))) if x.size else 0.0
     x = np.where(np.abs(x) < ROUND_OFF * scale, 0.0, x)
-    return x.astype(np.float32).astype(np.float64)
+    # 24 significant bits, as float32 has, but in float64's range (a cast would overflow or
+    # flush to zero outside float32's); every step is exact, the rounding half to even
+    mantissa, exponent = np.frexp(x)
+    return np.ldexp(np.round(mantissa * 2.0**24) / 2.0**24, exponent)
 
 
 def matmul_rows(x: np.ndarray, m: np.ndarray) -> np.ndarray:

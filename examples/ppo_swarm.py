@@ -35,14 +35,15 @@ def main(argv: list[str] | None = None) -> dict:
     from stable_baselines3.common.vec_env import VecMonitor
 
     from downwash_envs.swarm import parallel_env
-    from learning_curve import EpisodeReturns, save
+    from learning_curve import EpisodeReturns, save, swarm_returns
 
     copies = 1 if args.quick else args.copies
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
     # torch's threads take the cores the simulator's threads step the worlds on.
     torch.set_num_threads(1)
     timesteps = 256 if args.quick else args.timesteps
-    env = parallel_env(preset=args.preset, duration=1.0 if args.quick else 5.0)
+    options = dict(preset=args.preset, duration=1.0 if args.quick else 5.0)
+    env = parallel_env(**options)
     env.reset(seed=args.seed)  # later resets (SuperSuit's, unseeded) continue this generator
     venv = ss.pettingzoo_env_to_vec_env_v1(env)  # one row per agent: the policy is shared
     venv = ss.concat_vec_envs_v1(venv, copies, num_cpus=0, base_class="stable_baselines3")
@@ -53,8 +54,11 @@ def main(argv: list[str] | None = None) -> dict:
                 device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
+    episodes = 2 if args.quick else 10
+    lines = {"LQR alone (action 0)": swarm_returns(None, episodes, **options),
+             "PPO, deterministic": swarm_returns(lambda o: model.predict(o, deterministic=True)[0], episodes, **options)}
     return save(args.out, f"PPO, shared policy, {args.preset}", curve,
-                {"timesteps": timesteps, "agents": list(env.possible_agents), "copies": copies, "seed": args.seed})
+                {"timesteps": timesteps, "agents": list(env.possible_agents), "copies": copies, "seed": args.seed}, lines)
 
 
 if __name__ == "__main__":

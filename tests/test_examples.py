@@ -26,6 +26,9 @@ def test_example_runs_quick(script, tmp_path):
     record = json.loads((tmp_path / "out" / "learning_curve.json").read_text())
     assert record["timesteps"] == 256 and len(record["episodes"]) >= 1
     assert all(e["length"] > 0 for e in record["episodes"])
+    # the trained policy and the plain LQR, measured on the same evaluation episodes
+    assert set(record["evaluation"]) == {"LQR alone (action 0)", "PPO, deterministic"}
+    assert all(len(v["returns"]) == 2 for v in record["evaluation"].values())
     assert (tmp_path / "out" / "learning_curve.png").stat().st_size > 1000
 
 

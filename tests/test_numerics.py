@@ -1,0 +1,85 @@
+"""Numbers with the same bits on every CPU (downwash_core.numerics, downwash_core.geometry.dot):
+what they compute, the order they sum in, and that the BLAS kernel does not matter."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from downwash_core.geometry import dot
+from downwash_core.numerics import ROUND_OFF, cpu_independent, matmul_rows, matvec
+
+finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 5), st.integers(1, 4), st.data())
+def test_matmul_rows_and_matvec_are_the_products_summed_in_index_order(n, k, batch, data):
+    x = data.draw(arrays(np.float64, (batch, n), elements=finite))
+    m = data.draw(arrays(np.float64, (n, k), elements=finite))
+    want = np.zeros((batch, k))
+    for i in range(n):  # the readable definition: one term at a time, in index order
+        want = want + x[:, i, None] * m[i]
+    np.testing.assert_array_equal(matmul_rows(x, m), want if n > 1 else x[:, :1] * m[0])
+    np.testing.assert_allclose(matmul_rows(x, m), x @ m, rtol=1e-12, atol=1e-9)
+    mt = np.broadcast_to(m.T, (batch, k, n))
+    np.testing.assert_array_equal(matvec(mt, x), matmul_rows(x, m))
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, (5, 3), elements=finite), arrays(np.float64, (5, 3), elements=finite))
+def test_dot_sums_the_components_in_order(a, b):
+    np.testing.assert_array_equal(dot(a, b), (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]) + a[:, 2] * b[:, 2])
+    np.testing.assert_allclose(dot(a, b), np.einsum("ij,ij->i", a, b), rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(dot(a[:2], b[:2]), dot(a, b)[:2])  # the same bits whatever the batch
+
+
+@settings(max_examples=100, deadline=None)
+@given(arrays(np.float64, (4, 7), elements=st.floats(-100, 100, allow_nan=False)), st.integers(-4, 4))
+def test_cpu_independent_absorbs_a_few_ulps(x, ulps):
+    """A value moved by a few float64 ulps (another kernel's round-off) rounds to the same bits,
+    except in the rare case that it straddles the middle of two float32 values."""
+    y = cpu_independent(x)
+    assert np.array_equal(cpu_independent(y), y)  # idempotent
+    assert np.all(np.abs(y - x) <= np.maximum(np.abs(x) * 2.0**-24, ROUND_OFF * np.abs(x).max()))
+    moved = x.copy()
+    for _ in range(abs(ulps)):
+        moved = np.nextafter(moved, np.inf if ulps > 0 else -np.inf)
+    mid = np.abs(x.astype(np.float32).astype(np.float64) - x) > 0.49 * np.spacing(np.abs(x).astype(np.float32))
+    same = cpu_independent(moved) == y
+    assert np.all(same | mid)
+
+
+def test_cpu_independent_zeroes_round_off_and_keeps_real_zeros():
+    x = np.array([[1.5, 3e-16], [0.0, -2.0]])
+    assert cpu_independent(x).tolist() == [[1.5, 0.0], [0.0, -2.0]]
+    assert cpu_independent(np.zeros(3)).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_the_set_up_gains_do_not_depend_on_the_blas_kernel():
+    """The LQR and Kalman gains, solved through LAPACK, have the same bits under every OpenBLAS
+    kernel this CPU can run (the raw solves do not: they differ in their last bits)."""
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "golden"))
+    import machine
+
+    code = textwrap.dedent("""
+        import json
+        import control
+        from controllers.lqr import DEFAULT_Q, DEFAULT_R, double_integrator, lqr_gain
+        from sim.estimation import steady_state_gain
+        A, B = double_integrator()
+        raw = control.lqr(A, B, DEFAULT_Q, DEFAULT_R)[0]
+        print(json.dumps([lqr_gain().tobytes().hex(), steady_state_gain(0.01).tobytes().hex(), raw.tobytes().hex()]))
+    """)
+    seen = {}
+    for kernel in machine.runnable_blas_kernels() or [""]:
+        out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, OPENBLAS_CORETYPE=kernel),
+                             capture_output=True, text=True, timeout=300, check=True).stdout
+        seen[kernel] = json.loads(out.strip().splitlines()[-1])
+    assert len({tuple(v[:2]) for v in seen.values()}) == 1, seen
