@@ -7,6 +7,7 @@ and the lazily made renderer.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Mapping, Sequence
 
 import gymnasium as gym
@@ -19,7 +20,7 @@ from downwash_envs.rendering import Renderer
 from downwash_envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
-__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_reset_plan"]
+__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_reset_plan", "pickled_as_constructed"]
 
 RENDER_MODES = ("rgb_array",)
 
@@ -63,6 +64,34 @@ def vector_reset_plan(n_worlds: int, seed: Any, options: Mapping[str, Any] | Non
     if mask.shape != (n_worlds,) or mask.dtype != np.bool_ or not mask.any():
         raise ValueError(f"reset options['reset_mask']: expected a bool array ({n_worlds},) with a True, got {mask!r}")
     return seeds, mask
+
+
+def pickled_as_constructed(cls: type) -> type:
+    """Class decorator: an env pickles as the call that made it, and unpickles as a fresh env
+    made by the same call (not reset). Its simulator (MuJoCo data, a `mujoco.batch`, compiled
+    buffers, helper threads) cannot be copied, and a pickled copy of those objects is an env
+    that silently does not move; libraries that copy envs by pickling them (SuperSuit,
+    subprocess vector envs) get a working env instead. The copy does not carry the original's
+    generator: seed its reset."""
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        if type(self) is cls:  # the outermost call: a subclass records its own
+            self._construction = (args, kwargs)
+        init(self, *args, **kwargs)
+
+    def __reduce__(self):
+        args, kwargs = self._construction
+        return (_construct, (type(self), args, kwargs))
+
+    cls.__init__ = __init__
+    cls.__reduce__ = __reduce__
+    return cls
+
+
+def _construct(cls: type, args: tuple, kwargs: dict) -> Any:
+    return cls(*args, **kwargs)
 
 
 class FollowerEnvBase:

@@ -21,13 +21,16 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from downwash_core.validate import count
-from downwash_envs.base import RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, vector_reset_plan
+from downwash_envs.base import (
+    RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, pickled_as_constructed, vector_reset_plan,
+)
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.task import draw_episode, episode_info
 
 __all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
 
 
+@pickled_as_constructed
 class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     """The follower tracks a reference below a hovering leader, in the leader's downwash.
 
@@ -146,6 +149,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
         self._close_renderer()
 
 
+@pickled_as_constructed
 class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
     """`num_envs` follower worlds on one `mujoco.batch.Batch`: Gymnasium's VectorEnv API.
 

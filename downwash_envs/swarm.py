@@ -128,7 +128,7 @@ from downwash_core.provenance import describe
 from downwash_core.roles import MAX_VEHICLES, Role
 from downwash_core.status import Status
 from downwash_core.validate import count, number
-from downwash_envs.base import RENDER_MODES, vector_reset_plan
+from downwash_envs.base import RENDER_MODES, pickled_as_constructed, vector_reset_plan
 from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
 from downwash_envs.observation import OBSERVATION, ObsEntry
 from downwash_envs.rendering import Renderer
@@ -709,6 +709,7 @@ class _SwarmBase:
             self._renderer = None
 
 
+@pickled_as_constructed
 class SwarmEnv(_SwarmBase, ParallelEnv):
     """Every follower of a preset is an agent; one world, plain `MjData` (see the module docstring).
 
@@ -765,6 +766,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
         return None if frames is None else frames[0]
 
 
+@pickled_as_constructed
 class SwarmVectorEnv(_SwarmBase):
     """`n_worlds` swarm worlds on one `mujoco.batch.Batch`, per-agent arrays with a leading world axis.
 

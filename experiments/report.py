@@ -407,8 +407,11 @@ def render_benchmark(r: dict, label: str) -> str:
     if targets:
         rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
         ceiling = r.get("mujoco_batch_over_bare")
-        parts += [f"The speed targets against the ratios measured in this run ({r.get('rounds')} rounds, each ratio "
-                  "the median over rounds of the rate over a bare `mj_step` window just before it):",
+        parts += [f"The speed targets against the ratios measured in this run ({r.get('rounds')} rounds, each "
+                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
+                  "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
+                  f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
+                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
                   _table(["ratio", "target", "measured", "met"], rows)]
         if ceiling is not None:
             parts.append(f"For scale: `mujoco.batch` stepping {r.get('batched_worlds')} worlds with no control at all "
