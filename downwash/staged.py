@@ -54,6 +54,7 @@ from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.flight import fly
 from sim.logs import SCHEMA_VERSION, load_log, save_log
+from sim.physics import resolve_threads, usable_cores
 from sim.predictor import ZeroPredictor
 from sim.scene import build_scene
 from sim.simulator import SimConfig
@@ -103,6 +104,11 @@ class CollectionConfig:
             raise ConfigError(f"--clamp: must be > 0 m/s^2, got {self.clamp}")
         if isinstance(self.batch_flights, bool) or not isinstance(self.batch_flights, int) or not 1 <= self.batch_flights <= 256:
             raise ConfigError(f"--batch-flights: allowed integers 1-256, got {self.batch_flights!r}")
+        try:
+            resolve_threads(self.threads)
+        except ConfigError:
+            raise ConfigError(f"--threads: allowed 0 (every usable core) or 1-{usable_cores()} (the cores this "
+                              f"process may use), got {self.threads!r}") from None
 
     @property
     def effective_stage_minutes(self) -> float:

@@ -162,7 +162,10 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
     world i of `reset(seed=s)` uses seed s + i; `reset(seed=[...])` one per world.
 
     num_envs: worlds. max_episode_steps: truncation horizon (None or -1: none;
-    `make_vec` passes the registered one). n_threads: Batch threads (0: all cores).
+    `make_vec` passes the registered one). n_threads: the threads that step the worlds: 0 (default) one per
+    core this process may use (its CPU affinity), 1..that many as given, anything else a
+    ConfigError. Set 1 when other threads of the process need the cores, e.g. a learner's
+    torch threads: the helper threads wait for work by spinning.
     Other keywords: `FollowerConfig` (see `DownwashFollowerEnv` for the spaces,
     reward and termination). `reset(options={"reset_mask": mask})` resets only
     the masked worlds. `render()` returns one frame per world.

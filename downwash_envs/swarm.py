@@ -777,7 +777,10 @@ class SwarmVectorEnv(_SwarmBase):
     keys). Autoreset on the next step (Gymnasium's default): the step after a world ends
     resets it; its actions are ignored, its reward is 0, terminated and truncated False,
     its observation the new episode's first, and ``infos[agent]["autoreset"]`` marks it
-    (``sim_seed`` and ``phase`` give its episode). n_threads: Batch threads (0: all cores).
+    (``sim_seed`` and ``phase`` give its episode). n_threads: the threads that step the worlds: 0 (default) one per
+    core this process may use (its CPU affinity), 1..that many as given, anything else a
+    ConfigError. Set 1 when other threads of the process need the cores, e.g. a learner's
+    torch threads: the helper threads wait for work by spinning.
     """
 
     metadata = {"name": "downwash_swarm_vector_v0", "render_modes": list(RENDER_MODES), "render_fps": 50}

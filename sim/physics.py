@@ -17,9 +17,10 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
+from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 
-__all__ = ["Physics", "make_physics", "mj_step_address"]
+__all__ = ["Physics", "make_physics", "mj_step_address", "resolve_threads", "usable_cores"]
 
 log = logging.getLogger(__name__)
 
@@ -230,10 +231,31 @@ def _libmujoco_path() -> str | None:
     return None
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, as a container or `taskset` sets
+    it), not the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # no affinity on this platform
+        return os.cpu_count() or 1
+
+
+def resolve_threads(n_threads: int) -> int:
+    """The thread count for `n_threads`: 0 means every usable core (`usable_cores`); 1..that many
+    as given. ConfigError otherwise: more threads than cores only take turns on them."""
+    cores = usable_cores()
+    if isinstance(n_threads, bool) or not isinstance(n_threads, (int, np.integer)) or not 0 <= n_threads <= cores:
+        raise ConfigError(f"n_threads: expected 0 (every usable core, {cores} here) or 1..{cores} "
+                          f"(the cores this process may use), got {n_threads!r}")
+    return cores if n_threads == 0 else int(n_threads)
+
+
 def make_physics(model: mujoco.MjModel, n_worlds: int, n_threads: int = 0) -> Physics:
-    """Plain MjData for one world (faster there), `mujoco.batch.Batch` for more."""
+    """Plain MjData for one world (faster there), `mujoco.batch.Batch` for more, stepped on
+    `resolve_threads(n_threads)` threads."""
     if n_worlds < 1:
         raise ValueError(f"n_worlds: expected >= 1, got {n_worlds}")
+    n_threads = resolve_threads(n_threads)
     if n_worlds == 1:
         return _SerialPhysics(model)
     return _BatchPhysics(model, n_worlds, n_threads)

@@ -71,6 +71,7 @@ does. tests/test_fast_path.py checks that both paths fly bit-identical logs.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterator, NamedTuple, Sequence
@@ -82,7 +83,7 @@ from numba.core.extending import intrinsic
 
 from controllers.autopilot import Autopilot, rotor_thrusts
 from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint, _command_setpoint_kernel
-from downwash_core.errors import ConfigError
+from downwash_core.errors import ConcurrentUseError, ConfigError
 from downwash_core.geometry import perturb_quat_into, quat_to_rot
 from downwash_core.jit import njit
 from downwash_core.params import QUAD, RATES, QuadParams, Rates
@@ -923,6 +924,7 @@ class Simulator:
         fast: bool = True,
     ):
         object.__setattr__(self, "_bound", False)
+        object.__setattr__(self, "_in_use", threading.RLock())  # one thread at a time (`_one_thread`)
         if wind is not None and not isinstance(wind, DrydenWind):
             raise ConfigError(f"wind: expected a sim.wind.DrydenWind or None, got {type(wind).__name__}")
         self.scene = scene
@@ -1090,7 +1092,15 @@ class Simulator:
 
     # ------------------------------------------------------------------ reset
     def reset(self, worlds: np.ndarray, seeds: Sequence[int] | None = None, reference: Callable | None = None) -> None:
-        """Start the given worlds afresh at their reference's t = 0 state, hovering level."""
+        """Start the given worlds afresh at their reference's t = 0 state, hovering level (one
+        thread at a time, as `tick`)."""
+        lock = self._one_thread("reset")
+        try:
+            self._reset(worlds, seeds, reference)
+        finally:
+            lock.release()
+
+    def _reset(self, worlds: np.ndarray, seeds: Sequence[int] | None, reference: Callable | None) -> None:
         worlds = np.asarray(worlds, dtype=np.int64)
         if reference is not None:
             self.reference = reference
@@ -1145,8 +1155,23 @@ class Simulator:
         self._cursor_max = int(self._cursor.max())
 
     # ------------------------------------------------------------------ one controller tick
+    def _one_thread(self, what: str) -> threading.RLock:
+        """The simulator's lock, taken for `what` by this thread; ConcurrentUseError at once when
+        another thread holds it. A tick's helper threads wait for the thread that started it,
+        so a second thread ticking the same simulator would wait on them forever or corrupt the
+        worlds: it gets an error instead, never a hang."""
+        lock = self.__dict__["_in_use"]
+        if not lock.acquire(blocking=False):
+            raise ConcurrentUseError(
+                f"Simulator.{what}: another thread is inside this simulator. A simulator, and the env "
+                f"that holds it, serves one thread at a time: make one env (or simulator) per thread")
+        return lock
+
     def tick(self, residual: np.ndarray | None = None, override: np.ndarray | None = None) -> Mapping[str, np.ndarray]:
         """Advance every active world by one controller period; returns the tick's log row.
+
+        One thread at a time: a call from a second thread while a tick or a reset is in
+        progress raises ConcurrentUseError (see `_one_thread`).
 
         residual: (W, V, 3) m/s^2 added to the LQR command (e.g. an RL compensation action).
         override: (W, V, 3) m/s^2 replacing the LQR acceleration where finite (NaN keeps LQR).
@@ -1160,17 +1185,21 @@ class Simulator:
             residual = _as_batch(residual, (W, V, 3))
         if override is not None:
             override = _as_batch(override, (W, V, 3))
-        if not self._bound:
-            self._bind()
-        plan = self._plan
-        if plan is not None and plan.revision == self.physics.revision:
-            row = self._tick_fused(plan, residual, override)
-        elif plan is not None:  # the worlds' models changed (set_body_mass): bind again
-            self._bind()
-            return self.tick(residual, override)
-        else:
-            row = self._tick_readable(residual, override)
-        self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
+        lock = self._one_thread("tick")
+        try:
+            if not self._bound:
+                self._bind()
+            plan = self._plan
+            if plan is not None and plan.revision != self.physics.revision:  # set_body_mass changed the worlds
+                self._bind()
+                plan = self._plan
+            if plan is not None:
+                row = self._tick_fused(plan, residual, override)
+            else:
+                row = self._tick_readable(residual, override)
+            self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
+        finally:
+            lock.release()
         return row
 
     def _tick_fused(self, plan: _Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
