@@ -39,7 +39,8 @@ def dot(a, b, xp: ModuleType = np):
     Not np.vecdot or torch.linalg.vecdot: their inner loops are BLAS or SIMD kernels that
     each CPU sums in its own order, and a flight must have the same bits on every CPU
     (`downwash_core.numerics`). This order is the compiled kernels' (`a0 b0 + a1 b1 + a2 b2`), and
-    it is the same whatever the batch size."""
+    it is the same whatever the batch size. Indexing and arithmetic serve NumPy and torch alike:
+    `xp` is accepted for symmetry with the other helpers, not needed."""
     total = a[..., 0] * b[..., 0]
     for k in range(1, a.shape[-1]):
         total = total + a[..., k] * b[..., k]

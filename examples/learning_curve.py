@@ -71,6 +71,13 @@ def swarm_returns(policy, episodes: int = 10, seed: int = 1000, **options) -> li
     return out
 
 
+def against_the_lqr(returns, model, episodes: int, **options) -> dict[str, list[float]]:
+    """The plain LQR (action 0) and `model` acting deterministically, on the same `episodes`
+    evaluation episodes of `returns` (`follower_returns` or `swarm_returns`, with `options`)."""
+    return {"LQR alone (action 0)": returns(None, episodes, **options),
+            "PPO, deterministic": returns(lambda o: model.predict(o, deterministic=True)[0], episodes, **options)}
+
+
 def save(out: Path, title: str, curve: EpisodeReturns, extra: dict,
          lines: dict[str, list[float]] | None = None) -> dict:
     """Write the curve (JSON and PNG) into `out`, with `lines` (label -> evaluation returns) drawn

@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> dict:
     from stable_baselines3.common.vec_env import VecMonitor
 
     from downwash_envs.sb3 import make_vec_env
-    from learning_curve import EpisodeReturns, follower_returns, save
+    from learning_curve import EpisodeReturns, against_the_lqr, follower_returns, save
 
     n = 4 if args.quick else args.num_envs
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
@@ -43,10 +43,7 @@ def main(argv: list[str] | None = None) -> dict:
                 seed=args.seed, device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
-    episodes = 2 if args.quick else 10
-    lines = {"LQR alone (action 0)": follower_returns(None, episodes, max_episode_steps=max_steps),
-             "PPO, deterministic": follower_returns(lambda o: model.predict(o, deterministic=True)[0], episodes,
-                                                    max_episode_steps=max_steps)}
+    lines = against_the_lqr(follower_returns, model, 2 if args.quick else 10, max_episode_steps=max_steps)
     return save(args.out, f"PPO, native vector env ({n} worlds)", curve,
                 {"timesteps": timesteps, "num_envs": n, "seed": args.seed}, lines)
 

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> dict:
     from stable_baselines3.common.vec_env import VecMonitor
 
     from downwash_envs.swarm import parallel_env
-    from learning_curve import EpisodeReturns, save, swarm_returns
+    from learning_curve import EpisodeReturns, against_the_lqr, save, swarm_returns
 
     copies = 1 if args.quick else args.copies
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
@@ -54,9 +54,7 @@ def main(argv: list[str] | None = None) -> dict:
                 device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
-    episodes = 2 if args.quick else 10
-    lines = {"LQR alone (action 0)": swarm_returns(None, episodes, **options),
-             "PPO, deterministic": swarm_returns(lambda o: model.predict(o, deterministic=True)[0], episodes, **options)}
+    lines = against_the_lqr(swarm_returns, model, 2 if args.quick else 10, **options)
     return save(args.out, f"PPO, shared policy, {args.preset}", curve,
                 {"timesteps": timesteps, "agents": list(env.possible_agents), "copies": copies, "seed": args.seed}, lines)
 
