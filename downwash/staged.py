@@ -22,16 +22,30 @@ Resuming. Flights fly in batches of `batch_flights` and each log is written as s
 as its batch lands; every flight draws its reference and noise from its own seeds,
 so a rerun flies only the missing flights and gets the same results as an
 uninterrupted run. A kill loses at most the batch in flight.
+
+Integrity. As each stage's flights are done, the manifest records every log of the
+stage (`downwash.manifest`), and before anything is trained on a collection its logs are
+checked against that record: a missing, altered or unlisted log stops the run, naming
+the file and how to re-fly it. `collect` itself re-flies the missing logs of a finished
+stage (only those; the re-flown log must hold the same data as the one recorded, else it
+stops). A stage where most flights diverge (a field with NaN or runaway forces where it
+was never checked) stops with the counts before training.
+
+Concurrency. `collect` (and `ensure_models` when a model is missing) holds the lock of
+the collection folder and then of the models folder, `ensure_collection` the
+collection folder's (`downwash_core.locks`, `flock`: a killed run lets go): a second run
+on the same folders waits for the first and then reuses what it made.
 """
 
 from __future__ import annotations
 
-import json
+import contextlib
 import logging
 import math
 import multiprocessing
 import multiprocessing.connection
 import os
+import socket
 import sys
 import time
 import traceback
@@ -44,16 +58,20 @@ import numpy as np
 from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
+from downwash_core.locks import folder_lock
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import code_version, describe, differences, fingerprint
+from downwash_core.status import Status
 from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
-from downwash.datasets import Dataset, concatenate, find_logs, load_dataset
+from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.labels import label_noise_floor
+from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, log_record,
+                               read_manifest, rerun_command, verify_collection)
 from downwash.models import MODEL_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.flight import fly
-from sim.logs import SCHEMA_VERSION, load_log, save_log
+from sim.logs import SCHEMA_VERSION, save_log
 from sim.physics import resolve_threads, usable_cores
 from sim.predictor import ZeroPredictor
 from sim.scene import build_scene
@@ -75,7 +93,6 @@ STAGES = (
     {"separation": (0.45, 0.65)},  # stage 2: ~0.5 m (two body lengths), stage-1 model
 )
 DEPLOYED_KIND = "equivariant"  # the model each stage trains and the next stage flies with
-MANIFEST_VERSION = 2  # 2: provenance record and flight-grain resume
 _QUICK_TRAINING = {"max_epochs": 3, "min_steps": 30}  # --quick: a few steps, enough to exercise the code
 ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
 
@@ -161,16 +178,68 @@ def pipeline_dirs(record: dict[str, Any], root: str | Path = "runs/pipeline") ->
     return base / "collection", base / "models"
 
 
-class _Labelled:
-    """Labelled samples per folder, loaded once per run (a finished stage's logs never change)."""
+def _stage_paths(sdir: Path, cfg: CollectionConfig) -> list[Path]:
+    """The logs of a stage, in flight order: train/flight_000.npz, ..., then val/."""
+    n_train = cfg.n_train
+    return [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + cfg.n_val)]
 
-    def __init__(self) -> None:
+
+def _check_stage(k: int, sdir: Path, entry: dict, cfg: CollectionConfig, deployed: Path | None) -> None:
+    """DataError, with the counts, when a stage's flights cannot train a model: most of them diverged
+    (NaN or runaway states), or fewer than two training flights or no validation flight has
+    labelled samples. (Flights that end in a collision keep their samples up to it: a stage
+    flown with a poor deployed model, e.g. under --quick, may lose many and still train.)
+
+    The usual cause is the field: `sim.field.check_field` tests it at a few points near a
+    leader only, and a NaN or runaway force elsewhere ends the flights that meet it as diverged.
+    """
+    files = entry["files"]
+    n = len(files)
+    diverged = [(rel, f) for rel, f in sorted(files.items()) if f["status"] == Status.DIVERGED.label]
+    samples = sum(f["samples"] for f in files.values())
+    train_ok = sum(1 for rel, f in files.items() if rel.startswith("train/") and f["samples"] > 0)
+    val_samples = sum(f["samples"] for rel, f in files.items() if rel.startswith("val/"))
+    found = []
+    if 2 * len(diverged) > n:
+        rel, f = diverged[0]
+        found.append(f"{len(diverged)} of its {n} flights diverged (e.g. {rel}: {f['message'] or f['status']}); "
+                     f"{samples} samples could be labelled")
+    if train_ok < 2:
+        found.append(f"{train_ok} of its {cfg.n_train} training flights {'has' if train_ok == 1 else 'have'} labelled "
+                     "samples (training needs two: one is held out for early stopping)")
+    if cfg.n_val and val_samples == 0:
+        found.append(f"none of its {cfg.n_val} validation flights has labelled samples")
+    if not found:
+        return
+    lo, hi = STAGES[k]["separation"]
+    also = f" (or the stage-{k - 1} model it flew with, {deployed})" if deployed is not None else ""
+    raise DataError(
+        f"{sdir}: stage {k} (the follower {lo}-{hi} m below the leader) cannot train a model:\n  "
+        + "\n  ".join(found) + f"\nThe ground-truth field is the likely cause{also}: it is checked before flying only "
+        "at a few points near a leader (`sim.field.check_field`), and a NaN or runaway force elsewhere ends each "
+        "flight that meets it as diverged. Check the field over this stage's separations "
+        "(`python -m experiments.force_maps --field ...`); each log's metadata holds its flight's status and message."
+    )
+
+
+class _Labelled:
+    """Labelled samples per folder, each folder's logs checked against the manifest before they are
+    read, loaded once per run (a finished stage's logs never change)."""
+
+    def __init__(self, out: Path, manifest: dict, rerun: str) -> None:
+        self.out, self.manifest, self.rerun = out, manifest, rerun
         self._cache: dict[Path, Dataset] = {}
 
     def __call__(self, dirs: list[Path]) -> Dataset:
         for d in dirs:
             if d not in self._cache:
-                self._cache[d] = load_dataset(d)
+                problems = check_logs(self.out, self.manifest, [d])
+                if problems:
+                    raise integrity_error(self.out, problems, self.rerun)
+                files = [p for p in listed_logs(self.out, self.manifest) if p.parent == d]
+                if not files:
+                    raise DataError(f"{d}: the manifest lists no logs here; run `{self.rerun}` to collect them")
+                self._cache[d] = load_dataset(files)
         return concatenate([self._cache[d] for d in dirs])
 
 
@@ -239,13 +308,14 @@ def _val_rmse(checkpoint: Path, kind: str, val_data: Dataset) -> float:
 
 
 def _fly_stage(k: int, sdir: Path, cfg: CollectionConfig, field: Any, deployed: Path | None,
-               progress: ProgressFactory) -> None:
-    """Fly the stage's missing flights in batches, writing each log as soon as its batch lands."""
+               progress: ProgressFactory) -> int:
+    """Fly the stage's missing flights in batches, writing each log as soon as its batch lands; how many flew."""
     n_train, n_val, seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
-    paths = [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + n_val)]
+    paths = _stage_paths(sdir, cfg)
     todo = [i for i, p in enumerate(paths) if not p.is_file()]
     if not todo:
-        return
+        return 0
+    log.info("stage %d: %d of %d flights to fly into %s", k, len(todo), len(paths), sdir)
     predictor = (ZeroPredictor() if deployed is None
                  else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
     scene = build_scene()
@@ -260,6 +330,35 @@ def _fly_stage(k: int, sdir: Path, cfg: CollectionConfig, field: Any, deployed: 
                       n_threads=cfg.threads, progress=progress(label))
         for i, L in zip(batch, flights):
             save_log(paths[i], L)
+    return len(todo)
+
+
+def _record_stage(sdir: Path, entry: dict, cfg: CollectionConfig) -> None:
+    """Record every log of a stage whose flights are all on disk (its digests, rows, samples, status)."""
+    entry["files"] = {p.relative_to(sdir).as_posix(): log_record(p) for p in _stage_paths(sdir, cfg)}
+    entry["failed"] = [f["message"] for f in entry["files"].values() if f["message"]]
+    entry["flights_done"] = True
+
+
+def _accept_reflown(sdir: Path, entry: dict, paths: list[Path], out: Path, models_dir: Path) -> None:
+    """Record the re-flown logs `paths` of a finished stage if they hold the data recorded for them (what
+    the models were trained on); else remove them all and raise DataError."""
+    new = {path: log_record(path) for path in paths}
+    rel = {path: path.relative_to(sdir).as_posix() for path in paths}
+    differ = [path for path in paths if new[path]["data_sha256"] != entry["files"][rel[path]]["data_sha256"]]
+    if differ:
+        for path in paths:
+            path.unlink()
+        raise DataError(
+            f"{', '.join(map(str, differ))}: re-flown, but the data differ from the logs recorded in "
+            f"{out / 'manifest.json'}, which the collection's models were trained on: this code or machine flies "
+            "those flights differently (the manifest's provenance names the code that flew them). The re-flown "
+            f"logs were removed. Delete {out} and {models_dir} to collect afresh, or restore the original logs."
+        )
+    for path in paths:
+        if new[path]["sha256"] != entry["files"][rel[path]]["sha256"]:
+            log.info("%s: re-flown with the same data (its metadata differ: another code version or folder)", path)
+        entry["files"][rel[path]] = new[path]
 
 
 def collect(
@@ -268,47 +367,83 @@ def collect(
     models_dir: str | Path,
     field: Any,
     progress: ProgressFactory = lambda label: None,
+    *,
+    refly_missing: bool = True,
 ) -> dict:
     """Collect all stages into `collection_dir` (resuming), train the final models into `models_dir`.
 
     progress(label) may return a callback progress(done, total) for each batch of flights.
-    Raises DataError before any flight when `collection_dir` holds a collection of
-    another provenance. Returns the results: per stage (separation, minutes, samples,
-    deployed model and its validation RMSE on that stage, failed flights), per final
-    model (path, validation RMSE, training seconds), the label-noise floor, the
-    provenance, this run's wall time and `collection_seconds`, the time the whole
-    collection took (summed over the runs that worked on it; a killed run cannot record its part).
+    Holds the lock of both folders (a second run waits, then reuses). Raises DataError
+    before any flight when `collection_dir` holds a collection of another provenance, or
+    when a finished stage's logs do not match the manifest: an altered or unlisted log,
+    or a missing one unless `refly_missing` (then only the missing flights are flown
+    again). Returns the results: per stage (separation, minutes, samples, deployed model
+    and its validation RMSE on that stage, failed flights), per final model (path,
+    validation RMSE, training seconds), the label-noise floor, the provenance, this run's
+    wall time and `collection_seconds`, the time the whole collection took (summed over
+    the runs that worked on it; a killed run cannot record its part).
     """
+    with _pipeline_lock(collection_dir, models_dir):
+        return _collect(cfg, Path(collection_dir), Path(models_dir), field, progress, refly_missing)
+
+
+@contextlib.contextmanager
+def _pipeline_lock(collection_dir: str | Path, models_dir: str | Path) -> Iterator[None]:
+    """The locks of a collection folder and then of its models folder (always in this order: no deadlock)."""
+    with folder_lock(collection_dir, label="staged collection"), folder_lock(models_dir, label="staged models"):
+        yield
+
+
+def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, progress: ProgressFactory,
+             refly_missing: bool) -> dict:
     t_start = time.perf_counter()
-    out, models_dir = Path(collection_dir), Path(models_dir)
     record = provenance(cfg, field)
     manifest_path = out / "manifest.json"
     manifest = _load_manifest(manifest_path, record)
     for kind in MODEL_KINDS:  # never overwrite models of another provenance
         if (models_dir / f"{kind}.pt").is_file():
             check_checkpoint(models_dir / f"{kind}.pt", kind, record)
+    rerun = rerun_command(out, models_dir)
+    problems = check_logs(out, manifest)  # before any work
+    if any(p[0] != "missing" for p in problems) or (problems and not refly_missing):
+        raise integrity_error(out, problems, rerun)
+    refly: dict[Path, list[Path]] = {}
+    for _, path, _ in problems:
+        refly.setdefault(path.parent.parent, []).append(path)
+    if refly:
+        log.warning("%s: %d recorded logs are missing; re-flying only those: %s", out, len(problems),
+                    ", ".join(str(p[1]) for p in problems))
     out.mkdir(parents=True, exist_ok=True)
     models_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(manifest_path, manifest)
     n_train, n_val, flight_seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
+    # what this run did, in the manifest's "runs" when it did anything
+    run = {"pid": os.getpid(), "host": socket.gethostname(),
+           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "flights": 0, "models": []}
 
-    labelled = _Labelled()
+    labelled = _Labelled(out, manifest, rerun)
     stage_results = []
     for k, stage in enumerate(STAGES):
         sdir = out / f"stage{k}"
         entry = manifest["stages"].setdefault(str(k), {})
         deployed = None if k == 0 else out / f"stage{k - 1}" / f"{DEPLOYED_KIND}.pt"
         if not entry.get("flights_done"):
-            _fly_stage(k, sdir, cfg, field, deployed, progress)
-            entry["flights_done"] = True
-            entry["failed"] = [m for p in sorted(sdir.glob("*/flight_*.npz")) if (m := load_log(p).meta["message"])]
+            run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
+            _record_stage(sdir, entry, cfg)
             atomic_write_json(manifest_path, manifest)
+        elif sdir in refly:
+            run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
+            _accept_reflown(sdir, entry, refly[sdir], out, models_dir)
+            atomic_write_json(manifest_path, manifest)
+        _check_stage(k, sdir, entry, cfg, deployed)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]
         # the stage-k model, deployed in stage k + 1 (the last stage's would be the final model of its kind)
-        if k + 1 < len(STAGES) and not entry.get("model_done"):
+        if k + 1 < len(STAGES) and not (entry.get("model_done") and (sdir / f"{DEPLOYED_KIND}.pt").is_file()):
+            log.info("stage %d: training the %s model that stage %d flies with", k, DEPLOYED_KIND, k + 1)
             _train_and_save(DEPLOYED_KIND, labelled(train_dirs), train_dirs, sdir / f"{DEPLOYED_KIND}.pt", cfg,
                             record, {"stage": k})
             entry["model_done"] = True
+            run["models"].append(f"stage{k}/{DEPLOYED_KIND}")
             atomic_write_json(manifest_path, manifest)
         if "deployed_val_rmse" not in entry:
             entry["deployed_val_rmse"] = (None if deployed is None or n_val == 0
@@ -326,6 +461,7 @@ def collect(
     models: dict[str, Any] = {}
     missing = [kind for kind in MODEL_KINDS if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
     if missing:
+        log.info("training the final models %s into %s", missing, models_dir)
         data = labelled(train_dirs)
 
         def train_one(kind: str) -> dict:
@@ -335,15 +471,19 @@ def collect(
 
         for kind, entry in _in_parallel(train_one, missing):
             finals[kind] = entry
+            run["models"].append(kind)
             atomic_write_json(manifest_path, manifest)
     for kind in MODEL_KINDS:
         path = models_dir / f"{kind}.pt"
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
-    floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)]) if val_dirs else None
+    val_logs = [p for d in val_dirs for p in listed_logs(out, manifest) if p.parent == d]
+    floor = label_noise_floor(val_logs) if val_dirs else None
     if not manifest.get("complete"):  # the time this collection took, over every run that worked on it
         manifest["collection_seconds"] = manifest.get("collection_seconds", 0.0) + time.perf_counter() - t_start
     manifest["complete"] = True
+    if run["flights"] or run["models"]:
+        manifest.setdefault("runs", []).append(run)
     atomic_write_json(manifest_path, manifest)
     return {"stages": stage_results, "training_minutes": len(STAGES) * n_train * flight_seconds / 60,
             "validation_minutes": len(STAGES) * n_val * flight_seconds / 60, "models": models,
@@ -382,21 +522,32 @@ def ensure_models(
     """Checkpoint paths of `kinds` in `models_dir`, collecting and training first when any is missing.
 
     Every checkpoint already there must be of its kind and of this collection's
-    provenance (else DataError, before any flight, naming the differences).
+    provenance (else DataError, before any flight, naming the differences). When all
+    are there, nothing else is read or locked (the models folder may be read-only).
+    Otherwise, under the folders' lock (another run making them is waited for, and
+    what it made is used), the collection's logs are checked against its manifest
+    before anything is trained on them: a missing or altered log raises DataError.
     """
     models_dir = Path(models_dir)
     record = provenance(cfg, field)
-    missing = []
-    for kind in kinds:
-        path = models_dir / f"{kind}.pt"
-        if path.is_file():
-            check_checkpoint(path, kind, record)
-        else:
-            missing.append(kind)
-    if missing:
-        log.info("models %s missing in %s: running the staged collection into %s first", missing, models_dir,
-                 collection_dir)
-        collect(cfg, collection_dir, models_dir, field, progress)
+
+    def missing() -> list[str]:
+        out = []
+        for kind in kinds:
+            path = models_dir / f"{kind}.pt"
+            if path.is_file():
+                check_checkpoint(path, kind, record)
+            else:
+                out.append(kind)
+        return out
+
+    if missing():
+        with _pipeline_lock(collection_dir, models_dir):
+            todo = missing()  # another run may have made them while this one waited
+            if todo:
+                log.info("models %s missing in %s: running the staged collection into %s first", todo, models_dir,
+                         collection_dir)
+                collect(cfg, collection_dir, models_dir, field, progress, refly_missing=False)
     return {k: models_dir / f"{k}.pt" for k in kinds}
 
 
@@ -407,27 +558,28 @@ def ensure_collection(
     field: Any,
     progress: ProgressFactory = lambda label: None,
 ) -> Path:
-    """The staged collection folder, collected first (with its models) unless complete;
-    DataError when it holds a collection of another provenance."""
+    """The staged collection folder, collected first (with its models) unless complete.
+
+    Under the collection folder's lock (and the models folder's too when it collects): a
+    run collecting into it is waited for. DataError when the folder holds a collection of
+    another provenance, or when its logs do not match its manifest (a missing, altered or
+    unlisted log, named with how to re-fly it).
+    """
     collection_dir = Path(collection_dir)
-    manifest = collection_dir / "manifest.json"
-    if manifest.is_file():
-        _load_manifest(manifest, provenance(cfg, field))  # raises on a mismatch
-    if not (manifest.is_file() and json.loads(manifest.read_text()).get("complete")):
-        collect(cfg, collection_dir, models_dir, field, progress)
+    with folder_lock(collection_dir, label="staged collection"):
+        path = collection_dir / "manifest.json"
+        manifest = _load_manifest(path, provenance(cfg, field)) if path.is_file() else None  # raises on a mismatch
+        if manifest is not None and manifest.get("complete"):
+            verify_collection(collection_dir, manifest, models_dir)
+        else:
+            collect(cfg, collection_dir, models_dir, field, progress, refly_missing=False)
     return collection_dir
 
 
 def _load_manifest(path: Path, record: dict) -> dict:
     if not path.is_file():
         return {"version": MANIFEST_VERSION, "provenance": record, "key": fingerprint(record), "stages": {}}
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise DataError(f"{path}: unreadable collection manifest ({e}); delete the folder to start afresh") from e
-    if manifest.get("version") != MANIFEST_VERSION or "provenance" not in manifest:
-        raise DataError(f"{path}: a collection of an older format (manifest version {manifest.get('version')!r}); "
-                        "delete the folder or use another --collection-dir")
+    manifest = read_manifest(path)
     have = manifest["provenance"]
     if fingerprint(have) != fingerprint(record):
         raise DataError(
@@ -438,7 +590,7 @@ def _load_manifest(path: Path, record: dict) -> dict:
         )
     _warn_code(have, path)
     if manifest.get("complete"):
-        log.info("%s: collection complete; re-checking models only", path)
+        log.info("%s: collection complete; checking its logs and models", path)
     return manifest
 
 

@@ -5,7 +5,7 @@
     results["fields"]["so2"]["models"]["equivariant"]["rmse_ci_low"]        # per minute point
 
     # the steps it takes, one by one
-    cells = plan_cells(grid, {"so2": (collection_key, train.n_minutes)})
+    cells = plan_cells(grid, {"so2": (collection_key, train.n_minutes, collection_digest(collection_dir))})
     cache = CellCache("runs/cells")
     for batch in batch_cells(cache.missing(cells), size=5):
         for cell, result in zip(batch, run_cells(batch, train, val)):
@@ -32,11 +32,21 @@ axis, with the training summary.
 
 Each cell's result is cached as one JSON file named by its key, the `fingerprint`
 of `Cell.record`: the collection's provenance key (field, scene, simulator,
-collection and its seed), the model kind, the minutes, the seed, the training
-config and `CELL_VERSION` (the rules above). The code version is recorded in the
-file, not in the key, as for collections (`downwash_core.provenance`). Files are written
-atomically, so a killed sweep leaves only whole cells, and a rerun computes only
-the missing ones.
+collection and its seed), the digest of the collection's data (every log's data
+digest as the manifest records them, `downwash.manifest.collection_digest`: a
+collection flown again differently never reuses a stale cell), the model kind, the
+minutes, the seed, the training config and `CELL_VERSION` (the rules above). The code
+version is recorded in the file, not in the key, as for collections
+(`downwash_core.provenance`). Files are written atomically, so a killed sweep leaves
+only whole cells, and a rerun computes only the missing ones. The collection's logs are
+checked against its manifest before they are loaded (`load_collection`).
+
+Concurrent sweeps share the cache: a process computes a cell only while it holds the
+cell's lock (`CellCache.claim`, a `downwash_core.locks.file_lock` beside the result),
+taken just before the cell's batch is submitted. A second sweep on the same cache skips
+the cells another process holds, computes the rest, then waits for those and loads
+them, so no cell is computed twice; a holder that dies lets go of its cells at once
+(the kernel drops its locks) and the waiting sweep computes them.
 
 Cells are cached one by one but computed in batches: `run_cells` trains a batch of
 cells of one field and one kind (several seeds and minute points) as ONE ensemble
@@ -58,6 +68,7 @@ a bootstrap CI, and the fraction of seeds where ``d_s < 0``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -66,16 +77,18 @@ import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
+from downwash_core.locks import describe_holder, file_lock
 from downwash_core.provenance import code_version, fingerprint
-from downwash.datasets import Dataset, concatenate, find_logs, load_dataset, shorten_per_stage
+from downwash.datasets import Dataset, concatenate, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
 from downwash.models import MODEL_KINDS
+from downwash.manifest import collection_digest, collection_logs, read_manifest, verify_collection
 from downwash.staged import ensure_collection, train_config
 from downwash.train import TrainConfig
 from sim.fields.registry import resolve_field_spec
@@ -90,7 +103,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FULL = "full"  # the minute point of the whole training set
-CELL_VERSION = 1  # bump when the subset draw, the training or the metric of a cell changes meaning
+CELL_VERSION = 2  # bump when the subset draw, the training or the metric of a cell changes meaning; 2: data digest
 PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # 7 points, plus the full set
 PAPER_MODELS = ("shallow", "deep", "equivariant")  # the paper's three models
 _MINUTE_TICKS = 10_000  # the subset generator sees minutes rounded to 1e-4 min (6 ms of flight)
@@ -198,7 +211,8 @@ class Cell:
     field: the field spec as given (for tables; the collection key identifies the
     field); collection: the collection's provenance key; model: the kind; minutes:
     training minutes, or `FULL`; seed: the trial; training: the full training config
-    (its seed is the cell's).
+    (its seed is the cell's); data: the digest of the collection's data
+    (`downwash.manifest.collection_digest`).
     """
 
     field: str
@@ -207,10 +221,11 @@ class Cell:
     minutes: float | str
     seed: int
     training: TrainConfig
+    data: str = ""
 
     def record(self) -> dict[str, Any]:
         """Everything that determines the result (the key is its fingerprint)."""
-        return {"version": CELL_VERSION, "collection": self.collection, "model": self.model,
+        return {"version": CELL_VERSION, "collection": self.collection, "data": self.data, "model": self.model,
                 "minutes": self.minutes, "seed": self.seed, "training": self.training.to_dict(),
                 "metric": "rmse over the collection's validation flights, all stages"}
 
@@ -228,17 +243,31 @@ def load_collection(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict]
     """(training data, validation data, label-noise floor) of a staged collection folder.
 
     Training: every stage's ``train`` flights; validation: every stage's ``val``
-    flights. DataError when either is missing.
+    flights, as its manifest lists them. DataError, before anything is read, when the
+    folder holds no complete collection or its logs do not match the manifest
+    (`downwash.manifest.verify_collection`: a missing, altered or unlisted log).
     """
+    return _load_collection(collection_dir)[:3]
+
+
+def _load_collection(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict, str]:
+    """`load_collection` and the digest of its data (`downwash.manifest.collection_digest`)."""
     collection_dir = Path(collection_dir)
-    train_dirs = sorted(collection_dir.glob("stage*/train"))
-    val_dirs = sorted(collection_dir.glob("stage*/val"))
-    if not train_dirs or not val_dirs:
-        raise DataError(f"{collection_dir}: expected stage*/train and stage*/val folders of flight logs")
-    train = concatenate([load_dataset(d) for d in train_dirs])
-    val = concatenate([load_dataset(d) for d in val_dirs])
-    floor = label_noise_floor([p for d in val_dirs for p in find_logs(d)])
-    return train, val, floor
+    manifest = read_manifest(collection_dir / "manifest.json")
+    if not manifest.get("complete"):
+        raise DataError(f"{collection_dir}: an unfinished staged collection; finish it first (rerun "
+                        f"`python -m experiments.staged_collection --collection-dir {collection_dir}` with the "
+                        "options that began it)")
+    verify_collection(collection_dir, manifest)
+    train_files, val_files = collection_logs(collection_dir, "train", manifest), collection_logs(collection_dir, "val",
+                                                                                                 manifest)
+    if not any(train_files) or not any(val_files):
+        raise DataError(f"{collection_dir}: the manifest lists no training or no validation logs; a sweep needs both "
+                        "(a collection with --val-ratio > 0)")
+    train = concatenate([load_dataset(f) for f in train_files if f])
+    val = concatenate([load_dataset(f) for f in val_files if f])
+    floor = label_noise_floor([p for f in val_files for p in f])
+    return train, val, floor, collection_digest(collection_dir, manifest)
 
 
 def field_minutes(grid: SweepGrid, full_minutes: float) -> list[float | str]:
@@ -246,20 +275,21 @@ def field_minutes(grid: SweepGrid, full_minutes: float) -> list[float | str]:
     return [m for m in grid.minutes if m < full_minutes] + [FULL]
 
 
-def plan_cells(grid: SweepGrid, collections: Mapping[str, tuple[str, float]]) -> list[Cell]:
+def plan_cells(grid: SweepGrid, collections: Mapping[str, tuple[str, float] | tuple[str, float, str]]) -> list[Cell]:
     """Every cell of the grid, in (field, model, minutes, seed) order.
 
-    collections: field spec -> (collection provenance key, training minutes of that collection).
+    collections: field spec -> (collection provenance key, training minutes of that
+    collection, digest of its data), the digest optional (`Cell.data`).
     """
     missing = [f for f in grid.fields if f not in collections]
     if missing:
         raise ConfigError(f"plan_cells: no collection given for field(s) {missing}")
     cells = []
     for spec in grid.fields:
-        key, full = collections[spec]
+        key, full, *data = collections[spec]
         for kind in grid.models:
             for m in field_minutes(grid, full):
-                cells += [Cell(spec, key, kind, m, s, grid.config(s)) for s in grid.seeds]
+                cells += [Cell(spec, key, kind, m, s, grid.config(s), *data) for s in grid.seeds]
     return cells
 
 
@@ -285,7 +315,7 @@ def batch_cells(cells: Sequence[Cell], size: int) -> list[list[Cell]]:
         raise ConfigError(f"batch size: expected an integer >= 1, got {size!r}")
     groups: dict[tuple[str, str], list[Cell]] = {}
     for c in cells:
-        groups.setdefault((c.collection, c.model), []).append(c)
+        groups.setdefault((c.collection, c.data, c.model), []).append(c)
     batches = []
     for group in groups.values():
         group = sorted(group, key=lambda c: (math.inf if c.minutes == FULL else c.minutes, c.seed))
@@ -319,7 +349,7 @@ def run_cells(cells: Sequence[Cell], train: Dataset, val: Dataset) -> list[dict[
 
     if not cells:
         return []
-    kinds = {(c.collection, c.model) for c in cells}
+    kinds = {(c.collection, c.data, c.model) for c in cells}
     if len(kinds) != 1:
         raise ConfigError(f"run_cells: a batch must be of one collection and one model kind, got {sorted(kinds)}")
     kind = cells[0].model
@@ -359,6 +389,8 @@ class CellCache:
 
     A file whose record differs from the cell's (a key collision, or a hand-edited
     file) or that cannot be read counts as missing, with a warning, and is rewritten.
+    A process computes a cell only inside `claim` (the lock ``root/<model>/<key>.lock``,
+    removed on release), so that sweeps sharing the cache compute each cell once.
     """
 
     def __init__(self, root: str | Path):
@@ -366,6 +398,22 @@ class CellCache:
 
     def path(self, cell: Cell) -> Path:
         return self.root / cell.model / f"{cell.key}.json"
+
+    def lock_path(self, cell: Cell) -> Path:
+        return self.root / cell.model / f"{cell.key}.lock"
+
+    @contextlib.contextmanager
+    def claim(self, cell: Cell, wait: bool = False) -> Iterator[bool]:
+        """Hold the cell's lock for the block. Yields True while held; with wait=False, False at
+        once when another process holds it (it is computing the cell); wait=True waits for it
+        to let go (it stored the cell, failed or died: `load` tells which)."""
+        with file_lock(self.lock_path(cell), wait=wait, label=f"sweep cell {cell.label}", remove=True,
+                       quiet=True) as held:
+            yield held
+
+    def holder(self, cell: Cell) -> str:
+        """Who holds the cell's lock, for messages ("pid 123 on host h (...)")."""
+        return describe_holder(self.lock_path(cell))
 
     def load(self, cell: Cell) -> dict[str, Any] | None:
         import json
@@ -529,44 +577,50 @@ def run_sweep(
     pipelines: field spec -> its collection, an object with ``collection_dir``,
     ``models_dir``, ``config`` (`downwash.staged.CollectionConfig`), ``field`` and
     ``record`` (the provenance record), as `experiments.common.Pipeline`. Each
-    field's collection is made first when incomplete, here, once. The missing cells
-    then run as Ray tasks of one CPU, `batch_cells` of ``batch`` cells each; their
-    results are cached here as each task lands. Ray: the one this process is
-    connected to, else ``ray.init(address=address)``, else a local Ray of
-    ``workers`` CPUs (0: all cores), shut down at the end; none at all when every
-    cell is cached. ``claim`` is tested per field (`summarize_field`); ``progress(label)``
-    may return a ``(done, total)`` callback.
+    field's collection is made first when incomplete, here, once, and its logs are
+    checked against its manifest (DataError naming a missing or altered log). The
+    missing cells then run as Ray tasks of one CPU, `batch_cells` of ``batch`` cells
+    each, each cell only while this process holds its claim (`CellCache.claim`: cells
+    another sweep is computing are waited for and loaded); their results are cached
+    here as each task lands. Ray: the one this process is connected to, else
+    ``ray.init(address=address)``, else a local Ray of ``workers`` CPUs (0: all
+    cores), shut down at the end; none at all when no cell is computed here.
+    ``claim`` is tested per field (`summarize_field`); ``progress(label)`` may return a
+    ``(done, total)`` callback.
 
     Returns ``fields`` (spec -> `summarize_field` plus ``collection_key``,
-    ``collection_dir`` and ``validation_minutes``), ``cells`` (total, cached,
-    computed), ``workers`` (the Ray CPUs, 0 when nothing ran) and ``grid``.
+    ``collection_dir``, ``data_digest`` and ``validation_minutes``), ``cells``
+    (total, cached: found in the cache, also those another sweep computed meanwhile,
+    and computed here), ``computed_elsewhere`` (cells another sweep computed while
+    this one ran), ``workers`` (the Ray CPUs, 0 when nothing ran) and ``grid``.
     """
     check_execution(workers, batch)
     missing = [f for f in grid.fields if f not in pipelines]
     if missing:
         raise ConfigError(f"run_sweep: no pipeline given for field(s) {missing}")
     data: dict[str, tuple[Dataset, Dataset, dict]] = {}
-    collections: dict[str, tuple[str, float]] = {}
+    collections: dict[str, tuple[str, float, str]] = {}
     for spec in grid.fields:
         p = pipelines[spec]
         ensure_collection(p.collection_dir, p.models_dir, p.config, p.field, progress)
-        data[spec] = load_collection(p.collection_dir)
-        collections[spec] = (fingerprint(p.record), data[spec][0].n_minutes)
+        *data[spec], digest = _load_collection(p.collection_dir)
+        collections[spec] = (fingerprint(p.record), data[spec][0].n_minutes, digest)
     cells = plan_cells(grid, collections)
     cache = CellCache(cache_dir)
     # two specs of one field (say "so2" and "so2:strength=10.6") share their cells: each is computed once
     todo = list({c.key: c for c in cache.missing(cells)}.values())
     log.info("sweep: %d cells, %d cached, %d to compute", len(cells), len(cells) - len(todo), len(todo))
-    cpus = _compute_on_ray(todo, data, cache, workers, address, batch, progress("sweep cells"), len(cells)) if todo else 0
+    here, elsewhere, cpus = (_compute_missing(todo, data, cache, workers, address, batch, progress("sweep cells"),
+                                              len(cells)) if todo else (0, 0, 0))
     results = cache.load_all(cells)
     fields = {}
     for spec in grid.fields:
         _, val, floor = data[spec]
         fields[spec] = {**summarize_field([c for c in cells if c.field == spec], results, floor, claim),
                         "collection_key": collections[spec][0], "collection_dir": str(pipelines[spec].collection_dir),
-                        "validation_minutes": val.n_minutes}
-    return {"fields": fields, "cells": {"total": len(cells), "cached": len(cells) - len(todo), "computed": len(todo)},
-            "workers": cpus, "grid": grid.describe()}
+                        "data_digest": collections[spec][2], "validation_minutes": val.n_minutes}
+    return {"fields": fields, "cells": {"total": len(cells), "cached": len(cells) - here, "computed": here},
+            "computed_elsewhere": elsewhere, "workers": cpus, "grid": grid.describe()}
 
 
 def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str, Any]]:
@@ -580,44 +634,139 @@ def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str,
     return results
 
 
-def _compute_on_ray(todo: list[Cell], data: Mapping[str, tuple], cache: CellCache, workers: int, address: str,
-                    batch: int, progress: Callable[[int, int], None] | None, total: int) -> int:
-    """Run the cells ``todo`` as Ray tasks, caching each task's results as it lands; the cluster's CPUs."""
+class _Ray:
+    """The Ray the sweep computes on, started at the first task (a sweep whose missing cells other
+    processes hold needs none): the one this process is connected to, else ``ray.init(address)``,
+    else a local Ray of ``workers`` CPUs; one it started is shut down by `close`."""
+
+    def __init__(self, workers: int, address: str, data: Mapping[str, tuple]):
+        self.workers, self.address, self.data = workers, address, data
+        self.started = self.owned = False
+        self.cpus = 0
+        self.task: Any = None
+        self.refs: dict[str, tuple] = {}
+
+    def _start(self) -> None:
+        import ray
+
+        self.owned = not ray.is_initialized()
+        if self.owned:
+            if self.address:
+                ray.init(address=self.address, logging_level=logging.WARNING)
+            else:
+                # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
+                # they are the computation and the driver only waits
+                ray.init(num_cpus=self.workers or os.cpu_count() or 1, include_dashboard=False,
+                         logging_level=logging.WARNING, _system_config={"worker_niceness": 0})
+        self.started = True
+        self.task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
+        self.cpus = int(ray.cluster_resources().get("CPU", 0))
+
+    @property
+    def window(self) -> int:
+        """Tasks kept in flight: two per CPU keeps every CPU busy, and a cell is claimed only just
+        before its task is submitted (another sweep can take the rest meanwhile)."""
+        return max(2, 2 * self.cpus) if self.started else 1
+
+    def submit(self, cells: list[Cell]) -> Any:
+        if not self.started:
+            self._start()
+        import ray
+
+        spec = cells[0].field
+        if spec not in self.refs:  # each field's data goes to the object store once
+            train, val, _ = self.data[spec]
+            self.refs[spec] = (ray.put(train), ray.put(val))
+        return self.task.remote(cells, *self.refs[spec])
+
+    def close(self) -> None:
+        if self.started:
+            import ray
+
+            self.cpus = int(ray.cluster_resources().get("CPU", 0))
+            if self.owned:
+                ray.shutdown()
+
+
+def _compute_missing(todo: list[Cell], data: Mapping[str, tuple], cache: CellCache, workers: int, address: str,
+                     batch: int, progress: Callable[[int, int], None] | None, total: int) -> tuple[int, int, int]:
+    """Compute the cells ``todo`` on Ray, each only while this process holds its claim, caching each
+    task's results as it lands; then wait for the cells other processes held and compute those they
+    left undone. Returns (cells computed here, cells computed by other processes, the Ray CPUs)."""
+    ray_ = _Ray(workers, address, data)
+    counts = {"here": 0, "elsewhere": 0, "done": total - len(todo)}
+    if progress:
+        progress(counts["done"], total)
+    remaining = todo
+    try:
+        while remaining:
+            busy, who = _compute_round(remaining, cache, ray_, batch, progress, total, counts)
+            if busy:
+                log.info("sweep: %d cells are being computed by other processes (e.g. %s); waiting for them",
+                         len(busy), who)
+            remaining = []
+            for cell in busy:
+                with cache.claim(cell, wait=True):
+                    if cache.load(cell) is None:  # its holder failed or died: computed here, next round
+                        remaining.append(cell)
+                        continue
+                counts["elsewhere"] += 1
+                counts["done"] += 1
+                if progress:
+                    progress(counts["done"], total)
+    finally:
+        ray_.close()
+    return counts["here"], counts["elsewhere"], ray_.cpus if counts["here"] else 0
+
+
+def _compute_round(cells: list[Cell], cache: CellCache, ray_: _Ray, batch: int,
+                   progress: Callable[[int, int], None] | None, total: int,
+                   counts: dict[str, int]) -> tuple[list[Cell], str]:
+    """One pass over ``cells``: claim each batch's cells just before submitting it (largest first: a
+    free CPU takes the next, so the long deep batches start early) and compute those claimed.
+    Returns the cells another process held, and who held the first of them."""
     import ray
 
-    started = not ray.is_initialized()
-    if started:
-        if address:
-            ray.init(address=address, logging_level=logging.WARNING)
-        else:
-            # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
-            # they are the computation and the driver only waits
-            ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
-                     _system_config={"worker_niceness": 0})
+    busy: list[Cell] = []
+    who = ""
+    queue = batch_cells(cells, batch)
+    pending: dict[Any, tuple[list[Cell], contextlib.ExitStack]] = {}
     try:
-        task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
-        refs = {}
-        for spec in dict.fromkeys(c.field for c in todo):  # each field's data goes to the object store once
-            train, val, _ = data[spec]
-            refs[spec] = (ray.put(train), ray.put(val))
-        # submitted largest first: a free CPU takes the next, so the long deep batches start early
-        pending = {task.remote(b, *refs[b[0].field]): b for b in batch_cells(todo, batch)}
-        done = total - len(todo)
-        if progress:
-            progress(done, total)
-        while pending:
+        while queue or pending:
+            while queue and len(pending) < ray_.window:
+                claims = contextlib.ExitStack()
+                mine = []
+                for cell in queue.pop(0):
+                    if not claims.enter_context(cache.claim(cell)):
+                        who = who or cache.holder(cell)
+                        busy.append(cell)
+                    elif cache.load(cell) is not None:  # stored by another process since this one looked
+                        counts["elsewhere"] += 1
+                        counts["done"] += 1
+                    else:
+                        mine.append(cell)
+                if mine:
+                    pending[ray_.submit(mine)] = (mine, claims)
+                else:
+                    claims.close()
+            if not pending:
+                continue
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
-                cells = pending.pop(ref)
-                for cell, result in zip(cells, ray.get(ref)):
-                    cache.store(cell, result)
-                done += len(cells)
+                done_cells, claims = pending.pop(ref)
+                try:
+                    for cell, result in zip(done_cells, ray.get(ref)):
+                        cache.store(cell, result)
+                finally:
+                    claims.close()
+                counts["here"] += len(done_cells)
+                counts["done"] += len(done_cells)
                 if progress:
-                    progress(done, total)
-        return int(ray.cluster_resources().get("CPU", 0))
+                    progress(counts["done"], total)
     finally:
-        if started:
-            ray.shutdown()
+        for _, claims in pending.values():
+            claims.close()
+    return busy, who
 
 
 # -- presentation (text; the figure is drawn on the caller's axes) ----------------------------

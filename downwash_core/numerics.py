@@ -29,10 +29,12 @@ ROUND_OFF = 1e-9  # relative to the largest entry: smaller entries are a solve's
 
 def cpu_independent(x) -> np.ndarray:
     """`x` as float64 rounded to 24 significant bits (float32's precision, in float64's
-    range), round-off zeroed: the same bits whichever BLAS kernel made it."""
+    range), round-off and subnormals zeroed: the same bits whichever BLAS kernel made it.
+    (A subnormal holds fewer than 24 bits, and the few ulps of round-off that move an
+    exact zero make one.)"""
     x = np.asarray(x, dtype=np.float64)
     scale = float(np.max(np.abs(x))) if x.size else 0.0
-    x = np.where(np.abs(x) < ROUND_OFF * scale, 0.0, x)
+    x = np.where(np.abs(x) < max(ROUND_OFF * scale, np.finfo(np.float64).tiny), 0.0, x)
     # 24 significant bits, as float32 has, but in float64's range (a cast would overflow or
     # flush to zero outside float32's); every step is exact, the rounding half to even
     mantissa, exponent = np.frexp(x)

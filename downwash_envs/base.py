@@ -24,7 +24,6 @@ __all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_rese
 
 RENDER_MODES = ("rgb_array",)
 
-
 def make_spaces(cfg: FollowerConfig) -> tuple[spaces.Box, spaces.Box]:
     """(observation Box (OBS_DIM,) float32, action Box [-1, 1]^3 float32) of one world; an action
     of 1 is `cfg.bound` m/s^2."""

@@ -11,7 +11,8 @@ import numpy as np
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.follower import DownwashFollowerVectorEnv
 
-__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector", "SB3_BACKENDS", "sb3_rollout_steps_per_s"]
+__all__ = ["evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector", "SB3_BACKENDS", "sb3_rollout_steps_per_s",
+           "env_learner_loops_per_s", "concurrent_env_steps_per_s"]
 
 
 def evaluate_lqr(
@@ -164,3 +165,96 @@ def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, backend: 
         torch.set_num_threads(threads)
     venv.close()
     return rate
+
+
+def env_learner_loops_per_s(num_envs: int = 16, *, n_threads: int = 0, seconds: float = 2.0, repeats: int = 3,
+                            seed: int = 0) -> float:
+    """Iterations per wall second of the loop of an on-line learner: one step of the native vector
+    env (random actions), then one Adam update of a small MLP (two hidden layers of 64, a batch
+    of 256) with torch at its default threads; the best of `repeats` spells of `seconds`.
+    The simulator's helper threads and torch's share the cores: this measures whether the
+    helpers stay out of the learner's way (n_threads: the env's option; 1, no helpers)."""
+    import torch
+
+    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                        n_threads=n_threads)
+    envs.reset(seed=seed)
+    envs.action_space.seed(seed)
+    actions = [envs.action_space.sample() for _ in range(64)]
+    generator = torch.Generator().manual_seed(seed)
+    net = torch.nn.Sequential(torch.nn.Linear(32, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64), torch.nn.Tanh(),
+                              torch.nn.Linear(64, 1))
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    x, y = torch.randn(256, 32, generator=generator), torch.randn(256, 1, generator=generator)
+
+    def iteration(k: int) -> None:
+        envs.step(actions[k % len(actions)])
+        optimizer.zero_grad()
+        torch.nn.functional.mse_loss(net(x), y).backward()
+        optimizer.step()
+
+    for k in range(20):  # warm-up
+        iteration(k)
+    best = 0.0
+    for _ in range(repeats):
+        n, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            iteration(n)
+            n += 1
+        best = max(best, n / (time.perf_counter() - t0))
+    envs.close()
+    return best
+
+
+def _env_steps_in_process(num_envs: int, n_threads: int, seconds: float, seed: int, ready: Any, start: Any,
+                          rates: Any) -> None:
+    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                        n_threads=n_threads)
+    envs.reset(seed=seed)
+    envs.action_space.seed(seed)
+    actions = [envs.action_space.sample() for _ in range(64)]
+    for action in actions[:10]:  # warm-up
+        envs.step(action)
+    ready.put(True)
+    start.wait()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        envs.step(actions[n % len(actions)])
+        n += 1
+    rates.put(n * num_envs / (time.perf_counter() - t0))
+    envs.close()
+
+
+def concurrent_env_steps_per_s(n_processes: int = 2, num_envs: int = 64, *, n_threads: int = 0,
+                               seconds: float = 3.0, seed: int = 0) -> list[float]:
+    """Env steps (summed over worlds) per wall second of each of `n_processes` processes that step
+    a native vector env at the same time (as a subprocess vector env or several seeds of an RL
+    run do); started together once every process has built its env. n_threads: each env's option."""
+    import multiprocessing
+    from queue import Empty
+
+    ctx = multiprocessing.get_context("spawn")
+    ready, start, rates = ctx.Queue(), ctx.Event(), ctx.Queue()
+    procs = [ctx.Process(target=_env_steps_in_process, args=(num_envs, n_threads, seconds, seed + i, ready, start, rates))
+             for i in range(n_processes)]
+    for proc in procs:
+        proc.start()
+    try:
+        result = []
+        for queue, wanted in ((ready, n_processes), (rates, n_processes)):
+            got = []
+            while len(got) < wanted:  # a process that failed ends the wait (its traceback is on stderr)
+                try:
+                    got.append(queue.get(timeout=1.0))
+                except Empty:
+                    if any(proc.exitcode not in (None, 0) for proc in procs):
+                        raise RuntimeError("a benchmark process ended before reporting; see its error above") from None
+            if queue is ready:
+                start.set()
+            result = got
+    finally:
+        for proc in procs:
+            proc.join(timeout=60)
+            if proc.is_alive():
+                proc.kill()
+    return sorted(result)

@@ -26,6 +26,7 @@ from downwash_envs.base import (
 )
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.task import draw_episode, episode_info
+from sim.physics import check_world_memory
 
 __all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
 
@@ -182,6 +183,7 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
         **options: Any,
     ):
         N = count("num_envs", num_envs, 1)
+        check_world_memory(N, 2, name="num_envs")  # the leader and the follower; before anything is allocated
         if max_episode_steps is not None and (
             isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer))
             or (max_episode_steps < 1 and max_episode_steps != -1)

@@ -134,6 +134,7 @@ from downwash_envs.observation import OBSERVATION, ObsEntry
 from downwash_envs.rendering import Renderer
 from downwash_envs.task import REWARD_TERMS, squared_norm, task_constants, task_kernel
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
+from sim.physics import check_world_memory
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.presets import Preset, make_preset
 from sim.scene import Scene, build_scene
@@ -657,6 +658,7 @@ class _SwarmBase:
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode: got {render_mode!r}; allowed: None, {', '.join(RENDER_MODES)}")
         self.config = cfg = make_swarm_config(**options)
+        check_world_memory(n_worlds, len(cfg.preset.vehicles), name="n_worlds")  # before anything is allocated
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": cfg.task.control_hz}
         self._worlds = SwarmWorlds(cfg, n_worlds, n_threads)

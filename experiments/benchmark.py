@@ -27,6 +27,11 @@ SyncVectorEnv of single envs (the same adapter) and through SB3's own DummyVecEn
 worlds each, alternated: sb3_rollout_steps_per_s_{native,sync,dummy},
 sb3_native_over_sync and sb3_native_over_dummy (medians of the paired ratios; torch at
 one thread, as the examples run it), and the same under *_torch_default_threads.
+Sharing the cores (`contention`): env_learner_loops_per_s (16 worlds and an Adam update of a
+small MLP per step, torch at its default threads) with the env's default threads over
+n_threads=1 (env_learner_threads_over_one_thread), and two processes of 64 worlds at once:
+the slower one's rate over one alone (two_processes_share_of_solo), each also with
+n_threads=1 (*_one_thread).
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -40,7 +45,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from downwash_core.params import LEADER_POSITION, RATES
-from experiments.common import CommonArgs, arg, format_table, load_field, parse_args, setup_logging, write_results, script
+from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_table, load_field, parse_args, run_main,
+                                setup_logging, write_results, script)
 
 if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
     from downwash.predictor import LearnedPredictor
@@ -52,14 +58,16 @@ LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 @dataclass(frozen=True)
 class BenchmarkArgs(CommonArgs):
     seconds: float = arg(20.0, "simulated seconds per window of one flight (and of bare mj_step); a batched "
-                               "window flies 4 / worlds of it")
-    worlds: int = arg(64, "worlds in the batched measurement")
-    repeats: int = arg(15, "rounds: each measurement once per round, paired with a bare window (medians reported)")
+                               "window flies 4 / worlds of it", gt=0.0, le=FLIGHT_SECONDS_MAX)
+    worlds: int = arg(64, "worlds in the batched measurement (a sanity bound: memory grows with the worlds)", ge=1,
+                      le=4096)
+    repeats: int = arg(15, "rounds: each measurement once per round, paired with a bare window (medians reported)",
+                       ge=1, le=1000)
 
 
 # The project's targets for the ratios, written into results.json beside the measurements.
 TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "env_single_physics_over_bare": 0.3,
-           "sb3_native_over_sync": 2.0}
+           "sb3_native_over_sync": 2.0, "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4}
 
 
 def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
@@ -202,8 +210,37 @@ def run(args: BenchmarkArgs) -> dict:
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
     r.update(sb3_rollouts(4 if args.quick else 16, 16 if args.quick else 256, 1 if args.quick else 3))
+    r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
     r["targets"] = dict(TARGETS)
     return r
+
+
+def contention(seconds: float, rounds: int) -> dict[str, Any]:
+    """The vector env sharing the cores, with its default threads and with n_threads=1, alternated
+    `rounds` times: an on-line learner's loop (16 worlds, one Adam update of a small MLP with
+    torch at its default threads between env steps; `env_learner_loops_per_s`), and two
+    processes of 64 worlds stepping at once against one alone (`concurrent_env_steps_per_s`).
+    Medians of the rates and of the paired ratios: env_learner_threads_over_one_thread and
+    two_processes_share_of_solo (the slower process's rate over the solo rate)."""
+    from downwash_envs.evaluation import concurrent_env_steps_per_s, env_learner_loops_per_s
+
+    loops: dict[int, list[float]] = {0: [], 1: []}
+    solo: dict[int, list[float]] = {0: [], 1: []}
+    share: dict[int, list[float]] = {0: [], 1: []}
+    for _ in range(rounds):
+        for n_threads in (0, 1):
+            loops[n_threads].append(env_learner_loops_per_s(16, n_threads=n_threads, seconds=seconds, repeats=1))
+            alone = concurrent_env_steps_per_s(1, 64, n_threads=n_threads, seconds=seconds)[0]
+            together = concurrent_env_steps_per_s(2, 64, n_threads=n_threads, seconds=seconds)
+            solo[n_threads].append(alone)
+            share[n_threads].append(min(together) / alone)
+    out: dict[str, Any] = {}
+    for n_threads, suffix in ((0, ""), (1, "_one_thread")):
+        out[f"env_learner_loops_per_s{suffix}"] = float(np.median(loops[n_threads]))
+        out[f"env_steps_per_s_vector64_solo{suffix}"] = float(np.median(solo[n_threads]))
+        out[f"two_processes_share_of_solo{suffix}"] = float(np.median(share[n_threads]))
+    out["env_learner_threads_over_one_thread"] = float(np.median(np.array(loops[0]) / np.array(loops[1])))
+    return out
 
 
 def sb3_rollouts(num_envs: int, n_steps: int, rounds: int) -> dict[str, Any]:
@@ -286,4 +323,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

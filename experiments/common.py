@@ -5,6 +5,12 @@ one-line `help`), parsed once in `main()`; the parsed config and seed are writte
 beside the results. Any option may also come from a TOML file (`--config FILE.toml`,
 keys are the long option names); a flag on the command line overrides the file.
 
+Every numeric option states its range once, in its `arg(..., ge=, gt=, le=, lt=)`;
+`parse_args` checks each number (finite, within its range) and each output folder
+(writable) before any work, naming the flag. `run_main` runs an experiment from the
+command line: an expected error (`TestbedError`) prints one line and exits 2 (a bad
+option) or 1 (a bad file), `--debug` shows its traceback; a bug keeps its traceback.
+
 Importing this module is cheap (no torch, numba, mujoco or matplotlib), and so is
 importing an experiment: they load the heavy stack inside the functions that need it,
 so that `--help` and a bad option answer at once. The choices the help lists come from
@@ -16,17 +22,21 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
+import os
 import sys
+import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence, TypeVar
+from typing import Any, Callable, NoReturn, Sequence, TypeVar
 
-from downwash_core.errors import ConfigError
+from downwash_core.errors import ConfigError, TestbedError
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
-    "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "setup_logging", "CONDITIONS", "MODEL_KINDS",
+    "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
+    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS", "MODEL_KINDS",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
@@ -49,17 +59,38 @@ FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)
                  f"lists their parameters), or MODULE:FACTORY returning a field object")
 
 
-def arg(default: Any, help: str) -> Any:
-    """A dataclass field with a default and a one-line help text."""
-    return field(default=default, metadata={"help": help})
+SEED_MAX = 2**32 - 1  # seeds go to NumPy's and torch's generators; seed + k stays far inside int64
+FLIGHT_SECONDS_MAX = 3600.0  # s, one flight: its log rows are allocated up front, so a huge length is refused
+
+
+def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
+        lt: float | None = None, check: Callable[[Any], str | None] | None = None, output: str | None = None) -> Any:
+    """A dataclass field with a default and a one-line help text.
+
+    A number's range is stated here, once (`ge`/`gt`/`le`/`lt`, and/or `check(value)`, which
+    returns what is expected when the value is bad, else None): `parse_args` checks it, and
+    that a float is finite, before any work. `output` ("dir" or "file") marks a path the
+    experiment writes, checked for writing before any work.
+    """
+    if output not in (None, "dir", "file"):
+        raise ValueError(f"output: expected None, 'dir' or 'file', got {output!r}")
+    metadata: dict[str, Any] = {"help": help}
+    bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le), ("lt", lt)) if v is not None}
+    if bounds:
+        metadata["bounds"] = bounds
+    if check is not None:
+        metadata["check"] = check
+    if output is not None:
+        metadata["output"] = output
+    return field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)
 class CommonArgs:
     """Options every experiment takes (DESIGN section 10)."""
 
-    out: str = arg("", "output folder (default runs/<experiment>)")
-    seed: int = arg(0, "base seed; world k of a run uses seed + k")
+    out: str = arg("", "output folder (default runs/<experiment>)", output="dir")
+    seed: int = arg(0, "base seed; world k of a run uses seed + k", ge=0, le=SEED_MAX)
     quick: bool = arg(False, "tiny budget for smoke tests")
     field: str = arg("", f"the ground-truth field (default {DEFAULT_FIELD}): {FIELD_CHOICES}")
 
@@ -92,17 +123,73 @@ class Pipeline:
                 "models_dir": str(self.models_dir), "pipeline": self.record}
 
 
-def resolve_pipeline(args: PipelineArgs, **settings: Any) -> Pipeline:
+def resolve_pipeline(args: PipelineArgs, *, models: Sequence[str] = MODEL_KINDS, **settings: Any) -> Pipeline:
     """The field (checked), the collection settings (seed and --quick from args, plus `settings`)
-    and the folders: the ones given, or those keyed by the provenance."""
+    and the folders: the ones given, or those keyed by the provenance. When any of `models` (the
+    kinds the run needs) is missing, the run collects and trains: both folders are then checked
+    for writing (ConfigError naming --collection-dir or --models-dir), before any work."""
     from downwash.staged import CollectionConfig, pipeline_dirs, provenance
 
     field = load_field(args.field)
     config = CollectionConfig(seed=args.seed, quick=args.quick, **settings)
     record = provenance(config, field)
     collection_dir, models_dir = pipeline_dirs(record)
-    return Pipeline(config, field, record, Path(args.collection_dir or collection_dir),
-                    Path(args.models_dir or models_dir))
+    p = Pipeline(config, field, record, Path(args.collection_dir or collection_dir), Path(args.models_dir or models_dir))
+    _check_pipeline_writable(p, args, models)
+    return p
+
+
+def _check_pipeline_writable(p: Pipeline, args: PipelineArgs, models: Sequence[str]) -> None:
+    """The collection and models folders must take files when the run may write there: when a
+    model it needs is missing (`ensure_models` then collects and trains). Folders holding those
+    models may be read-only (shared models)."""
+    if all((p.models_dir / f"{kind}.pt").is_file() for kind in models):
+        return
+    check_writable("--collection-dir" + ("" if args.collection_dir else " (default)"), p.collection_dir)
+    check_writable("--models-dir" + ("" if args.models_dir else " (default)"), p.models_dir)
+
+
+def check_writable(option: str, path: str | Path, kind: str = "dir") -> Path:
+    """ConfigError naming `option` unless a file can be written in the folder `path` (kind "dir") or
+    the file `path` can be made (kind "file": its folder takes files and `path` is no folder).
+
+    Tried for real: the missing folders are made and a temporary file written in the folder,
+    then both removed, so the check leaves nothing behind (permissions, a read-only mount, a
+    file where a folder is expected, a full quota all show here, before any work).
+    """
+    target = Path(path)
+    if kind == "file":
+        if target.is_dir():
+            raise ConfigError(f"{option}: {path} is a folder; expected a file path")
+        folder = target.parent
+    else:
+        folder = target
+    missing, q = [], folder
+    while not q.exists() and not q.is_symlink() and q != q.parent:
+        missing.append(q)
+        q = q.parent
+    if q.exists() and not q.is_dir():
+        raise ConfigError(f"{option}: cannot write to {path} ({q} is a file, not a folder)")
+    made: list[Path] = []
+    try:
+        for d in reversed(missing):
+            try:
+                d.mkdir()
+            except FileExistsError:  # made meanwhile by someone else: not ours to remove
+                continue
+            made.append(d)
+        fd, tmp = tempfile.mkstemp(prefix=".write-check-", dir=folder)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise ConfigError(f"{option}: cannot write to {path} ({e.strerror or e})") from None
+    finally:
+        for d in reversed(made):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+    return target
 
 
 _KINDS = {"int": int, "float": float, "str": str, "bool": bool}
@@ -117,21 +204,82 @@ def _option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def _num(x: float) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+def allowed_range(f: dataclasses.Field) -> str:
+    """What a numeric option takes, in words: '>= 1' (an integer: argparse and the TOML reader
+    check the type), 'an integer in [5, 301]', 'a finite number in (0, 3600]'."""
+    b = f.metadata.get("bounds", {})
+    integer = _kind(f) is int
+    lo = ("[", b["ge"]) if "ge" in b else ("(", b["gt"]) if "gt" in b else None
+    hi = ("]", b["le"]) if "le" in b else (")", b["lt"]) if "lt" in b else None
+    if lo and hi:
+        return f"{'an integer' if integer else 'a finite number'} in {lo[0]}{_num(lo[1])}, {_num(hi[1])}{hi[0]}"
+    side = (f"{'>=' if lo[0] == '[' else '>'} {_num(lo[1])}" if lo else
+            f"{'<=' if hi[0] == ']' else '<'} {_num(hi[1])}" if hi else "")
+    if integer:
+        return side or "an integer"
+    return f"a finite number {side}".rstrip()
+
+
+def _out_of_range(f: dataclasses.Field, value: Any) -> str | None:
+    """What an option expects when `value` is bad (a number not finite or outside its range, or
+    refused by the field's `check`), else None."""
+    if _kind(f) in (int, float) and not isinstance(value, bool):
+        b = f.metadata.get("bounds", {})
+        ok = (math.isfinite(value) and ("ge" not in b or value >= b["ge"]) and ("gt" not in b or value > b["gt"])
+              and ("le" not in b or value <= b["le"]) and ("lt" not in b or value < b["lt"]))
+        if not ok:
+            return f"expected {allowed_range(f)}"
+    check = f.metadata.get("check")
+    return check(value) if check is not None else None
+
+
+def names_check(allowed: Sequence[str]) -> Callable[[str], str | None]:
+    """A `check` for a comma list of names from `allowed` (at least one, each once), so that a bad
+    name is refused with the others, before any import of the registry it comes from."""
+
+    def check(text: str) -> str | None:
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        unknown = [n for n in names if n not in allowed]
+        if not names or unknown or len(set(names)) != len(names):
+            why = f"unknown {unknown}" if unknown else "duplicate names" if names else "no name"
+            return f"{why}; allowed: a comma list of {', '.join(allowed)}, each at most once"
+        return None
+
+    return check
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line (the option and what is wrong; --help lists the
+    options), exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser(cls: type, name: str, description: str = "") -> argparse.ArgumentParser:
-    """The argparse parser of the dataclass `cls`: one long option per field, plus --config."""
-    parser = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    """The argparse parser of the dataclass `cls`: one long option per field, plus --config and --debug."""
+    parser = OneLineParser(prog=f"python -m experiments.{name}", description=description,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     for f in dataclasses.fields(cls):
         help_text = f.metadata.get("help", "")
         if _kind(f) is bool:  # --no-X undoes an X = true of the config file
             parser.add_argument(_option(f.name), action=argparse.BooleanOptionalAction, default=f.default,
                                 help=help_text)
         else:
+            notes = [f"default: {f.default}"] if f.default != "" else []
+            if _kind(f) in (int, float) and "bounds" in f.metadata:
+                notes.append(allowed_range(f).removeprefix("an integer ").removeprefix("a finite number "))
             parser.add_argument(_option(f.name), type=_kind(f), default=f.default,
-                                help=f"{help_text} (default: {f.default})" if f.default != "" else help_text)
+                                help=f"{help_text} ({'; '.join(notes)})" if notes else help_text)
     parser.add_argument("--config", metavar="FILE.toml", default="",
                         help="read options from this TOML file (keys: the long option names, with - or _); "
                              "flags on the command line override it")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an expected error (a bad option or file) instead of one line")
     return parser
 
 
@@ -175,24 +323,42 @@ def _toml_type(value: Any) -> str:
             dict: "table"}.get(type(value), type(value).__name__)
 
 
+_debug = False  # the last parse_args saw --debug: run_main then re-raises expected errors
+
+
 def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, description: str = "") -> A:
-    """Parse the command line into the dataclass `cls` and fill the default --out.
+    """Parse the command line into the dataclass `cls`, fill the default --out, check every option.
 
     With `--config FILE.toml`, the file's values replace the defaults and the flags given
-    override the file. A bad file, an unknown key or a value of the wrong type is a usage
-    error (exit 2) naming the file, the key and the allowed options, before any work.
+    override the file. A bad file, an unknown key, a value of the wrong type, a number that
+    is not finite or outside its field's range (from a flag or the file) is a usage error
+    (exit 2, one line) naming the option, before any work. Then each output path (`--out`,
+    any field with `output=`) is checked for writing: ConfigError naming it.
     """
+    global _debug
     parser = build_parser(cls, name, description)
     ns = parser.parse_args(argv)
+    _debug = ns.debug
+    from_file: dict[str, Any] = {}
     if ns.config:
         try:
-            parser.set_defaults(**read_config(ns.config, cls))
+            from_file = read_config(ns.config, cls)
         except ConfigError as e:
             parser.error(str(e))
+        parser.set_defaults(**from_file)
         ns = parser.parse_args(argv)
-    values = {f.name: getattr(ns, f.name) for f in dataclasses.fields(cls)}
+    fields = dataclasses.fields(cls)
+    values = {f.name: getattr(ns, f.name) for f in fields}
+    for f in fields:
+        problem = _out_of_range(f, values[f.name])
+        if problem:
+            where = f" (from --config {ns.config})" if f.name in from_file and values[f.name] is from_file[f.name] else ""
+            parser.error(f"{_option(f.name)}: {problem}, got {values[f.name]!r}{where}")
     if not values.get("out"):
         values["out"] = str(Path("runs") / name)
+    for f in fields:
+        if f.metadata.get("output") and values[f.name]:
+            check_writable(_option(f.name), values[f.name], f.metadata["output"])
     return cls(**values)
 
 
@@ -277,14 +443,31 @@ def format_table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def run_main(main: Callable[[], Any]) -> None:
+    """Run an experiment's `main` on the command line: the one path of `python -m experiments.X`
+    and of the console scripts. An expected error (`TestbedError`: a bad option, a bad file)
+    prints `error: <message>` to stderr and exits 2 (ConfigError) or 1 (DataError and the
+    rest), without a traceback, unless --debug was given; a bug keeps its traceback. Returns
+    None, so that a finished run exits 0."""
+    global _debug
+    _debug = False  # parse_args sets it from this run's --debug
+    try:
+        main()
+    except TestbedError as e:
+        if _debug or "--debug" in sys.argv[1:]:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2 if isinstance(e, ConfigError) else 1) from None
+
+
 def script(main: Callable[[], Any]) -> Callable[[], None]:
     """The console-script entry point ([project.scripts] in pyproject.toml) of an experiment's
-    `main`: runs it on the command line and returns None, so that a finished run exits 0
-    (`main` returns its results to Python callers, which a console script would pass to
-    sys.exit as an error)."""
+    `main`: `run_main(main)`, which returns None, so that a finished run exits 0 (`main`
+    returns its results to Python callers, which a console script would pass to sys.exit
+    as an error)."""
 
     def entry() -> None:
-        main()
+        run_main(main)
 
     entry.__doc__ = f"Run {main.__module__} from the command line."
     return entry

@@ -30,7 +30,7 @@ from typing import Sequence
 
 from downwash_core.errors import ConfigError
 from experiments.common import (CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field, parse_args,
-                                setup_logging, write_results, script)
+                                run_main, setup_logging, write_results, script)
 
 __all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
 
@@ -141,4 +141,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

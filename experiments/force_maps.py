@@ -20,15 +20,16 @@ from typing import Any
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results, script
+from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main,
+                                setup_logging, write_results, script)
 
 __all__ = ["ForceMapArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
 class ForceMapArgs(PipelineArgs):
-    speed: float = arg(0.5, "follower speed along x, m/s (paper: 0.5)")
-    resolution: int = arg(61, "grid points per axis")
+    speed: float = arg(0.5, "follower speed along x, m/s (paper: 0.5)", ge=0.0, le=1.0)
+    resolution: int = arg(61, "grid points per axis", ge=5, le=301)
 
 
 def _evaluate(fn: Any, dp: np.ndarray, v_b: np.ndarray) -> np.ndarray:
@@ -151,4 +152,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -25,8 +25,9 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind,
-                                parse_args, resolve_pipeline, setup_logging, write_results, script)
+from experiments.common import (CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
+                                load_wind, names_check, parse_args, resolve_pipeline, run_main, setup_logging,
+                                write_results, script)
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -36,15 +37,15 @@ SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor,
 
 @dataclass(frozen=True)
 class OutdoorArgs(PipelineArgs):
-    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS))
-    seeds: int = arg(5, "number of seeds (flights per condition)")
+    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
+    seeds: int = arg(5, "number of seeds (flights per condition)", ge=1)
     leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)")
-    speed: float = arg(1.5, f"the leader's ground speed, m/s ({SPEED_RANGE[0]}-{SPEED_RANGE[1]})")
-    radius: float = arg(2.0, "radius of the leader's circle, m (1-10)")
-    separation: float = arg(0.6, "the follower's depth below the leader, m (0.3-2.0)")
-    lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m (0-1)")
+    speed: float = arg(1.5, "the leader's ground speed, m/s", ge=SPEED_RANGE[0], le=SPEED_RANGE[1])
+    radius: float = arg(2.0, "radius of the leader's circle, m", ge=1.0, le=10.0)
+    separation: float = arg(0.6, "the follower's depth below the leader, m", ge=0.3, le=2.0)
+    lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m", ge=0.0, le=1.0)
     wind: str = arg("light:mean=2,0,0", WIND_HELP)
-    duration: float = arg(20.0, "flight length, s")
+    duration: float = arg(20.0, "flight length, s", gt=0.0, le=FLIGHT_SECONDS_MAX)
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
@@ -88,7 +89,7 @@ def run(args: OutdoorArgs) -> dict:
 
     conditions = _validate(args)
     wind = load_wind(args.wind)
-    p = resolve_pipeline(args)
+    p = resolve_pipeline(args, models=learned(conditions))
     checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, p.field, ProgressBar)
     t_start = time.perf_counter()
     K = args.seeds
@@ -174,4 +175,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

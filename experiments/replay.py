@@ -21,6 +21,8 @@ import argparse
 import math
 from typing import Any, Sequence
 
+from experiments.common import OneLineParser, run_main
+
 __all__ = ["MAX_FPS", "build_parser", "replay_log", "main"]
 
 MAX_FPS = 60.0  # window syncs per second at most: a fast replay skips rows instead
@@ -37,7 +39,7 @@ def _speed(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(  # one-line usage errors, as every experiment's
         prog="python -m experiments.replay",
         description="Replay a flight log (.npz) in MuJoCo's interactive viewer, the leaders' wakes and the "
                     "reference paths drawn, paced to real time.")
@@ -45,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--speed", type=_speed, default=1.0,
                         help="playback rate: 1 real time, 0.25 four times slower, 4 four times faster (default: 1)")
     parser.add_argument("--loop", action="store_true", help="start again at the end until the window is closed")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an expected error (a bad option or log) instead of one line")
     return parser
 
 
@@ -131,12 +135,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         log = load_log(args.log)
     except LogError as e:
+        if args.debug:
+            raise
         parser.error(f"argument PATH: {e}")
     try:
         return replay_log(log, args.speed, args.loop, what=parser.prog)
     except ConfigError as e:
+        if args.debug:
+            raise
         parser.exit(2, f"{parser.prog}: error: {e}\n")
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -32,7 +32,7 @@ from typing import Any
 
 from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_bytes, atomic_write_json, to_json
-from experiments.common import CONDITIONS, CommonArgs, arg, parse_args, script
+from experiments.common import CONDITIONS, CommonArgs, arg, parse_args, run_main, script
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
 
 __all__ = [
@@ -73,6 +73,8 @@ PAPER_TRACKING = ("Paper (real flights, section 5.E): with the equivariant model
 
 @dataclass(frozen=True)
 class ReportArgs(CommonArgs):
+    out: str = arg("", "not used: the report writes --results, --docs and --readme (accepted as a common option, "
+                       "so it is not checked for writing)")
     runs: str = arg("runs", "folder where the experiments wrote <name>/results.json ('' : copy nothing, only render)")
     results: str = arg("results", "folder of the committed copies, <name>.json, which the section is rendered from")
     docs: str = arg("docs/results.md", "the docs' results page, whose section between the results markers is "
@@ -615,4 +617,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -31,7 +31,8 @@ from typing import Any
 
 from downwash_core.errors import ConfigError
 from experiments.common import (MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, PipelineArgs, ProgressBar, arg,
-                                format_table, parse_args, resolve_pipeline, setup_logging, write_results, script)
+                                format_table, parse_args, resolve_pipeline, run_main, setup_logging, write_results,
+                                script)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]
 
@@ -40,13 +41,13 @@ MINUTES = PAPER_MINUTES  # plus the full set
 
 @dataclass(frozen=True)
 class EfficiencyArgs(PipelineArgs):
-    trials: int = arg(10, "trials per point (different data subsets and seeds; --quick: at most 2)")
+    trials: int = arg(10, "trials per point (different data subsets and seeds; --quick: at most 2)", ge=1)
     minutes: str = arg(",".join(f"{m:g}" for m in MINUTES), "comma list of training minutes; the full set is always added")
     models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(MODEL_KINDS)}")
-    workers: int = arg(0, "CPUs of the local Ray that trains the models (0: all cores)")
+    workers: int = arg(0, "CPUs of the local Ray that trains the models (0: all cores)", ge=0)
     address: str = arg("", "address of a running Ray cluster; default: a local Ray")
-    cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with experiments.sweep)")
-    batch: int = arg(5, "models per Ray task, trained as one ensemble (5 is the fastest per model on 2 cores)")
+    cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with experiments.sweep)", output="dir")
+    batch: int = arg(5, "models per Ray task, trained as one ensemble (5 is the fastest per model on 2 cores)", ge=1)
 
 
 def grid_of(args: EfficiencyArgs) -> Any:
@@ -111,4 +112,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

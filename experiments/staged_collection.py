@@ -6,7 +6,10 @@ Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
 0.5 m with the stage-1 model. After the last stage the final shallow, deep and
 equivariant models are trained on all training data into --models-dir. A rerun
-skips finished work; an interrupted run loses at most the flights in progress.
+skips finished work; an interrupted run loses at most the flights in progress. The
+manifest records every log's SHA-256: a rerun re-flies only missing logs and stops on an
+altered or unlisted one, and a second run on the same folders waits for the first and
+reuses its work.
 Both folders default to runs/pipeline/<field>-<key>/, keyed by the provenance
 (field, config, seed), so another field collects afresh. The pipeline is
 `downwash.staged`; results.json goes to --out.
@@ -14,21 +17,35 @@ Both folders default to runs/pipeline/<field>-<key>/, keyed by the provenance
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
-from experiments.common import PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging, write_results, script
+from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main,
+                                setup_logging, write_results, script)
 
 __all__ = ["StagedArgs", "run", "main"]
 
 
+def _at_most_cores(threads: int) -> str | None:
+    """--threads may not exceed the cores this process may use (`sim.physics.usable_cores`, without importing sim)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return None if threads <= cores else f"expected 0 (every usable core) or 1-{cores} (the cores this process may use)"
+
+
 @dataclass(frozen=True)
 class StagedArgs(PipelineArgs):
-    stage_minutes: float = arg(5.7, "training flight minutes per stage (paper: ~5.7, ~17 in all)")
-    val_ratio: float = arg(1.0, "validation minutes per training minute (paper: similar size)")
-    flight_seconds: float = arg(28.5, "length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)")
-    clamp: float = arg(6.0, "magnitude bound of the deployed model's prediction, m/s^2")
-    threads: int = arg(0, "worker threads for batched flights (0: all cores); training uses one")
-    batch_flights: int = arg(12, "flights flown as one batch, each log written when its batch lands (a kill loses at most one batch)")
+    stage_minutes: float = arg(5.7, "training flight minutes per stage (paper: ~5.7, ~17 in all)", gt=0.0, le=60.0)
+    val_ratio: float = arg(1.0, "validation minutes per training minute (paper: similar size)", ge=0.0, le=5.0)
+    flight_seconds: float = arg(28.5, "length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)", ge=2.0,
+                                le=600.0)
+    clamp: float = arg(6.0, "magnitude bound of the deployed model's prediction, m/s^2", gt=0.0)
+    threads: int = arg(0, "worker threads for batched flights (0: all cores); training uses one", ge=0,
+                       check=_at_most_cores)
+    batch_flights: int = arg(12, "flights flown as one batch, each log written when its batch lands (a kill loses at "
+                                 "most one batch)", ge=1, le=256)
 
 
 def run(args: StagedArgs) -> dict:
@@ -61,4 +78,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -31,8 +31,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import (AGGREGATIONS, PRESETS, PipelineArgs, ProgressBar, arg, format_table, parse_args,
-                                resolve_pipeline, setup_logging, write_results, script)
+from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, PipelineArgs, ProgressBar, arg, format_table,
+                                parse_args, resolve_pipeline, run_main, setup_logging, write_results, script)
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -53,11 +53,11 @@ class SwarmArgs(PipelineArgs):
                                         "and spacing=)")
     aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
                                                f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)")
-    seeds: int = arg(3, "flights per condition, preset and law")
-    duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)")
-    swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)")
+    seeds: int = arg(3, "flights per condition, preset and law", ge=1)
+    duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)", ge=0.0, le=FLIGHT_SECONDS_MAX)
+    swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)", gt=0.0, le=60.0)
     video: str = arg("", "also write an mp4 of the first preset and law, the first seed of every condition side by "
-                         "side with the wakes drawn (.mp4; needs pip install -e '.[video]')")
+                         "side with the wakes drawn (.mp4; needs pip install -e '.[video]')", output="file")
 
 
 def _split(text: str, label: str) -> list[str]:
@@ -239,4 +239,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -7,13 +7,14 @@
 Each cell (one field, one model kind, one training length, one seed) is one
 trained model whose validation RMSE is cached as a JSON file under a key of
 everything that determines it: a rerun skips the cached cells, and a killed sweep
-resumes where it stopped. Every field's staged collection is made first, once,
-in this process; the missing cells then train in batches of ``--batch`` cells of
-one field and one kind, each batch one ensemble, as Ray tasks of one CPU: on a
-local Ray of ``--workers`` CPUs (default: all cores) or, with ``--address``, on a
-running cluster (its nodes need this package installed; the cache is written
-here). The numbers depend neither on the batching nor on the nodes. The logic is
-`downwash.sweep`.
+resumes where it stopped; sweeps sharing a --cache-dir compute each cell once (a
+cell another sweep is computing is waited for). Every field's staged collection is
+made first, once, and its logs checked against its manifest, in this process; the
+missing cells then train in batches of ``--batch`` cells of one field and one kind,
+each batch one ensemble, as Ray tasks of one CPU: on a local Ray of ``--workers``
+CPUs (default: all cores) or, with ``--address``, on a running cluster (its nodes
+need this package installed; the cache is written here). The numbers depend
+neither on the batching nor on the nodes. The logic is `downwash.sweep`.
 
 Results: per (field, model, minutes) the mean RMSE over the seeds with a 95 %
 bootstrap CI, and the paper's claim tested seed by seed (equivariant at 5 min
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from experiments.common import (FIELD_NAMES, MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
-                                ProgressBar, arg, format_table, parse_args, resolve_pipeline, setup_logging,
+                                ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
                                 write_results, script)
 
 __all__ = ["SweepArgs", "run", "main"]
@@ -44,11 +45,11 @@ class SweepArgs(CommonArgs):
                                                                     "is always added")
     seeds: str = arg(",".join(str(s) for s in range(10)), "comma list of trial seeds (each one data subset and "
                                                           "training seed, shared by all models)")
-    workers: int = arg(0, "CPUs of the local Ray (0: all cores); unused with --address")
+    workers: int = arg(0, "CPUs of the local Ray (0: all cores); unused with --address", ge=0)
     address: str = arg("", "address of a running Ray cluster (ray start --head); default: a local Ray")
-    cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with sample_efficiency)")
+    cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with sample_efficiency)", output="dir")
     batch: int = arg(5, "cells per Ray task, trained as one ensemble of one field and one model kind (5: the "
-                        "fastest per model on 2 cores)")
+                        "fastest per model on 2 cores)", ge=1)
 
 
 def run(args: SweepArgs) -> dict:
@@ -84,8 +85,9 @@ def run(args: SweepArgs) -> dict:
     fig.savefig(out / "sweep.png", dpi=110)
     plt.close(fig)
     c = results["cells"]
-    print(f"\n{c['total']} cells: {c['cached']} cached, {c['computed']} computed; wrote {path}, results.md and "
-          f"sweep.png in {out}/ ({results['wall_seconds']:.1f} s)")
+    shared = f" ({results['computed_elsewhere']} by another sweep meanwhile)" if results["computed_elsewhere"] else ""
+    print(f"\n{c['total']} cells: {c['cached']} cached{shared}, {c['computed']} computed; wrote {path}, results.md "
+          f"and sweep.png in {out}/ ({results['wall_seconds']:.1f} s)")
     return results
 
 
@@ -98,4 +100,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

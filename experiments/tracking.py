@@ -25,8 +25,8 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
-from experiments.common import (CONDITIONS, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table, load_wind,
-                                parse_args, resolve_pipeline, setup_logging, write_results)
+from experiments.common import (CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
+                                load_wind, names_check, parse_args, resolve_pipeline, setup_logging, write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -40,7 +40,7 @@ class Track:
     doc: str  # the experiment's description (its --help)
     reference: str  # a name of `downwash_trajectories.make_reference`
     period: float  # s, one period: the default flight length
-    shape: dict[str, tuple[float, str]]  # option -> (default, help), passed to the reference
+    shape: dict[str, tuple[float, str, dict[str, float]]]  # option -> (default, help, range), passed to the reference
 
 
 TRACKS = {
@@ -48,33 +48,34 @@ TRACKS = {
         "Lemniscate (figure-eight) beneath a hovering leader, every condition on the same seeds. Its crossing "
         "point lies directly beneath Alpha, so Bravo passes through the wake twice per period.",
         "lemniscate", 20.0,
-        {"half_length": (1.0, "half extent of the figure-eight along x, m"),
-         "half_width": (0.5, "half extent along y, m")},
+        {"half_length": (1.0, "half extent of the figure-eight along x, m", {"gt": 0.0, "le": 10.0}),
+         "half_width": (0.5, "half extent along y, m", {"gt": 0.0, "le": 10.0})},
     ),
     "transect": Track(
         "Transect: back and forth along y at x = 0.2 m beneath a hovering leader (the paper's translation "
         "experiment), every condition on the same seeds.",
         "transect", 12.0,
-        {"x_offset": (0.2, "lateral offset of the transect line from the leader, m"),
-         "half_length": (1.2, "half length of the transect along y, m")},
+        {"x_offset": (0.2, "lateral offset of the transect line from the leader, m", {"ge": -10.0, "le": 10.0}),
+         "half_length": (1.2, "half length of the transect along y, m", {"gt": 0.0, "le": 10.0})},
     ),
 }
 
 
 @dataclass(frozen=True)
 class TrackingArgs(PipelineArgs):
-    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS))
-    seeds: int = arg(5, "number of seeds (flights per condition)")
-    separation: float = arg(0.6, f"vertical separation below the leader, m ({SEPARATION_RANGE[0]}-{SEPARATION_RANGE[1]})")
-    duration: float = arg(0.0, "flight length, s (0: one period of the reference)")
+    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
+    seeds: int = arg(5, "number of seeds (flights per condition)", ge=1)
+    separation: float = arg(0.6, "vertical separation below the leader, m", ge=SEPARATION_RANGE[0], le=SEPARATION_RANGE[1])
+    duration: float = arg(0.0, "flight length, s (0: one period of the reference)", ge=0.0, le=FLIGHT_SECONDS_MAX)
     wind: str = arg("off", WIND_HELP)
     video: str = arg("", "also write an mp4 of the first seed of every condition, side by side with the wake "
-                         "drawn, to this path (.mp4; needs pip install -e '.[video]')")
+                         "drawn, to this path (.mp4; needs pip install -e '.[video]')", output="file")
 
 
 def args_class(track: str) -> type:
     """TrackingArgs plus the track's shape options."""
-    fields = [(name, float, arg(default, help_text)) for name, (default, help_text) in TRACKS[track].shape.items()]
+    fields = [(name, float, arg(default, help_text, **bounds))
+              for name, (default, help_text, bounds) in TRACKS[track].shape.items()]
     return dataclasses.make_dataclass(f"{track.title()}Args", fields, bases=(TrackingArgs,), frozen=True)
 
 
@@ -109,7 +110,7 @@ def run(track: str, args: Any) -> dict:
         from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
 
         check_video_output(args.video, scene)
-    p = resolve_pipeline(args)
+    p = resolve_pipeline(args, models=learned(conditions))
     field = p.field
     checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, field, ProgressBar)
     t_start = time.perf_counter()

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
-from experiments.common import (MODEL_KINDS, CommonArgs, arg, format_table, load_field, parse_args, setup_logging,
-                                write_results, script)
+from experiments.common import (MODEL_KINDS, CommonArgs, arg, format_table, load_field, parse_args, run_main,
+                                setup_logging, write_results, script)
 
 __all__ = ["TrainArgs", "run", "main"]
 
@@ -29,9 +29,10 @@ class TrainArgs(CommonArgs):
     model: str = arg("equivariant", "model kind: " + ", ".join(MODEL_KINDS))
     logs: str = arg("", "folder of training flight logs (.npz), searched recursively")
     val_logs: str = arg("", "folder of validation flight logs (.npz), searched recursively")
-    minutes: float = arg(0.0, "shorten the training data to this many minutes, each stage proportionally (0: all)")
+    minutes: float = arg(0.0, "shorten the training data to this many minutes, each stage proportionally (0: all)",
+                         ge=0.0)
     feature_set: str = arg("", "equivariant model features: 5 (paper, level leader) or 6 (adds |v_a|); default per model")
-    checkpoint: str = arg("", "checkpoint path (default OUT/<model>.pt)")
+    checkpoint: str = arg("", "checkpoint path (default OUT/<model>.pt)", output="file")
 
 
 def run(args: TrainArgs) -> dict:
@@ -47,6 +48,9 @@ def run(args: TrainArgs) -> dict:
         raise ConfigError(f"--model: unknown {args.model!r}; allowed: {', '.join(MODEL_KINDS)}")
     if not args.logs or not args.val_logs:
         raise ConfigError("--logs and --val-logs: both folders of flight logs are required")
+    for option, location in (("--logs", args.logs), ("--val-logs", args.val_logs)):
+        if not Path(location).exists():  # a typo: a one-line usage error, not a traceback from the loader
+            raise ConfigError(f"{option}: {location}: no such file or folder")
     if args.minutes < 0:
         raise ConfigError(f"--minutes: expected >= 0, got {args.minutes}")
     train = load_dataset(args.logs, recursive=True)  # raises naming the folder or file when empty/foreign
@@ -98,4 +102,4 @@ cli = script(main)  # the console script (pyproject.toml)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

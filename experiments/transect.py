@@ -7,7 +7,7 @@ The `transect` entry of the table in `experiments.tracking`, which holds the log
 
 from typing import Sequence
 
-from experiments.common import script
+from experiments.common import run_main, script
 from experiments.tracking import main as run_track
 
 
@@ -19,4 +19,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 cli = script(main)  # the console script (pyproject.toml)
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

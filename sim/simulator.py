@@ -93,7 +93,7 @@ from sim import fork_join
 from sim.aggregation import LinearSuperposition, wake_field
 from sim.estimation import MocapConfig, MocapKalmanFilter, kf_predict, kf_update
 from sim.field import DownwashField, _pairwise_kernel, check_field
-from sim.physics import _FATAL_0, _FATAL_1, _FATAL_2, _SerialPhysics, make_physics
+from sim.physics import _FATAL_0, _FATAL_1, _FATAL_2, _SerialPhysics, check_world_memory, make_physics
 from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
 from sim.scene import Scene
 from sim.turbulence import OUTurbulence
@@ -315,7 +315,7 @@ def _actuate_kernel(
         for i in range(V):
             if not field_on[w]:
                 for k in range(3):
-                    mean[w, i, k] *= 0.0
+                    mean[w, i, k] = 0.0  # assigned: a field that is NaN here is off all the same
             mag = np.sqrt(mean[w, i, 0] ** 2 + mean[w, i, 1] ** 2 + mean[w, i, 2] ** 2)
             for k in range(3):
                 turb[w, i, k] = decay * turb[w, i, k] + diffusion * noise[w, c, i, 6 + k]
@@ -461,7 +461,7 @@ _STEP_CALLER, _STEP_SERIAL, _STEP_ROWS = 0, 1, 2
 
 # The plan's integer table `tab` (int64): sizes, codes, addresses and row offsets, in this order.
 _TAB = (
-    "W", "V", "block", "n_helpers", "n_sub", "n_physics", "stepping", "step_fn", "set_state_fn", "get_state_fn", "model",
+    "W", "V", "block", "n_sub", "n_physics", "stepping", "step_fn", "set_state_fn", "get_state_fn", "model",
     "data", "warnings", "warning_stride", "state", "nstate", "state_spec", "batch_warnings", "n_warnings",
     "predictor", "predictor_fn", "predictor_params", "predictor_iparams",
     "layout", "noise", "cursor", "pos_est", "vel_est", "t", "next_prediction", "due", "field_enabled", "turb",
@@ -472,7 +472,7 @@ _TAB = (
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
 )
-(_T_W, _T_V, _T_BLOCK, _T_N_HELPERS, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
+(_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
  _T_PRED, _T_PRED_FN, _T_PRED_PARAMS, _T_PRED_IPARAMS,
  _T_LAYOUT, _T_NOISE, _T_CURSOR, _T_POS_EST, _T_VEL_EST, _T_T, _T_NEXT_PRED, _T_DUE, _T_FIELD_ON, _T_TURB,
@@ -569,10 +569,12 @@ def _make_fused_kernel(with_wind: bool):
             dt = fc[_F_DT]
             stepping = tab[_T_STEPPING]
             V3 = V * 3
+            n_taken = 0
             for taken in range(chunks.shape[0]):  # alone: every chunk in turn; else those the shared counter gives
                 ci = taken if role == fork_join.SOLO else fork_join.fetch_add(ctl.ctypes.data + 8 * fork_join.NEXT, 1)
                 if ci >= chunks.shape[0]:
                     break
+                n_taken += 1
                 # chunk ci: worlds w0..w1-1, with this thread's scratch MjData (chunk[2], chunk[3])
                 chunk = chunks[ci]
                 w0, w1 = chunk[0], chunk[1]
@@ -727,10 +729,10 @@ def _make_fused_kernel(with_wind: bool):
                     carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
                 )
             if helper:
-                fork_join.report(ctl, total)
+                fork_join.report(ctl, role - fork_join.HELPER, total, n_taken)
                 total = 0
             elif role == fork_join.MAIN:
-                return fork_join.join(ctl, total, tab[_T_N_HELPERS])
+                return fork_join.join(ctl, total)
             else:
                 return total
 
@@ -816,7 +818,7 @@ class _Plan:
             keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
         tab = dict.fromkeys(_TAB, 0)
-        tab.update(W=W, V=V, block=cfg.noise_block, n_helpers=n_threads - 1, n_sub=self.n_sub,
+        tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
                    n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code)
         sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
@@ -948,6 +950,7 @@ class Simulator:
             raise ConfigError(f"field_enabled: expected shape ({W},), got {self.field_enabled.shape}")
 
         r = cfg.rates
+        check_world_memory(W, V, name="worlds")  # before MuJoCo's batch and the state arrays are allocated
         self.physics = make_physics(scene.model, W, n_threads)
         self.kf = MocapKalmanFilter(r.autopilot_dt, cfg.mocap)
         self.mass = cfg.quad.mass
@@ -1245,9 +1248,8 @@ class Simulator:
         helpers = self.__dict__.get("_helpers")
         if helpers is None or not helpers.alive or helpers.key != (plan.kernel, plan.n_threads):
             helpers = self._start_helpers(plan)  # first use, or a forked child (no threads of its own)
-        helpers.wake()
-        n_ended = plan.kernel(*args, sub, stop, plan.chunks[0], helpers.ctl, fork_join.MAIN)
-        return helpers.join() if n_ended == fork_join.NOT_JOINED else n_ended
+        ctl, role = (helpers.ctl, fork_join.MAIN) if helpers.start_tick() else (_NO_CONTROL, fork_join.SOLO)
+        return helpers.end_tick(plan.kernel(*args, sub, stop, plan.chunks[0], ctl, role), stop - sub)
 
     def _start_helpers(self, plan: _Plan) -> fork_join.Helpers:
         """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever

@@ -67,6 +67,27 @@ def test_threads_fly_the_flight_of_one_thread_with_pauses_and_ending_worlds(scen
     assert np.array_equal(one.physics.qpos, many.physics.qpos, equal_nan=True)
 
 
+def test_threads_fly_the_flight_of_one_thread_on_a_busy_machine(scene):
+    """With a busy process per core, the helper joins late, takes a few chunks or none, and the
+    caller runs ticks alone for a while: the flight is the one-thread flight all the same."""
+    import subprocess
+
+    W = 24
+    sims = [Simulator(scene, _reference(W), list(range(W)), n_threads=n) for n in (1, 2)]
+    assert sims[1]._plan.n_threads == 2
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(sim_physics.os.cpu_count() or 2)]
+    try:
+        for k in range(120):
+            rows = [dict(sim.tick()) for sim in sims]
+            for name in rows[0]:
+                assert np.array_equal(rows[0][name], rows[1][name], equal_nan=True), (k, name)
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    assert np.array_equal(sims[0].physics.qpos, sims[1].physics.qpos, equal_nan=True)
+
+
 def test_idle_helpers_park_and_wake_for_the_next_tick(scene):
     W = 16
     a, b = (Simulator(scene, _reference(W), list(range(W)), n_threads=n) for n in (1, 2))
@@ -175,8 +196,122 @@ def test_join_names_a_dead_helper_instead_of_waiting_forever():
     helpers = fork_join.Helpers(1, lambda t: fork_join.EXIT, ctl, owner)  # the thread ends at once
     for thread in helpers._threads:
         thread.join(timeout=5)
-    ctl[fork_join.GEN] = 1  # a tick that no helper will report
+    ctl[fork_join.JOINED] = 1  # a tick that a helper joined and will never report
     with pytest.raises(RuntimeError, match="helper thread has died"):
-        helpers.join()
+        helpers.end_tick(fork_join.NOT_JOINED, 1)
     with pytest.raises(ValueError, match="n_helpers: expected 1..64, got 0"):
         fork_join.Helpers(0, lambda t: fork_join.EXIT, ctl, owner)
+
+
+def _open_tick(ctl):
+    """What a MAIN call does first: publish (placeholder arguments) and open a new generation."""
+    z3, z2 = np.zeros((1, 1, 3)), np.zeros((1, 1))
+    fork_join.publish(ctl, np.zeros(1, np.int64), np.zeros(1), np.zeros((1, 4), np.int64), z3, z3, z3, z2, z2, z3, z3,
+                      np.zeros(1), 0, 0, 1)
+
+
+def test_the_caller_waits_only_for_helpers_that_joined():
+    """A helper that the OS has not scheduled (or that is parked) never holds up a tick: the caller
+    closes it and returns at once; the late helper does not join a closed tick."""
+    ctl = fork_join.new_control()
+    ctl[fork_join.SPINS_MIN], ctl[fork_join.SEEN + fork_join.BUDGET] = 1_000, 50_000
+    _open_tick(ctl)
+    assert fork_join.join(ctl, 7) == 7  # no helper joined: no wait
+    assert fork_join.await_tick(ctl, 0) == fork_join.IDLE  # came too late: spins out instead of joining
+    assert ctl[fork_join.SEEN + fork_join.BUDGET] == 50_000 // 4  # halved twice: late, then idle
+    assert ctl[fork_join.GEN] % fork_join._CLOSED == 0  # nobody counted in
+
+
+def test_a_joined_helper_is_waited_for_and_its_result_added():
+    ctl = fork_join.new_control()
+    ctl[fork_join.SEEN + fork_join.BUDGET] = 100_000
+    _open_tick(ctl)
+    assert fork_join.await_tick(ctl, 0) == 1  # joined the open tick
+    assert fork_join.join(ctl, 7) == fork_join.NOT_JOINED  # it has not reported yet
+    fork_join.report(ctl, 0, 5, 2)
+    owner = type("Owner", (), {})()
+    helpers = fork_join.Helpers(1, lambda t: fork_join.EXIT, ctl, owner)
+    assert helpers.end_tick(fork_join.NOT_JOINED, 1) == 12
+    assert ctl[fork_join.HELPED] == 2
+
+
+def test_spin_budgets_shrink_when_spinning_does_not_pay():
+    ctl = fork_join.new_control()
+    line = fork_join.SEEN + fork_join.BUDGET
+    ctl[fork_join.SPINS_MIN], ctl[fork_join.SPINS_MAX] = 1_000, 64_000
+    ctl[line] = 64_000
+    assert fork_join.await_tick(ctl, 0) == fork_join.IDLE  # no tick came
+    assert ctl[line] == 32_000
+    for _ in range(40):
+        fork_join.report(ctl, 0, 0, 0)  # joined, but every chunk was already taken
+    assert ctl[line] == 1_000
+    fork_join.report(ctl, 0, 0, 1)  # took a chunk: the budget stays
+    assert ctl[line] == 1_000
+
+
+class _Clock:
+    """A stand-in for time.perf_counter that a test advances by hand."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def _ticks(helpers, clock, n, with_cost, alone_cost, helped=True):
+    """Run n ticks as the caller does; each costs with_cost or alone_cost seconds as it runs with
+    the helpers or alone (the helpers take a chunk of each if `helped`); returns the ways taken."""
+    ways = []
+    for _ in range(n):
+        with_helpers = helpers.start_tick()
+        clock.now += with_cost if with_helpers else alone_cost
+        if with_helpers and helped:
+            helpers.ctl[fork_join.HELPED] += 1
+        helpers.end_tick(0, 1)
+        ways.append(with_helpers)
+    return ways
+
+
+def _runs(ways):
+    """[(way, length)] of consecutive equal ways."""
+    out = []
+    for w in ways:
+        if out and out[-1][0] == w:
+            out[-1][1] += 1
+        else:
+            out.append([w, 1])
+    return [tuple(r) for r in out]
+
+
+@pytest.fixture
+def idle_helpers(monkeypatch):
+    clock = _Clock()
+    monkeypatch.setattr(fork_join.time, "perf_counter", clock)
+    helpers = fork_join.Helpers(1, lambda t: fork_join.EXIT, fork_join.new_control(), type("Owner", (), {})())
+    return helpers, clock
+
+
+def test_the_caller_runs_alone_while_its_helpers_take_no_chunk(idle_helpers):
+    """Helpers that take no chunk several ticks in a row (no core is free for them in time) are not
+    woken for a spell of ticks, which doubles each time they fail again."""
+    helpers, clock = idle_helpers
+    T, C, U, F = fork_join._TRIAL_TICKS, fork_join._TRIAL_TICKS, fork_join._USELESS_TICKS, fork_join._ALONE_FIRST
+    # (ticks with the helpers timed as fast: only the chunks they did not take count against them)
+    ways = _ticks(helpers, clock, T + C + U + F + U + 2 * F + 1, 1e-3, 2e-3, helped=False)
+    assert _runs(ways)[:6] == [(True, T), (False, C), (True, U), (False, F), (True, U), (False, 2 * F)]
+
+
+def test_the_caller_keeps_the_helpers_while_they_pay_and_drops_them_when_they_slow_it(idle_helpers):
+    helpers, clock = idle_helpers
+    T, C, R = fork_join._TRIAL_TICKS, fork_join._TRIAL_TICKS, fork_join._RECHECK_TICKS
+    # helpers twice as fast: after the first trial a few ticks alone are timed, then helpers, with a
+    # few ticks alone timed again now and then
+    ways = _ticks(helpers, clock, T + C + 2 * R + 2 * C, 1e-3, 2e-3)
+    assert _runs(ways) == [(True, T), (False, C), (True, R), (False, C), (True, R), (False, C)]
+    # the machine gets busy: the helpers now make each tick slower than alone
+    ways = _ticks(helpers, clock, 200, 3e-3, 2e-3)
+    runs = _runs(ways)
+    assert runs[0][0] is True and runs[0][1] <= T + 8  # a trial of the helpers, until the mean crosses
+    assert runs[1] == (False, fork_join._ALONE_FIRST)  # then alone
+    assert sum(n for way, n in runs if way) < 0.3 * len(ways)  # mostly alone from then on

@@ -60,6 +60,10 @@ def test_cpu_independent_zeroes_round_off_and_keeps_real_zeros():
     x = np.array([[1.5, 3e-16], [0.0, -2.0]])
     assert cpu_independent(x).tolist() == [[1.5, 0.0], [0.0, -2.0]]
     assert cpu_independent(np.zeros(3)).tolist() == [0.0, 0.0, 0.0]
+    # zeros moved by an ulp (subnormals, found by the property test above) are zeros
+    assert cpu_independent(np.full(3, 5e-324)).tolist() == [0.0, 0.0, 0.0]
+    tiny = np.array([1e-300, -1e-300])  # normal, if small: kept (to 24 bits)
+    assert np.all(np.abs(cpu_independent(tiny) - tiny) <= 1e-300 * 2.0**-24) and np.all(cpu_independent(tiny) != 0)
 
 
 def test_the_set_up_gains_do_not_depend_on_the_blas_kernel():

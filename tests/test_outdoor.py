@@ -43,7 +43,7 @@ def test_without_wind_the_airspeed_is_the_ground_speed(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--speed", "5"], "--speed: 5.0 m/s is out of range; allowed 0.5-3.0"),
+    (["--speed", "5"], "--speed: expected a finite number in \\[0.5, 3\\], got 5.0"),
     (["--leader", "spiral"], "--leader: unknown 'spiral'; allowed: circle, line"),
     (["--wind", "gale"], "--wind: unknown 'gale'; allowed: off, calm, light"),
     (["--conditions", "baseline,nope"], "unknown \\['nope'\\]"),

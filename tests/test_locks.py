@@ -1,0 +1,151 @@
+"""Cross-process locks (`downwash_core.locks`): exclusion, waiting, a killed holder, re-entry, fork, removal.
+
+Holders run in subprocesses (a flock is per open file, so only another process shows the
+exclusion); every wait has a timeout, so a broken lock fails the test instead of hanging it.
+"""
+
+import logging
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from downwash_core.locks import LOCK_NAME, file_lock, folder_lock, holder
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _holder(path: Path, seconds: float, remove: bool = False, folder: bool = True) -> subprocess.Popen:
+    """A process that takes the lock of `path`, prints "held", holds it `seconds`, then exits."""
+    take = (f"folder_lock({str(path)!r}, label='test holder')" if folder
+            else f"file_lock({str(path)!r}, label='test holder', remove={remove})")
+    code = textwrap.dedent(f"""
+        import sys, time
+        from downwash_core.locks import file_lock, folder_lock
+        with {take}:
+            print("held", flush=True)
+            time.sleep({seconds})
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert proc.stdout.readline().strip() == "held"  # a hang here is caught by pytest's timeout of the caller
+    return proc
+
+
+def _try_elsewhere(path: Path) -> bool:
+    """Whether another process gets the lock of the folder `path` at once (wait=False)."""
+    code = f"from downwash_core.locks import folder_lock\nwith folder_lock({str(path)!r}, wait=False) as h: print(h)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip() == "True"
+
+
+def test_a_second_process_waits_for_the_holder_and_says_so(tmp_path, caplog):
+    proc = _holder(tmp_path / "pipeline", seconds=1.5)
+    try:
+        assert holder(tmp_path / "pipeline" / LOCK_NAME)["pid"] == proc.pid
+        with folder_lock(tmp_path / "pipeline", wait=False) as held:
+            assert held is False  # held elsewhere: not taken, no wait
+        t0 = time.monotonic()
+        with caplog.at_level(logging.INFO, logger="downwash_core.locks"):
+            with folder_lock(tmp_path / "pipeline", timeout=60, label="test") as held:
+                waited = time.monotonic() - t0
+                assert held is True
+                assert proc.wait(timeout=30) == 0  # the holder let go as its block ended
+                assert holder(tmp_path / "pipeline" / LOCK_NAME)["pid"] == os.getpid()
+        waits = [r.getMessage() for r in caplog.records if "waiting for" in r.getMessage()]
+        assert len(waits) == 1, waits  # said once, not per poll
+        assert f"waiting for pid {proc.pid} on host" in waits[0] and str(tmp_path / "pipeline") in waits[0]
+        assert "test holder" in waits[0]
+        assert waited > 1.0  # it held the lock 1.5 s after saying so
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+
+
+def test_a_killed_holder_does_not_block(tmp_path):
+    """SIGKILL leaves no chance to clean up: the kernel drops the flock, so the lock is free at once."""
+    proc = _holder(tmp_path / "f", seconds=600)
+    assert not _try_elsewhere(tmp_path / "f")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    t0 = time.monotonic()
+    with folder_lock(tmp_path / "f", wait=False) as held:
+        assert held is True
+    assert time.monotonic() - t0 < 1.0
+    assert holder(tmp_path / "f" / LOCK_NAME)["pid"] == os.getpid()
+
+
+def test_the_lock_is_reentrant_within_a_process(tmp_path):
+    with folder_lock(tmp_path / "f") as outer:
+        with folder_lock(tmp_path / "f", wait=False) as inner:  # would deadlock if it took a second flock
+            assert outer and inner
+        assert not _try_elsewhere(tmp_path / "f")  # the inner release kept the outer hold
+    assert _try_elsewhere(tmp_path / "f")
+
+
+def _sleep(seconds: float) -> None:
+    time.sleep(seconds)
+
+
+def test_a_forked_child_does_not_keep_its_parents_lock(tmp_path):
+    """The staged collection forks its trainings while it holds the folders' locks: a child
+    that outlives the lock (or its parent) must not hold it."""
+    ctx = multiprocessing.get_context("fork")
+    with folder_lock(tmp_path / "f"):
+        child = ctx.Process(target=_sleep, args=(60,), daemon=True)
+        child.start()
+    try:
+        assert child.is_alive()
+        assert _try_elsewhere(tmp_path / "f")
+    finally:
+        child.kill()
+        child.join(timeout=30)
+
+
+def test_a_removed_lock_file_is_taken_again_on_its_new_file(tmp_path):
+    """remove=True: the holder deletes the file as it lets go; a waiter that had opened the old
+    file notices and locks the new one (else two processes could hold "the" lock at once)."""
+    path = tmp_path / "cells" / "abc.lock"
+    proc = _holder(path, seconds=1.0, remove=True, folder=False)
+    try:
+        with file_lock(path, remove=True, timeout=60) as held:
+            assert held and path.is_file() and holder(path)["pid"] == os.getpid()
+            assert proc.wait(timeout=60) == 0
+        assert not path.exists()
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+
+
+def test_a_timeout_gives_up_and_reports_not_held(tmp_path):
+    proc = _holder(tmp_path / "f", seconds=600)
+    try:
+        t0 = time.monotonic()
+        with folder_lock(tmp_path / "f", timeout=0.3) as held:
+            assert held is False
+        assert 0.25 < time.monotonic() - t0 < 5
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only folder")
+def test_a_read_only_folder_is_used_without_the_lock(tmp_path, caplog):
+    folder = tmp_path / "shared"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        with caplog.at_level(logging.WARNING, logger="downwash_core.locks"):
+            with folder_lock(folder) as held:
+                assert held
+        assert "going on without the lock" in caplog.text
+    finally:
+        folder.chmod(0o755)
