@@ -13,8 +13,10 @@ Modules (import them directly; this package imports nothing heavy on its own):
 - `downwash.fused`: the predictor's compiled one-pass kernel
 - `downwash.conditions`: the tracking conditions and what each flies with
 - `downwash.staged`: the staged collection pipeline, provenance and `ensure_models`
-- `downwash.swarm_data`: every vehicle's labels with its padded neighbour set (`NeighbourSet`, `SwarmDataset`)
+- `downwash.manifest`: a staged collection's record of every log, checked before training
+- `downwash.swarm_data`: every vehicle's labels with its padded neighbour set (`SwarmDataset`)
 - `downwash.swarm_models`: models for many vehicles (`SWARM_MODEL_KINDS`), their checkpoints, `SwarmPredictor`
+- `downwash.swarm_fused`: the compiled form of every model of sets (the swarm predictor's default backend)
 - `downwash.swarm_train`: `train_swarm_model`
 - `downwash.swarm_collection`: the swarm stages and the models of sets trained on them
 - `downwash.sweep`: cached, resumable sweeps on Ray, bootstrap intervals, the paired claim

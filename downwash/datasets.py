@@ -22,8 +22,9 @@ from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, MODEL_INPUTS, SAM
 from sim.logs import load_log
 from downwash_core.params import RATES
 
-# The log metadata every flight of one data set must share: what the labels mean depends on it.
-FLIGHT_PROVENANCE = ("field", "scene", "config", "controller", "turbulence")
+# The log metadata every flight of one data set must share: what the labels mean depends on it
+# (the wind too: a log flown in wind holds its `describe()`, one flown without holds none).
+FLIGHT_PROVENANCE = ("field", "scene", "config", "controller", "turbulence", "wind")
 
 __all__ = [
     "FLIGHT_PROVENANCE",

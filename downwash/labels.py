@@ -45,6 +45,8 @@ __all__ = [
     "smooth_command",
     "labels_from_log",
     "label_noise_floor",
+    "LABEL_ARRAYS",
+    "finite_rows",
 ]
 
 # Filter choice (50 Hz controller ticks, 0.5 mm motion-capture noise). Measured on a
@@ -168,7 +170,8 @@ def labels_from_log(
     Dropped: the first and last ``window // 2`` rows (filter edges); for a flight
     that ended early (status != 0) the last ``fail_margin_s`` seconds too (contact
     or divergence forces that no downwash model explains); every row from the
-    first non-finite value on. Too short a flight gives N = 0.
+    first non-finite value on, on any vehicle (`finite_rows`, the swarm labels' rule too).
+    Too short a flight gives N = 0.
     """
     _check_filter(window, polyorder)
     where = f"{source}: " if source is not None else ""
@@ -185,15 +188,7 @@ def labels_from_log(
     end = T
     if log.meta.get("status", 0) != 0:
         end -= int(round(fail_margin_s / dt))
-    used = (
-        arr["mocap_pos"][:, follower], arr["u_cmd"][:, follower], arr["pos_est"][:, [leader, follower]],
-        arr["vel_est"][:, [leader, follower]], arr["quat_est"][:, leader],
-    )  # fmt: skip
-    bad = np.zeros(T, dtype=bool)
-    for a in used:
-        bad |= ~np.isfinite(a.reshape(T, -1)).all(axis=1)
-    if bad.any():
-        end = min(end, int(np.argmax(bad)))
+    end = min(end, finite_rows(arr))
     if end < window:
         return _empty_labels()
     h = window // 2
@@ -242,3 +237,17 @@ def label_noise_floor(
         "rmse_axis_mean": np.sqrt(np.mean(em**2, axis=0)).tolist(),
         "n_samples": int(len(ea)),
     }
+
+
+LABEL_ARRAYS = ("mocap_pos", "u_cmd", "pos_est", "vel_est", "quat_est")  # the log arrays labels and inputs use
+
+
+def finite_rows(arr: dict[str, np.ndarray]) -> int:
+    """How many leading rows of a log are finite in every array labels are made from
+    (`LABEL_ARRAYS`), over ALL vehicles: a flight is cut at its first non-finite value, whichever
+    vehicle it is on. One rule for the pair's labels and the swarm's (they had diverged)."""
+    T = len(arr["t"])
+    bad = np.zeros(T, dtype=bool)
+    for name in LABEL_ARRAYS:
+        bad |= ~np.isfinite(arr[name].reshape(T, -1)).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else T

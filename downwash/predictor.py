@@ -20,11 +20,12 @@ from downwash.checkpoint import load_checkpoint
 from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
 from downwash.fused import feature_code, pack_abi, pack_layers, predict_address, predict_into
 from downwash.models import DownwashModel
+from downwash_core.geometry import dot
 from downwash_core.state import VehicleStates
 from downwash_core.numerics import matmul_rows
 from sim.predictor import CompiledPredictor
 
-__all__ = ["LearnedPredictor"]
+__all__ = ["LearnedPredictor", "clamp_magnitude"]
 
 _ZERO = np.zeros(())  # 0-d: cheaper per NumPy call than a Python float
 
@@ -161,7 +162,11 @@ class LearnedPredictor:
             rot[:, leaders].reshape(-1, 3, 3),
         ).reshape(n_worlds, n_pairs, 3)
         total = f.reshape(n_worlds, n_veh, n_veh - 1, 3).sum(axis=2) if n_veh > 2 else f
-        if self.clamp is not None:
-            norm = np.sqrt(np.vecdot(total, total))
-            total = total * np.minimum(1.0, self.clamp / np.maximum(norm, 1e-300))[..., None]
-        return total
+        return total if self.clamp is None else clamp_magnitude(total, self.clamp)
+
+
+def clamp_magnitude(f: np.ndarray, bound: float) -> np.ndarray:
+    """f (..., 3) scaled down where its magnitude exceeds bound (m/s^2): the clamp of every learned
+    predictor, pair or swarm (the compiled pass, `downwash.fused`, applies the same bound)."""
+    norm = np.sqrt(dot(f, f))
+    return f * np.minimum(1.0, bound / np.maximum(norm, 1e-300))[..., None]

@@ -51,7 +51,8 @@ from downwash_core.provenance import describe, differences, fingerprint
 from downwash_core.roles import VEHICLE_NAMES, Role
 from downwash.staged import STAGES, train_config
 from downwash.train import TrainConfig
-from downwash.swarm_data import NeighbourSet, concatenate_swarm, load_swarm_dataset
+from downwash.swarm_data import concatenate_swarm, load_swarm_dataset
+from sim.neighbours import NeighbourSet
 from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, load_swarm_checkpoint, wrap_pairwise
 from downwash.swarm_train import save_trained, swarm_rmse, train_swarm_model
 from sim.flight import fly
@@ -190,9 +191,10 @@ def collect_swarm(
     for n_vehicles in SWARM_STAGES:
         sdir = out / f"stage{n_vehicles}"
         if n_vehicles == SWARM_STAGES[0]:
-            deployed = SwarmPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant"))
+            model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
         else:
-            deployed = SwarmPredictor(swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed"))
+            model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
+        deployed = SwarmPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
         _fly_stage(cfg, sdir, n_vehicles, field, law, deployed, progress)
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")

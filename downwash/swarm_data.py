@@ -17,10 +17,11 @@ Padding slots hold dp = 0, v_a = 0, R_a = I (finite features) and are ignored by
 every model through the mask. With K = 1 on a two-vehicle log the follower's
 samples are exactly `labels.labels_from_log`'s (a test checks it bit for bit).
 
-Neighbour set (`NeighbourSet`): the candidates are all other vehicles; those farther
-than ``radius`` (if given) are dropped; the ``max_neighbours`` nearest (ties by
-vehicle index) are kept. The same function (`select_neighbours`) serves the data and
-the predictor in the loop, so a model sees in flight the sets it was trained on.
+Neighbour set (`sim.neighbours.NeighbourSet`): the candidates are all other vehicles
+with a finite distance; those farther than ``radius`` (if given) are dropped; the
+``max_neighbours`` nearest (ties by vehicle index) are kept. The same selection
+(`sim.neighbours.select_neighbours`) serves the data, the predictor in the loop and the
+swarm env's observation, so a model sees in flight the sets it was trained on.
 
 Provenance. A data set records what its logs were flown with: the field, the flight
 config, controller, turbulence and wind, the vehicle model (not the vehicle list:
@@ -44,31 +45,27 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.geometry import quat_to_mat
 from downwash_core.params import RATES
 from downwash_core.provenance import describe, differences
-from downwash_core.roles import MAX_VEHICLES
-from downwash_core.validate import count, positive_float
 from downwash.datasets import Dataset, find_logs
 from downwash.labels import (
     DEFAULT_POLYORDER,
     DEFAULT_WINDOW,
     FAIL_MARGIN_S,
     _check_filter,
+    finite_rows,
     follower_acceleration,
     sample_period,
     smooth_command,
 )
 from sim.aggregation import DEFAULT_AGGREGATION, make_aggregation
+from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 from sim.logs import FlightLog, load_log
 
 __all__ = [
-    "MAX_NEIGHBOURS",
     "SWARM_SAMPLE_SCHEMA",
     "SWARM_PROVENANCE",
-    "NeighbourSet",
     "aggregation_record",
     "log_provenance",
     "merge_provenance",
-    "select_neighbours",
-    "gather_neighbours",
     "swarm_labels_from_log",
     "SwarmDataset",
     "concatenate_swarm",
@@ -76,8 +73,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-MAX_NEIGHBOURS = 64  # the largest neighbour set a data set or model may ask for
 
 # One labelled sample of a V-vehicle log: name -> (trailing shape with K = max_neighbours, meaning).
 SWARM_SAMPLE_SCHEMA: dict[str, tuple[tuple[str | int, ...], str]] = {
@@ -98,43 +93,6 @@ SWARM_SAMPLE_SCHEMA: dict[str, tuple[tuple[str | int, ...], str]] = {
 # What the labels of a log mean depends on these log metadata entries (plus the vehicle
 # model and the aggregation law, see `log_provenance`); the vehicle list may differ.
 SWARM_PROVENANCE = ("field", "config", "controller", "turbulence", "wind")
-
-
-@dataclass(frozen=True)
-class NeighbourSet:
-    """Which vehicles a target's sample holds: the nearest others, padded to a fixed count.
-
-    max_neighbours: K, the number of slots (1-64); a target with fewer neighbours is padded.
-    radius: m, drop neighbours farther than this (centre to centre, estimated positions);
-      None keeps every other vehicle (up to K).
-    """
-
-    max_neighbours: int = MAX_VEHICLES - 1  # every other vehicle of the largest scene
-    radius: float | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "max_neighbours", count("max_neighbours", self.max_neighbours, 1, MAX_NEIGHBOURS))
-        if self.radius is not None:
-            object.__setattr__(self, "radius", positive_float("radius", self.radius, "m"))
-
-    def describe(self) -> dict[str, Any]:
-        """The definition, stored with data sets and checkpoints (compared on load)."""
-        return {
-            "candidates": "every other vehicle",
-            "max_neighbours": self.max_neighbours,
-            "radius": self.radius,
-            "selection": "nearest first (estimated positions), ties by vehicle index",
-        }
-
-    @classmethod
-    def from_record(cls, record: Any) -> "NeighbourSet":
-        """The neighbour set of a stored `describe()` record; ConfigError when it is not one."""
-        if not isinstance(record, dict) or "max_neighbours" not in record:
-            raise ConfigError(f"neighbour set: expected a record with 'max_neighbours' and 'radius', got {record!r}")
-        ns = cls(record["max_neighbours"], record.get("radius"))
-        if ns.describe() != record:
-            raise ConfigError(f"neighbour set: unknown definition {record!r} (this code writes {ns.describe()!r})")
-        return ns
 
 
 def aggregation_record(law: Any = None) -> dict[str, Any]:
@@ -186,59 +144,6 @@ def merge_provenance(records: Sequence[dict | None], names: Sequence[str] = ()) 
     return None if records[0] is None else {**records[0], "aggregation": law}
 
 
-def select_neighbours(pos: np.ndarray, neighbours: NeighbourSet) -> tuple[np.ndarray, np.ndarray]:
-    """Each vehicle's neighbour set: (index (..., V, K) int, -1 in padding; mask (..., V, K) bool).
-
-    pos: (..., V, 3) m, the estimated positions. Candidates are the other vehicles with a
-    finite distance within ``neighbours.radius``; the nearest K are kept (a stable sort:
-    ties go to the lower vehicle index).
-    """
-    pos = np.asarray(pos, dtype=np.float64)
-    if pos.ndim < 2 or pos.shape[-1] != 3:
-        raise ConfigError(f"pos: expected (..., V, 3), got {pos.shape}")
-    V, K = pos.shape[-2], neighbours.max_neighbours
-    diff = pos[..., :, None, :] - pos[..., None, :, :]
-    d2 = np.vecdot(diff, diff)  # (..., V target, V candidate)
-    d2[..., np.arange(V), np.arange(V)] = np.inf
-    bad = ~np.isfinite(d2)
-    if neighbours.radius is not None:
-        bad |= d2 > neighbours.radius**2
-    d2 = np.where(bad, np.inf, d2)
-    n = min(K, V - 1)
-    order = np.argsort(d2, axis=-1, kind="stable")[..., :n]
-    mask = np.isfinite(np.take_along_axis(d2, order, -1))
-    index = np.where(mask, order, -1)
-    if n < K:
-        pad = [(0, 0)] * (index.ndim - 1) + [(0, K - n)]
-        index = np.pad(index, pad, constant_values=-1)
-        mask = np.pad(mask, pad, constant_values=False)
-    return index.astype(np.int64), mask
-
-
-def gather_neighbours(
-    pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, index: np.ndarray, mask: np.ndarray
-) -> dict[str, np.ndarray]:
-    """The model inputs of every vehicle's neighbour set, float64.
-
-    pos, vel (..., V, 3) m, m/s; rot (..., V, 3, 3); index, mask (..., V, K) from
-    `select_neighbours`. Returns dp, v_a (..., V, K, 3), v_b (..., V, 3), R_a (..., V, K, 3, 3)
-    (see the module doc; padding: dp = v_a = 0, R_a = I).
-    """
-    pos, vel, rot = (np.asarray(a, dtype=np.float64) for a in (pos, vel, rot))
-    V, K = pos.shape[-2], index.shape[-1]
-    flat = np.where(mask, index, 0).reshape(*index.shape[:-2], V * K)
-    p_n = np.take_along_axis(pos, flat[..., None], -2).reshape(*index.shape, 3)
-    v_n = np.take_along_axis(vel, flat[..., None], -2).reshape(*index.shape, 3)
-    r_n = np.take_along_axis(rot, flat[..., None, None], -3).reshape(*index.shape, 3, 3)
-    m = mask[..., None]
-    return {
-        "dp": np.where(m, pos[..., :, None, :] - p_n, 0.0),
-        "v_a": np.where(m, v_n, 0.0),
-        "v_b": vel,
-        "R_a": np.where(m[..., None], r_n, np.eye(3)),
-    }
-
-
 def _empty(K: int) -> dict[str, np.ndarray]:
     out = {}
     for name, (shape, _) in SWARM_SAMPLE_SCHEMA.items():
@@ -279,11 +184,7 @@ def swarm_labels_from_log(
     end = T
     if log.meta.get("status", 0) != 0:
         end -= int(round(fail_margin_s / dt))
-    bad = np.zeros(T, dtype=bool)
-    for name in ("mocap_pos", "u_cmd", "pos_est", "vel_est", "quat_est"):
-        bad |= ~np.isfinite(arr[name].reshape(T, -1)).all(axis=1)
-    if bad.any():
-        end = min(end, int(np.argmax(bad)))
+    end = min(end, finite_rows(arr))
     if end < window:
         return _empty(K)
     h = window // 2

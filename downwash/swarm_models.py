@@ -39,13 +39,15 @@ Checkpoints (`save_swarm_checkpoint`, `load_swarm_checkpoint`) load without exec
 code and record the kind, the neighbour set, the aggregation law and the field of the
 training data; asking for another neighbour set or law raises `CheckpointError` before
 any flight. `SwarmPredictor` puts a model in the control loop (`sim.predictor.Predictor`),
-by default through the model's float64 NumPy twin (`SwarmModel.numpy_forward`, tested
-against the torch model, which stays the readable reference and the training path).
+by default as one compiled pass (`downwash.swarm_fused`, which the simulator's fused tick calls
+as a C function), checked against the model's float64 NumPy twin (`SwarmModel.numpy_forward`),
+which is tested against the torch model, the readable reference and the training path.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import os
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Sequence
@@ -60,9 +62,12 @@ from downwash_core.state import VehicleStates
 from downwash_core.validate import count, positive_float
 from downwash.checkpoint import CHECKPOINT_FORMAT, MAX_WIDTH, load_checkpoint, read_payload, write_checkpoint
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
-from downwash.predictor import LearnedPredictor
+from downwash.predictor import LearnedPredictor, clamp_magnitude
 from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, count_parameters, make_model
-from downwash.swarm_data import NeighbourSet, aggregation_record, gather_neighbours, select_neighbours
+from downwash.swarm_data import aggregation_record
+from downwash.swarm_fused import COMPILED_KINDS, pack_swarm
+from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
+from sim.predictor import CompiledPredictor
 
 __all__ = [
     "Encoded",
@@ -713,12 +718,18 @@ class SwarmPredictor:
       the path of a swarm checkpoint file.
     expect_neighbours, expect_aggregation: what the flight needs; a model made for another
       neighbour set or aggregation law raises CheckpointError here, before any flight.
-    backend: "numpy" (default): the model's float64 NumPy twin (`SwarmModel.numpy_forward`);
-      "torch": the frozen torch model under ``torch.inference_mode``, its readable reference
-      (they agree to float64 rounding, a test), 2-5x slower on these small batches.
+    backend: "compiled" (the default for a kind in `downwash.swarm_fused.COMPILED_KINDS`, every
+      kind here): selection, model and clamp in one compiled pass, float64, which the simulator's
+      fused tick calls without leaving compiled code (`compiled()`); "numpy" (the default for
+      a kind without a compiled form): the model's float64 NumPy twin (`SwarmModel.numpy_forward`),
+      the compiled pass's readable reference; "torch": the frozen torch model under
+      ``torch.inference_mode``, the twin's readable reference, 2-5x slower on these small batches.
+      All three agree to float64 rounding (tests).
     dtype: the torch backend's precision (default float64: the model is copied and converted).
     num_threads: torch intra-op threads during a torch call (default 1: these small batches
       ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
+    clamp: optional bound (m/s^2) on the magnitude of each vehicle's prediction, as the pair
+      predictor's (`downwash.predictor.clamp_magnitude`).
 
     Each call selects every vehicle's neighbour set from the ESTIMATED positions (the
     data's `select_neighbours`) and evaluates all worlds and vehicles in one batch.
@@ -726,7 +737,8 @@ class SwarmPredictor:
 
     def __init__(self, checkpoint: SwarmCheckpoint | str | os.PathLike, *,
                  expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
-                 backend: str = "numpy", dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
+                 backend: str | None = None, dtype: torch.dtype = torch.float64, num_threads: int | None = 1,
+                 clamp: float | None = None):
         if isinstance(checkpoint, (str, os.PathLike)):
             checkpoint = load_swarm_checkpoint(checkpoint, expect_neighbours=expect_neighbours,
                                                expect_aggregation=expect_aggregation)
@@ -735,11 +747,22 @@ class SwarmPredictor:
                                expect_neighbours, expect_aggregation)
         else:
             raise TypeError(f"checkpoint: expected a SwarmCheckpoint or a path, got {type(checkpoint).__name__}")
+        if backend is None:
+            backend = "compiled" if checkpoint.model.kind in COMPILED_KINDS else "numpy"
         if backend not in self.BACKENDS:
             raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
+        if backend == "compiled" and checkpoint.model.kind not in COMPILED_KINDS:
+            raise ConfigError(f"backend: {checkpoint.model.kind!r} has no compiled form (kinds with one: "
+                              f"{sorted(COMPILED_KINDS)}); use 'numpy' or 'torch'")
+        if clamp is not None and not (math.isfinite(clamp) and clamp > 0):
+            raise ConfigError(f"clamp: expected None or a finite magnitude > 0 (m/s^2), got {clamp!r}")
+        self.clamp = None if clamp is None else float(clamp)
         self.backend = backend
         model = copy.deepcopy(checkpoint.model).eval()  # eval: the spectral-norm estimates stay as stored
         self._numpy = model.numpy_forward() if backend == "numpy" else None
+        # the compiled pass's constants (params, iparams): the twin's, packed before the torch copy is converted
+        # and folded; the kernel and its C function are looked up by kind (valid in any process, e.g. unpickled)
+        self._abi = pack_swarm(model, checkpoint.neighbours, self.clamp)[1][1:] if backend == "compiled" else None
         model = _fold_spectral(model.to(dtype))
         for p in model.parameters():
             p.requires_grad_(False)
@@ -749,11 +772,16 @@ class SwarmPredictor:
         self.kind = model.kind
         self.num_threads = None if num_threads is None else count("num_threads", num_threads, 1)
 
-    BACKENDS = ("numpy", "torch")
+    BACKENDS = ("compiled", "numpy", "torch")
+
+    def compiled(self) -> CompiledPredictor | None:
+        """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`): one
+        per model kind, this model's constants in its params; None for "numpy" and "torch"."""
+        return None if self._abi is None else CompiledPredictor(COMPILED_KINDS[self.kind].address, *self._abi)
 
     def describe(self) -> dict[str, Any]:
         return {"kind": self.kind, "neighbours": self.neighbours.describe(),
-                "aggregation": self.record.get("aggregation"), "backend": self.backend}
+                "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
         """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored."""
@@ -761,20 +789,26 @@ class SwarmPredictor:
         W, V = pos.shape[:2]
         if V < 2:
             return np.zeros((W, V, 3))
+        if self._abi is not None:  # selection, model and clamp in one pass
+            out = np.empty((W, V, 3))
+            COMPILED_KINDS[self.kind].kernel(*(np.ascontiguousarray(a, dtype=np.float64) for a in (pos, vel, rot)),
+                                             *self._abi, out)
+            return out
         index, mask = select_neighbours(pos, self.neighbours)
         g = gather_neighbours(pos, vel, rot, index, mask)
         K = index.shape[-1]
         batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
                  g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
         if self._numpy is not None:
-            return self._numpy(*batch).reshape(W, V, 3)
-        old_threads = torch.get_num_threads()
-        if self.num_threads is not None:
-            torch.set_num_threads(self.num_threads)
-        try:
-            with torch.inference_mode():
-                out = self.model(*batch)
-        finally:
+            out = self._numpy(*batch).reshape(W, V, 3)
+        else:
+            old_threads = torch.get_num_threads()
             if self.num_threads is not None:
-                torch.set_num_threads(old_threads)
-        return out.double().numpy().reshape(W, V, 3)
+                torch.set_num_threads(self.num_threads)
+            try:
+                with torch.inference_mode():
+                    out = self.model(*batch).double().numpy().reshape(W, V, 3)
+            finally:
+                if self.num_threads is not None:
+                    torch.set_num_threads(old_threads)
+        return out if self.clamp is None else clamp_magnitude(out, self.clamp)

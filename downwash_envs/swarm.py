@@ -132,8 +132,9 @@ from downwash_envs.base import RENDER_MODES, pickled_as_constructed, vector_rese
 from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
 from downwash_envs.observation import OBSERVATION, ObsEntry
 from downwash_envs.rendering import Renderer
-from downwash_envs.task import REWARD_TERMS, squared_norm, task_constants, task_kernel
+from downwash_envs.task import REWARD_TERMS, task_constants, task_kernel
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
+from sim.neighbours import NeighbourSet, select_neighbours
 from sim.physics import check_world_memory
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.presets import Preset, make_preset
@@ -253,30 +254,25 @@ def neighbour_block(
     """(W, A, K, NEIGHBOUR_DIM): each agent's K neighbour slots, nearest first.
 
     pos, vel: (W, V, 3) m, m/s (estimated); rot: (W, V, 3, 3) body to world; agents: (A,)
-    vehicle indices. Every vehicle but the agent is a candidate, sorted by |dp| (stable:
-    ties in scene order; a non-finite distance sorts last); the first min(K, V - 1) fill
-    slots [mask 1, dp, dv, z axis], the rest are zero. Every operation is per row, so a
-    world's slots do not depend on the batch, and relabelling the other vehicles does not
-    change them (tests).
+    vehicle indices. The neighbours are the data's and the predictor's
+    (`sim.neighbours.select_neighbours`: the other vehicles at a finite distance, nearest
+    first, ties in scene order); each fills a slot [mask 1, dp, dv, z axis], the other
+    slots are zero. Every operation is per row, so a world's slots do not depend on the
+    batch, and relabelling the other vehicles does not change them (tests).
     """
-    W, V = pos.shape[:2]
+    W = pos.shape[0]
     agents = np.asarray(agents, dtype=np.int64)
     A, K = agents.size, int(max_neighbours)
-    others = _others(agents, V)
-    n = min(K, V - 1)
     out = np.zeros((W, A, K, NEIGHBOUR_DIM))
-    if n == 0:
-        return out
-    dp = pos[:, agents, None, :] - pos[:, others, :]  # (W, A, V-1, 3)
-    d2 = squared_norm(dp)
-    d2[np.isnan(d2)] = np.inf
-    order = np.argsort(d2, axis=-1, kind="stable")[..., :n]  # (W, A, n)
-    nb = others[np.arange(A)[:, None], order]  # (W, A, n) vehicle indices
+    index, mask = select_neighbours(pos, NeighbourSet(K))  # (W, V, K)
+    index, mask = index[:, agents], mask[:, agents]  # (W, A, K)
+    nb = np.where(mask, index, 0)
     w = np.arange(W)[:, None, None]
-    out[..., :n, 0] = 1.0
-    out[..., :n, 1:4] = np.take_along_axis(dp, order[..., None], axis=2)
-    out[..., :n, 4:7] = vel[:, agents, None, :] - vel[w, nb]
-    out[..., :n, 7:10] = rot[w, nb][..., 2]
+    m = mask[..., None]
+    out[..., 0] = mask
+    out[..., 1:4] = np.where(m, pos[:, agents, None, :] - pos[w, nb], 0.0)
+    out[..., 4:7] = np.where(m, vel[:, agents, None, :] - vel[w, nb], 0.0)
+    out[..., 7:10] = np.where(m, rot[w, nb][..., 2], 0.0)
     return out
 
 
@@ -306,7 +302,8 @@ def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, others, la
 
     pos, vel (W, V, 3) estimated; rot (W, V, 3, 3); ref_* (W, V, 3); agents (A,); others
     (A, V-1) (`_others`); last_action (W, A, 3); low, high (D,). Stable insertion sort of the
-    others by squared distance (NaN as +inf), as `neighbour_block`'s argsort.
+    others by squared distance (NaN as +inf; an infinite one fills no slot), as
+    `sim.neighbours.select_neighbours` sorts them.
     """
     W, A, D = out.shape
     n_other = others.shape[1]
@@ -329,7 +326,7 @@ def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, others, la
             for j in range(n_other):
                 b = others[i, j]
                 dx, dy, dz = pos[w, a, 0] - pos[w, b, 0], pos[w, a, 1] - pos[w, b, 1], pos[w, a, 2] - pos[w, b, 2]
-                d = dx * dx + dy * dy + dz * dz
+                d = dx * dx + dy * dy + dz * dz  # as sim.neighbours.select_neighbours sums it
                 if d != d:
                     d = np.inf
                 m = j
@@ -341,7 +338,7 @@ def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, others, la
                 idx[m] = b
             for s in range(K):
                 base = OWN_DIM + NEIGHBOUR_DIM * s
-                if s < n:
+                if s < n and key[s] < np.inf:  # a vehicle at no finite distance is no neighbour
                     b = idx[s]
                     o[base] = 1.0
                     for k in range(3):

@@ -8,6 +8,8 @@ Modules (import them directly):
 - `sim.estimation`: motion capture and the Kalman filter
 - `sim.physics`: one stepping interface over `MjData` and `mujoco.batch.Batch`
 - `sim.simulator`: the multi-rate loop (`Simulator`, `SimConfig`)
+  over `sim.plan` (fused or readable), `sim.fused` (the fused tick), `sim.passes` (the
+  compiled passes both paths share) and `sim.rows` (a tick's log row, `Row`)
 - `sim.flight`: fly a batch to the end (`fly`) -> `sim.logs.FlightLog`
 - `sim.logs`, `sim.metrics`: flight logs on disk, tracking metrics
 - `sim.predictor`: the slot through which a downwash model reaches the loop

@@ -12,8 +12,9 @@ from downwash_core.provenance import code_version, describe
 from downwash_core.status import Status
 from sim.aggregation import LinearSuperposition
 from sim.logs import ARRAY_SPECS, FlightLog
+from sim.rows import Row
 from sim.scene import Scene
-from sim.simulator import Row, SimConfig, Simulator
+from sim.simulator import SimConfig, Simulator
 
 __all__ = ["fly"]
 

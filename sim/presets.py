@@ -18,10 +18,15 @@ evaluated on every ordered pair and combined by the aggregation law, `sim.aggreg
 Followers' lemniscates are phase-shifted so that no two move in step. A start in which
 two vehicles lie inside each other's collision ellipsoid is refused before any flight
 (`sim.scene.check_clearance`).
+
+Every preset's vehicles are the paper quad. `preset.with_kinds(["x500", "paper_quad", ...])`
+gives the same preset with vehicles of other kinds (`downwash_core.vehicles`), one per
+vehicle, for its `scene()`; the simulator still flies every vehicle with `SimConfig.quad`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -32,7 +37,8 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
 from downwash_core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
-from sim.scene import Scene, build_scene, check_clearance
+from downwash_core.vehicles import PAPER_QUAD, VEHICLES
+from sim.scene import Scene, build_scene, check_clearance, resolve_kinds
 from downwash_trajectories.base import Reference
 from downwash_trajectories.combinators import StackedReference, TimeShifted, stack
 from downwash_trajectories.primitives import Circle, Hover, Lemniscate, Transect
@@ -50,7 +56,8 @@ class Preset:
 
     name: the spec it was made from; vehicles: (name, role) in scene order, the top first;
     make_refs(n_worlds) -> one Reference per vehicle; duration: s, the default flight;
-    params: the parameters (provenance).
+    params: the parameters (provenance); kinds: each vehicle's kind name
+    (`downwash_core.vehicles.VEHICLES`), empty for all the paper quad (see `with_kinds`).
     """
 
     name: str
@@ -59,13 +66,28 @@ class Preset:
     make_refs: Callable[[int], list[Reference]] = field(repr=False)
     duration: float
     params: dict[str, Any] = field(default_factory=dict)
+    kinds: tuple[str, ...] = ()
 
     @property
     def n_vehicles(self) -> int:
         return len(self.vehicles)
 
+    def with_kinds(self, kinds: Any) -> "Preset":
+        """This preset with vehicles of other kinds: one name (all of it) or one per vehicle,
+        top first; ConfigError for an unknown name or a wrong count."""
+        resolved = resolve_kinds(kinds, self.n_vehicles)
+        for k in resolved:
+            if VEHICLES.get(k.name) is not k:  # a name keeps the preset's provenance short and stable
+                raise ConfigError(f"kinds: a preset takes registered vehicle names ({', '.join(VEHICLES)}), "
+                                  f"got {k.name!r}")
+        names = tuple(k.name for k in resolved)
+        return dataclasses.replace(self, kinds=() if all(k == PAPER_QUAD for k in resolved) else names)
+
     def scene(self, **kwargs: Any) -> Scene:
-        """The compiled MuJoCo scene of these vehicles (`sim.scene.build_scene` keywords)."""
+        """The compiled MuJoCo scene of these vehicles (`sim.scene.build_scene` keywords; `kinds`
+        defaults to the preset's)."""
+        if self.kinds:
+            kwargs.setdefault("kinds", self.kinds)
         return build_scene(self.vehicles, **kwargs)
 
     def reference(self, n_worlds: int = 1, radius_xy: float = 0.26, radius_z: float = 0.08) -> StackedReference:
@@ -76,8 +98,11 @@ class Preset:
         return ref
 
     def describe(self) -> dict[str, Any]:
-        return {"preset": self.name, "vehicles": [n for n, _ in self.vehicles],
-                "roles": [r.value for _, r in self.vehicles], "params": dict(self.params)}
+        out = {"preset": self.name, "vehicles": [n for n, _ in self.vehicles],
+               "roles": [r.value for _, r in self.vehicles], "params": dict(self.params)}
+        if self.kinds:  # only when not all the paper quad: the presets' provenance is unchanged
+            out["kinds"] = list(self.kinds)
+        return out
 
 
 def _roles(n: int) -> tuple[tuple[str, Role], ...]:

@@ -23,7 +23,7 @@ from experiments.common import parse_args, read_config, script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
-           "outdoor", "swarm", "benchmark", "report")
+           "outdoor", "swarm", "benchmark", "report", "vehicles")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
@@ -31,6 +31,7 @@ CHOICES = {
     "lemniscate": TRACKING, "transect": TRACKING, "outdoor": (*TRACKING, "circle", "line"),
     "swarm": (*common.PRESETS, *common.AGGREGATIONS), "sweep": common.MODEL_KINDS,
     "sample_efficiency": common.MODEL_KINDS, "train": common.MODEL_KINDS,
+    "vehicles": ("paper_quad", "crazyflie_2_1", "x500"),
 }
 HELP = """
 import runpy, sys

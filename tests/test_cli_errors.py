@@ -28,7 +28,7 @@ from experiments.common import CommonArgs, arg, check_writable, parse_args
 ROOT = Path(__file__).resolve().parents[1]
 # every experiment built on the argument dataclasses (replay has its own positional parser)
 EXPERIMENTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train",
-               "fields", "outdoor", "swarm", "benchmark", "report")
+               "fields", "outdoor", "swarm", "benchmark", "report", "vehicles")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 
 
@@ -75,6 +75,7 @@ BAD_NUMBERS = [
     ("benchmark", ["--repeats", "0"], "--repeats"),
     ("fields", ["--seed", "-5"], "--seed"),
     ("report", ["--seed", "-5"], "--seed"),
+    ("vehicles", ["--seed", "-5"], "--seed"),
 ]
 
 
@@ -212,7 +213,7 @@ def _unwritable(tmp_path: Path) -> tuple[Path, Path]:
     return tmp_path / "a_file" / "out", tmp_path
 
 
-@pytest.mark.parametrize("name", ["lemniscate", "outdoor", "benchmark", "fields"])
+@pytest.mark.parametrize("name", ["lemniscate", "outdoor", "benchmark", "fields", "vehicles"])
 def test_unwritable_out_is_refused_at_once(tmp_path, name):
     out, where = _unwritable(tmp_path)
     before = sorted(os.listdir(where))

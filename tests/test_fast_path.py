@@ -15,7 +15,10 @@ from sim.fields.momentum import MomentumWake
 from sim.physics import mj_step_address
 from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
-from sim.simulator import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, Row, SimConfig, Simulator, _chunk_sizes
+from sim.fused import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL
+from sim.plan import _chunk_sizes
+from sim.rows import Row
+from sim.simulator import SimConfig, Simulator
 from sim.wind import DrydenWind
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from downwash_trajectories import Hover, Lemniscate, stack

@@ -306,3 +306,25 @@ def test_split_by_flight_is_disjoint_and_covers_stages():
         split_by_flight(synthetic_dataset({0: [100]}), 0.2, np.random.default_rng(0))
     with pytest.raises(ValueError, match=r"val_fraction: expected a value in \(0, 1\), got 0"):
         split_by_flight(ds, 0, np.random.default_rng(0))
+
+
+def test_pair_and_swarm_labels_cut_a_flight_at_the_same_row():
+    """One finiteness rule over every vehicle: a NaN on the leader's command (which the pair's labels
+    never read) cuts the pair's labels where it cuts the swarm's (the two had diverged)."""
+    from downwash.labels import finite_rows, labels_from_log
+    from downwash.swarm_data import swarm_labels_from_log
+    from sim.flight import fly
+    from sim.neighbours import NeighbourSet
+    from sim.scene import build_scene
+    from downwash_trajectories import Hover, Lemniscate, stack
+
+    leader = np.array([0.0, 0.0, 2.5])
+    reference = stack([Hover(leader, n_worlds=1), Lemniscate(leader - [0, 0, 0.6], n_worlds=1)])
+    log = fly(build_scene(), reference, [0], 3.0)[0]
+    cut = 150
+    log.arrays["u_cmd"][cut:, int(log.meta["leader"])] = np.nan
+    assert finite_rows(log.arrays) == cut
+    pair = labels_from_log(log)
+    swarm = swarm_labels_from_log(log, NeighbourSet(1), targets=[int(log.meta["follower"])])
+    assert pair["row"].max() < cut and np.array_equal(pair["row"], swarm["row"])
+    np.testing.assert_array_equal(pair["y"], swarm["y"])

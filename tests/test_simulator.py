@@ -129,7 +129,8 @@ def test_fused_kernels_equal_the_readable_components(scene):
     perturb_quat (the motion-capture attitude), MocapKalmanFilter, the turbulence law and
     Autopilot, on random states (bit for bit where the arithmetic is the same)."""
     from downwash_core.geometry import perturb_quat, quat_to_mat, yaw_of
-    from sim.simulator import _actuate_kernel, _Sensed, _sense_kernel
+    from sim.passes import _actuate_kernel, _sense_kernel
+    from sim.simulator import _Sensed
 
     W, V = 3, scene.n_vehicles
     sim = Simulator(scene, _lemniscate(W), [1, 2, 3], field_enabled=np.array([True, False, True]))

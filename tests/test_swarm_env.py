@@ -207,6 +207,31 @@ def test_neighbour_slots_are_sorted_masked_and_do_not_depend_on_scene_order(seed
     np.testing.assert_array_equal(neighbour_block(pos[1:2], vel[1:2], rot[1:2], agents, K), nb[1:2])
 
 
+def test_the_env_sees_the_neighbour_sets_the_data_and_predictor_see():
+    """One selection (`sim.neighbours`): a diverged vehicle (NaN or infinite state) is no neighbour
+    in the env's observation either; before, it filled a real slot there while the data masked it."""
+    from sim.neighbours import NeighbourSet, select_neighbours
+
+    rng = np.random.default_rng(3)
+    W, V, K = 3, 5, 4
+    pos, vel, rot = _random_scene(rng, W, V)
+    pos[1, 2] = np.nan
+    pos[2, 4] = np.inf
+    agents = np.arange(V)
+    nb = neighbour_block(pos, vel, rot, agents, K)
+    index, mask = select_neighbours(pos, NeighbourSet(K))
+    np.testing.assert_array_equal(nb[..., 0], mask)
+    for w, bad in ((1, 2), (2, 4)):
+        others = [a for a in agents if a != bad]
+        assert not (index[w, others] == bad).any()  # never anyone's neighbour
+        assert mask[w, others].sum(axis=-1).tolist() == [V - 2] * len(others)  # the rest still are
+        assert not mask[w, bad].any()  # and it sees no one
+    for w in range(W):
+        for a in agents:
+            for k in np.flatnonzero(mask[w, a]):
+                np.testing.assert_array_equal(nb[w, a, k, 1:4], pos[w, a] - pos[w, index[w, a, k]])
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_compiled_observation_equals_the_readable_one(seed):
     """`_observe_kernel` against `observation` (own block + neighbour_block), bit for bit, over random

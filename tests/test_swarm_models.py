@@ -19,15 +19,13 @@ from downwash.checkpoint import save_checkpoint
 from downwash.labels import labels_from_log
 from downwash.predictor import LearnedPredictor
 from downwash.swarm_data import (
-    NeighbourSet,
     SwarmDataset,
     concatenate_swarm,
-    gather_neighbours,
     load_swarm_dataset,
     log_provenance,
-    select_neighbours,
     swarm_labels_from_log,
 )
+from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 from downwash.swarm_models import (
     SWARM_MODEL_KINDS,
     DeepSets,
@@ -333,8 +331,9 @@ def test_numpy_twin_equals_the_torch_model(kind, seed, B, K):
     np.testing.assert_allclose(model.numpy_forward()(*batch), want, rtol=0, atol=1e-12 * max(np.abs(want).max(), 1))
     states = _stacked_states(rng, 3, 4)
     ck = SwarmCheckpoint(copy.deepcopy(model).float(), NeighbourSet(K), {"aggregation": LINEAR})
-    a, b = (SwarmPredictor(ck, backend=backend)(states, states) for backend in SwarmPredictor.BACKENDS)
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(np.abs(b).max(), 1))
+    a, *others = (SwarmPredictor(ck, backend=backend)(states, states) for backend in SwarmPredictor.BACKENDS)
+    for b in others:  # compiled, numpy and torch agree
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(np.abs(b).max(), 1))
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -534,3 +533,45 @@ def test_trained_model_checkpoint_records_its_data(tmp_path, three_logs):
 def test_model_classes_are_registered():
     assert SWARM_MODEL_KINDS == {"summed_pairwise": SummedPairwise, "deepsets_equivariant": DeepSetsEquivariant,
                                  "deepsets": DeepSets}
+
+
+@pytest.mark.parametrize("backend", SwarmPredictor.BACKENDS)
+def test_the_swarm_predictor_clamps_as_the_pair_predictor(backend):
+    """The same bound as `LearnedPredictor(clamp=...)`: no vehicle's prediction exceeds it, and those
+    below it pass unchanged."""
+    rng = np.random.default_rng(7)
+    states = _stacked_states(rng, 3, 4)
+    pair = copy.deepcopy(trained_like("equivariant", seed=2)).double()
+    free = SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend)(states, states)
+    norm = np.linalg.norm(free, axis=-1)
+    bound = float(np.median(norm[norm > 0]))  # some vehicles above it, some below
+    got = SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend, clamp=bound)(states, states)
+    assert np.all(np.linalg.norm(got, axis=-1) <= bound * (1 + 1e-12))
+    np.testing.assert_array_equal(got[norm <= bound], free[norm <= bound])
+    np.testing.assert_allclose(got, LearnedPredictor(pair, clamp=bound)(states, states), rtol=0, atol=1e-10 * bound)
+    with pytest.raises(ConfigError, match="clamp"):
+        SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), clamp=float("nan"))
+
+
+def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):
+    """Its provenance records the clamp, and the deployed predictor applies it (it was never applied)."""
+    import downwash.swarm_collection as sc
+    from sim.aggregation import make_aggregation
+
+    pair_path = tmp_path / "equivariant.pt"
+    save_checkpoint(pair_path, trained_like("equivariant"), {})
+    deployed = []
+
+    class Flown(Exception):
+        pass
+
+    def fly_stage(cfg, sdir, n_vehicles, field, law, predictor, progress):
+        deployed.append(predictor)
+        raise Flown
+
+    monkeypatch.setattr(sc, "_fly_stage", fly_stage)
+    cfg = sc.SwarmCollectionConfig(quick=True, clamp=2.5)
+    with pytest.raises(Flown):
+        sc.collect_swarm(cfg, tmp_path / "swarm", tmp_path / "pair", pair_path, {}, None, make_aggregation("linear"),
+                         tmp_path / "pair_models")
+    assert deployed[0].clamp == 2.5 and sc.swarm_provenance(cfg, None, {})["swarm"]["clamp"] == 2.5

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from downwash.datasets import Dataset, split_by_flight
+from downwash_core.errors import DataError
 from downwash.train import DEFAULT_LR, TrainConfig, predict, rmse, train_model
 from sim.field import DownwashField
 
@@ -159,3 +160,25 @@ def test_trainings_in_forked_processes_equal_trainings_here():
     proc.start()
     assert queue.get(timeout=120) == {kind: here[kind] for kind in ("shallow", "equivariant")}
     proc.join()
+
+
+def test_logs_flown_with_and_without_wind_never_mix(tmp_path):
+    """The pair data set checks the wind as the swarm data set does (the two had diverged)."""
+    from downwash.datasets import load_dataset
+    from sim.flight import fly
+    from sim.logs import save_log
+    from sim.scene import build_scene
+    from sim.wind import DrydenWind
+    from downwash_trajectories import Hover, Lemniscate, stack
+
+    leader = np.array([0.0, 0.0, 2.5])
+    reference = stack([Hover(leader, n_worlds=1), Lemniscate(leader - [0, 0, 0.6], n_worlds=1)])
+    still = fly(build_scene(), reference, [0], 1.0)[0]
+    windy = fly(build_scene(), reference, [1], 1.0, wind=DrydenWind(mean=(1.0, 0.0, 0.0)))[0]
+    for name, log in (("still", still), ("windy", windy)):
+        (tmp_path / name).mkdir()
+        save_log(tmp_path / name / "flight_000.npz", log)
+    assert load_dataset(tmp_path / "still").provenance["wind"] is None
+    assert load_dataset(tmp_path / "windy").provenance["wind"] is not None
+    with pytest.raises(DataError, match="wind"):
+        load_dataset([tmp_path / "still" / "flight_000.npz", tmp_path / "windy" / "flight_000.npz"])

@@ -13,7 +13,8 @@ from sim.flight import fly
 from sim.logs import ARRAY_SPECS
 from sim.predictor import OraclePredictor
 from sim.scene import build_scene
-from sim.simulator import WIND_STREAM, Simulator, _wind_advance_kernel, _wind_sense_kernel
+from sim.passes import _wind_advance_kernel, _wind_sense_kernel
+from sim.simulator import WIND_STREAM, Simulator
 from sim.wind import AIRFRAME, DrydenWind, drag_acceleration
 from downwash_trajectories import Hover, Lemniscate, stack
 

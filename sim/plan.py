@@ -1,0 +1,262 @@
+"""The fused path's plan: whether a simulator's components can fly it, and its bound tables.
+
+`_make_plan(sim)` decides, each time a `sim.simulator.Simulator` binds its components,
+between the fused compiled tick (`sim.fused`) and the readable path: it returns a `_Plan`
+when every component has a compiled form, else None. The fused path needs
+
+- the controller: exactly `controllers.lqr.FeedbackLinearisedLQR` (any `LQRConfig`; not a
+  subclass, which may override `command_setpoint`), see `_compiled_controller`; its gains
+  and limits run as `controllers.lqr._command_setpoint_kernel`;
+- the autopilot: a `controllers.autopilot.Autopilot` (its `gain` and `max_thrust`);
+- the field: a `sim.field.DownwashField` with scalar constants and linear aggregation
+  (`_packed_field`), whose pairwise sum is `sim.field._pairwise_kernel`;
+- the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
+  `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
+  `PerWorldPredictor` of those (`_per_world_tables`);
+- the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
+  (`sim.physics`), and buffers laid out as the kernel reads them (else `_NoPlan`).
+
+A `_Plan` holds the kernel's tables (`sim.fused._TAB`, `_FC`) and every array they address,
+so the addresses stay valid for the plan's lifetime; the simulator rebuilds it when a
+component is replaced (assigning the attribute does) or the physics' models change.
+The worlds of a batch are split into chunks for the helper threads (`_chunk_sizes`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from controllers.autopilot import Autopilot
+from controllers.lqr import FeedbackLinearisedLQR
+from sim.aggregation import LinearSuperposition
+from sim.field import DownwashField
+from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _PRED_PER_WORLD, _PRED_ZERO,
+                       _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, _TAB)
+from sim.physics import _SerialPhysics
+from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor
+from sim.rows import _row_layout
+
+
+class _NoPlan(Exception):
+    """A buffer is not laid out as the fused kernel reads it: the readable path runs instead."""
+
+
+def _compiled_controller(controller: Any) -> bool:
+    """Whether `controller` runs inside the fused kernel: exactly a `FeedbackLinearisedLQR` (its gains
+    and limits are read into the plan; any other controller, a subclass included, runs in Python)."""
+    return type(controller) is FeedbackLinearisedLQR
+
+
+def _make_plan(sim: Any) -> _Plan | None:
+    """The fused path's plan for simulator `sim` when every component has a compiled form (see the
+    module docstring), else None: the readable path."""
+    field_packed = _packed_field(sim.field, sim.aggregation)
+    if field_packed is None or not _compiled_controller(sim.controller):
+        return None
+    if not isinstance(sim.autopilot, Autopilot):
+        return None
+    ph, n_threads = sim.physics, 1
+    if isinstance(ph, _SerialPhysics):
+        stepping, native = _STEP_SERIAL, ph.native_step()
+        if native is None:
+            return None
+    else:
+        # worlds in chunks of >= _CHUNK_WORLDS on the batch's threads, each thread with its MjData
+        n_threads = max(1, min(ph.batch.nthread, sim.W // _CHUNK_WORLDS))
+        native = ph.native_step(n_threads)
+        stepping = _STEP_ROWS if native is not None else _STEP_CALLER
+        if native is None:
+            n_threads = 1
+    predictor, compiled, oracle_packed, per_world = sim.predictor, None, np.zeros(16), None
+    if type(predictor) is ZeroPredictor:
+        code = _PRED_ZERO
+    elif type(predictor) is PerWorldPredictor:
+        per_world = _per_world_tables(predictor, sim.W)
+        if per_world is None:
+            return None
+        code = _PRED_PER_WORLD
+    elif type(predictor) is OraclePredictor:
+        packed = _packed_field(predictor.field, predictor.aggregation)
+        if packed is None:
+            return None
+        code, oracle_packed = _PRED_ORACLE, packed
+    else:
+        compiled = getattr(predictor, "compiled", lambda: None)()
+        if compiled is None:
+            return None
+        code = _PRED_C
+    try:
+        return _Plan(sim, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world)
+    except _NoPlan:
+        return None
+
+
+class _Plan:
+    """The fast path's bound state: the tables of `_fused_kernel` and every array they address.
+
+    Built from a simulator's current components (`_make_plan`); holding the
+    arrays here keeps every address in the tables valid for the plan's lifetime.
+    chunks: (n_threads, n, 4) int64, the n world ranges (`_chunk_sizes`) as thread t runs them, with
+    its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn from one
+    counter (`sim.fork_join`).
+    """
+
+    def __init__(self, sim: Any, stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
+                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None,
+                 n_threads: int, per_world: dict[str, Any] | None = None):
+        W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
+        ph = sim.physics
+        self.revision = ph.revision
+        self.stepping = stepping
+        self.n_sub = r.autopilot_per_control
+        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on)
+        wind_consts = sim.wind.kernel_constants() if sim._wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
+        keep: dict[str, np.ndarray] = {
+            "layout": sim._layout, "noise": sim._noise, "cursor": sim._cursor, "pos_est": sim.pos_est,
+            "vel_est": sim.vel_est, "t": sim.t, "next_prediction": sim.next_prediction, "due": sim._due,
+            "field_enabled": sim.field_enabled, "turb": sim.turb, "rot_des": sim._rot_des,
+            "yaw_rate_des": sim._yaw_rate_des, "thrust_acc": sim._thrust_acc, "mass_believed": sim._mass_believed,
+            "ap_gain": np.ascontiguousarray(sim.autopilot.gain, dtype=np.float64), "active": sim.active,
+            "f_hat": sim.f_hat, "tick_index": sim.tick_index, "status_new": sim._status_new,
+            "kin": np.empty((5, W, V, 3)), "quat": np.empty((W, V, 4)), "rot": np.empty((W, V, 3, 3)),
+            "quat_est": np.empty((W, V, 4)), "rot_est": np.empty((W, V, 3, 3)), "yaw": np.empty((W, V)),
+            "applied": np.empty((W, V, 3)), "mean": np.empty((W, V, 3)), "pred": np.empty((W, V, 3)),
+            "Kt": np.ascontiguousarray(sim.controller._Kt, dtype=np.float64), "field_packed": field_packed,
+            "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": sim._wind_noise,
+            "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
+            "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
+            "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool),
+        }
+        per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W)
+        keep.update({name: a for name, a in per_world.items() if name.startswith("pw_")})
+        self.per_world = per_world  # keeps the worlds' predictors' functions and constants alive
+        if compiled is not None:
+            keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
+            keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
+        tab = dict.fromkeys(_TAB, 0)
+        tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
+                   n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code)
+        sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
+        chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        chunks[:, :, 0], chunks[:, :, 1] = bounds[:-1], bounds[1:]
+        if stepping == _STEP_SERIAL:
+            step_fn, model, data, warnings = physics_native
+            if warnings.dtype != np.int32 or warnings.strides[0] % 4 or warnings.size <= _FATAL_MAX:
+                raise _NoPlan("unexpected layout of MuJoCo's warning counts")
+            self.warnings = warnings
+            tab.update(step_fn=step_fn, model=model, data=data, warnings=warnings.ctypes.data,
+                       warning_stride=warnings.strides[0] // 4)
+        elif stepping == _STEP_ROWS:
+            step_fn, set_state, get_state, model, state, spec, batch_warnings, scratch = physics_native
+            keep.update(state=state, batch_warnings=batch_warnings)
+            self.scratch = scratch  # one MjData per thread, as mujoco.batch keeps
+            for t, d in enumerate(scratch):
+                warning = d.warning  # (mjNWARNING,) records of two int32 [lastinfo, number]
+                chunks[t, :, 2], chunks[t, :, 3] = int(d._address), warning.lastinfo.ctypes.data
+                if warning.number.ctypes.data != warning.lastinfo.ctypes.data + 4 or warning.lastinfo.strides != (8,):
+                    raise _NoPlan("unexpected layout of MuJoCo's warning records")
+            tab.update(step_fn=step_fn, set_state_fn=set_state, get_state_fn=get_state, model=model,
+                       nstate=state.shape[1], state_spec=spec, n_warnings=batch_warnings.shape[1])
+        for name, a in keep.items():  # the kernel reads them as C-contiguous arrays of these types
+            if not (isinstance(a, np.ndarray) and a.flags.c_contiguous
+                    and a.dtype in (np.float64, np.int64, np.int32, np.bool_)):
+                raise _NoPlan(f"{name} is not a C-contiguous array of a kernel type")
+        tab.update({name: a.ctypes.data for name, a in keep.items()})
+        self.arrays = keep
+        self.compiled = compiled  # keeps the predictor's function referenced
+        if compiled is not None:
+            tab["predictor_fn"] = int(compiled.address)
+        storage = {"kin": "pos", "t": "t", "quat": "quat", "quat_est": "quat_est", "yaw": "yaw_est",
+                   "applied": "field_applied", "ref_pos": "ref_pos", "ref_vel": "ref_vel", "ref_acc": "ref_acc",
+                   "u_cmd": "u_cmd", "f_hat": "f_hat", "mean": "field_mean", "wind": "wind", "wind_acc": "wind_acc"}
+        for slot, name in storage.items():
+            if name in self.row_layout:
+                tab["row_" + slot] = self.row_layout[name][0]
+        self.tab = np.array([tab[name] for name in _TAB], dtype=np.int64)
+        self.chunks = chunks
+        self.n_threads = n_threads
+        lqr = sim.controller
+        fc = {
+            "sigma_p": sim._sigma_p, "sigma_att": sim._sigma_att, "kf_gain_p": sim._kf_gain_p,
+            "kf_gain_v": sim._kf_gain_v, "ou_a": sim._ou_a, "ou_b": sim._ou_b, "intensity": sim._turbulence_intensity,
+            "mass": sim.mass, "max_thrust": sim._max_thrust, "dt": r.autopilot_dt,
+            "prediction_period": sim._prediction_period, "lookahead": r.control_dt,
+            "tan_tilt": math.tan(lqr.max_tilt), "min_vertical": lqr.min_vertical,
+            "min_airspeed": wind_consts[4], "drag_gain": sim._drag_gain, "max_distance": cfg.max_distance,
+            "ground": cfg.ground_clearance, "radius_xy": cfg.collision_radius_xy, "radius_z": cfg.collision_radius_z,
+        }
+        self.fc = np.array([float(fc[name]) for name in _FC])
+        self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
+        self.kernel = _FUSED_KERNELS[int(sim._wind_on)]
+        self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
+
+
+_CHUNK_WORLDS = 4  # fewest worlds in a chunk of the fused kernel's work (12 worlds: 1.2x faster on 2 threads than 8)
+
+
+def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
+    """Worlds per chunk, large first and halving (guided scheduling): a thread that starts late or
+    runs slower takes the small chunks at the end, so the threads finish together (64 worlds on
+    2 threads: 16, 16, 8, 8, 4, 4, 4, 4; 1.04x the 8 equal chunks, measured). One chunk for one thread."""
+    if n_threads == 1:
+        return [n_worlds]
+    sizes, left = [], n_worlds
+    while left > 0:
+        size = max(smallest, left // (2 * n_threads))
+        for _ in range(n_threads):
+            if left <= 0:
+                break
+            take = left if left - min(size, left) < smallest else min(size, left)  # no runt at the end
+            sizes.append(take)
+            left -= take
+    return sizes
+
+
+def _per_world_tables(predictor: Any, W: int) -> dict[str, Any] | None:
+    """The fused kernel's tables for a `PerWorldPredictor` (a `ZeroPredictor`: all worlds zero): per
+    world its predictor's code, C function, constants' addresses and oracle field (pw_*), and
+    the compiled forms (kept alive); None when one of its predictors has no compiled form."""
+    if isinstance(predictor, PerWorldPredictor) and predictor.n_worlds != W:
+        return None  # the readable path names the mismatch
+    groups = predictor.groups if isinstance(predictor, PerWorldPredictor) else [np.arange(W)]
+    predictors = predictor.predictors if isinstance(predictor, PerWorldPredictor) else [predictor]
+    out: dict[str, Any] = {"pw_code": np.zeros(W, np.int64), "pw_fn": np.zeros(W, np.int64),
+                           "pw_params": np.zeros(W, np.int64), "pw_iparams": np.zeros(W, np.int64),
+                           "pw_oracle": np.zeros((W, 16)), "compiled": []}
+    for p, worlds in zip(predictors, groups):
+        if type(p) is ZeroPredictor:
+            continue
+        if type(p) is OraclePredictor:
+            packed = _packed_field(p.field, p.aggregation)
+            if packed is None:
+                return None
+            out["pw_code"][worlds], out["pw_oracle"][worlds] = _PRED_ORACLE, packed
+            continue
+        compiled = getattr(p, "compiled", lambda: None)()
+        if compiled is None:
+            return None
+        params = np.ascontiguousarray(compiled.params, dtype=np.float64)
+        iparams = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
+        out["compiled"].append((compiled, params, iparams))
+        out["pw_code"][worlds], out["pw_fn"][worlds] = _PRED_C, int(compiled.address)
+        out["pw_params"][worlds], out["pw_iparams"][worlds] = params.ctypes.data, iparams.ctypes.data
+    return out
+
+
+def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:
+    """A field's constants for the fused kernel (`DownwashField` with scalar constants and linear
+    aggregation, whose `pairwise` is `_pairwise_kernel`), else None."""
+    if aggregation is not None and not isinstance(aggregation, LinearSuperposition):
+        return None
+    if not isinstance(field, DownwashField) or type(field).pairwise is not DownwashField.pairwise:
+        return None
+    if type(field).__call__ is not DownwashField.__call__:
+        return None
+    packed = getattr(field, "_packed", None)
+    if packed is None or packed.shape != (16,):
+        return None
+    return np.ascontiguousarray(packed, dtype=np.float64)
