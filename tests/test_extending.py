@@ -46,6 +46,19 @@ def test_the_field_recipe_flies_by_import_path(tmp_path, monkeypatch):
     sys.modules.pop("mypkg.fields", None), sys.modules.pop("mypkg", None)
 
 
+def _field_samples(n, rng):
+    """n samples below a level leader labelled by the default field plus noise, in 10 flights."""
+    from downwash.datasets import Dataset
+    from sim.field import DownwashField
+
+    dp = np.column_stack([rng.uniform(-0.8, 0.8, (n, 2)), -rng.uniform(0.3, 1.6, n)])
+    v_b, v_a = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 0.05, (n, 3))
+    R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    truth = DownwashField()(np.zeros(3), v_a, R, dp, v_b)
+    return Dataset(dp=dp, v_a=v_a, v_b=v_b, R_a=R, y=truth + 0.05 * rng.normal(size=(n, 3)),
+                   flight=np.arange(n) * 10 // n, stage=np.zeros(n, int), t=np.arange(n) * 0.02, field_mean=truth)
+
+
 def test_the_model_recipe_trains_saves_loads_and_flies(tmp_path, monkeypatch):
     """Registered as the page says (MODEL_KINDS, DEFAULT_LR), the new kind trains, round-trips a
     checkpoint, and flies in the predictor slot on both backends with the same prediction."""
@@ -57,7 +70,6 @@ def test_the_model_recipe_trains_saves_loads_and_flies(tmp_path, monkeypatch):
     from downwash.checkpoint import load_checkpoint, save_checkpoint
     from downwash.predictor import LearnedPredictor
     from downwash_core.state import VehicleStates
-    from tests.test_training import field_dataset
 
     namespace = {"nn": nn, "DownwashModel": models.DownwashModel}
     exec(_blocks("A new model")[0], namespace)
@@ -65,7 +77,7 @@ def test_the_model_recipe_trains_saves_loads_and_flies(tmp_path, monkeypatch):
     monkeypatch.setitem(models.MODEL_KINDS, cls.kind, cls)
     monkeypatch.setitem(train.DEFAULT_LR, cls.kind, 5e-2)
     torch.manual_seed(0)
-    data = field_dataset(3000, np.random.default_rng(0))
+    data = _field_samples(3000, np.random.default_rng(0))
     model, history = train.train_model(cls.kind, data, None, train.TrainConfig(max_epochs=3, min_steps=0))
     path = tmp_path / "wide.pt"
     save_checkpoint(path, model, {})
