@@ -6,7 +6,7 @@ these kernels, and the simulator's fused tick calls them as C functions of
 `sim.predictor.PREDICTOR_SIGNATURE` (`SwarmPredictor.compiled()`), so a swarm flight with a
 learned model stays in compiled code. Per world and target vehicle each kernel
 
-1. selects the neighbour set as `sim.neighbours.select_neighbours` does (`select_into`): the
+1. selects the neighbour set as `sim.neighbours.select_neighbours` does (its compiled twin `sim.neighbours.select_into`): the
    other vehicles at a finite squared distance ``(dx dx + dy dy) + dz dz`` (the same sum),
    within the radius if one is set, nearest first by a stable insertion sort (ties by vehicle
    index), at most K;
@@ -49,13 +49,12 @@ import numpy as np
 
 from downwash_core.jit import njit
 from downwash.fused import clamped, feature_code, mlp_inplace, pack_layers, pair_force, pair_inputs
-from sim.neighbours import NeighbourSet
+from sim.neighbours import NeighbourSet, select_into
 from sim.predictor import PREDICTOR_SIGNATURE, CompiledPredictor
 
 __all__ = [
     "COMPILED_KINDS",
     "SwarmKernel",
-    "select_into",
     "summed_pairwise_into",
     "deepsets_equivariant_into",
     "deepsets_into",
@@ -71,38 +70,6 @@ _N_FHEADER = 2
 
 
 # -- the pieces every kind shares ---------------------------------------------------------------
-
-
-@njit
-def select_into(pos, w, j, radius2, n_slots, key, idx):
-    """Vehicle j's neighbour set in world w: its first n entries of idx (nearest first), n returned.
-
-    pos (W, V, 3) m; radius2: m^2, the squared radius (inf: none); n_slots: K; key (>= V - 1,)
-    float64 and idx (>= V - 1,) int64 scratch. A stable insertion sort of the other vehicles by
-    squared distance, summed as `sim.neighbours.select_neighbours` sums it; a NaN or infinite
-    distance, or one beyond the radius, sorts as +inf and fills no slot.
-    """
-    V = pos.shape[1]
-    m = 0
-    for b in range(V):
-        if b == j:
-            continue
-        dx, dy, dz = pos[w, j, 0] - pos[w, b, 0], pos[w, j, 1] - pos[w, b, 1], pos[w, j, 2] - pos[w, b, 2]
-        d = dx * dx + dy * dy + dz * dz
-        if not d < np.inf or d > radius2:  # NaN, infinite or too far: no neighbour
-            d = np.inf
-        s = m
-        while s > 0 and d < key[s - 1]:  # strict: equal keys keep vehicle order
-            key[s] = key[s - 1]
-            idx[s] = idx[s - 1]
-            s -= 1
-        key[s] = d
-        idx[s] = b
-        m += 1
-    n = 0
-    while n < n_slots and n < m and key[n] < np.inf:
-        n += 1
-    return n
 
 
 @njit

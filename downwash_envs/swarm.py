@@ -134,7 +134,7 @@ from downwash_envs.observation import OBSERVATION, ObsEntry
 from downwash_envs.rendering import Renderer
 from downwash_envs.task import REWARD_TERMS, task_constants, task_kernel
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
-from sim.neighbours import NeighbourSet, select_neighbours
+from sim.neighbours import NeighbourSet, select_into, select_neighbours
 from sim.physics import check_world_memory
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.presets import Preset, make_preset
@@ -291,26 +291,19 @@ def observation(
     return o
 
 
-def _others(agents: np.ndarray, n_vehicles: int) -> np.ndarray:
-    """(A, V-1) int64: for each agent, the other vehicles' indices in scene order."""
-    return np.array([[j for j in range(n_vehicles) if j != i] for i in agents], np.int64).reshape(len(agents), -1)
-
-
 @njit
-def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, others, last_action, low, high, out):
+def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, last_action, low, high, out):
     """Compiled `observation`, written into out (W, A, D); the same arithmetic, world by world.
 
-    pos, vel (W, V, 3) estimated; rot (W, V, 3, 3); ref_* (W, V, 3); agents (A,); others
-    (A, V-1) (`_others`); last_action (W, A, 3); low, high (D,). Stable insertion sort of the
-    others by squared distance (NaN as +inf; an infinite one fills no slot), as
-    `sim.neighbours.select_neighbours` sorts them.
+    pos, vel (W, V, 3) estimated; rot (W, V, 3, 3); ref_* (W, V, 3); agents (A,); last_action
+    (W, A, 3); low, high (D,). The neighbours are `sim.neighbours.select_into`'s (the compiled
+    twin of the data's and the predictor's selection).
     """
     W, A, D = out.shape
-    n_other = others.shape[1]
+    V = pos.shape[1]
     K = (D - OWN_DIM) // NEIGHBOUR_DIM
-    n = min(K, n_other)
-    key = np.empty(n_other)
-    idx = np.empty(n_other, np.int64)
+    key = np.empty(max(V - 1, 1))
+    idx = np.empty(max(V - 1, 1), np.int64)
     for w in range(W):
         for i in range(A):
             a = agents[i]
@@ -323,22 +316,10 @@ def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, others, la
                 o[12 + k] = rot[w, a, k, 0]
                 o[15 + k] = rot[w, a, k, 2]
                 o[18 + k] = last_action[w, i, k]
-            for j in range(n_other):
-                b = others[i, j]
-                dx, dy, dz = pos[w, a, 0] - pos[w, b, 0], pos[w, a, 1] - pos[w, b, 1], pos[w, a, 2] - pos[w, b, 2]
-                d = dx * dx + dy * dy + dz * dz  # as sim.neighbours.select_neighbours sums it
-                if d != d:
-                    d = np.inf
-                m = j
-                while m > 0 and d < key[m - 1]:  # strict: equal keys keep scene order
-                    key[m] = key[m - 1]
-                    idx[m] = idx[m - 1]
-                    m -= 1
-                key[m] = d
-                idx[m] = b
+            n = select_into(pos, w, a, np.inf, K, key, idx)
             for s in range(K):
                 base = OWN_DIM + NEIGHBOUR_DIM * s
-                if s < n and key[s] < np.inf:  # a vehicle at no finite distance is no neighbour
+                if s < n:
                     b = idx[s]
                     o[base] = 1.0
                     for k in range(3):
@@ -524,7 +505,6 @@ class SwarmWorlds:
         self._command = np.zeros((W, self.sim.V, 3))  # the simulator's residual; the leader's stays 0
         self._obs_cache: tuple[np.ndarray, Any] | None = None  # attitudes and reference of the last step
         self.obs_low, self.obs_high = obs_bounds(self.K, self.bound)
-        self._others = _others(self.agent_index, self.sim.V)
         self._task_constants = task_constants(task, self.bound)
 
     def _reference(self) -> Cached:
@@ -637,7 +617,7 @@ class SwarmWorlds:
         else:
             rot, ref = self._obs_cache
         o = np.empty((self.W, self.agent_index.size, obs_dim(self.K)))
-        _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index, self._others,
+        _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index,
                         self.last_action, self.obs_low, self.obs_high, o)
         return o.astype(np.float32)
 

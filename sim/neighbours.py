@@ -4,9 +4,10 @@ data, the predictor in the loop and the swarm env's observation.
 A target's neighbours are the other vehicles at a finite distance (a diverged vehicle's
 NaN or infinite state is never a neighbour), within ``radius`` if one is given, nearest
 first by squared distance of the estimated positions (ties by vehicle index), padded to
-``max_neighbours`` slots with a mask. `select_neighbours` is the readable selection; the
-swarm env's compiled observation (`downwash_envs.swarm._observe_kernel`) sorts the same
-keys with the same arithmetic, and a test ties them together.
+``max_neighbours`` slots with a mask. `select_neighbours` is the readable selection and
+`select_into` its compiled twin (one target at a time), which the swarm env's compiled
+observation and the compiled models of sets (`downwash.swarm_fused`) call; tests tie the
+two together.
 """
 
 from __future__ import annotations
@@ -18,10 +19,11 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot
+from downwash_core.jit import njit
 from downwash_core.roles import MAX_VEHICLES
 from downwash_core.validate import count, positive_float
 
-__all__ = ["MAX_NEIGHBOURS", "NeighbourSet", "select_neighbours", "gather_neighbours"]
+__all__ = ["MAX_NEIGHBOURS", "NeighbourSet", "select_neighbours", "select_into", "gather_neighbours"]
 
 MAX_NEIGHBOURS = 64  # the largest neighbour set a data set or model may ask for
 
@@ -115,3 +117,35 @@ def gather_neighbours(
         "v_b": vel,
         "R_a": np.where(m[..., None], r_n, np.eye(3)),
     }
+
+
+@njit
+def select_into(pos, w, j, radius2, n_slots, key, idx):
+    """Vehicle j's neighbour set in world w: its first n entries of idx (nearest first), n returned.
+
+    pos (W, V, 3) m; radius2: m^2, the squared radius (inf: none); n_slots: K; key (>= V - 1,)
+    float64 and idx (>= V - 1,) int64 scratch. A stable insertion sort of the other vehicles by
+    squared distance, summed as `sim.neighbours.select_neighbours` sums it; a NaN or infinite
+    distance, or one beyond the radius, sorts as +inf and fills no slot.
+    """
+    V = pos.shape[1]
+    m = 0
+    for b in range(V):
+        if b == j:
+            continue
+        dx, dy, dz = pos[w, j, 0] - pos[w, b, 0], pos[w, j, 1] - pos[w, b, 1], pos[w, j, 2] - pos[w, b, 2]
+        d = dx * dx + dy * dy + dz * dz
+        if not d < np.inf or d > radius2:  # NaN, infinite or too far: no neighbour
+            d = np.inf
+        s = m
+        while s > 0 and d < key[s - 1]:  # strict: equal keys keep vehicle order
+            key[s] = key[s - 1]
+            idx[s] = idx[s - 1]
+            s -= 1
+        key[s] = d
+        idx[s] = b
+        m += 1
+    n = 0
+    while n < n_slots and n < m and key[n] < np.inf:
+        n += 1
+    return n

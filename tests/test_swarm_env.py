@@ -249,8 +249,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     low, high = swarm.obs_bounds(K, 5.0)
     want = swarm.observation(pos, vel, rot, ref, agents, last, K, low, high)
     got = np.empty_like(want)
-    others = swarm._others(agents, V)
-    swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, others, last, low, high, got)
+    swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, last, low, high, got)
     np.testing.assert_array_equal(got, want)
     assert np.all(want >= low) and np.all(want <= high) and np.isfinite(want).all()
 

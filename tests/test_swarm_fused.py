@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 import downwash.swarm_models as swarm_models
 from downwash_core.errors import ConfigError
 from downwash_core.state import VehicleStates
-from downwash.swarm_fused import COMPILED_KINDS, select_into
+from downwash.swarm_fused import COMPILED_KINDS
+from sim.neighbours import select_into
 from downwash.swarm_models import SWARM_MODEL_KINDS, SummedPairwise, SwarmCheckpoint, SwarmPredictor, make_swarm_model
 from sim.neighbours import NeighbourSet, select_neighbours
 from sim.predictor import PerWorldPredictor
