@@ -3,28 +3,27 @@
 Modules (import them directly; this package imports nothing heavy on its own):
 
 - `downwash.features`: the model inputs (paper eq. 4, NED mapping), NumPy and torch
-- `downwash.models`: `EquivariantModel`, `GeneralEquivariantModel`, `ShallowMLP`, `DeepSNMLP`, `MODEL_KINDS`
-- `downwash.labels`: labels ``f = a - u`` from flight logs, the label-noise floor
-- `downwash.datasets`: `Dataset`, `load_dataset`, `split_by_flight`, `shorten_per_stage`
-- `downwash.train`: `TrainConfig`, `train_model`, `rmse`
-- `downwash.ensemble`: `train_ensemble`, many models of one kind as one batched network
-- `downwash.checkpoint`: `save_checkpoint`, `load_checkpoint` (no code runs on load)
-- `downwash.predictor`: `LearnedPredictor`, a model in the control loop (`sim.predictor.Predictor`)
-- `downwash.fused`: the predictor's compiled one-pass kernel
+- `downwash.labels`: labels ``f = a - u`` from flight logs, every target with its neighbour set, the label-noise floor
+- `downwash.datasets`: the one data set (`Dataset`, a neighbour axis; the pair is its K = 1 case), `load_dataset`, splits
+- `downwash.models`: the per-neighbour models (`EquivariantModel`, `GeneralEquivariantModel`, `ShallowMLP`, `DeepSNMLP`)
+- `downwash.set_models`: the models of sets (summed per-neighbour models, equivariant and plain deep sets)
+- `downwash.registry`: the one registry of model kinds (`MODEL_KINDS`, `make_model`)
+- `downwash.train`: `TrainConfig`, `train_model` for every kind, `rmse`, `save_trained`
+- `downwash.ensemble`: `train_ensemble`, many per-neighbour models of one kind as one batched network
+- `downwash.checkpoint`: `save_checkpoint`, `load_checkpoint`, `wrap_pairwise` (no code runs on load)
+- `downwash.predictor`: `LearnedPredictor`, any model in the control loop (`sim.predictor.Predictor`)
+- `downwash.fused`: the per-neighbour models' compiled pieces
+- `downwash.set_fused`: the predictor's compiled pass for every kind (the default backend)
 - `downwash.conditions`: the tracking conditions and what each flies with
 - `downwash.staged`: the staged collection pipeline, provenance and `ensure_models`
 - `downwash.manifest`: a staged collection's record of every log, checked before training
-- `downwash.swarm_data`: every vehicle's labels with its padded neighbour set (`SwarmDataset`)
-- `downwash.swarm_models`: models for many vehicles (`SWARM_MODEL_KINDS`), their checkpoints, `SwarmPredictor`
-- `downwash.swarm_fused`: the compiled form of every model of sets (the swarm predictor's default backend)
-- `downwash.swarm_train`: `train_swarm_model`
-- `downwash.swarm_collection`: the swarm stages and the models of sets trained on them
+- `downwash.swarm_collection`: the many-vehicle stages and the models of sets trained on them
 - `downwash.sweep`: cached, resumable sweeps on Ray, bootstrap intervals, the paired claim
 
 Data flows one way: `downwash` may import `sim`, never `experiments`.
 """
 
 __all__ = [
-    "features", "models", "labels", "datasets", "train", "ensemble", "checkpoint", "predictor", "fused",
-    "conditions", "staged", "swarm_data", "swarm_models", "swarm_train", "swarm_collection", "sweep",
+    "features", "labels", "datasets", "models", "set_models", "registry", "train", "ensemble", "checkpoint",
+    "predictor", "fused", "set_fused", "conditions", "staged", "manifest", "swarm_collection", "sweep",
 ]

@@ -1,9 +1,11 @@
-"""Model checkpoints that load without executing code.
+"""Model checkpoints of every kind, loaded without executing code.
 
 One file (``torch.save`` of plain containers: the state dict's tensors and a JSON
 string) carries the weights, the normalisation buffers and the metadata: model
 kind, feature set, architecture, parameter count, plus whatever the caller adds
-(training config, data summary, seed). A human-readable copy of the metadata is
+(training config, data summary, seed). A model of sets also records what it was
+made for: its neighbour set, the aggregation law and the field of its training data;
+asking for another set or law raises `CheckpointError` before any flight. A human-readable copy of the metadata is
 written beside it as ``<name>.json``; loading reads only the weights file.
 
 Loading uses ``torch.load(..., weights_only=True)``: a file holding any pickled
@@ -20,21 +22,44 @@ import pickle
 import struct
 import zipfile
 from pathlib import Path
-from typing import Any
+import copy
+from typing import Any, NamedTuple
 
 import torch
+from torch import nn
 
-from downwash_core.errors import CheckpointError
+from downwash_core.errors import CheckpointError, ConfigError
 from downwash_core.io import atomic_write_bytes, to_json
-from downwash.models import MODEL_KINDS, DownwashModel, make_model
+from downwash_core.provenance import differences
+from downwash.datasets import aggregation_record
+from downwash.models import MAX_WIDTH, DownwashModel
+from downwash.registry import MODEL_KINDS, make_model
+from downwash.set_models import SetModel, SummedPairwise
+from sim.neighbours import NeighbourSet
 
 __all__ = [
-    "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CheckpointError", "save_checkpoint", "load_checkpoint",
-    "read_metadata", "read_payload", "write_checkpoint", "sidecar_path",
+    "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "Checkpoint", "CheckpointError", "save_checkpoint", "load_checkpoint",
+    "wrap_pairwise", "check_expectations", "read_metadata", "sidecar_path",
 ]
 
 CHECKPOINT_FORMAT = "downwash-model"
 CHECKPOINT_VERSION = 1
+_OLD_SET_FORMAT = "downwash-swarm-model"  # models of sets were written in a format of their own; still read
+
+
+class Checkpoint(NamedTuple):
+    """A model (eval mode) with its record (kind, provenance, training, and for a model of sets
+    its ``neighbours``, ``aggregation`` and ``field``); unpacks as ``model, record``."""
+
+    model: nn.Module
+    record: dict[str, Any]
+
+    @property
+    def neighbours(self) -> NeighbourSet:
+        """The neighbour set a model of sets was trained for; a per-neighbour model sees every
+        other vehicle (`NeighbourSet()`)."""
+        stored = self.record.get("neighbours")
+        return NeighbourSet() if stored is None else NeighbourSet.from_record(stored)
 
 
 def _unpickling_reason(e: Exception) -> str:
@@ -51,30 +76,49 @@ def sidecar_path(path: str | os.PathLike) -> Path:
     return Path(path).with_suffix(".json")
 
 
-def save_checkpoint(path: str | os.PathLike, model: DownwashModel, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+def save_checkpoint(path: str | os.PathLike, model: nn.Module, meta: dict[str, Any] | None = None, *,
+                    neighbours: NeighbourSet | None = None, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write ``model`` and metadata to ``path`` (conventionally ``*.pt``) atomically.
 
-    meta: JSON-serialisable extras (NumPy values, paths and dataclasses such as
-    TrainConfig are converted); the key "model" is reserved. The stored record is
-    ``{**meta, "model": model.describe() + normalisation + dtype}``; it is returned.
+    meta: JSON-serialisable extras (NumPy values, paths and dataclasses such as TrainConfig
+      are converted); the keys "model", "neighbours", "aggregation", "field" are reserved.
+    neighbours, provenance: required for a model of sets: the neighbour set it was trained
+      for and what its data was flown with (`Dataset.provenance`, or a `Checkpoint.record`);
+      its ``aggregation`` (a law or its record, or None for two-vehicle data only) and
+      ``field`` are stored at the top of the record, where the loader checks them.
+    The stored record is ``{**meta, "model": model.describe() + normalisation + dtype, ...}``;
+    it is returned.
     """
     meta = dict(meta or {})
-    if "model" in meta:
-        raise ValueError("meta: the key 'model' is reserved for the model description")
-    if not isinstance(model, DownwashModel):
-        raise TypeError(f"model: expected a DownwashModel, got {type(model).__name__}")
+    reserved = sorted({"model", "neighbours", "aggregation", "field"} & set(meta))
+    if reserved:
+        raise ValueError(f"meta: the keys {reserved} are reserved")
+    if not isinstance(model, (DownwashModel, SetModel)):
+        raise TypeError(f"model: expected a model of downwash.registry.MODEL_KINDS, got {type(model).__name__}")
     record = dict(meta)
     record["model"] = {
         **model.describe(),
         "normalization": model.normalization(),
-        "dtype": str(model.in_mean.dtype).replace("torch.", ""),
+        "dtype": str(next(model.buffers()).dtype).replace("torch.", ""),
     }
+    if isinstance(model, SetModel):
+        if not isinstance(neighbours, NeighbourSet):
+            raise TypeError(f"neighbours: a model of sets needs its NeighbourSet, got {type(neighbours).__name__}")
+        provenance = dict(provenance or {})
+        if "aggregation" not in provenance:
+            raise ValueError("provenance: must name the aggregation law of the training data ('aggregation')")
+        record.update(
+            provenance={k: v for k, v in provenance.items() if k not in ("aggregation", "field")} or None,
+            neighbours=neighbours.describe(),
+            aggregation=None if provenance["aggregation"] is None else aggregation_record(provenance["aggregation"]),
+            field=provenance.get("field"),
+        )
     return write_checkpoint(path, model, record, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
 
 
 def write_checkpoint(path: str | os.PathLike, model: torch.nn.Module, record: dict, fmt: str, version: int) -> dict:
     """Atomically write `model`'s tensors and `record` (JSON-safe, also as a `.json` sidecar) to `path`;
-    returns the record as stored. Shared by the pair and the swarm checkpoints."""
+    returns the record as stored."""
     try:
         meta_json = to_json(record)
     except TypeError as e:
@@ -100,31 +144,37 @@ _CORRUPT_PICKLE_ERRORS = (
     RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, IndexError, KeyError, TypeError, AttributeError,
     struct.error, UnicodeDecodeError, OverflowError, MemoryError,
 )
-MAX_WIDTH = 4096  # the widest layer a checkpoint may ask for: a larger one is corrupt, not a model
+def _widths(value: Any) -> list[int]:
+    """Every integer in an architecture record (layer widths, latent sizes)."""
+    if isinstance(value, dict):
+        return [w for v in value.values() for w in _widths(v)]
+    if isinstance(value, list):
+        return [w for v in value for w in _widths(v)]
+    return [value] if isinstance(value, int) and not isinstance(value, bool) else []
 
 
-def _check_payload(path: Path, desc: Any, state: Any) -> tuple[str, str, dict]:
-    """(kind, feature set, architecture) of well-typed metadata and a state dict of tensors; else CheckpointError."""
+def _check_payload(path: Path, desc: Any, state: Any) -> tuple[str, str | None, dict]:
+    """(kind, feature set (None for a model of sets), architecture) of well-typed metadata and a state
+    dict of tensors; else CheckpointError."""
     if not isinstance(desc, dict):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: 'model' is not a record")
     kind, feature_set, architecture = desc.get("kind"), desc.get("feature_set"), desc.get("architecture", {})
-    if not isinstance(kind, str) or not isinstance(feature_set, str) or not isinstance(architecture, dict):
+    pairwise = isinstance(kind, str) and isinstance(MODEL_KINDS.get(kind), type) and issubclass(MODEL_KINDS[kind], DownwashModel)
+    if (not isinstance(kind, str) or not isinstance(architecture, dict)
+            or not (isinstance(feature_set, str) if pairwise else feature_set is None)):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: kind {kind!r}, feature set {feature_set!r}, "
                               f"architecture {architecture!r}")
-    widths = [v for v in architecture.values() for v in (v if isinstance(v, list) else [v])
-              if isinstance(v, int) and not isinstance(v, bool)]
-    if any(not 1 <= w <= MAX_WIDTH for w in widths):
+    if any(not 1 <= w <= MAX_WIDTH for w in _widths(architecture)):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: architecture {architecture} "
-                              f"(layer widths must lie in 1-{MAX_WIDTH})")
+                              f"(sizes must lie in 1-{MAX_WIDTH})")
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
         raise CheckpointError(f"{path}: corrupt checkpoint: the state dict must map names to tensors")
     return kind, feature_set, architecture
 
 
-def read_payload(path: Path, fmt: str, version: int, hints: dict[str, str] | None = None) -> tuple[dict, dict]:
-    """(payload, metadata record) of a checkpoint that `write_checkpoint` wrote in format `fmt`,
-    version `version`, through the safe loader; CheckpointError naming the file otherwise.
-    hints: format -> what to say when the file holds that other format instead."""
+def _read(path: Path) -> tuple[dict, dict]:
+    """(payload, metadata record) of a checkpoint that `write_checkpoint` wrote (or an old model of
+    sets' file), through the safe loader; CheckpointError naming the file otherwise."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -144,12 +194,11 @@ def read_payload(path: Path, fmt: str, version: int, hints: dict[str, str] | Non
         raise CheckpointError(f"{path}: not a readable torch checkpoint (truncated or foreign file): "
                               f"{type(e).__name__}: {e}") from e
     found = payload.get("format") if isinstance(payload, dict) else None
-    if found in (hints or {}) and found != fmt:
-        raise CheckpointError(f"{path}: {hints[found]}")
-    if found != fmt:
-        raise CheckpointError(f"{path}: not a {fmt!r} checkpoint of this project")
-    if payload.get("version") != version:
-        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads {version}")
+    if found not in (CHECKPOINT_FORMAT, _OLD_SET_FORMAT):
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads "
+                              f"{CHECKPOINT_VERSION}")
     try:
         record = json.loads(payload["meta_json"])
     except (KeyError, TypeError, json.JSONDecodeError) as e:
@@ -159,28 +208,46 @@ def read_payload(path: Path, fmt: str, version: int, hints: dict[str, str] | Non
     return payload, record
 
 
-def _read(path: Path) -> tuple[dict, dict]:
-    """(payload, metadata record) of a two-vehicle model checkpoint (`read_payload`)."""
-    return read_payload(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
-
-
 def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
     """The metadata record of a checkpoint (kind, feature set, provenance, training), read safely
     without rebuilding the model; CheckpointError naming the file when it is not a checkpoint."""
     return _read(Path(path))[1]
 
 
+def check_expectations(where: Any, neighbours: NeighbourSet, record: dict[str, Any],
+                       expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None) -> None:
+    """CheckpointError when a model's neighbour set or aggregation law is not the one asked for.
+
+    expect_aggregation: a registered name, a law object or a stored record (`aggregation_record`).
+    """
+    if expect_neighbours is not None and neighbours != expect_neighbours:
+        raise CheckpointError(f"{where}: trained for the neighbour set {neighbours.describe()}, but the flight "
+                              f"asks for {expect_neighbours.describe()}; train or wrap a model for that set")
+    if expect_aggregation is not None:
+        want = aggregation_record(expect_aggregation)
+        have = record.get("aggregation")
+        if have is None:
+            raise CheckpointError(f"{where}: trained on two-vehicle flights only (where every law is the pairwise "
+                                  f"force), not for the flight's aggregation law {want}")
+        diffs = differences(have, want)
+        if diffs:
+            raise CheckpointError(f"{where}: trained for another aggregation law than the flight's:\n  "
+                                  + "\n  ".join(diffs))
+
+
 def load_checkpoint(
     path: str | os.PathLike,
     expect_kind: str | None = None,
     expect_feature_set: str | None = None,
-) -> tuple[DownwashModel, dict[str, Any]]:
-    """Rebuild a model from ``path``; returns (model in eval mode, metadata record).
+    expect_neighbours: NeighbourSet | None = None,
+    expect_aggregation: Any = None,
+) -> Checkpoint:
+    """Rebuild a model from ``path``; returns its `Checkpoint` (model in eval mode, metadata record).
 
     Raises CheckpointError naming the file when it is missing or unreadable, holds
-    anything but tensors and plain containers, is not a checkpoint of this
-    project, or its kind / feature set / tensor names and shapes differ from what
-    was expected (each difference is named).
+    anything but tensors and plain containers, is not a checkpoint of this project, or
+    its kind, feature set, tensor names and shapes, neighbour set or aggregation law
+    (a model of sets) differ from what was expected (each difference is named).
     """
     path = Path(path)
     payload, record = _read(path)
@@ -194,22 +261,69 @@ def load_checkpoint(
         raise CheckpointError(f"{path}: feature set is {feature_set!r}, expected {expect_feature_set!r}")
     if kind not in MODEL_KINDS:
         raise CheckpointError(f"{path}: unknown model kind {kind!r} (known: {sorted(MODEL_KINDS)})")
+    if issubclass(MODEL_KINDS[kind], SetModel):
+        try:
+            neighbours = NeighbourSet.from_record(record.get("neighbours"))
+        except ConfigError as e:
+            raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e}") from e
+        if "aggregation" not in record or not isinstance(record["aggregation"], (dict, type(None))):
+            raise CheckpointError(f"{path}: corrupt checkpoint metadata: no aggregation law record")
+        check_expectations(path, neighbours, record, expect_neighbours, expect_aggregation)
     try:
-        model = make_model(kind, feature_set, **architecture)
+        model = make_model(kind, **architecture) if feature_set is None else make_model(kind, feature_set, **architecture)
     except (ValueError, TypeError, RuntimeError) as e:
         raise CheckpointError(f"{path}: cannot rebuild the model: {e}") from e
     if desc.get("dtype") == "float64":
         model = model.double()
 
     expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    found = {k: tuple(v.shape) for k, v in state.items()} if isinstance(state, dict) else {}
+    found = {k: tuple(v.shape) for k, v in state.items()}
     problems = [f"missing tensor {k!r} (expected shape {s})" for k, s in expected.items() if k not in found]
     problems += [f"unexpected tensor {k!r}" for k in found if k not in expected]
     problems += [
         f"tensor {k!r} has shape {found[k]}, expected {s}" for k, s in expected.items() if k in found and found[k] != s
     ]
     if problems:
-        raise CheckpointError(f"{path}: weights do not match a {kind!r} model with feature set {feature_set!r}: " + "; ".join(problems))
+        what = f"a {kind!r} model" + (f" with feature set {feature_set!r}" if feature_set is not None else "")
+        raise CheckpointError(f"{path}: weights do not match {what}: " + "; ".join(problems))
     model.load_state_dict(state, strict=True)
     model.eval()
-    return model, record
+    return Checkpoint(model, record)
+
+
+def _field_of(record: dict[str, Any]) -> Any:
+    """The field a per-neighbour checkpoint's data was flown on (staged: provenance.field;
+    experiments.train: provenance.flights.field), or None when it does not say."""
+    prov = record.get("provenance")
+    if not isinstance(prov, dict):
+        return None
+    if "field" in prov:
+        return prov["field"]
+    flights = prov.get("flights")
+    return flights.get("field") if isinstance(flights, dict) else None
+
+
+def wrap_pairwise(pairwise: DownwashModel | str | os.PathLike, neighbours: NeighbourSet | None = None,
+                  expect_kind: str | None = None) -> Checkpoint:
+    """``summed_pairwise`` from a trained per-neighbour model or its checkpoint file.
+
+    The aggregation law recorded is the linear sum (what summing pairs assumes); the field is
+    that of the pair model's data when its checkpoint says. neighbours: default `NeighbourSet()`
+    (every other vehicle).
+    """
+    neighbours = NeighbourSet() if neighbours is None else neighbours
+    record: dict[str, Any] = {}
+    if isinstance(pairwise, (str, os.PathLike)):
+        path = pairwise
+        pairwise, stored = load_checkpoint(path, expect_kind=expect_kind)
+        if not isinstance(pairwise, DownwashModel):
+            raise CheckpointError(f"{path}: a {pairwise.kind!r} model of sets, not a per-neighbour model to wrap")
+        record = {"pairwise_checkpoint": str(path), "pairwise_provenance": stored.get("provenance"),
+                  "field": _field_of(stored)}
+    elif expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
+        raise ConfigError(f"pairwise: model kind is {getattr(pairwise, 'kind', None)!r}, expected {expect_kind!r}")
+    model = SummedPairwise(copy.deepcopy(pairwise)).eval()  # the caller's model stays as it is
+    record = {**record, "model": {**model.describe(), "dtype": str(model.dtype).replace("torch.", "")},
+              "neighbours": neighbours.describe(), "aggregation": aggregation_record("linear")}
+    record.setdefault("field", None)
+    return Checkpoint(model, record)

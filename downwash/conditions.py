@@ -7,7 +7,7 @@ the field being off).
     no_downwash   the field is off: the controller's own tracking error
     baseline      the LQR with no model (the paper's baseline)
     oracle        the LQR compensating with the true mean field (the best any model can do)
-    <model kind>  the LQR compensating with that trained model (`downwash.models.MODEL_KINDS`)
+    <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`)
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash.models import MODEL_KINDS
+from downwash.models import PAIRWISE_KINDS
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
@@ -29,7 +29,7 @@ from downwash_trajectories import Reference
 __all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
-CONDITIONS = REFERENCE_CONDITIONS + tuple(MODEL_KINDS)
+CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS)
 
 
 def parse_conditions(text: str) -> list[str]:
@@ -47,7 +47,7 @@ def parse_conditions(text: str) -> list[str]:
 
 def learned(conditions: Sequence[str]) -> list[str]:
     """The conditions that fly a trained model."""
-    return [c for c in conditions if c in MODEL_KINDS]
+    return [c for c in conditions if c in PAIRWISE_KINDS]
 
 
 def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> Predictor:

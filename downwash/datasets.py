@@ -1,9 +1,23 @@
-"""Training data sets assembled from flight logs: samples, flights and stages.
+"""The one data set: every labelled sample of a target vehicle with its set of neighbours.
 
-A `Dataset` is a frozen bundle of per-sample arrays (one sample per 50 Hz
-controller tick, follower of one flight). Flights are the unit of every split:
-samples of one flight are strongly correlated, so validation never shares a
-flight with training.
+A `Dataset` is a frozen bundle of per-sample arrays (`downwash.labels.SAMPLE_SCHEMA`):
+one sample per 50 Hz controller tick and target vehicle, with the vehicles around the
+target padded to a fixed count K with a mask, so that a batch is a set of plain arrays
+(B, K, ...). The two-vehicle (leader-follower) data is its K = 1 case with the follower
+as the one target (`downwash.labels.PAIR`); `Dataset.pairs` gives every real (target,
+neighbour) pair as flat arrays, the samples of the per-neighbour models. Padding slots
+hold dp = 0, v_a = 0, R_a = I (finite features) and are ignored by every model.
+
+Flights are the unit of every split: samples of one flight are strongly correlated, so
+validation never shares a flight with training.
+
+Provenance. A data set records what its logs were flown with: the field, the flight
+config, controller, turbulence and wind, the vehicle model (not the vehicle list:
+scenes of different sizes may be mixed) and the aggregation law (how the wakes of
+several vehicles combine; `aggregation_record`). Logs that differ in any of these are
+never mixed, with one exception: with two vehicles every law of `sim.aggregation` is
+the pairwise force, so a two-vehicle log records the law as None ("any") and joins
+many-vehicle logs of any one law (`concatenate`).
 """
 
 from __future__ import annotations
@@ -12,52 +26,92 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from downwash_core.errors import DataError
-from downwash_core.provenance import differences
-from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, MODEL_INPUTS, SAMPLE_SCHEMA, labels_from_log
-from sim.logs import load_log
+from downwash_core.errors import ConfigError, DataError
 from downwash_core.params import RATES
-
-# The log metadata every flight of one data set must share: what the labels mean depends on it
-# (the wind too: a log flown in wind holds its `describe()`, one flown without holds none).
-FLIGHT_PROVENANCE = ("field", "scene", "config", "controller", "turbulence", "wind")
+from downwash_core.provenance import describe, differences
+from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, PAIR, SAMPLE_SCHEMA, labels_from_log
+from sim.aggregation import DEFAULT_AGGREGATION, make_aggregation
+from sim.logs import load_log
+from sim.neighbours import NeighbourSet
 
 __all__ = [
-    "FLIGHT_PROVENANCE",
+    "PROVENANCE",
+    "aggregation_record",
+    "log_provenance",
+    "merge_provenance",
     "Dataset",
+    "Pairs",
     "concatenate",
-    "load_dataset",
     "find_logs",
+    "load_dataset",
     "split_by_flight",
     "shorten_per_stage",
 ]
 
 logger = logging.getLogger(__name__)
 
-# name -> trailing shape: the labelled sample (SAMPLE_SCHEMA) with where it came from
-_ARRAYS = {
-    **{name: SAMPLE_SCHEMA[name][0] for name in (*MODEL_INPUTS, "y")},
-    "flight": (),
-    "stage": (),
-    **{name: SAMPLE_SCHEMA[name][0] for name in ("t", "field_mean")},
-}
+# What the labels of a log mean depends on these log metadata entries (plus the vehicle
+# model and the aggregation law, see `log_provenance`); the vehicle list may differ.
+PROVENANCE = ("field", "config", "controller", "turbulence", "wind")
 
 
-@dataclass(frozen=True)
-class Dataset:
-    """N samples (world frame, SI units).
+def aggregation_record(law: Any = None) -> dict[str, Any]:
+    """The provenance record of an aggregation law: a registered name, a law object, a stored
+    record (dict, returned as is) or None (`sim.aggregation.DEFAULT_AGGREGATION`, the linear sum
+    that flights flew with before the law was recorded in the logs)."""
+    if law is None:
+        law = DEFAULT_AGGREGATION
+    if isinstance(law, str):
+        law = make_aggregation(law)  # ConfigError naming the registered laws
+    if isinstance(law, dict):
+        return dict(law)
+    return describe(law)
 
-    dp (N, 3) m, v_a (N, 3) m/s, v_b (N, 3) m/s, R_a (N, 3, 3): model inputs (see
-      `downwash.features`); y (N, 3) m/s^2: labels;
-    flight (N,) int: flight id, an index into ``sources``; stage (N,) int: data
-      collection stage; t (N,) s: tick time within the flight;
-    field_mean (N, 3) m/s^2: the true mean field (NaN where unknown);
-    sources: flight id -> where it came from (file path), may be empty.
+
+def log_provenance(meta: dict[str, Any]) -> dict[str, Any]:
+    """What the labels of a log depend on: `PROVENANCE` entries of its metadata (None
+    where absent: no wind), the vehicle model (scene digest and timestep, not the vehicle
+    list) and the aggregation law (``meta['aggregation']``, default linear; None for a log of
+    at most two vehicles, where every law is the pairwise force)."""
+    scene = meta.get("scene") or {}
+    record = {k: meta.get(k) for k in PROVENANCE}
+    record["vehicle_model"] = {k: scene.get(k) for k in ("quad_xml_sha256", "timestep")}
+    n_vehicles = len(meta.get("vehicles") or scene.get("vehicles") or ())
+    record["aggregation"] = None if n_vehicles <= 2 else aggregation_record(meta.get("aggregation"))
+    return record
+
+
+def merge_provenance(records: Sequence[dict | None], names: Sequence[str] = ()) -> dict | None:
+    """The provenance of data sets joined together; DataError naming the differences.
+
+    Records must be equal, except that an aggregation law of None (two-vehicle data) joins
+    any one law. names: where each record comes from, for the message.
     """
+    records = list(records)
+    laws = [r.get("aggregation") for r in records if isinstance(r, dict)]
+    law = next((a for a in laws if a is not None), None)
+    strip = lambda r: {k: v for k, v in r.items() if k != "aggregation"} if isinstance(r, dict) else r  # noqa: E731
+    first = strip(records[0])
+    for i, r in enumerate(records):
+        where = names[i] if i < len(names) and names[i] else f"data set {i}"
+        diffs = differences(strip(r), first)
+        if isinstance(r, dict) and r.get("aggregation") not in (None, law):
+            diffs += differences({"aggregation": r.get("aggregation")}, {"aggregation": law})
+        if (r is None) != (records[0] is None) or diffs:
+            raise DataError(f"{where}: flown with other settings than the first data set:\n  "
+                            + "\n  ".join(diffs or ["no provenance record"])
+                            + "\nTrain only on logs of one field, configuration and aggregation law.")
+    return None if records[0] is None else {**records[0], "aggregation": law}
+
+
+class Pairs(NamedTuple):
+    """Every real (target, neighbour) pair of a `Dataset` as flat arrays (`Dataset.pairs`), the
+    call of the per-neighbour models: dp, v_a (P, 3), v_b (P, 3), R_a (P, 3, 3), y (P, 3) (the
+    target's label) and flight (P,)."""
 
     dp: np.ndarray
     v_a: np.ndarray
@@ -65,31 +119,74 @@ class Dataset:
     R_a: np.ndarray
     y: np.ndarray
     flight: np.ndarray
+
+
+# the arrays a Dataset holds: name -> trailing shape (K: the neighbour count)
+_ARRAYS: dict[str, tuple[str | int, ...]] = {
+    **{name: SAMPLE_SCHEMA[name][0] for name in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y")},
+    "flight": (),
+    "stage": (),
+    "t": (),
+    "field_mean": (3,),
+}
+_INTEGER = ("neighbour", "vehicle", "flight", "stage")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """N target samples with their neighbour sets (world frame, SI units).
+
+    dp (N, K, 3) m, v_a (N, K, 3) m/s, v_b (N, 3) m/s, R_a (N, K, 3, 3), mask (N, K) bool:
+      model inputs (module doc); neighbour (N, K), vehicle (N,): vehicle indices in the log;
+    y (N, 3) m/s^2: labels; flight (N,), stage (N,): flight id (an index into ``sources``)
+      and collection stage; t (N,) s; field_mean (N, 3) m/s^2: the true mean field;
+    neighbours: the neighbour set the samples were built with (K = its max_neighbours);
+    provenance: what the flights were flown with (`log_provenance`).
+
+    Splits are by flight (`split_by_flight`).
+    """
+
+    dp: np.ndarray
+    v_a: np.ndarray
+    v_b: np.ndarray
+    R_a: np.ndarray
+    mask: np.ndarray
+    neighbour: np.ndarray
+    vehicle: np.ndarray
+    y: np.ndarray
+    flight: np.ndarray
     stage: np.ndarray
     t: np.ndarray
     field_mean: np.ndarray
+    neighbours: NeighbourSet = PAIR
     sources: tuple[str, ...] = ()
-    provenance: dict | None = None  # what every flight was flown with (FLIGHT_PROVENANCE of the logs' meta)
+    provenance: dict | None = None
 
     def __post_init__(self) -> None:
-        n = np.shape(self.dp)[0] if np.ndim(self.dp) else -1
+        if not isinstance(self.neighbours, NeighbourSet):
+            raise TypeError(f"Dataset.neighbours: expected a NeighbourSet, got {type(self.neighbours).__name__}")
+        K = self.neighbours.max_neighbours
+        n = np.shape(self.y)[0] if np.ndim(self.y) else -1
         for name, trail in _ARRAYS.items():
             a = np.asarray(getattr(self, name))
-            if name in ("flight", "stage"):
+            if name == "mask":
+                a = a.astype(bool, copy=False)
+            elif name in _INTEGER:
                 a = a.astype(np.int64, copy=False)
             elif a.dtype != np.float32:
                 a = a.astype(np.float64, copy=False)
-            if a.shape != (n, *trail):
-                raise ValueError(f"Dataset.{name}: expected shape {(n, *trail)}, got {a.shape}")
+            want = (n, *(K if d == "K" else d for d in trail))
+            if a.shape != want:
+                raise ValueError(f"Dataset.{name}: expected shape {want}, got {a.shape}")
             object.__setattr__(self, name, a)
         object.__setattr__(self, "sources", tuple(str(s) for s in self.sources))
 
     def __len__(self) -> int:
-        return int(self.dp.shape[0])
+        return int(self.y.shape[0])
 
     @property
     def n_minutes(self) -> float:
-        """Flight time covered, min (one sample per controller tick)."""
+        """Target samples in minutes of one vehicle's flight (one sample per controller tick)."""
         return len(self) * RATES.control_dt / 60.0
 
     @property
@@ -104,64 +201,94 @@ class Dataset:
 
     def subset(self, index: np.ndarray) -> "Dataset":
         """The samples at an index array or boolean mask (flight ids and sources unchanged)."""
-        return Dataset(**{name: getattr(self, name)[index] for name in _ARRAYS}, sources=self.sources,
-                       provenance=self.provenance)
+        return Dataset(**{name: getattr(self, name)[index] for name in _ARRAYS}, neighbours=self.neighbours,
+                            sources=self.sources, provenance=self.provenance)
 
     def select_flights(self, flights: Sequence[int] | np.ndarray) -> "Dataset":
         """The samples of the given flight ids."""
         return self.subset(np.isin(self.flight, np.asarray(flights, dtype=np.int64)))
 
-    def summary(self) -> dict:
-        """Sizes for metadata: samples, flights, minutes in all and per stage."""
-        per_stage = {str(int(s)): float(np.sum(self.stage == s) * RATES.control_dt / 60.0) for s in self.stages}
+    def summary(self) -> dict[str, Any]:
+        """Sizes for metadata: samples, flights, minutes in all and per stage, the neighbour set and
+        how full it is."""
+        per_stage = {str(int(st)): float(np.sum(self.stage == st) * RATES.control_dt / 60.0) for st in self.stages}
         return {
             "n_samples": len(self),
             "n_flights": int(self.flights.size),
             "minutes": self.n_minutes,
             "minutes_per_stage": per_stage,
+            "neighbours": self.neighbours.describe(),
+            "neighbour_count_histogram": np.bincount(self.mask.sum(axis=1),
+                                                     minlength=self.neighbours.max_neighbours + 1).tolist(),
         }
 
+    def pairs(self) -> "Pairs":
+        """Every real (target, neighbour) pair as flat arrays: the samples of the per-neighbour models.
+
+        The label of a pair is its target's label, the whole force: for the pair data (K = 1,
+        every slot real) these are the samples in order.
+        """
+        s, k = np.nonzero(self.mask)
+        return Pairs(self.dp[s, k], self.v_a[s, k], self.v_b[s], self.R_a[s, k], self.y[s], self.flight[s])
+
     @staticmethod
-    def from_labels(labels: dict[str, np.ndarray], flight: int, stage: int, source: str = "",
-                    provenance: dict | None = None) -> "Dataset":
-        """One flight's `labels_from_log` output as a Dataset with the given flight id and stage."""
+    def from_pairs(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray, y: np.ndarray,
+                   flight: np.ndarray, stage: np.ndarray | None = None, t: np.ndarray | None = None,
+                   field_mean: np.ndarray | None = None, sources: Sequence[str] = (),
+                   provenance: dict | None = None) -> "Dataset":
+        """Two-vehicle samples (K = 1, `PAIR`) from flat arrays: dp, v_a, v_b (N, 3), R_a (N, 3, 3),
+        y (N, 3), flight (N,); stage 0, t 0 and field_mean NaN where not given. The target is
+        vehicle 1, its neighbour vehicle 0."""
+        n = np.shape(y)[0]
+        return Dataset(
+            dp=np.asarray(dp)[:, None], v_a=np.asarray(v_a)[:, None], v_b=v_b, R_a=np.asarray(R_a)[:, None],
+            mask=np.ones((n, 1), bool), neighbour=np.zeros((n, 1), np.int64), vehicle=np.ones(n, np.int64), y=y,
+            flight=flight, stage=np.zeros(n, np.int64) if stage is None else stage,
+            t=np.zeros(n) if t is None else t, field_mean=np.full((n, 3), np.nan) if field_mean is None else field_mean,
+            neighbours=PAIR, sources=tuple(sources), provenance=provenance,
+        )  # fmt: skip
+
+    @staticmethod
+    def from_labels(labels: dict[str, np.ndarray], neighbours: NeighbourSet, flight: int, stage: int,
+                    source: str = "", provenance: dict | None = None) -> "Dataset":
+        """One flight's `swarm_labels_from_log` output with the given flight id and stage."""
         n = len(labels["y"])
         sources = [""] * (flight + 1)
         sources[flight] = str(source)
         return Dataset(
-            dp=labels["dp"], v_a=labels["v_a"], v_b=labels["v_b"], R_a=labels["R_a"], y=labels["y"],
-            flight=np.full(n, flight), stage=np.full(n, stage), t=labels["t"],
-            field_mean=labels.get("field_mean", np.full((n, 3), np.nan)), sources=tuple(sources),
-            provenance=provenance,
+            **{name: labels[name] for name in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y", "t")},
+            flight=np.full(n, flight), stage=np.full(n, stage),
+            field_mean=labels.get("field_mean", np.full((n, 3), np.nan)), neighbours=neighbours,
+            sources=tuple(sources), provenance=provenance,
         )  # fmt: skip
 
 
-def _n_flight_slots(ds: Dataset) -> int:
-    return max(len(ds.sources), int(ds.flight.max()) + 1 if len(ds) else 0)
-
-
 def concatenate(datasets: Sequence[Dataset]) -> Dataset:
-    """One data set from several; flight ids of each later part are offset so that they stay distinct."""
+    """One data set from several of one neighbour set and provenance; flight ids stay distinct.
+
+    DataError naming the differences when the neighbour sets or the provenance differ
+    (`merge_provenance`: two-vehicle data joins data of any one aggregation law).
+    """
     datasets = list(datasets)
     if not datasets:
         raise ValueError("concatenate: need at least one Dataset")
+    first = datasets[0]
+    names = [next((s for s in ds.sources if s), "") for ds in datasets]
+    provenance = merge_provenance([ds.provenance for ds in datasets], names)
     parts: dict[str, list[np.ndarray]] = {name: [] for name in _ARRAYS}
     sources: list[str] = []
-    provenance = datasets[0].provenance
-    for ds in datasets:
-        if ds.provenance != provenance:
-            where = next((s for s in ds.sources if s), "a data set")
-            raise DataError(f"{where}: flown with other settings than {next((s for s in datasets[0].sources if s), 'the first')}:"
-                            "\n  " + "\n  ".join(differences(ds.provenance, provenance))
-                            + "\nTrain only on logs of one field and configuration.")
+    for ds, where in zip(datasets, names):
+        if ds.neighbours != first.neighbours:
+            raise DataError(f"{where or 'a data set'}: neighbour set {ds.neighbours.describe()}, the first data set "
+                            f"has {first.neighbours.describe()}")
         offset = len(sources)
         for name in _ARRAYS:
             a = getattr(ds, name)
             parts[name].append(a + offset if name == "flight" else a)
-        slots = _n_flight_slots(ds)
+        slots = max(len(ds.sources), int(ds.flight.max()) + 1 if len(ds) else 0)
         sources.extend(list(ds.sources) + [""] * (slots - len(ds.sources)))
-    return Dataset(**{name: np.concatenate(v) for name, v in parts.items()}, sources=tuple(sources),
-                   provenance=provenance)
+    return Dataset(**{name: np.concatenate(v) for name, v in parts.items()}, neighbours=first.neighbours,
+                        sources=tuple(sources), provenance=provenance)
 
 
 def find_logs(location: str | os.PathLike | Sequence[str | os.PathLike], recursive: bool = False) -> list[Path]:
@@ -194,28 +321,36 @@ def find_logs(location: str | os.PathLike | Sequence[str | os.PathLike], recursi
 
 def load_dataset(
     location: str | os.PathLike | Sequence[str | os.PathLike],
+    neighbours: NeighbourSet = PAIR,
     window: int = DEFAULT_WINDOW,
     polyorder: int = DEFAULT_POLYORDER,
     stage: int | None = None,
     recursive: bool = False,
+    targets: Sequence[int] | str | None = None,
 ) -> Dataset:
     """Labelled samples from flight logs (a folder of `.npz` logs, one file, or a list).
 
+    neighbours, targets: as `downwash.labels.labels_from_log` (default: the pair's
+    samples, every vehicle but the leader with its nearest other vehicle).
     Flight ids follow the sorted file order (``sources[i]`` is the i-th file); the
     stage is ``stage`` if given, else each log's ``meta['stage']`` (default 0).
     A foreign, truncated or corrupt file raises `sim.logs.LogError` naming it;
-    a log too short to label is skipped with a warning.
+    a log too short to label is skipped with a warning; logs flown with other
+    settings (`log_provenance`) raise DataError naming the difference.
     """
+    if not isinstance(neighbours, NeighbourSet):
+        raise ConfigError(f"neighbours: expected a NeighbourSet, got {type(neighbours).__name__}")
     files = find_logs(location, recursive=recursive)
     parts = []
-    for i, path in enumerate(files):
+    for path in files:
         log = load_log(path)
-        labels = labels_from_log(log, window, polyorder, source=path)
+        labels = labels_from_log(log, neighbours, window, polyorder, source=path, targets=targets)
         if len(labels["y"]) == 0:
-            logger.warning("%s: no labelled samples (only %d rows, status %s), skipped", path, len(log), log.meta.get("status"))
+            logger.warning("%s: no labelled samples (only %d rows, status %s), skipped", path, len(log),
+                           log.meta.get("status"))
         st = int(log.meta.get("stage", 0)) if stage is None else int(stage)
-        record = {k: log.meta.get(k) for k in FLIGHT_PROVENANCE}
-        parts.append(Dataset.from_labels(labels, flight=0, stage=st, source=str(path), provenance=record))
+        parts.append(Dataset.from_labels(labels, neighbours, flight=0, stage=st, source=str(path),
+                                         provenance=log_provenance(log.meta)))
     ds = concatenate(parts)  # flight id i <-> files[i], also for skipped (empty) flights
     if len(ds) == 0:
         raise ValueError(f"{location}: none of the {len(files)} logs has labelled samples")

@@ -119,8 +119,9 @@ from torch.optim.adam import adam as _adam_functional
 from downwash_core.errors import ConfigError
 from downwash.datasets import split_by_flight
 from downwash.features import assemble
-from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, make_model
-from downwash.train import TrainConfig, _check_arrays, _encode, _flight_ids
+from downwash.models import PAIRWISE_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, settle_spectral_norm
+from downwash.registry import make_model
+from downwash.train import TrainConfig, _check
 
 __all__ = ["train_ensemble"]
 
@@ -431,8 +432,8 @@ def train_ensemble(
     (naming ``datasets[i]``); FloatingPointError naming the member whose
     validation loss is not finite (which ends the whole ensemble).
     """
-    if kind not in MODEL_KINDS:
-        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
+    if kind not in PAIRWISE_KINDS:
+        raise ConfigError(f"model kind: expected one of the per-neighbour kinds {sorted(PAIRWISE_KINDS)}, got {kind!r}")
     if not isinstance(datasets, (list, tuple)):
         raise ConfigError(f"datasets: expected a list of data sets (one per member), got {type(datasets).__name__}")
     if not datasets:
@@ -454,20 +455,20 @@ def train_ensemble(
 
 def _prepare(i: int, kind: str, train: Any, val: Any, config: TrainConfig, feature_set, shared_val: dict) -> _Member:
     """A member as `train_model` sets it up: split, model, encoding, normalisation, schedule."""
-    _check_arrays(train, f"datasets[{i}]", need_flight=val is None)
+    _check(train, f"datasets[{i}]")
     given = val is not None
     if not given:
         train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(config.seed))
     elif id(val) not in shared_val:
-        _check_arrays(val, f"val[{i}]", need_flight=False)
+        _check(val, f"val[{i}]")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         model = make_model(kind, feature_set)
-    x, basis, y = _encode(model, train)
+    (x, basis), y = model.encode_samples(train)
     if given and id(val) in shared_val:  # a validation set given for several members: encoded once
         xv, basis_v, yv = shared_val[id(val)]
     else:
-        xv, basis_v, yv = _encode(model, val)
+        (xv, basis_v), yv = model.encode_samples(val)
         if given:
             shared_val[id(val)] = (xv, basis_v, yv)
     model.fit_normalization(x, model.output_targets(y, basis))
@@ -768,22 +769,13 @@ def _finish(kind: str, mb: _Member, level: int, size: int) -> None:
     model.eval()  # as train_model's model is after its last validation (no power iteration in decode)
     model.load_state_dict(mb.best_state)
     mb.history.update(
-        best_epoch=mb.best_epoch,
-        best_val_loss=mb.best,
-        epochs=len(mb.history["val_loss"]),
-        planned_epochs=mb.n_epochs,
-        steps=mb.step,
-        lr=mb.lr,
-        n_train=int(mb.n),
-        n_val=int(mb.xv.shape[0]),
-        train_flights=_flight_ids(mb.train),
-        val_flights=_flight_ids(mb.val),
-        kind=model.kind,
-        feature_set=model.feature_set,
-        config=mb.config.to_dict(),
-        ensemble_size=size,
-        member=mb.index,
-    )
+        best_epoch=mb.best_epoch, best_val_loss=mb.best, epochs=len(mb.history["val_loss"]), planned_epochs=mb.n_epochs,
+        steps=mb.step, lr=mb.lr, n_train=int(mb.n), n_val=int(mb.xv.shape[0]),
+        train_flights=[int(f) for f in mb.train.flights], val_flights=[int(f) for f in mb.val.flights],
+        kind=model.kind, architecture=model.architecture(), seed=mb.config.seed, config=mb.config.to_dict(),
+        neighbours=mb.train.neighbours.describe(), provenance=mb.train.provenance, feature_set=model.feature_set,
+        ensemble_size=size, member=mb.index,
+    )  # fmt: skip
     mb.train = mb.val = None  # free the member's data (the deep model keeps its validation set)
     mb.xv_n = mb.x = mb.y = mb.basis = mb.epoch_data = mb.best_state = None
     if isinstance(model, DeepSNMLP):
@@ -816,7 +808,7 @@ def _settle_members(members: list[_Member], level: int) -> None:
         _log_member(mb.model.kind, mb, level)
 
 
-_SETTLE = inspect.signature(DeepSNMLP.settle_spectral_norm).parameters  # its max_iterations and rtol
+_SETTLE = inspect.signature(settle_spectral_norm).parameters  # its max_iterations and rtol
 _SETTLE_CHUNK = 20  # power iterations between two tests of convergence, as in DeepSNMLP.settle_spectral_norm
 
 

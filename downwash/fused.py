@@ -1,30 +1,23 @@
-"""The learned predictor as one compiled pass: features, network and output basis for every pair.
+"""The compiled pieces of the per-neighbour models: features, network and output basis of one pair.
 
-`LearnedPredictor(backend="compiled")` evaluates a trained model in the 45 Hz slot
-with this kernel: one loop over worlds, followers and leaders, the same features as
-`downwash.features` (`model_inputs`), the model's float64 `folded_layers` (input
-normalisation and output scaling folded in), the equivariant basis, the depth gate
-and the clamp, in float64. Per call it costs a few microseconds where NumPy's
-per-operation overhead cost ~55 us at one world. The readable path is the "numpy"
-backend; a test checks the two agree to float64 rounding (the sums run in another
-order than BLAS's).
-
-`predict_address` is the same kernel as a C function of `sim.predictor.PREDICTOR_SIGNATURE`
-(`pack_abi` packs its constants), which the simulator's fused loop calls in the 45 Hz
-slot without a Python call: `LearnedPredictor.compiled()`.
+The same features as `downwash.features` (`model_inputs`), a model's float64 `folded_layers`
+(input normalisation and output scaling folded in, `pack_layers`), the equivariant basis,
+the depth gate's quantities and the clamp, in float64, one pair at a time. The compiled
+predictor kernels (`downwash.set_fused`: ``summed_pairwise``, which flies every
+per-neighbour model, and the deep sets) are built from them; per call they cost a few
+microseconds where NumPy's per-operation overhead cost ~55 us at one world. The readable
+reference is the model's NumPy twin (`DownwashModel.numpy_forward`); tests check the two
+agree to float64 rounding (the sums run in another order than BLAS's).
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from downwash_core.jit import njit
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, R_EPS, V_EPS
-from sim.predictor import PREDICTOR_SIGNATURE
 
-__all__ = ["pack_layers", "feature_code", "pair_inputs", "mlp_inplace", "pair_force", "clamped", "predict_into",
-           "pack_abi", "predict_address"]
+__all__ = ["pack_layers", "feature_code", "pair_inputs", "mlp_inplace", "pair_force", "clamped"]
 
 _RAW, _SET5, _SET6, _GENERAL = 0, 1, 2, 3  # feature-set codes of the kernel
 
@@ -142,65 +135,6 @@ def clamped(fx, fy, fz, clamp):
         if norm > clamp:
             scale = clamp / norm
     return fx * scale, fy * scale, fz * scale
-
-
-@njit
-def predict_into(pos, vel, rot, weights, biases, widths, code, clamp, out):
-    """Summed prediction on every vehicle into out (W, V, 3) m/s^2 from (W, V, ...) estimated states.
-
-    pos, vel (W, V, 3) m, m/s and rot (W, V, 3, 3) body to world, world frame; weights,
-    biases, widths from `pack_layers`; code from `feature_code`; clamp (m/s^2) bounds
-    each vehicle's summed magnitude (<= 0: no bound). A pair whose follower is not below
-    its leader (depth <= 0) contributes nothing. (Its pieces, `pair_inputs`, `mlp_inplace`,
-    `pair_force` and `clamped`, also serve the swarm models' kernels, `downwash.swarm_fused`.)
-    """
-    W, V = pos.shape[0], pos.shape[1]
-    width = 0
-    for k in range(widths.shape[0]):
-        width = max(width, widths[k])
-    x = np.empty(width)
-    y = np.empty(width)
-    for w in range(W):
-        for j in range(V):  # follower
-            fx, fy, fz = 0.0, 0.0, 0.0
-            for i in range(V):  # leader
-                if i == j:
-                    continue
-                nx, ny, nz = rot[w, i, 0, 2], rot[w, i, 1, 2], rot[w, i, 2, 2]
-                dx, dy, dz = pos[w, j, 0] - pos[w, i, 0], pos[w, j, 1] - pos[w, i, 1], pos[w, j, 2] - pos[w, i, 2]
-                dp_n = dx * nx + dy * ny + dz * nz
-                if not -dp_n > 0.0:
-                    continue
-                px, py, pz, r_soft = pair_inputs(dx, dy, dz, nx, ny, nz, dp_n, vel[w, j, 0], vel[w, j, 1], vel[w, j, 2],
-                                                 vel[w, i, 0], vel[w, i, 1], vel[w, i, 2], code, x)
-                mlp_inplace(x, y, weights, biases, widths)
-                fx, fy, fz = pair_force(x, code, px, py, pz, r_soft, nx, ny, nz, fx, fy, fz)
-            out[w, j, 0], out[w, j, 1], out[w, j, 2] = clamped(fx, fy, fz, clamp)
-
-
-def pack_abi(packed: tuple[np.ndarray, np.ndarray, np.ndarray], code: int, clamp: float) -> tuple[np.ndarray, np.ndarray]:
-    """(params, iparams) of the C form: params = [clamp, weights..., biases...] float64,
-    iparams = [code, len(weights), len(biases), len(widths), widths...] int64."""
-    weights, biases, widths = packed
-    params = np.concatenate([[float(clamp)], weights, biases]).astype(np.float64)
-    iparams = np.concatenate([[code, weights.size, biases.size, widths.size], widths]).astype(np.int64)
-    return np.ascontiguousarray(params), np.ascontiguousarray(iparams)
-
-
-@numba.cfunc(PREDICTOR_SIGNATURE, cache=True, nopython=True)
-def _predict_c(n_worlds, n_veh, pos, vel, rot, true_pos, true_vel, true_rot, params, iparams, out):
-    """`predict_into` behind the C signature (estimated states only; the truth is ignored)."""
-    code, n_w, n_b, n_l = iparams[0], iparams[1], iparams[2], iparams[3]
-    ints = numba.carray(iparams, (4 + n_l,))
-    floats = numba.carray(params, (1 + n_w + n_b,))
-    predict_into(
-        numba.carray(pos, (n_worlds, n_veh, 3)), numba.carray(vel, (n_worlds, n_veh, 3)),
-        numba.carray(rot, (n_worlds, n_veh, 3, 3)), floats[1:1 + n_w], floats[1 + n_w:], ints[4:], code, floats[0],
-        numba.carray(out, (n_worlds, n_veh, 3)),
-    )
-
-
-predict_address: int = _predict_c.address  # of `_predict_c`, a C function of PREDICTOR_SIGNATURE
 
 
 assert set(FEATURE_SETS) == {"raw", *EQUIVARIANT_FEATURE_SETS}, "a new feature set needs a kernel code"

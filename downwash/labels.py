@@ -1,7 +1,7 @@
 """Force labels ``f = a - u`` from flight logs (paper section 4.C, DESIGN section 6).
 
-The follower's acceleration ``a`` comes from its motion-capture positions through
-an offline Savitzky-Golay second-derivative filter; ``u`` is the commanded
+Every target vehicle's acceleration ``a`` (the pair's follower; every vehicle but the
+leader of a swarm) comes from its motion-capture positions through an offline Savitzky-Golay second-derivative filter; ``u`` is the commanded
 acceleration actually applied (compensation included, gravity excluded), so the
 label is the FULL downwash also when a model was compensating during the flight.
 
@@ -15,15 +15,16 @@ the label is ``K * (x'' - u) = K * f``, a consistently smoothed force, not a
 smoothed acceleration minus a raw command.
 
 Inputs paired with each label are what the vehicles know: the Kalman-filtered
-positions and velocities (``pos_est``, ``vel_est``) and the leader's attitude
-(``quat_est``): what a lab measures. The truth (``quat``, ``field_*``) is only
+positions and velocities (``pos_est``, ``vel_est``) of the target and of its neighbour
+set (`sim.neighbours`, padded to a fixed count with a mask) and the neighbours'
+attitudes (``quat_est``): what a lab measures. The truth (``quat``, ``field_*``) is only
 carried along for diagnostics.
 """
 
 from __future__ import annotations
 
 import os
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
@@ -32,6 +33,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import quat_to_mat
 from sim.logs import FlightLog, load_log
+from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 
 __all__ = [
     "DEFAULT_WINDOW",
@@ -39,10 +41,12 @@ __all__ = [
     "FAIL_MARGIN_S",
     "SAMPLE_SCHEMA",
     "MODEL_INPUTS",
+    "PAIR",
     "sample_period",
     "follower_acceleration",
     "command_kernel",
     "smooth_command",
+    "log_targets",
     "labels_from_log",
     "label_noise_floor",
     "LABEL_ARRAYS",
@@ -64,18 +68,24 @@ DEFAULT_WINDOW = 19  # samples at 50 Hz (0.38 s)
 DEFAULT_POLYORDER = 4
 FAIL_MARGIN_S = 0.5  # s, dropped before the end of a flight that ended early (collision, divergence)
 
-# One labelled sample, the schema every data container follows: name -> (trailing shape, meaning).
-SAMPLE_SCHEMA: dict[str, tuple[tuple[int, ...], str]] = {
-    "dp": ((3,), "m, p_follower - p_leader (estimates), world frame"),
-    "v_a": ((3,), "m/s, leader velocity (estimate), world frame"),
-    "v_b": ((3,), "m/s, follower velocity (estimate), world frame"),
-    "R_a": ((3, 3), "leader body-to-world rotation"),
-    "y": ((3,), "m/s^2, label f = a - u on the follower, world frame"),
+# One labelled sample, the schema of the one data set (`downwash.datasets.Dataset`): name ->
+# (trailing shape with K = the neighbour set's max_neighbours, meaning). For target j and
+# neighbour i (estimated states): the pair is K = 1 with the leader as the one neighbour.
+SAMPLE_SCHEMA: dict[str, tuple[tuple[str | int, ...], str]] = {
+    "dp": (("K", 3), "m, p_target - p_neighbour (estimates), world frame; 0 in padding"),
+    "v_a": (("K", 3), "m/s, neighbour velocity (estimate), world frame; 0 in padding"),
+    "v_b": ((3,), "m/s, target velocity (estimate), world frame"),
+    "R_a": (("K", 3, 3), "neighbour body-to-world rotation (motion capture); identity in padding"),
+    "mask": (("K",), "True for a real neighbour, False for padding"),
+    "neighbour": (("K",), "vehicle index of each neighbour in the log, -1 in padding"),
+    "vehicle": ((), "vehicle index of the target in the log"),
+    "y": ((3,), "m/s^2, label f = a - u on the target, world frame"),
     "t": ((), "s, tick time within the flight"),
     "row": ((), "row index in the log"),
-    "field_mean": ((3,), "m/s^2, true mean field on the follower (diagnostics only)"),
+    "field_mean": ((3,), "m/s^2, true mean field on the target (diagnostics only)"),
     "field_applied": ((3,), "m/s^2, true applied field, mean + turbulence (diagnostics only)"),
 }
+PAIR = NeighbourSet(max_neighbours=1)  # the two-vehicle samples: the nearest other vehicle, the leader of a pair
 MODEL_INPUTS = ("dp", "v_a", "v_b", "R_a")  # what every model takes, in the order of its call
 
 
@@ -143,70 +153,98 @@ def smooth_command(u: np.ndarray, window: int = DEFAULT_WINDOW, polyorder: int =
     return convolve1d(np.asarray(u, dtype=np.float64), command_kernel(window, polyorder), axis=0, mode="nearest")
 
 
-def _empty_labels() -> dict[str, np.ndarray]:
-    return {name: np.zeros((0, *shape), dtype=np.int64 if name == "row" else np.float64)
-            for name, (shape, _) in SAMPLE_SCHEMA.items()}
+def _empty(K: int) -> dict[str, np.ndarray]:
+    out = {}
+    for name, (shape, _) in SAMPLE_SCHEMA.items():
+        dtype = bool if name == "mask" else np.int64 if name in ("neighbour", "vehicle", "row") else np.float64
+        out[name] = np.zeros((0, *(K if d == "K" else d for d in shape)), dtype=dtype)
+    return out
+
+
+def log_targets(log: FlightLog, targets: Sequence[int] | str | None = None) -> list[int]:
+    """The vehicles labelled in a log: ``None`` every vehicle but the leader (``log.meta['leader']``;
+    the pair's follower), ``"all"`` every vehicle, or a sequence of distinct vehicle indices."""
+    V = log.arrays["pos"].shape[1]
+    if targets is None:
+        leader = int(log.meta.get("leader", -1))
+        return [v for v in range(V) if v != leader]
+    if isinstance(targets, str):
+        if targets != "all":
+            raise ConfigError(f"targets: expected None (every vehicle but the leader), 'all' or vehicle indices, got {targets!r}")
+        return list(range(V))
+    out = [int(v) for v in targets]
+    if not out or any(not 0 <= v < V for v in out) or len(set(out)) != len(out):
+        raise ConfigError(f"targets: expected distinct vehicle indices in [0, {V - 1}], got {list(targets)}")
+    return out
 
 
 def labels_from_log(
     log: FlightLog,
+    neighbours: NeighbourSet = PAIR,
     window: int = DEFAULT_WINDOW,
     polyorder: int = DEFAULT_POLYORDER,
     fail_margin_s: float = FAIL_MARGIN_S,
     source: str | os.PathLike | None = None,
+    targets: Sequence[int] | str | None = None,
 ) -> dict[str, np.ndarray]:
-    """Model inputs and labels for the follower of one flight.
+    """Model inputs and labels of the target vehicles of one flight, each with its neighbour set.
 
-    Leader and follower are ``log.meta['leader']`` / ``['follower']`` (vehicle
-    indices, from the scene's roles). Returns arrays of N kept rows (SAMPLE_SCHEMA):
+    neighbours: which vehicles each sample holds (`sim.neighbours.NeighbourSet`); the default
+      `PAIR` holds the nearest other vehicle, the leader of a two-vehicle flight.
+    targets: the labelled vehicles (`log_targets`; default every vehicle but the leader).
+    Returns the arrays of `SAMPLE_SCHEMA` for N = (targets) x (kept rows), target-major
+    (each target's samples in time order):
 
-      dp (N, 3) m        pos_est[follower] - pos_est[leader], world frame
-      v_a, v_b (N, 3)    m/s, vel_est of leader / follower
-      R_a (N, 3, 3)      leader body-to-world rotation (from the motion-capture quat_est)
-      y (N, 3) m/s^2     label f = a - u on the follower (see module doc), world frame
-      t (N,) s, row (N,) the tick time and row index in the log
-      field_mean, field_applied (N, 3) m/s^2   the true field on the follower
+      dp, v_a (N, K, 3)  p_target - p_neighbour and the neighbour's velocity (estimates)
+      v_b (N, 3)         the target's velocity (estimate)
+      R_a (N, K, 3, 3)   the neighbour's body-to-world rotation (motion-capture quat_est)
+      mask, neighbour (N, K), vehicle (N,)   real slots and vehicle indices in the log
+      y (N, 3) m/s^2     label f = a - u on the target (module doc), world frame
+      t, row (N,)        the tick time and row index in the log
+      field_mean, field_applied (N, 3) m/s^2   the true field on the target
 
-    Dropped: the first and last ``window // 2`` rows (filter edges); for a flight
-    that ended early (status != 0) the last ``fail_margin_s`` seconds too (contact
-    or divergence forces that no downwash model explains); every row from the
-    first non-finite value on, on any vehicle (`finite_rows`, the swarm labels' rule too).
-    Too short a flight gives N = 0.
+    Dropped: the first and last ``window // 2`` rows (filter edges); for a flight that
+    ended early (status != 0) the last ``fail_margin_s`` seconds too (contact or
+    divergence forces that no downwash model explains); every row from the first
+    non-finite value on, on any vehicle (`finite_rows`). Too short a flight gives N = 0.
     """
     _check_filter(window, polyorder)
-    where = f"{source}: " if source is not None else ""
+    if not isinstance(neighbours, NeighbourSet):
+        raise ConfigError(f"neighbours: expected a NeighbourSet, got {type(neighbours).__name__}")
     arr = log.arrays
-    V = arr["pos"].shape[1]
-    leader = int(log.meta["leader"])
-    follower = int(log.meta["follower"])
-    if not (0 <= leader < V and 0 <= follower < V and leader != follower):
-        raise ConfigError(f"{where}leader/follower: expected two distinct vehicle indices in [0, {V - 1}], got {leader}, {follower}")
-    T = len(log)
+    try:
+        targets = log_targets(log, targets)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}" if source is not None else str(e)) from None
+    T, K = len(arr["t"]), neighbours.max_neighbours
     if T < 2:
-        return _empty_labels()
+        return _empty(K)
     dt = sample_period(arr["t"])
     end = T
     if log.meta.get("status", 0) != 0:
         end -= int(round(fail_margin_s / dt))
     end = min(end, finite_rows(arr))
     if end < window:
-        return _empty_labels()
+        return _empty(K)
     h = window // 2
     rows = np.arange(h, end - h)
-    acc = follower_acceleration(arr["t"][:end], arr["mocap_pos"][:end, follower], window, polyorder)
-    u = smooth_command(arr["u_cmd"][:end, follower], window, polyorder)
     pos, vel = arr["pos_est"][rows], arr["vel_est"][rows]
-    return {
-        "dp": pos[:, follower] - pos[:, leader],
-        "v_a": vel[:, leader].astype(np.float64),
-        "v_b": vel[:, follower].astype(np.float64),
-        "R_a": quat_to_mat(arr["quat_est"][rows, leader].astype(np.float64)),
-        "y": acc[rows] - u[rows],
-        "t": arr["t"][rows].astype(np.float64),
-        "row": rows.astype(np.int64),
-        "field_mean": arr["field_mean"][rows, follower].astype(np.float64),
-        "field_applied": arr["field_applied"][rows, follower].astype(np.float64),
-    }
+    rot = quat_to_mat(arr["quat_est"][rows].astype(np.float64))
+    index, mask = select_neighbours(pos, neighbours)  # (R, V, K)
+    inputs = gather_neighbours(pos, vel, rot, index, mask)
+    parts = []
+    for v in targets:  # one vehicle at a time: each target's filter runs over its own column
+        acc = follower_acceleration(arr["t"][:end], arr["mocap_pos"][:end, v], window, polyorder)
+        u = smooth_command(arr["u_cmd"][:end, v], window, polyorder)
+        parts.append({
+            "dp": inputs["dp"][:, v], "v_a": inputs["v_a"][:, v], "v_b": inputs["v_b"][:, v].astype(np.float64),
+            "R_a": inputs["R_a"][:, v], "mask": mask[:, v], "neighbour": index[:, v],
+            "vehicle": np.full(rows.size, v, dtype=np.int64), "y": acc[rows] - u[rows],
+            "t": arr["t"][rows].astype(np.float64), "row": rows.astype(np.int64),
+            "field_mean": arr["field_mean"][rows, v].astype(np.float64),
+            "field_applied": arr["field_applied"][rows, v].astype(np.float64),
+        })  # fmt: skip
+    return {name: np.concatenate([p[name] for p in parts]) for name in SAMPLE_SCHEMA}
 
 
 def label_noise_floor(
@@ -224,7 +262,7 @@ def label_noise_floor(
     errs_applied, errs_mean = [], []
     for item in logs:
         log, source = (item, None) if isinstance(item, FlightLog) else (load_log(item), item)
-        lab = labels_from_log(log, window, polyorder, source=source)
+        lab = labels_from_log(log, window=window, polyorder=polyorder, source=source)
         errs_applied.append(lab["y"] - lab["field_applied"])
         errs_mean.append(lab["y"] - lab["field_mean"])
     if not errs_applied or sum(len(e) for e in errs_applied) == 0:

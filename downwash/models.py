@@ -1,6 +1,9 @@
-"""Learned downwash models (paper sections 4 and 5.D): one equivariant, two baselines.
+"""The per-neighbour downwash models (paper sections 4 and 5.D): one equivariant, two baselines.
 
-All models share one call, ``model(dp, v_a, v_b, R_a) -> F``:
+A per-neighbour model maps one (neighbour, target) pair to the force the neighbour's wake
+puts on the target; `downwash.set_models.SummedPairwise` sums it over a neighbour set,
+and `downwash.registry` lists these kinds beside the models of sets. All share one call,
+``model(dp, v_a, v_b, R_a) -> F``:
 
     dp  (..., 3)    m     follower minus leader position, world frame (z up)
     v_a (..., 3)    m/s   leader velocity, world frame
@@ -20,7 +23,7 @@ float32 by default; ``.double()`` gives a float64 model (used by the property te
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -29,30 +32,42 @@ from torch.nn.utils.parametrizations import spectral_norm
 
 from downwash_core.errors import ConfigError
 
-from downwash.features import (
-    FEATURE_SETS,
-    RAW_FEATURE_SETS,
-    assemble,
-    model_inputs,
-    project_onto_basis,
-)
+from downwash.features import FEATURE_SETS, RAW_FEATURE_SETS, assemble, depth, model_inputs, project_onto_basis
+from downwash_core.numerics import matmul_rows
 
 __all__ = [
     "DownwashModel",
+    "PairEncoded",
     "EquivariantModel",
+    "GeneralEquivariantModel",
     "ShallowMLP",
     "DeepSNMLP",
-    "MODEL_KINDS",
-    "make_model",
+    "PAIRWISE_KINDS",
     "count_parameters",
+    "settle_spectral_norm",
+    "MAX_WIDTH",
 ]
 
 _STD_FLOOR = 1e-6  # a feature or output with a smaller spread is left unscaled
+MAX_WIDTH = 4096  # the widest layer a model (or a checkpoint's record of one) may ask for
+_ZERO = np.zeros(())  # 0-d: cheaper per NumPy call than a Python float
 
 
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable scalars (buffers such as normalisation are not counted)."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+class PairEncoded(NamedTuple):
+    """Parameter-free inputs of a per-neighbour model for a whole data set (computed once in
+    training): x (P, k) features, basis (P, m, 3) output rows or None."""
+
+    x: torch.Tensor
+    basis: torch.Tensor | None
+
+    def index(self, idx: Any) -> "PairEncoded":
+        """The samples at ``idx`` (index tensor or slice)."""
+        return PairEncoded(self.x[idx], None if self.basis is None else self.basis[idx])
 
 
 class DownwashModel(nn.Module):
@@ -71,6 +86,8 @@ class DownwashModel(nn.Module):
     ALLOWED_FEATURE_SETS: tuple[str, ...] = ()
     DEFAULT_FEATURE_SET: str = ""
     n_outputs: int = 3
+    trainable: bool = True
+    default_lr: float = 1e-2  # peak Adam learning rate of `downwash.train` (each kind sets its own)
 
     def __init__(self, feature_set: str | None = None):
         super().__init__()
@@ -110,6 +127,33 @@ class DownwashModel(nn.Module):
     def output_targets(self, y: torch.Tensor, basis: torch.Tensor | None) -> torch.Tensor:
         """World-frame labels y (..., 3) in the coordinates of the network's outputs (..., m)."""
         return y if basis is None else project_onto_basis(y, basis)
+
+    # -- the trainer's protocol (`downwash.train`): the same three steps for every kind -----------
+    def encode_samples(self, data: Any) -> tuple[PairEncoded, torch.Tensor]:
+        """(encoding, labels (P, 3)) of every real (target, neighbour) pair of a `Dataset`
+        (`Dataset.pairs`), or of an object of flat arrays dp, v_a, v_b, R_a and y (labels None
+        without y)."""
+        pairs = data.pairs() if hasattr(data, "pairs") else data
+        with torch.no_grad():
+            x, basis = self.encode(pairs.dp, pairs.v_a, pairs.v_b, pairs.R_a)
+        y = getattr(pairs, "y", None)
+        return PairEncoded(x, basis), None if y is None else torch.as_tensor(np.asarray(y), dtype=x.dtype)
+
+    def fit_samples(self, enc: PairEncoded, y: torch.Tensor) -> None:
+        """The normalisation fitted on a training encoding and its labels."""
+        self.fit_normalization(enc.x, self.output_targets(y, enc.basis))
+
+    def decode_samples(self, enc: PairEncoded) -> torch.Tensor:
+        """Predictions (P, 3) m/s^2 on an encoding."""
+        return self.decode(enc.x, enc.basis)
+
+    def spectral_layers(self) -> list["_SpectralLinear"]:
+        """The spectrally normalised layers (none in the one-hidden-layer models)."""
+        return [m for m in self.modules() if isinstance(m, _SpectralLinear)]
+
+    def settle_spectral_norm(self) -> None:
+        """Exact spectral-norm estimates (`settle_spectral_norm`); nothing to do without such layers."""
+        settle_spectral_norm(self)
 
     # -- normalisation -----------------------------------------------------------------
     @torch.no_grad()
@@ -165,6 +209,37 @@ class DownwashModel(nn.Module):
         out_mean, out_std = self.out_mean.double(), self.out_std.double()
         f64[-1] = (wl * out_std[:, None], bl * out_std + out_mean)
         return [(w.numpy(), b.numpy()) for w, b in f64]
+
+    def numpy_forward(self) -> Callable[..., np.ndarray]:
+        """The model as a float64 NumPy function of pairs ``f(dp, v_a, v_b, R_a) -> F (..., 3)``: the
+        `folded_layers` as they are now (eval mode), copied; 0 where the target is not below the
+        neighbour (depth ``-(dp . n) <= 0``: the models are trained on targets below only and have
+        no business extrapolating above a wake). The readable reference of every predictor's law."""
+        was_training = self.training
+        self.eval()  # the spectral-norm estimates as stored
+        try:
+            layers = [(np.ascontiguousarray(w.T), b) for w, b in self.folded_layers()]  # (in, out): h @ W + b
+        finally:
+            self.train(was_training)
+        feature_set = self.feature_set
+        names = FEATURE_SETS[feature_set]
+        depth_col = names.index("depth") if "depth" in names else None
+
+        def forward(dp, v_a, v_b, R_a):
+            x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
+            h = x
+            for w, b in layers[:-1]:
+                h = matmul_rows(h, w)
+                h += b
+                np.maximum(h, _ZERO, out=h)
+            w, b = layers[-1]
+            f = matmul_rows(h, w) + b
+            if basis is not None:
+                f = assemble(f, basis)
+            s = x[..., depth_col] if depth_col is not None else depth(dp, R_a)
+            return np.where((s > 0)[..., None], f, 0.0)
+
+        return forward
 
     # -- description ---------------------------------------------------------------------
     def architecture(self) -> dict[str, Any]:
@@ -232,6 +307,10 @@ class EquivariantModel(_OneHiddenLayer):
     ALLOWED_FEATURE_SETS = ("5", "6")
     DEFAULT_FEATURE_SET = "5"
     n_outputs = 2
+    # Peak learning rates of the pair kinds were picked on synthetic data from the true field
+    # (51k samples, batch 2048, 60 epochs, cosine decay): the equivariant model kept improving
+    # up to 0.1, the shallow MLP was best at 0.03, the deep SN-MLP at 0.003-0.01 (diverged at 0.03).
+    default_lr = 5e-2
 
 
 class GeneralEquivariantModel(_OneHiddenLayer):
@@ -249,6 +328,7 @@ class GeneralEquivariantModel(_OneHiddenLayer):
     ALLOWED_FEATURE_SETS = ("general",)
     DEFAULT_FEATURE_SET = "general"
     n_outputs = 3
+    default_lr = 5e-2
 
 
 class ShallowMLP(_OneHiddenLayer):
@@ -258,6 +338,7 @@ class ShallowMLP(_OneHiddenLayer):
     ALLOWED_FEATURE_SETS = RAW_FEATURE_SETS
     DEFAULT_FEATURE_SET = "raw"
     n_outputs = 3
+    default_lr = 3e-2
 
 
 class _SpectralLinear(nn.Module):
@@ -300,6 +381,7 @@ class DeepSNMLP(DownwashModel):
     ALLOWED_FEATURE_SETS = RAW_FEATURE_SETS
     DEFAULT_FEATURE_SET = "raw"
     n_outputs = 3
+    default_lr = 5e-3
     DEFAULT_HIDDEN = (40, 40, 40, 40, 40, 40, 25)
 
     def __init__(self, feature_set: str | None = None, hidden: Sequence[int] = DEFAULT_HIDDEN, gamma: float = 2.0):
@@ -318,58 +400,39 @@ class DeepSNMLP(DownwashModel):
     def architecture(self) -> dict[str, Any]:
         return {"hidden": list(self.hidden), "gamma": self.gamma}
 
-    def spectral_layers(self) -> list[_SpectralLinear]:
-        return [m for m in self.net if isinstance(m, _SpectralLinear)]
 
-    @torch.no_grad()
-    def settle_spectral_norm(self, max_iterations: int = 5000, rtol: float = 1e-9) -> None:
-        """Run each layer's power iteration until its singular-value estimate converges.
+@torch.no_grad()
+def settle_spectral_norm(model: nn.Module, max_iterations: int = 5000, rtol: float = 1e-9) -> None:
+    """Run the power iteration of every spectrally normalised layer of ``model`` until its
+    singular-value estimate converges.
 
-        Afterwards the stored estimate matches sigma_max(W) to about rtol, so every
-        effective weight has largest singular value gamma (up to rtol) in eval mode.
-        """
-        for layer in self.spectral_layers():
-            param = layer.linear.parametrizations.weight[0]
-            W = layer.linear.parametrizations.weight.original
-            old_n, old_mode = param.n_power_iterations, param.training
-            param.n_power_iterations, chunk = 20, 20
-            param.train()
-            try:
-                prev = None
-                for _ in range(0, max_iterations, chunk):
-                    param(W)  # training-mode forward: 20 power iterations on _u, _v in place
-                    sigma = float(torch.dot(param._u, torch.mv(W, param._v)))
-                    if prev is not None and abs(sigma - prev) <= rtol * abs(sigma):
-                        break
-                    prev = sigma
-            finally:
-                param.n_power_iterations = old_n
-                param.train(old_mode)
+    Afterwards the stored estimate matches sigma_max(W) to about rtol, so every effective
+    weight has largest singular value gamma (up to rtol) in eval mode.
+    """
+    for layer in (m for m in model.modules() if isinstance(m, _SpectralLinear)):
+        param = layer.linear.parametrizations.weight[0]
+        W = layer.linear.parametrizations.weight.original
+        old_n, old_mode = param.n_power_iterations, param.training
+        param.n_power_iterations, chunk = 20, 20
+        param.train()
+        try:
+            prev = None
+            for _ in range(0, max_iterations, chunk):
+                param(W)  # training-mode forward: 20 power iterations on _u, _v in place
+                sigma = float(torch.dot(param._u, torch.mv(W, param._v)))
+                if prev is not None and abs(sigma - prev) <= rtol * abs(sigma):
+                    break
+                prev = sigma
+        finally:
+            param.n_power_iterations = old_n
+            param.train(old_mode)
 
 
-# The one registry of model kinds (the paper's table order): experiments, conditions,
-# checkpoints and training all take their names from here.
-MODEL_KINDS: dict[str, type[DownwashModel]] = {
+# The per-neighbour kinds (the paper's table order); `downwash.registry.MODEL_KINDS` lists them
+# with the models of sets, and experiments, conditions, checkpoints and training take names there.
+PAIRWISE_KINDS: dict[str, type[DownwashModel]] = {
     "shallow": ShallowMLP,
     "deep": DeepSNMLP,
     "equivariant": EquivariantModel,
     "equivariant_general": GeneralEquivariantModel,
 }
-
-
-def make_model(kind: str, feature_set: str | None = None, **architecture: Any) -> DownwashModel:
-    """A fresh model of a registered kind (float32, initialised from torch's global RNG).
-
-    ``feature_set`` defaults to the kind's own ("5" for equivariant, "raw" for the
-    baselines); ``architecture`` passes constructor arguments (as stored by
-    `DownwashModel.architecture`). Raises ValueError naming the allowed kinds or
-    feature sets.
-    """
-    if kind not in MODEL_KINDS:
-        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
-    cls = MODEL_KINDS[kind]
-    try:
-        return cls(feature_set, **architecture)
-    except TypeError as e:
-        raise TypeError(f"model kind {kind!r}: bad architecture arguments {sorted(architecture)}: {e}") from e
-

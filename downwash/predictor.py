@@ -1,172 +1,174 @@
-"""A learned model in the control loop: the `sim.predictor.Predictor` protocol.
+"""A learned model in the control loop: the `sim.predictor.Predictor` protocol, for every kind.
 
-For every ordered pair (leader i, follower j != i) of every world the model is
-evaluated on the ESTIMATED states, ``dp = p_j - p_i``, ``v_a = v_i``,
-``v_b = v_j``, ``R_a = rot_i``, in one batched call, and the predictions are summed
-over leaders. A pair whose follower is not below its leader (depth
-``s = -(dp . n_i) <= 0``) contributes 0: the models are trained on follower-below
-data only and have no business extrapolating above a wake.
+Every vehicle's predicted force is its model's answer on its neighbour set, selected from the
+ESTIMATED states (`sim.neighbours`, the data's selection). A per-neighbour model
+(`downwash.models`) is flown as ``summed_pairwise`` over every other vehicle: for each ordered
+pair (neighbour i, target j != i) of every world the model is evaluated on ``dp = p_j - p_i``,
+``v_a = v_i``, ``v_b = v_j``, ``R_a = rot_i``, and the predictions are summed over the
+neighbours. A pair whose target is not below its neighbour (depth ``s = -(dp . n_i) <= 0``)
+contributes 0: the models are trained on targets below only and have no business
+extrapolating above a wake. A model of sets (`downwash.set_models`) takes the padded set.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import os
+from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
-from downwash.checkpoint import load_checkpoint
-from downwash.features import FEATURE_SETS, assemble, depth, model_inputs
-from downwash.fused import feature_code, pack_abi, pack_layers, predict_address, predict_into
-from downwash.models import DownwashModel
+from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot
 from downwash_core.state import VehicleStates
-from downwash_core.numerics import matmul_rows
+from downwash_core.validate import count
+from downwash.checkpoint import Checkpoint, check_expectations, load_checkpoint, wrap_pairwise
+from downwash.models import DownwashModel, _SpectralLinear
+from downwash.set_models import SetModel
+from downwash.set_fused import COMPILED_KINDS, pack_model
+from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 from sim.predictor import CompiledPredictor
 
 __all__ = ["LearnedPredictor", "clamp_magnitude"]
 
-_ZERO = np.zeros(())  # 0-d: cheaper per NumPy call than a Python float
 
-
-def _f64(a: np.ndarray) -> np.ndarray:
-    """float64 as is (numba takes strided views), else converted."""
-    return a if isinstance(a, np.ndarray) and a.dtype == np.float64 else np.asarray(a, dtype=np.float64)
-
-
-def _frozen(model: DownwashModel) -> DownwashModel:
-    """An inference copy: eval mode (spectral-norm estimates fixed), no gradients.
-
-    (Not `parametrize.remove_parametrizations`: on a deep copy it edits the
-    parametrized class that the copy shares with the original.)
-    """
-    model = copy.deepcopy(model).eval()
-    for p in model.parameters():
-        p.requires_grad_(False)
+@torch.no_grad()
+def _fold_spectral(model: nn.Module) -> nn.Module:
+    """Replace every spectrally normalised layer (in eval mode) by a plain linear layer with its
+    effective weight: the same function, without the per-call normalisation (inference only)."""
+    for module in list(model.modules()):
+        for name, child in list(module.named_children()):
+            if isinstance(child, _SpectralLinear):
+                w = child.effective_weight()
+                plain = nn.Linear(w.shape[1], w.shape[0], dtype=w.dtype)
+                plain.weight.copy_(w)
+                plain.bias.copy_(child.linear.bias)
+                setattr(module, name, plain)
     return model
 
 
 class LearnedPredictor:
-    """Downwash prediction (W, V, 3) m/s^2, world frame, float64, from a trained model.
+    """A learned model in the predictor slot: (W, V, 3) m/s^2, world frame, float64.
 
-    model: a `DownwashModel` (copied and frozen; the original is untouched).
-    clamp: optional bound (m/s^2) on the magnitude of each vehicle's summed prediction.
-    backend: "compiled" (default) runs features, network, basis, depth gate and
-      clamp in one compiled pass (`downwash.fused`, float64): a few microseconds a
-      call. "numpy" is its readable reference: the same features (`downwash.features`,
-      NumPy namespace) and the model's float64 `folded_layers` in NumPy (~55 us a call
-      at one world, mostly per-operation overhead); the two agree to float64
-      rounding (a test). "torch" calls the frozen torch model once under
-      ``torch.inference_mode`` (float32 unless the model is float64), agreeing to
-      float32 rounding.
+    model: a per-neighbour model (`downwash.models.DownwashModel`, flown as `summed_pairwise`
+      over ``neighbours``, by default every other vehicle), a `downwash.checkpoint.Checkpoint`
+      (e.g. from `load_checkpoint` or `wrap_pairwise`), or a checkpoint's path. Models are
+      copied; the caller's stay as they are.
+    clamp: optional bound (m/s^2) on the magnitude of each vehicle's prediction (`clamp_magnitude`).
+    backend: "compiled" (the default for a kind in `downwash.set_fused.COMPILED_KINDS`, every
+      registered kind): selection, model and clamp in one compiled pass, float64, which the
+      simulator's fused tick calls without leaving compiled code (`compiled()`); "numpy" (the
+      default for a kind without a compiled form): the model's float64 NumPy twin
+      (``numpy_forward``), the compiled pass's readable reference; "torch": the frozen torch
+      model under ``torch.inference_mode``, the twin's readable reference, 2-5x slower on these
+      small batches. All three agree to float64 rounding (tests).
+    neighbours: the neighbour set of a per-neighbour model (a checkpoint brings its own).
+    expect_neighbours, expect_aggregation: what the flight needs; a model made for another
+      neighbour set or aggregation law raises CheckpointError here, before any flight.
+    dtype: the torch backend's precision (default float64: the model is copied and converted).
+    num_threads: torch intra-op threads during a torch call (default 1: these small batches
+      ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
     """
 
     BACKENDS = ("compiled", "numpy", "torch")
 
-    def __init__(self, model: DownwashModel, clamp: float | None = None, backend: str = "compiled"):
-        if not isinstance(model, DownwashModel):
-            raise TypeError(f"model: expected a DownwashModel, got {type(model).__name__}")
-        if clamp is not None and not clamp > 0:
-            raise ValueError(f"clamp: expected None or a magnitude > 0 (m/s^2), got {clamp!r}")
+    def __init__(self, model: DownwashModel | Checkpoint | str | os.PathLike, clamp: float | None = None,
+                 backend: str | None = None, *, neighbours: NeighbourSet | None = None,
+                 expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
+                 dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
+        if isinstance(model, (str, os.PathLike)):
+            model = load_checkpoint(model, expect_neighbours=expect_neighbours, expect_aggregation=expect_aggregation)
+        if isinstance(model, DownwashModel) or (isinstance(model, Checkpoint) and isinstance(model.model, DownwashModel)):
+            model = wrap_pairwise(model if isinstance(model, DownwashModel) else model.model, neighbours)
+        elif neighbours is not None:
+            raise ConfigError("neighbours: a model of sets flies the neighbour set of its checkpoint")
+        if not isinstance(model, Checkpoint) or not isinstance(model.model, SetModel):
+            raise TypeError(f"model: expected a per-neighbour model, a Checkpoint or a path, got {type(model).__name__}")
+        check_expectations(f"{model.model.kind} model", model.neighbours, model.record, expect_neighbours,
+                           expect_aggregation)
+        kind = model.model.kind
+        if backend is None:
+            backend = "compiled" if kind in COMPILED_KINDS else "numpy"
         if backend not in self.BACKENDS:
-            raise ValueError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
-        self.model = _frozen(model)
+            raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
+        if backend == "compiled" and kind not in COMPILED_KINDS:
+            raise ConfigError(f"backend: {kind!r} has no compiled form (kinds with one: {sorted(COMPILED_KINDS)}); "
+                              "use 'numpy' or 'torch'")
+        if clamp is not None and not (math.isfinite(clamp) and clamp > 0):
+            raise ConfigError(f"clamp: expected None or a finite magnitude > 0 (m/s^2), got {clamp!r}")
         self.clamp = None if clamp is None else float(clamp)
         self.backend = backend
-        self.feature_set = self.model.feature_set
-        layers = self.model.folded_layers()
-        self._layers = [(np.ascontiguousarray(w.T), b) for w, b in layers]  # (in, out): h @ W + b
-        names = FEATURE_SETS[self.feature_set]
-        self._depth_col = names.index("depth") if "depth" in names else None
-        self._pairs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._packed = pack_layers(layers)
-        self._code = feature_code(self.feature_set)
-        self._clamp_kernel = 0.0 if self.clamp is None else self.clamp  # <= 0: no bound
-        self._abi = pack_abi(self._packed, self._code, self._clamp_kernel)
-
-    def compiled(self) -> CompiledPredictor | None:
-        """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`);
-        None for the "numpy" and "torch" backends, which the loop calls through `__call__`."""
-        if self.backend != "compiled":
-            return None
-        return CompiledPredictor(predict_address, *self._abi)
+        frozen = copy.deepcopy(model.model).eval()  # eval: the spectral-norm estimates stay as stored
+        self._numpy = frozen.numpy_forward() if backend == "numpy" else None
+        # the compiled pass's constants (params, iparams): the twin's, packed before the torch copy is converted
+        # and folded; the kernel and its C function are looked up by kind (valid in any process, e.g. unpickled)
+        self._abi = pack_model(frozen, model.neighbours, self.clamp)[1][1:] if backend == "compiled" else None
+        frozen = _fold_spectral(frozen.to(dtype))
+        for p in frozen.parameters():
+            p.requires_grad_(False)
+        self.model = frozen
+        self.neighbours = model.neighbours
+        self.record = model.record
+        self.kind = kind
+        self.num_threads = None if num_threads is None else count("num_threads", num_threads, 1)
 
     @classmethod
-    def from_checkpoint(
-        cls,
-        path: str | os.PathLike,
-        clamp: float | None = None,
-        backend: str = "compiled",
-        expect_kind: str | None = None,
-        expect_feature_set: str | None = None,
-    ) -> "LearnedPredictor":
-        """A predictor from a checkpoint written by `downwash.checkpoint.save_checkpoint`."""
-        model, _ = load_checkpoint(path, expect_kind=expect_kind, expect_feature_set=expect_feature_set)
-        return cls(model, clamp=clamp, backend=backend)
+    def from_checkpoint(cls, path: str | os.PathLike, clamp: float | None = None, backend: str | None = None,
+                        expect_kind: str | None = None, expect_feature_set: str | None = None,
+                        **options: Any) -> "LearnedPredictor":
+        """A predictor from a checkpoint file (`downwash.checkpoint.save_checkpoint`); expect_kind,
+        expect_feature_set as `load_checkpoint`; options as the constructor's."""
+        checkpoint = load_checkpoint(path, expect_kind=expect_kind, expect_feature_set=expect_feature_set,
+                                     expect_neighbours=options.get("expect_neighbours"),
+                                     expect_aggregation=options.get("expect_aggregation"))
+        return cls(checkpoint, clamp, backend, **options)
 
-    def _pair_index(self, n_veh: int) -> tuple[np.ndarray | slice, np.ndarray | slice]:
-        """(leaders, followers) of the V (V - 1) ordered pairs, grouped by follower.
+    def compiled(self) -> CompiledPredictor | None:
+        """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`): one
+        per model kind, this model's constants in its params; None for "numpy" and "torch"."""
+        return None if self._abi is None else CompiledPredictor(COMPILED_KINDS[self.kind].address, *self._abi)
 
-        For V = 2 these are slices (views, no copies): followers (0, 1), leaders (1, 0).
-        """
-        pairs = self._pairs.get(n_veh)
-        if pairs is None:
-            if n_veh == 2:
-                pairs = (slice(None, None, -1), slice(None))
-            else:
-                followers = np.repeat(np.arange(n_veh), n_veh - 1)
-                leaders = np.array([i for j in range(n_veh) for i in range(n_veh) if i != j], dtype=np.intp)
-                pairs = (leaders, followers)
-            self._pairs[n_veh] = pairs
-        return pairs
-
-    def predict_pairs(self, dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray) -> np.ndarray:
-        """The model on a batch of pairs (..., 3) m/s^2, float64, zero where the follower is not below."""
-        if self.backend == "torch":
-            with torch.inference_mode():
-                f = self.model(dp, v_a, v_b, R_a).numpy().astype(np.float64)
-            return np.where((depth(dp, R_a) > 0)[..., None], f, 0.0)
-        x, basis = model_inputs(self.feature_set, dp, v_a, v_b, R_a)
-        h = x
-        for w, b in self._layers[:-1]:
-            h = matmul_rows(h, w)
-            h += b
-            np.maximum(h, _ZERO, out=h)
-        w, b = self._layers[-1]
-        f = matmul_rows(h, w) + b
-        if basis is not None:
-            f = assemble(f, basis)
-        s = x[..., self._depth_col] if self._depth_col is not None else depth(dp, R_a)
-        return np.where((s > 0)[..., None], f, 0.0)
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.kind, "neighbours": self.neighbours.describe(),
+                "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
-        """Summed prediction on every vehicle (W, V, 3) m/s^2 from ``estimated`` ((W, V, ...) arrays).
-
-        ``true`` is ignored (a learned model only knows the estimates).
-        """
+        """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored
+        (a learned model only knows the estimates)."""
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
-        n_worlds, n_veh = pos.shape[:2]
-        if n_veh < 2:
-            return np.zeros(pos.shape, dtype=np.float64)
-        if self.backend == "compiled":
-            out = np.empty((n_worlds, n_veh, 3))
-            predict_into(_f64(pos), _f64(vel), _f64(rot), *self._packed, self._code, self._clamp_kernel, out)
+        W, V = pos.shape[:2]
+        if V < 2:
+            return np.zeros((W, V, 3))
+        if self._abi is not None:  # selection, model and clamp in one pass
+            out = np.empty((W, V, 3))
+            COMPILED_KINDS[self.kind].kernel(*(np.ascontiguousarray(a, dtype=np.float64) for a in (pos, vel, rot)),
+                                             *self._abi, out)
             return out
-        leaders, followers = self._pair_index(n_veh)
-        n_pairs = n_veh * (n_veh - 1)
-        f = self.predict_pairs(
-            (pos[:, followers] - pos[:, leaders]).reshape(-1, 3),
-            vel[:, leaders].reshape(-1, 3),
-            vel[:, followers].reshape(-1, 3),
-            rot[:, leaders].reshape(-1, 3, 3),
-        ).reshape(n_worlds, n_pairs, 3)
-        total = f.reshape(n_worlds, n_veh, n_veh - 1, 3).sum(axis=2) if n_veh > 2 else f
-        return total if self.clamp is None else clamp_magnitude(total, self.clamp)
+        index, mask = select_neighbours(pos, self.neighbours)
+        g = gather_neighbours(pos, vel, rot, index, mask)
+        K = index.shape[-1]
+        batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
+                 g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
+        if self._numpy is not None:
+            out = self._numpy(*batch).reshape(W, V, 3)
+        else:
+            old_threads = torch.get_num_threads()
+            if self.num_threads is not None:
+                torch.set_num_threads(self.num_threads)
+            try:
+                with torch.inference_mode():
+                    out = self.model(*batch).double().numpy().reshape(W, V, 3)
+            finally:
+                if self.num_threads is not None:
+                    torch.set_num_threads(old_threads)
+        return out if self.clamp is None else clamp_magnitude(out, self.clamp)
 
 
 def clamp_magnitude(f: np.ndarray, bound: float) -> np.ndarray:
     """f (..., 3) scaled down where its magnitude exceeds bound (m/s^2): the clamp of every learned
-    predictor, pair or swarm (the compiled pass, `downwash.fused`, applies the same bound)."""
+    prediction (the compiled passes, `downwash.fused.clamped`, apply the same bound)."""
     norm = np.sqrt(dot(f, f))
     return f * np.minimum(1.0, bound / np.maximum(norm, 1e-300))[..., None]

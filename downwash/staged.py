@@ -7,7 +7,7 @@ closer with the stage-0 equivariant model compensating; stage 2 flies at about
 wake, hovers at offsets, lemniscates), plus validation flights of the same kind from
 separate seeds. Labels are always the full downwash (f = a - u with u the command
 actually applied). After the last stage the final model of every kind in
-`MODEL_KINDS` is trained on all training data into the models folder, one forked
+`PAIRWISE_KINDS` is trained on all training data into the models folder, one forked
 process per core at once (each model bit-identical to one trained alone).
 
 Provenance. A collection is defined by its `provenance` record: the field, the
@@ -67,7 +67,7 @@ from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.labels import label_noise_floor
 from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, log_record,
                                read_manifest, rerun_command, verify_collection)
-from downwash.models import MODEL_KINDS
+from downwash.models import PAIRWISE_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.flight import fly
@@ -400,7 +400,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     record = provenance(cfg, field)
     manifest_path = out / "manifest.json"
     manifest = _load_manifest(manifest_path, record)
-    for kind in MODEL_KINDS:  # never overwrite models of another provenance
+    for kind in PAIRWISE_KINDS:  # never overwrite models of another provenance
         if (models_dir / f"{kind}.pt").is_file():
             check_checkpoint(models_dir / f"{kind}.pt", kind, record)
     rerun = rerun_command(out, models_dir)
@@ -459,7 +459,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     val_dirs = [out / f"stage{k}" / "val" for k in range(len(STAGES))] if n_val else []
     finals = manifest.setdefault("final_models", {})
     models: dict[str, Any] = {}
-    missing = [kind for kind in MODEL_KINDS if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
+    missing = [kind for kind in PAIRWISE_KINDS if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
     if missing:
         log.info("training the final models %s into %s", missing, models_dir)
         data = labelled(train_dirs)
@@ -473,7 +473,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             finals[kind] = entry
             run["models"].append(kind)
             atomic_write_json(manifest_path, manifest)
-    for kind in MODEL_KINDS:
+    for kind in PAIRWISE_KINDS:
         path = models_dir / f"{kind}.pt"
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}

@@ -14,7 +14,7 @@ swarm stages add vehicles deeper in the stack:
 Every follower flies the collection patterns of `downwash_trajectories.collection_reference`
 (passes through and beside the wakes, lemniscates) within its own depth band, so no two
 vehicles ever share a height (the bands are 0.25 m apart: no collision is possible).
-After the last stage, each trainable kind of `downwash.swarm_models` is trained twice:
+After the last stage, each trainable model of sets (`downwash.set_models`) is trained twice:
 on the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation
 question of the paper's section 6. The "pair" models depend on no law, so they live in
 a folder of their own (`pair_models_dir`) that every law's collection shares. The
@@ -51,10 +51,12 @@ from downwash_core.provenance import describe, differences, fingerprint
 from downwash_core.roles import VEHICLE_NAMES, Role
 from downwash.staged import STAGES, train_config
 from downwash.train import TrainConfig
-from downwash.swarm_data import concatenate_swarm, load_swarm_dataset
+from downwash.datasets import concatenate, load_dataset
 from sim.neighbours import NeighbourSet
-from downwash.swarm_models import TRAINABLE_SWARM_KINDS, SwarmPredictor, load_swarm_checkpoint, wrap_pairwise
-from downwash.swarm_train import save_trained, swarm_rmse, train_swarm_model
+from downwash.checkpoint import load_checkpoint, wrap_pairwise
+from downwash.predictor import LearnedPredictor
+from downwash.registry import SET_KINDS
+from downwash.train import rmse, save_trained, train_model
 from sim.flight import fly
 from sim.logs import load_log, save_log
 from sim.scene import build_scene
@@ -68,6 +70,7 @@ DEPTH_BANDS = ((0.45, 0.75), (1.0, 1.3), (1.55, 1.85))  # m below the leader, fo
 SWARM_STAGES = (3, 4)  # vehicles per swarm stage
 DEPLOYED_SWARM_KIND = "deepsets_equivariant"  # trained after stage 3, flown in stage 4
 DATA_MIXES = ("pair", "mixed")  # the two-vehicle data only, or all of it
+TRAINABLE_SET_KINDS = tuple(k for k, cls in SET_KINDS.items() if cls.trainable)  # the models of sets trained here
 ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
 
 
@@ -194,13 +197,13 @@ def collect_swarm(
             model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
         else:
             model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
-        deployed = SwarmPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
+        deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
         _fly_stage(cfg, sdir, n_vehicles, field, law, deployed, progress)
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
             if not path.is_file():
                 swarm_dirs = [out / f"stage{n}" / "train" for n in SWARM_STAGES if n <= n_vehicles]
-                data = concatenate_swarm([load(_pair_dirs(pair_collection, "train")), load(swarm_dirs, True)])
+                data = concatenate([load(_pair_dirs(pair_collection, "train")), load(swarm_dirs, True)])
                 _train(DEPLOYED_SWARM_KIND, data, path, cfg)
         stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
                        "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
@@ -208,16 +211,16 @@ def collect_swarm(
     train_swarm = [out / f"stage{n}" / "train" for n in SWARM_STAGES]
     val_swarm = [out / f"stage{n}" / "val" for n in SWARM_STAGES]
     pair_data = load(_pair_dirs(pair_collection, "train"))
-    data = {"pair": pair_data, "mixed": concatenate_swarm([pair_data, load(train_swarm, True)])}
+    data = {"pair": pair_data, "mixed": concatenate([pair_data, load(train_swarm, True)])}
     val = load(val_swarm, True)  # every model is judged on the same many-vehicle validation flights
     models = {}
-    for kind in TRAINABLE_SWARM_KINDS:
+    for kind in TRAINABLE_SET_KINDS:
         for mix in DATA_MIXES:
             path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
             if not path.is_file():
                 _train(kind, data[mix], path, cfg)
-            model = load_swarm_checkpoint(path, expect_kind=kind).model
-            models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": swarm_rmse(model, val)[0]}
+            model = load_checkpoint(path, expect_kind=kind).model
+            models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
     manifest["complete"] = True
     atomic_write_json(manifest_path, manifest)
     return {"stages": stages, "models": models, "provenance": record, "key": manifest["key"],
@@ -238,12 +241,14 @@ class _Loader:
                 files = sorted(d.glob("*.npz"))
                 ok = [f for f in files if not skip_failed or load_log(f).meta.get("status", 0) == 0]
                 self.skipped[d] = len(files) - len(ok)
-                self._cache[d, skip_failed] = load_swarm_dataset(ok, self.neighbours)
-        return concatenate_swarm([self._cache[d, skip_failed] for d in dirs])
+                # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they
+                # learn that a set of neighbours all below pushes nothing
+                self._cache[d, skip_failed] = load_dataset(ok, self.neighbours, targets="all")
+        return concatenate([self._cache[d, skip_failed] for d in dirs])
 
 
 def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig) -> None:
-    model, history = train_swarm_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick))
+    model, history = train_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick))
     save_trained(path, model, history, data)
 
 

@@ -87,7 +87,7 @@ from downwash_core.locks import describe_holder, file_lock
 from downwash_core.provenance import code_version, fingerprint
 from downwash.datasets import Dataset, concatenate, load_dataset, shorten_per_stage
 from downwash.labels import label_noise_floor
-from downwash.models import MODEL_KINDS
+from downwash.models import PAIRWISE_KINDS
 from downwash.manifest import collection_digest, collection_logs, read_manifest, verify_collection
 from downwash.staged import ensure_collection, train_config
 from downwash.train import TrainConfig
@@ -131,7 +131,7 @@ class SweepGrid:
     """What a sweep measures: every (field, model, minutes, seed), each validated on construction.
 
     fields: field specs (`sim.fields.registry` grammar; "" is the default field);
-    models: kinds of `downwash.models.MODEL_KINDS`; minutes: training lengths, min
+    models: kinds of `downwash.models.PAIRWISE_KINDS`; minutes: training lengths, min
     (> 0; the whole training set is always added as `FULL`, and a length at or
     beyond it is left out for that field); seeds: the trials (ints >= 0), each a
     data subset and a training seed shared by all models; quick: the quick
@@ -158,10 +158,10 @@ class SweepGrid:
             raise ConfigError(f"fields: {list(fields)} names a field twice")
         models = _as_tuple("models", self.models)
         if not models:
-            raise ConfigError(f"models: empty; allowed: {', '.join(MODEL_KINDS)}")
+            raise ConfigError(f"models: empty; allowed: {', '.join(PAIRWISE_KINDS)}")
         for m in models:
-            if m not in MODEL_KINDS:
-                raise ConfigError(f"models: unknown {m!r}; allowed: {', '.join(MODEL_KINDS)}")
+            if m not in PAIRWISE_KINDS:
+                raise ConfigError(f"models: unknown {m!r}; allowed: {', '.join(PAIRWISE_KINDS)}")
         if len(set(models)) != len(models):
             raise ConfigError(f"models: {list(models)} names a model twice")
         minutes = []
@@ -363,11 +363,11 @@ def run_cells(cells: Sequence[Cell], train: Dataset, val: Dataset) -> list[dict[
     torch.set_num_threads(1)
     try:
         with torch.inference_mode():
-            x, basis = trained[0][0].encode(val.dp, val.v_a, val.v_b, val.R_a)
-            predictions = [model.decode(x, basis).double().numpy() for model, _ in trained]
+            enc, y = trained[0][0].encode_samples(val)
+            predictions = [model.decode_samples(enc).double().numpy() for model, _ in trained]
     finally:
         torch.set_num_threads(threads)
-    y = np.asarray(val.y, dtype=np.float64)
+    y = y.double().numpy()
     out = []
     for cell, d, (model, history), pred in zip(cells, data, trained, predictions):
         err = pred - y

@@ -1,4 +1,9 @@
-"""Training: MSE on all three world axes, Adam, mini-batches, early stopping by flight.
+"""Training every model kind: MSE on all three world axes, Adam, mini-batches, early stopping by flight.
+
+One trainer for the per-neighbour models (`downwash.models`, trained on `Dataset.pairs`)
+and the models of sets (`downwash.set_models`, trained on the padded neighbour sets):
+a model encodes a data set once (`encode_samples`), fits its scaling (`fit_samples`) and
+runs its networks on indexed slices of the encoding (`decode_samples`).
 
 Fast path: the features (and the equivariant output basis) do not depend on the
 weights, so they are computed once for the whole data set; each step only runs
@@ -23,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -30,29 +36,24 @@ from typing import Any
 import numpy as np
 import torch
 
-from downwash.datasets import split_by_flight
-from downwash.labels import MODEL_INPUTS, SAMPLE_SCHEMA
-from downwash.models import DeepSNMLP, DownwashModel, make_model
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.validate import count
+from downwash.datasets import Dataset, merge_provenance, split_by_flight
+from downwash.checkpoint import save_checkpoint
+from downwash.registry import MODEL_KINDS, make_model, trainable_kinds
 
-__all__ = ["DEFAULT_LR", "TrainConfig", "train_model", "rmse", "predict"]
+__all__ = ["TrainConfig", "train_model", "rmse", "predict", "save_trained"]
 
 logger = logging.getLogger(__name__)
 
-_REQUIRED = {name: SAMPLE_SCHEMA[name][0] for name in (*MODEL_INPUTS, "y")}  # name -> trailing shape
 
-
-# Peak learning rate per model kind, picked on synthetic data from the true field
-# (51k samples, batch 2048, 60 epochs, cosine decay): the equivariant model kept
-# improving up to 0.1, the shallow MLP was best at 0.03, the deep SN-MLP at
-# 0.003-0.01 and diverged at 0.03.
-DEFAULT_LR = {"equivariant": 5e-2, "equivariant_general": 5e-2, "shallow": 3e-2, "deep": 5e-3}
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Training hyper-parameters (all validated on construction)."""
 
-    lr: float | None = None  # peak Adam learning rate; None: DEFAULT_LR of the model kind
+    lr: float | None = None  # peak Adam learning rate; None: the model kind's ``default_lr``
     lr_final: float = 0.01  # final learning rate as a fraction of lr (cosine decay over the run)
     batch_size: int = 2048  # samples per mini-batch
     max_epochs: int = 60  # passes over the training part (raised to reach min_steps on small data)
@@ -93,46 +94,36 @@ class TrainConfig:
 
     def peak_lr(self, kind: str) -> float:
         """The learning rate used for a model kind."""
-        return DEFAULT_LR[kind] if self.lr is None else float(self.lr)
+        return MODEL_KINDS[kind].default_lr if self.lr is None else float(self.lr)
 
 
-def _check_arrays(data: Any, name: str, need_flight: bool) -> None:
-    n = None
-    for key, trail in _REQUIRED.items():
-        a = getattr(data, key, None)
-        if a is None:
-            raise TypeError(f"{name}: missing array '{key}' (need {sorted(_REQUIRED)} and 'flight')")
-        n = np.shape(a)[0] if n is None else n
-        if tuple(np.shape(a)) != (n, *trail):
-            raise ValueError(f"{name}.{key}: expected shape {(n, *trail)}, got {tuple(np.shape(a))}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{name}.{key}: contains non-finite values")
-    if need_flight and tuple(np.shape(getattr(data, "flight", None))) != (n,):
-        raise ValueError(f"{name}.flight: expected shape ({n},) of flight ids")
-    if not n:
+def _check(data: Any, name: str) -> None:
+    if not isinstance(data, Dataset):
+        raise TypeError(f"{name}: expected a downwash.datasets.Dataset, got {type(data).__name__}")
+    if len(data) == 0:
         raise ValueError(f"{name}: no samples")
-
-
-def _encode(model: DownwashModel, data: Any) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    with torch.no_grad():
-        x, basis = model.encode(data.dp, data.v_a, data.v_b, data.R_a)
-    return x, basis, torch.as_tensor(np.asarray(data.y), dtype=x.dtype)
+    for key in ("dp", "v_a", "v_b", "R_a", "y"):
+        if not np.all(np.isfinite(getattr(data, key))):
+            raise ValueError(f"{name}.{key}: contains non-finite values")
 
 
 def train_model(
     kind: str,
-    train: Any,
-    val: Any | None = None,
+    train: Dataset,
+    val: Dataset | None = None,
     config: TrainConfig | None = None,
     progress: bool = False,
-    feature_set: str | None = None,
-) -> tuple[DownwashModel, dict[str, Any]]:
-    """Train a fresh model of ``kind`` (a name of `downwash.models.MODEL_KINDS`).
+    seed: int | None = None,
+    **architecture: Any,
+) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """Train a fresh model of ``kind`` (a trainable name of `downwash.registry.MODEL_KINDS`).
 
-    train, val: objects with arrays dp, v_a, v_b, R_a, y (see `datasets.Dataset`)
-      and, for train when ``val`` is None, flight ids ``flight``: a
-      ``config.val_fraction`` share of the training FLIGHTS is then held out for
-      early stopping (never single samples of a flight).
+    train, val: `Dataset`s of one neighbour set and provenance (else DataError naming the
+      difference). A per-neighbour kind trains on their real (target, neighbour) pairs, a
+      model of sets on the padded sets. With no ``val``, a ``config.val_fraction`` share of
+      the training FLIGHTS is held out for early stopping (never single samples of a flight).
+    seed: weight init, shuffling and the flight split (default ``config.seed``).
+    architecture: constructor arguments of the kind (e.g. ``feature_set="6"``).
     Input normalisation is fitted on the training part and stored in the model.
     Loss: mean squared error over samples and the three world axes, (m/s^2)^2.
     The weights of the epoch with the lowest validation loss are restored.
@@ -145,56 +136,66 @@ def train_model(
     Returns (model in eval mode, history) with history keys: train_loss, val_loss
     (per epoch, (m/s^2)^2), best_epoch, best_val_loss, epochs, planned_epochs,
     steps, lr, seconds, n_train, n_val, train_flights, val_flights, kind,
-    feature_set, config.
+    architecture, seed, config, neighbours, provenance (of the training data).
     """
+    if kind not in MODEL_KINDS:
+        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
+    if not MODEL_KINDS[kind].trainable:
+        raise ConfigError(f"model kind {kind!r} has no training of its own: wrap a trained per-neighbour model with "
+                          f"downwash.checkpoint.wrap_pairwise; trainable kinds: {list(trainable_kinds())}")
     config = TrainConfig() if config is None else config
-    _check_arrays(train, "train", need_flight=val is None)
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"config: expected a downwash.train.TrainConfig, got {type(config).__name__}")
+    seed = config.seed if seed is None else count("seed", seed, 0)
+    _check(train, "train")
     if val is None:
-        train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(config.seed))
-    else:
-        _check_arrays(val, "val", need_flight=False)
-
+        train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(seed))
+    _check(val, "val")
+    if val.neighbours != train.neighbours:
+        raise DataError(f"val: neighbour set {val.neighbours.describe()}, the training set has "
+                        f"{train.neighbours.describe()}")
+    merge_provenance([train.provenance, val.provenance], ["train", "val"])  # DataError if they differ
     old_threads = torch.get_num_threads()
     if config.num_threads is not None:
         torch.set_num_threads(config.num_threads)
     try:
-        return _train(kind, train, val, config, progress, feature_set)
+        return _train(kind, train, val, config, seed, progress, architecture)
     finally:
         if config.num_threads is not None:
             torch.set_num_threads(old_threads)
 
 
-def _train(kind, train, val, config: TrainConfig, progress: bool, feature_set):
+def _train(kind: str, train: Dataset, val: Dataset, config: TrainConfig, seed: int, progress: bool,
+           architecture: dict[str, Any]):
     start = time.perf_counter()
     level = logging.INFO if progress else logging.DEBUG
     with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        model = make_model(kind, feature_set)
-    x, basis, y = _encode(model, train)
-    xv, basis_v, yv = _encode(model, val)
-    model.fit_normalization(x, model.output_targets(y, basis))
+        torch.manual_seed(seed)
+        model = make_model(kind, **architecture)
+    enc, y = model.encode_samples(train)
+    enc_v, yv = model.encode_samples(val)
+    model.fit_samples(enc, y)
 
-    n, bs = x.shape[0], min(config.batch_size, x.shape[0])
+    n, bs = y.shape[0], min(config.batch_size, y.shape[0])
     steps_per_epoch = math.ceil(n / bs)
     n_epochs = max(config.max_epochs, math.ceil(config.min_steps / steps_per_epoch))
     patience = math.ceil(config.patience * n_epochs / config.max_epochs)
     total_steps = n_epochs * steps_per_epoch
     lr = config.peak_lr(kind)
     opt = _adam(model, lr, config.weight_decay)
-    gen = torch.Generator().manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(seed)
     history: dict[str, Any] = {"train_loss": [], "val_loss": []}
     best, best_epoch, best_state, step = math.inf, -1, None, 0
     for epoch in range(n_epochs):
         model.train()
-        # One gather per epoch, then contiguous slices: cheaper than indexing every batch.
         perm = torch.randperm(n, generator=gen)
-        xs, ys, bases = x[perm], y[perm], None if basis is None else basis[perm]
+        shuffled, ys = enc.index(perm), y[perm]  # one gather per epoch, then contiguous slices
         total = torch.zeros(())
         for i in range(0, n, bs):
             for group in opt.param_groups:  # cosine decay from lr to lr * lr_final
                 group["lr"] = lr * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * step / total_steps)))
             step += 1
-            pred = model.decode(xs[i : i + bs], None if bases is None else bases[i : i + bs])
+            pred = model.decode_samples(shuffled.index(slice(i, i + bs)))
             loss = torch.mean((pred - ys[i : i + bs]) ** 2)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -202,7 +203,7 @@ def _train(kind, train, val, config: TrainConfig, progress: bool, feature_set):
             total += loss.detach() * pred.shape[0]
         model.eval()
         with torch.no_grad():
-            val_loss = float(torch.mean((model.decode(xv, basis_v) - yv) ** 2))
+            val_loss = float(torch.mean((model.decode_samples(enc_v) - yv) ** 2))
         train_loss = float(total) / n
         history["train_loss"].append(train_loss)
         history["val_loss"].append(val_loss)
@@ -211,35 +212,27 @@ def _train(kind, train, val, config: TrainConfig, progress: bool, feature_set):
         if val_loss < best * (1.0 - config.min_delta):
             best, best_epoch = val_loss, epoch
             best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        logger.log(
-            level, "%s epoch %3d/%d  train rmse %.4f  val rmse %.4f  best %.4f @ %d",
-            kind, epoch, n_epochs, math.sqrt(train_loss), math.sqrt(val_loss), math.sqrt(best), best_epoch,
-        )  # fmt: skip
+        logger.log(level, "%s epoch %3d/%d  train rmse %.4f  val rmse %.4f  best %.4f @ %d", kind, epoch, n_epochs,
+                   math.sqrt(train_loss), math.sqrt(val_loss), math.sqrt(best), best_epoch)
         if epoch - best_epoch >= patience:
             break
     model.load_state_dict(best_state)
-    if isinstance(model, DeepSNMLP):
-        model.settle_spectral_norm()
+    if model.spectral_layers():
+        model.settle_spectral_norm()  # eval mode then bounds every layer exactly
         with torch.no_grad():
-            best = float(torch.mean((model.decode(xv, basis_v) - yv) ** 2))
+            best = float(torch.mean((model.decode_samples(enc_v) - yv) ** 2))
     model.eval()
     history.update(
-        best_epoch=best_epoch,
-        best_val_loss=best,
-        epochs=len(history["val_loss"]),
-        planned_epochs=n_epochs,
-        steps=step,
-        lr=lr,
-        seconds=time.perf_counter() - start,
-        n_train=int(n),
-        n_val=int(xv.shape[0]),
-        train_flights=_flight_ids(train),
-        val_flights=_flight_ids(val),
-        kind=model.kind,
-        feature_set=model.feature_set,
-        config=config.to_dict(),
-    )
-    logger.log(level, "%s: best val rmse %.4f at epoch %d of %d, %.2f s", kind, math.sqrt(best), best_epoch, history["epochs"], history["seconds"])
+        best_epoch=best_epoch, best_val_loss=best, epochs=len(history["val_loss"]), planned_epochs=n_epochs,
+        steps=step, lr=lr, seconds=time.perf_counter() - start, n_train=int(n), n_val=int(yv.shape[0]),
+        train_flights=[int(f) for f in train.flights], val_flights=[int(f) for f in val.flights], kind=kind,
+        architecture=model.architecture(), seed=seed, config=config.to_dict(),
+        neighbours=train.neighbours.describe(), provenance=train.provenance,
+    )  # fmt: skip
+    if hasattr(model, "feature_set"):
+        history["feature_set"] = model.feature_set
+    logger.log(level, "%s: best val rmse %.4f at epoch %d of %d, %.2f s", kind, math.sqrt(best), best_epoch,
+               history["epochs"], history["seconds"])
     return model, history
 
 
@@ -251,27 +244,33 @@ def _adam(model: torch.nn.Module, lr: float, weight_decay: float) -> torch.optim
         return torch.optim.Adam(model.parameters(), lr=lr, weight_decay=weight_decay)
 
 
-def _flight_ids(data: Any) -> list[int]:
-    f = getattr(data, "flight", None)
-    return [] if f is None else [int(i) for i in np.unique(f)]
-
-
-def predict(model: DownwashModel, data: Any, batch_size: int = 65536) -> np.ndarray:
-    """Model predictions (N, 3) m/s^2, float64 NumPy, for the samples of ``data`` (sets eval mode)."""
+def predict(model: torch.nn.Module, data: Dataset, batch_size: int = 65536) -> np.ndarray:
+    """Model predictions (N, 3) m/s^2, float64 NumPy, for the samples the model is trained on: the
+    real pairs of ``data`` for a per-neighbour kind, its targets for a model of sets (sets eval mode)."""
     model.eval()
-    n = np.shape(data.dp)[0]
+    enc, _ = model.encode_samples(data)
+    n = enc.x.shape[0]
     out = np.empty((n, 3))
     with torch.inference_mode():
         for i in range(0, n, batch_size):
-            s = slice(i, i + batch_size)
-            out[s] = model(data.dp[s], data.v_a[s], data.v_b[s], data.R_a[s]).double().numpy()
+            out[i : i + batch_size] = model.decode_samples(enc.index(slice(i, i + batch_size))).double().numpy()
     return out
 
 
-def rmse(model: DownwashModel, data: Any) -> tuple[float, np.ndarray]:
+def rmse(model: torch.nn.Module, data: Dataset) -> tuple[float, np.ndarray]:
     """(overall, per_axis (3,)) root-mean-square error in m/s^2 of the model on ``data`` (labels y).
 
     overall = sqrt(mean over samples and the three axes): the training loss's root.
     """
-    err = predict(model, data) - np.asarray(data.y, dtype=np.float64)
+    _, y = model.encode_samples(data)
+    err = predict(model, data) - y.double().numpy()
     return float(np.sqrt(np.mean(err**2))), np.sqrt(np.mean(err**2, axis=0))
+
+
+def save_trained(path: str | os.PathLike, model: torch.nn.Module, history: dict[str, Any], train: Dataset) -> dict[str, Any]:
+    """Checkpoint a trained model with the training record (without the per-epoch losses), the
+    training data's summary and, for a model of sets, its neighbour set and the data's provenance
+    (field, aggregation law)."""
+    training = {k: v for k, v in history.items() if k not in ("train_loss", "val_loss", "provenance", "neighbours")}
+    return save_checkpoint(path, model, {"training": training, "data": train.summary()},
+                           neighbours=train.neighbours, provenance=train.provenance)

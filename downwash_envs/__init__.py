@@ -45,9 +45,13 @@ Modules (one role each):
 
 - `downwash_envs.config`: `FollowerConfig` (the options), `make_config`, allowed values
 - `downwash_envs.observation`: the observation layout, its bounds and its markdown table
-- `downwash_envs.task`: episodes, the batched task (`FollowerWorlds`): observation, reward, termination
+- `downwash_envs.reward`: the reward and termination both tasks share
+- `downwash_envs.engine`: the one engine, W worlds of a task on one simulator (`TaskWorlds`), and the
+  per-episode vehicle randomisation (the `randomize` option)
+- `downwash_envs.task`: the follower task on the engine (`FollowerWorlds`): episodes, references, observation
+- `downwash_envs.swarm_task`: the swarm task on the engine (`SwarmWorlds`): options, episodes, observation
 - `downwash_envs.rendering`: offscreen frames (EGL chosen automatically when headless)
-- `downwash_envs.base`: what the single and the vector env share
+- `downwash_envs.base`: the env side every env class shares: setup, spaces, rendering, the vector autoreset
 - `downwash_envs.follower`: `DownwashFollowerEnv` and `DownwashFollowerVectorEnv`
 - `downwash_envs.evaluation`: `evaluate_lqr` and the env speed benchmarks
 - `downwash_envs.swarm`: the multi-agent env (PettingZoo `SwarmEnv` via `parallel_env`, batched `SwarmVectorEnv`)
@@ -90,12 +94,13 @@ _LAZY = {
     **dict.fromkeys(("DownwashFollowerEnv", "DownwashFollowerVectorEnv"), "downwash_envs.follower"),
     **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "downwash_envs.evaluation"),
     **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "downwash_envs.observation"),
-    **dict.fromkeys(("REWARD_TERMS",), "downwash_envs.task"),
+    **dict.fromkeys(("REWARD_TERMS",), "downwash_envs.reward"),
     **dict.fromkeys(("SwarmEnv", "SwarmVectorEnv", "parallel_env"), "downwash_envs.swarm"),  # needs the multiagent extra
     **dict.fromkeys(("logs_video", "write_conditions_video"), "downwash_envs.video"),  # needs the video extra
     **dict.fromkeys((
         "FollowerConfig", "make_config", "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS",
         "CONTROL_HZ_ALLOWED", "DEFAULT_MAX_EPISODE_STEPS", "DEFAULT_FIELD_RANDOMIZATION", "FIELD_RANDOMIZABLE",
+        "VEHICLE_RANDOMIZABLE",
     ), "downwash_envs.config"),
 }  # fmt: skip
 

@@ -1,36 +1,53 @@
-"""What the single and the vector follower env share: construction, spaces, timing, rendering.
+"""What every env class shares, single, vector or multi-agent: the env side of the one engine.
 
-`FollowerEnvBase` is a mixin placed before `gymnasium.Env` / `gymnasium.vector.VectorEnv`
-in the env classes' bases; it owns the config, the batched task (`FollowerWorlds`)
-and the lazily made renderer.
+`TaskEnv` is a mixin placed before `gymnasium.Env`, `gymnasium.vector.VectorEnv` or
+`pettingzoo.ParallelEnv` in an env's bases; it owns the config, the batched task (a
+`downwash_envs.engine.TaskWorlds`), the render mode and the lazily made renderer.
+`VectorAutoreset` adds what the two vector envs share: a generator per world (world i of
+`reset(seed=s)` seeded with s + i, as a `SyncVectorEnv`'s envs are) and Gymnasium's
+next-step autoreset, written once. `FollowerEnvBase` binds the follower task to them (the
+swarm's binding is in `downwash_envs.swarm`).
+
+Also here: the spaces, the reset-option checks, a vector env's reset plan, and pickling
+an env as the call that made it.
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.utils import seeding
 
 from downwash_envs.config import FollowerConfig, make_config
+from downwash_envs.engine import TaskWorlds
 from downwash_envs.observation import obs_bounds
 from downwash_envs.rendering import Renderer
 from downwash_envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
-__all__ = ["FollowerEnvBase", "make_spaces", "check_reset_options", "vector_reset_plan", "pickled_as_constructed"]
+__all__ = [
+    "TaskEnv", "VectorAutoreset", "AutoresetStep", "FollowerEnvBase", "agent_spaces", "make_spaces",
+    "check_reset_options", "vector_reset_plan", "pickled_as_constructed",
+]  # fmt: skip
 
 RENDER_MODES = ("rgb_array",)
 
-def make_spaces(cfg: FollowerConfig) -> tuple[spaces.Box, spaces.Box]:
-    """(observation Box (OBS_DIM,) float32, action Box [-1, 1]^3 float32) of one world; an action
-    of 1 is `cfg.bound` m/s^2."""
-    low, high = obs_bounds(cfg.bound)
+
+def agent_spaces(low: np.ndarray, high: np.ndarray) -> tuple[spaces.Box, spaces.Box]:
+    """(observation Box [low, high] float32, action Box [-1, 1]^3 float32) of one agent in one world."""
     obs = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
     act = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
     return obs, act
+
+
+def make_spaces(cfg: FollowerConfig) -> tuple[spaces.Box, spaces.Box]:
+    """(observation Box (OBS_DIM,) float32, action Box [-1, 1]^3 float32) of one follower world; an
+    action of 1 is `cfg.bound` m/s^2."""
+    return agent_spaces(*obs_bounds(cfg.bound))
 
 
 def check_reset_options(options: Mapping[str, Any] | None, allowed: tuple[str, ...]) -> None:
@@ -42,7 +59,9 @@ def check_reset_options(options: Mapping[str, Any] | None, allowed: tuple[str, .
             raise ValueError(f"reset options: unknown {unknown}; allowed: {what}")
 
 
-def vector_reset_plan(n_worlds: int, seed: Any, options: Mapping[str, Any] | None) -> tuple[list[int | None], np.ndarray]:
+def vector_reset_plan(
+    n_worlds: int, seed: Any, options: Mapping[str, Any] | None
+) -> tuple[list[int | None], np.ndarray]:
     """(a seed or None per world, the worlds to reset (n_worlds,) bool) of a vector env's
     `reset(seed=..., options=...)`: seed None, an int s (world i gets s + i) or one per world;
     options only ``{"reset_mask": mask}``. ValueError naming what is wrong."""
@@ -93,18 +112,23 @@ def _construct(cls: type, args: tuple, kwargs: dict) -> Any:
     return cls(*args, **kwargs)
 
 
-class FollowerEnvBase:
+class TaskEnv:
     """Shared state: `config`, `render_mode`, `metadata["render_fps"]`, `_worlds`, `_renderer`.
 
     The env class defines `metadata` (with ``"render_modes": RENDER_MODES``, plus ``"human"`` for
-    MuJoCo's interactive viewer, `downwash_envs.viewer`, whose window `_renderer` then holds).
+    MuJoCo's interactive viewer, `downwash_envs.viewer`, whose window `_renderer` then holds)
+    and `_build_worlds`.
     """
 
-    config: FollowerConfig
-    _worlds: FollowerWorlds
+    config: Any
+    _worlds: TaskWorlds
+
+    def _build_worlds(self, options: Mapping[str, Any], n_worlds: int, n_threads: int) -> TaskWorlds:
+        """Validate the options (before anything is built) and build the task's worlds."""
+        raise NotImplementedError
 
     def _setup(self, options: Mapping[str, Any], render_mode: str | None, n_worlds: int, n_threads: int = 0) -> None:
-        """Validate the options and the render mode, build the task; the spaces are the caller's."""
+        """Validate the render mode and the options, build the task; the spaces are the caller's."""
         modes = type(self).metadata.get("render_modes", RENDER_MODES)  # "human" where the class lists it
         if render_mode is not None and render_mode not in modes:
             raise ValueError(f"render_mode: got {render_mode!r}; allowed: None, {', '.join(modes)}")
@@ -113,11 +137,11 @@ class FollowerEnvBase:
 
             viewer.check_display("render_mode='human'")
             viewer.render_on_step(self)
-        self.config = cfg = make_config(options)
+        self._worlds = worlds = self._build_worlds(options, n_worlds, n_threads)
+        self.config = worlds.cfg
         self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": cfg.control_hz}  # one frame per env step
-        self._worlds = FollowerWorlds(cfg, n_worlds, n_threads)
-        self._renderer: Renderer | None = None
+        self.metadata = {**type(self).metadata, "render_fps": worlds.task.control_hz}  # one frame per env step
+        self._renderer: Any = None
 
     @property
     def dt(self) -> float:
@@ -134,18 +158,102 @@ class FollowerEnvBase:
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
             return None
+        sim = self._worlds.sim
         if self.render_mode == "human":  # the window shows the first world; render() returns None
             if self._renderer is None:
                 from downwash_envs.viewer import Viewer
 
-                self._renderer = Viewer.of_simulator(self._worlds.sim, what="render_mode='human'")
-            self._renderer.show_world(self._worlds.sim, worlds[0], pace=self.dt)
+                self._renderer = Viewer.of_simulator(sim, what="render_mode='human'")
+            self._renderer.show_world(sim, worlds[0], pace=self.dt)
             return None
         if self._renderer is None:
-            self._renderer = Renderer(self._worlds.scene, self.config.render_width, self.config.render_height)
-        return [self._renderer.render_world(self._worlds.sim, w) for w in worlds]
+            task = self._worlds.task
+            self._renderer = Renderer(self._worlds.scene, task.render_width, task.render_height)
+        frames = []
+        for w in worlds:
+            targets = self._worlds.camera_targets(w)  # (the true state, before the frame's mj_forward)
+            frames.append(self._renderer.render(sim.physics.mjdata(w), *targets))
+        return frames
 
     def _close_renderer(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+class AutoresetStep(NamedTuple):
+    """A vector step with next-step autoreset (`VectorAutoreset._autoreset_step`)."""
+
+    outcome: Any  # the task's step outcome (with `terminated`); zero for the resetting worlds
+    terminated: np.ndarray  # (W,) bool; False for the resetting worlds
+    truncated: np.ndarray  # (W,) bool: at the horizon; False for the resetting worlds
+    resetting: np.ndarray  # (W,) bool: the worlds that started a new episode instead of stepping
+    reset_indices: np.ndarray  # (n,) their indices, ascending
+    episodes: list  # (n,) their new episodes
+    obs: np.ndarray  # (W, ...) float32: the new episodes' first for the resetting worlds
+
+
+class VectorAutoreset:
+    """The vector envs' worlds bookkeeping: a generator and an episode clock per world, the
+    seeded reset, and next-step autoreset (Gymnasium's default): the step after a world
+    terminates or truncates resets it; its actions are ignored and its outcome is zero."""
+
+    _worlds: TaskWorlds
+
+    def _init_autoreset(self, n_worlds: int) -> None:
+        self._rngs: list[np.random.Generator | None] = [None] * n_worlds  # one per world, as SyncVectorEnv's envs
+        self._autoreset = np.zeros(n_worlds, bool)
+        self._elapsed = np.zeros(n_worlds, np.int64)
+
+    def _start_episodes(self, worlds: np.ndarray) -> list:
+        """Draw episodes for `worlds` from their generators (unseeded ones made on first use) and start them."""
+        episodes = []
+        for w in worlds:
+            if self._rngs[w] is None:
+                self._rngs[w], _ = seeding.np_random()
+            episodes.append(self._worlds.new_episode(self._rngs[w]))
+        self._worlds.reset_worlds(worlds, episodes)
+        self._elapsed[worlds] = 0
+        return episodes
+
+    def _seeded_reset(self, seed: Any, options: Mapping[str, Any] | None) -> tuple[np.ndarray, np.ndarray, list]:
+        """`reset(seed, options)` of the worlds: (the worlds reset, their mask (W,) bool, their episodes)."""
+        seeds, mask = vector_reset_plan(self._autoreset.size, seed, options)
+        worlds = np.flatnonzero(mask)
+        for w in worlds:
+            if seeds[w] is not None:
+                self._rngs[w], _ = seeding.np_random(int(seeds[w]))
+        episodes = self._start_episodes(worlds)
+        self._autoreset[worlds] = False
+        return worlds, mask, episodes
+
+    def _autoreset_step(self, actions: np.ndarray, max_steps: int | None) -> AutoresetStep:
+        """Step the worlds with checked `actions`; those that ended at the last step start anew
+        instead. max_steps: the truncation horizon (None: none)."""
+        resetting = self._autoreset
+        stepping = ~resetting
+        any_reset = bool(resetting.any())
+        outcome = self._worlds.step(actions, stepping if any_reset else None)
+        self._elapsed += stepping
+        n = resetting.size
+        truncated = self._elapsed >= max_steps if max_steps is not None else np.zeros(n, bool)
+        reset_indices, episodes = np.flatnonzero(resetting), []
+        if any_reset:
+            episodes = self._start_episodes(reset_indices)
+            truncated = truncated & stepping
+            obs = self._worlds.observe()
+        else:
+            obs = self._worlds.observe(fresh=False)
+        terminated = outcome.terminated
+        self._autoreset = terminated | truncated
+        return AutoresetStep(outcome, terminated, truncated, resetting, reset_indices, episodes, obs)
+
+
+class FollowerEnvBase(TaskEnv):
+    """The follower task on the env engine: `make_config` options, `FollowerWorlds`."""
+
+    config: FollowerConfig
+    _worlds: FollowerWorlds
+
+    def _build_worlds(self, options: Mapping[str, Any], n_worlds: int, n_threads: int) -> FollowerWorlds:
+        return FollowerWorlds(make_config(options), n_worlds, n_threads)

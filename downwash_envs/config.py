@@ -31,7 +31,8 @@ __all__ = [
     "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS", "CONTROL_HZ_ALLOWED",
     "DEFAULT_ACTION_BOUND", "MAX_ACTION_BOUND", "MIN_FOLLOWER_HEIGHT", "DEFAULT_MAX_EPISODE_STEPS",
     "FIELD_RANDOMIZABLE", "DEFAULT_FIELD_RANDOMIZATION", "MASS_SCALE_RANGE", "FIELD_SCALE_RANGE",
-    "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "FollowerConfig", "make_config", "build_field",
+    "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "VEHICLE_RANDOMIZABLE", "VEHICLE_SPREAD_MAX",
+    "FollowerConfig", "make_config", "build_field",
 ]  # fmt: skip
 
 ACTION_MODES = ("residual", "acceleration")
@@ -68,6 +69,10 @@ DEFAULT_FIELD_RANDOMIZATION = MappingProxyType(
 )
 MASS_SCALE_RANGE = (0.5, 1.5)  # -, allowed true-mass factors (thrust-to-weight 2.3 stays > 1.5)
 FIELD_SCALE_RANGE = (0.1, 5.0)  # -, allowed field-constant factors
+# Vehicle parameters that `randomize` may scale per episode, in the order they are drawn, and the
+# largest relative spread (a factor in [0.5, 1.5], as MASS_SCALE_RANGE).
+VEHICLE_RANDOMIZABLE = ("mass", "inertia", "motor_lag")
+VEHICLE_SPREAD_MAX = 0.5  # -, relative
 FIELD_KNOBS = ("c4_amplitude", "swirl", "skew")  # DownwashField's misspecification knobs
 REWARD_WEIGHTS = ("alive_reward", "position_cost_weight", "velocity_cost_weight", "action_cost_weight",
                   "action_rate_cost_weight", "termination_penalty")
@@ -116,6 +121,13 @@ class FollowerConfig:
         mass_randomization: None or (low, high): the follower's true mass (and
             inertia) scaled by a factor drawn per episode, within 0.5-1.5. The
             controller keeps the nominal mass.
+        randomize: None or {parameter: spread}: each agent's true vehicle parameters scaled
+            per episode by factors drawn from U(1 - spread, 1 + spread), spreads in
+            [0, 0.5], drawn from the env's generator after every other draw (so the other
+            draws are those of an env without it): "mass" (the body's mass, and its
+            inertia with it, as mass_randomization), "inertia" (a further factor on the
+            inertia alone), "motor_lag" (every rotor's first-order time constant). The
+            controller keeps the nominal vehicle. Off by default; not with mass_randomization.
     Termination and reward
         max_tracking_error: m, the tracking box: an episode terminates when the
             follower's true position is farther than this from its reference
@@ -148,6 +160,7 @@ class FollowerConfig:
     field: Any = None
     field_randomization: str | Mapping[str, tuple[float, float]] | None = None
     mass_randomization: tuple[float, float] | None = None
+    randomize: Mapping[str, float] | None = None
     max_tracking_error: float = 1.0
     alive_reward: float = 1.0
     position_cost_weight: float = 2.0
@@ -184,6 +197,12 @@ class FollowerConfig:
         if isinstance(fr, str):
             fr = DEFAULT_FIELD_RANDOMIZATION
         return {k: (float(fr[k][0]), float(fr[k][1])) for k in sorted(fr)}
+
+    @property
+    def vehicle_spreads(self) -> dict[str, float]:
+        """{parameter: relative spread} of `randomize`, in VEHICLE_RANDOMIZABLE order; empty when off."""
+        r = self.randomize or {}
+        return {k: float(r[k]) for k in VEHICLE_RANDOMIZABLE if k in r}
 
     @property
     def sim_base(self) -> SimConfig:
@@ -254,6 +273,7 @@ def _validate(c: FollowerConfig) -> None:
     _validate_field(c)
     if c.mass_randomization is not None:
         pair("mass_randomization", c.mass_randomization, "(factor)", *MASS_SCALE_RANGE)
+    _validate_randomize(c)
     number("max_tracking_error", c.max_tracking_error, "m", 0.0, 5.0, lo_open=True)
     for name in REWARD_WEIGHTS:
         number(name, getattr(c, name), "(reward weight)", 0.0, 1e6)
@@ -261,6 +281,23 @@ def _validate(c: FollowerConfig) -> None:
     count("render_height", c.render_height, 16, 480)
     # Reference shape parameters: let the reference classes check them (they name the argument).
     _reference_probe(c)
+
+
+def _validate_randomize(c: FollowerConfig) -> None:
+    """`randomize`: known parameters, spreads in [0, VEHICLE_SPREAD_MAX], not beside mass_randomization."""
+    r = c.randomize
+    if r is None:
+        return
+    if not isinstance(r, Mapping):
+        raise ConfigError(f"randomize: expected None or a dict {{parameter: spread}}, got {type(r).__name__}")
+    unknown = sorted(set(r) - set(VEHICLE_RANDOMIZABLE))
+    if unknown:
+        raise ConfigError(f"randomize: unknown parameter(s) {unknown}; allowed: {', '.join(VEHICLE_RANDOMIZABLE)}")
+    for k, v in r.items():
+        number(f"randomize[{k!r}]", v, "(relative spread)", 0.0, VEHICLE_SPREAD_MAX)
+    if c.mass_randomization is not None:
+        raise ConfigError("randomize and mass_randomization: give one (randomize={'mass': s} draws the follower's "
+                          "mass factor from U(1 - s, 1 + s))")
 
 
 def _validate_geometry(c: FollowerConfig) -> None:

@@ -73,12 +73,10 @@ def _best_rate(fn: Callable[[], int], repeats: int) -> float:
     return best
 
 
-def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int = 0, **options: Any) -> float:
-    """Env steps per wall second of one `gymnasium.make("downwash/Follower-v1")` (with its
-    wrappers), random actions, resets included; the best of `repeats` runs. The actions are
-    drawn from the action space before the clock starts: the env's cost, not the sampler's
-    (`Box.sample` alone costs about a third of an env step)."""
-    env = gym.make("downwash/Follower-v1", **options)
+def _random_steps_per_s(env: Any, n_steps: int, repeats: int, seed: int, num_envs: int | None = None) -> float:
+    """Steps (summed over worlds) per wall second of `env` under `n_steps` random actions drawn from
+    its action space before the clock starts; the best of `repeats` runs; closes `env`.
+    num_envs: a vector env's worlds (it autoresets); None: a single env, reset here when an episode ends."""
     env.action_space.seed(seed)
     actions = [env.action_space.sample() for _ in range(n_steps)]
     env.reset(seed=seed)
@@ -87,13 +85,21 @@ def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int =
     def run() -> int:
         for action in actions:
             _, _, term, trunc, _ = env.step(action)
-            if term or trunc:
+            if num_envs is None and (term or trunc):
                 env.reset()
-        return n_steps
+        return n_steps * (num_envs or 1)
 
     rate = _best_rate(run, repeats)
     env.close()
     return rate
+
+
+def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int = 0, **options: Any) -> float:
+    """Env steps per wall second of one `gymnasium.make("downwash/Follower-v1")` (with its
+    wrappers), random actions, resets included; the best of `repeats` runs. The actions are
+    drawn from the action space before the clock starts: the env's cost, not the sampler's
+    (`Box.sample` alone costs about a third of an env step)."""
+    return _random_steps_per_s(gym.make("downwash/Follower-v1", **options), n_steps, repeats, seed)
 
 
 def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: int = 3, seed: int = 0,
@@ -102,19 +108,7 @@ def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: i
     (`gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`), random actions drawn
     before the clock starts, autoresets included; the best of `repeats` runs."""
     envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
-    envs.action_space.seed(seed)
-    actions = [envs.action_space.sample() for _ in range(n_steps)]
-    envs.reset(seed=seed)
-    envs.step(actions[0])  # warm-up
-
-    def run() -> int:
-        for action in actions:
-            envs.step(action)
-        return n_steps * num_envs
-
-    rate = _best_rate(run, repeats)
-    envs.close()
-    return rate
+    return _random_steps_per_s(envs, n_steps, repeats, seed, num_envs)
 
 
 SB3_BACKENDS = ("native", "sync", "dummy")

@@ -1,7 +1,8 @@
 """The follower downwash_envs: `DownwashFollowerEnv` (gymnasium.Env) and `DownwashFollowerVectorEnv`.
 
-Two thin classes on one engine (`downwash_envs.task.FollowerWorlds`, shared through
-`downwash_envs.base.FollowerEnvBase`):
+Two thin classes on the one engine (the follower task `downwash_envs.task.FollowerWorlds`
+on `downwash_envs.engine.TaskWorlds`, bound to the env side by `downwash_envs.base.FollowerEnvBase`;
+the vector env's autoreset is `downwash_envs.base.VectorAutoreset`, shared with the swarm's):
 
 - `DownwashFollowerEnv`: a `gymnasium.Env` (one world, plain `MjData`).
 - `DownwashFollowerVectorEnv`: a native `gymnasium.vector.VectorEnv` whose worlds
@@ -16,16 +17,15 @@ from typing import Any, Sequence
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from downwash_core.validate import count
 from downwash_envs.base import (
-    RENDER_MODES, FollowerEnvBase, check_reset_options, make_spaces, pickled_as_constructed, vector_reset_plan,
+    RENDER_MODES, FollowerEnvBase, VectorAutoreset, check_reset_options, make_spaces, pickled_as_constructed,
 )
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
-from downwash_envs.task import draw_episode, episode_info
+from downwash_envs.task import Episode, episode_info
 from sim.physics import check_world_memory
 
 __all__ = ["DownwashFollowerEnv", "DownwashFollowerVectorEnv"]
@@ -98,8 +98,9 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
 
     ## Info
     reset: the drawn episode parameters: ``separation`` (m; passes: the first
-    waypoint's depth), ``mass_scale``, and ``field_scale_<constant>`` per randomised
-    field constant. step: the reward terms ``reward_<name>``, ``position_error`` (m)
+    waypoint's depth), ``mass_scale``, ``field_scale_<constant>`` per randomised
+    field constant, and with `randomize` ``inertia_scale`` and ``motor_lag_scale``
+    where drawn. step: the reward terms ``reward_<name>``, ``position_error`` (m)
     and ``velocity_error`` (m/s) (true state, capped), ``status``.
 
     ## Options
@@ -132,7 +133,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         check_reset_options(options, allowed=())
-        ep = draw_episode(self.np_random, self.config)
+        ep = self._worlds.new_episode(self.np_random)
         self._worlds.reset_worlds([0], [ep])
         return self._worlds.observe()[0], episode_info(self.config, ep)
 
@@ -151,7 +152,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
 
 
 @pickled_as_constructed
-class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
+class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
     """`num_envs` follower worlds on one `mujoco.batch.Batch`: Gymnasium's VectorEnv API.
 
     Observations (num_envs, 30), actions (num_envs, 3), rewards/terminations/
@@ -197,20 +198,10 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
         self.single_observation_space, self.single_action_space = make_spaces(self.config)
         self.observation_space = batch_space(self.single_observation_space, N)
         self.action_space = batch_space(self.single_action_space, N)
-        self._rngs: list[np.random.Generator | None] = [None] * N  # one per world, as SyncVectorEnv's envs
-        self._autoreset = np.zeros(N, bool)
-        self._elapsed = np.zeros(N, np.int64)
+        self._init_autoreset(N)
 
-    def _rng(self, w: int) -> np.random.Generator:
-        if self._rngs[w] is None:
-            self._rngs[w], _ = seeding.np_random()
-        return self._rngs[w]
-
-    def _reset_worlds(self, worlds: np.ndarray) -> dict[str, np.ndarray]:
-        """Draw episodes for `worlds` from their generators, reset them; returns their infos (W,)."""
-        episodes = [draw_episode(self._rng(int(w)), self.config) for w in worlds]
-        self._worlds.reset_worlds(worlds, episodes)
-        self._elapsed[worlds] = 0
+    def _reset_info(self, worlds: np.ndarray, episodes: list[Episode]) -> dict[str, np.ndarray]:
+        """The reset infos of `worlds` (their episodes' parameters) as (num_envs,) arrays, 0 elsewhere."""
         infos = [episode_info(self.config, ep) for ep in episodes]
         out = {}
         for key in infos[0] if infos else ():
@@ -221,41 +212,19 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorEnv):
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
         N = self.num_envs
-        seeds, mask = vector_reset_plan(N, seed, options)
+        worlds, mask, episodes = self._seeded_reset(seed, options)
         if isinstance(seed, (int, np.integer)):
             super().reset(seed=int(seed))
-        worlds = np.flatnonzero(mask)
-        for w in worlds:
-            if seeds[w] is not None:
-                self._rngs[w], _ = seeding.np_random(int(seeds[w]))
-        reset_info = self._reset_worlds(worlds)
-        self._autoreset[worlds] = False
-        obs = self._worlds.observe()
-        infos = _vector_infos(N, {}, np.zeros(N, bool), reset_info, mask)
-        return obs, infos
+        infos = _vector_infos(N, {}, np.zeros(N, bool), self._reset_info(worlds, episodes), mask)
+        return self._worlds.observe(), infos
 
     def step(self, actions: Any):
         N = self.num_envs
         a = self._worlds.check_actions(actions, (N, 3))
-        resetting = self._autoreset
-        stepping = ~resetting
-        any_reset = bool(resetting.any())
-        out = self._worlds.step(a, stepping if any_reset else None)
-        terminated, reward, step_info = out.terminated, out.reward, out.info()
-        self._elapsed += stepping
-        truncated = self._elapsed >= self.max_episode_steps if self.max_episode_steps is not None else np.zeros(N, bool)
-        reset_info: dict[str, np.ndarray] = {}
-        if any_reset:
-            reset_info = self._reset_worlds(np.flatnonzero(resetting))
-            reward[resetting] = 0.0
-            terminated = terminated & stepping
-            truncated = truncated & stepping
-            obs = self._worlds.observe()
-        else:
-            obs = self._worlds.observe(fresh=False)
-        infos = _vector_infos(N, step_info, stepping, reset_info, resetting)
-        self._autoreset = terminated | truncated
-        return obs, reward, terminated, truncated, infos
+        result = self._autoreset_step(a, self.max_episode_steps)
+        reset_info = self._reset_info(result.reset_indices, result.episodes) if result.episodes else {}
+        infos = _vector_infos(N, result.outcome.info(), ~result.resetting, reset_info, result.resetting)
+        return result.obs, result.outcome.reward, result.terminated, result.truncated, infos
 
     def render(self):
         frames = self._frames(range(self.num_envs))

@@ -4,7 +4,9 @@
 `OBS_DIM` values) is their concatenation. `OBS_SLICES` (index ranges),
 `obs_bounds` (the Box bounds) and `markdown_table` (the table in
 `downwash_envs.follower.DownwashFollowerEnv`'s docstring and docs/envs.md, which tests compare
-with it) all read this one tuple, so adding or changing an entry changes them all.
+with it) all read this one tuple, so adding or changing an entry changes them all. The
+helpers behind them (`layout_slices`, `layout_bounds`, `table_row`, `format_table`) serve
+any layout of `ObsEntry`s: the swarm env's too (`downwash_envs.swarm_task`).
 
 Positions and velocities are the vehicle's own knowledge (Kalman-filtered motion
 capture), attitudes the onboard (true) ones; all in the world frame, z up.
@@ -17,7 +19,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["ObsEntry", "OBSERVATION", "OBS_DIM", "OBS_SLICES", "obs_bounds", "markdown_table"]
+__all__ = [
+    "ObsEntry", "OBSERVATION", "OBS_DIM", "OBS_SLICES", "obs_bounds", "markdown_table",
+    "layout_slices", "layout_bounds", "table_row", "format_table",
+]  # fmt: skip
 
 
 class ObsEntry(NamedTuple):
@@ -48,33 +53,39 @@ OBSERVATION: tuple[ObsEntry, ...] = (
 OBS_DIM = sum(e.size for e in OBSERVATION)
 
 
-def _slices() -> dict[str, slice]:
+def layout_slices(layout: tuple[ObsEntry, ...]) -> dict[str, slice]:
+    """name -> index range of each entry of `layout` (any layout: this one, the swarm env's)."""
     out, start = {}, 0
-    for e in OBSERVATION:
+    for e in layout:
         out[e.name] = slice(start, start + e.size)
         start += e.size
     return out
 
 
-OBS_SLICES: dict[str, slice] = _slices()  # name -> index range in the vector
+def layout_bounds(layout: tuple[ObsEntry, ...], action_bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high), each (sum of sizes,) float64; `action_bound` (m/s^2) bounds the NaN-bound entries."""
+    high = np.concatenate([np.full(e.size, action_bound if math.isnan(e.bound) else e.bound) for e in layout])
+    return -high, high
+
+
+OBS_SLICES: dict[str, slice] = layout_slices(OBSERVATION)  # name -> index range in the vector
 
 
 def obs_bounds(action_bound: float) -> tuple[np.ndarray, np.ndarray]:
     """(low, high), each (OBS_DIM,) float64; `action_bound` (m/s^2) bounds last_action."""
-    high = np.concatenate([np.full(e.size, action_bound if math.isnan(e.bound) else e.bound) for e in OBSERVATION])
-    return -high, high
+    return layout_bounds(OBSERVATION, action_bound)
 
 
-def markdown_table() -> str:
-    """The observation as a markdown table: index, name, meaning, unit, frame, bound
-    ("b": the action bound). Columns padded to their widest cell; no trailing newline."""
+def table_row(index: str, e: ObsEntry, name: str | None = None) -> tuple[str, ...]:
+    """One row of an observation table: index, name, meaning, unit, frame, bound ("b": the action bound)."""
+    bound = "b" if math.isnan(e.bound) else f"{e.bound:g}"
+    return (index, e.name if name is None else name, e.meaning, e.unit, e.frame, bound)
+
+
+def format_table(rows: list[tuple[str, ...]]) -> str:
+    """Rows of `table_row` as a markdown table under its header; columns padded to their widest
+    cell, no trailing newline."""
     header = ("index", "name", "meaning", "unit", "frame", "bound")
-    rows = []
-    for e in OBSERVATION:
-        s = OBS_SLICES[e.name]
-        index = f"{s.start}-{s.stop - 1}" if e.size > 1 else f"{s.start}"
-        bound = "b" if math.isnan(e.bound) else f"{e.bound:g}"
-        rows.append((index, e.name, e.meaning, e.unit, e.frame, bound))
     widths = [max(len(r[i]) for r in (header, *rows)) for i in range(len(header))]
 
     def line(cells):
@@ -82,3 +93,13 @@ def markdown_table() -> str:
 
     rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
     return "\n".join([line(header), rule, *(line(r) for r in rows)])
+
+
+def markdown_table() -> str:
+    """The observation as a markdown table: index, name, meaning, unit, frame, bound
+    ("b": the action bound). Columns padded to their widest cell; no trailing newline."""
+    rows = []
+    for e in OBSERVATION:
+        s = OBS_SLICES[e.name]
+        rows.append(table_row(f"{s.start}-{s.stop - 1}" if e.size > 1 else f"{s.start}", e))
+    return format_table(rows)

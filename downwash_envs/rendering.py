@@ -31,7 +31,7 @@ import numpy as np
 from sim.scene import Scene
 from sim.simulator import Simulator
 
-__all__ = ["ensure_gl_backend", "Renderer"]
+__all__ = ["ensure_gl_backend", "offscreen_renderer", "Renderer"]
 
 _LEADER_RGBA = (0.95, 0.55, 0.05, 1.0)  # orange
 _FOLLOWER_RGBA = (0.05, 0.8, 0.9, 1.0)  # cyan
@@ -57,6 +57,24 @@ def ensure_gl_backend() -> str:
     return os.environ.get("MUJOCO_GL", "")
 
 
+def offscreen_renderer(model: mujoco.MjModel, width: int, height: int, *, what: str,
+                       error: type[Exception] = RuntimeError) -> mujoco.Renderer:
+    """MuJoCo's offscreen renderer of `model` (pixels), the GL backend chosen first (`ensure_gl_backend`).
+    Where no OpenGL context can be made, `error` saying that `what` needs one and naming the
+    backends to set and the packages they need."""
+    backend = ensure_gl_backend()
+    try:
+        return mujoco.Renderer(model, height=height, width=width)
+    except (mujoco.FatalError, ImportError, AttributeError, OSError, RuntimeError) as e:
+        raise error(
+            f"{what} needs an OpenGL backend for offscreen rendering, and none could be "
+            f"created (MUJOCO_GL={backend or '<unset>'!r}: {type(e).__name__}: {e}). "
+            "Set MUJOCO_GL=egl (GPU, or Mesa's software EGL: apt-get install libegl1 libegl-mesa0 "
+            "libgl1-mesa-dri libopengl0) or MUJOCO_GL=osmesa (apt-get install libosmesa6) in the "
+            "environment before mujoco is imported."
+        ) from e
+
+
 class Renderer:
     """Offscreen frames of one `Simulator`'s worlds, with a camera that keeps both vehicles in view."""
 
@@ -68,17 +86,7 @@ class Renderer:
                 model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
         self.model = model
         self.leader, self.follower = scene.leader, scene.follower
-        backend = ensure_gl_backend()
-        try:
-            self._renderer = mujoco.Renderer(model, height=height, width=width)
-        except (mujoco.FatalError, ImportError, AttributeError, OSError, RuntimeError) as e:
-            raise RuntimeError(
-                "render_mode='rgb_array' needs an OpenGL backend for offscreen rendering, and none could be "
-                f"created (MUJOCO_GL={backend or '<unset>'!r}: {type(e).__name__}: {e}). "
-                "Set MUJOCO_GL=egl (GPU, or Mesa's software EGL: apt-get install libegl1 libegl-mesa0 "
-                "libgl1-mesa-dri libopengl0) or MUJOCO_GL=osmesa (apt-get install libosmesa6) in the "
-                "environment before mujoco is imported."
-            ) from e
+        self._renderer = offscreen_renderer(model, width, height, what="render_mode='rgb_array'")
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
         self.camera.azimuth = 135.0  # deg

@@ -1,15 +1,14 @@
-"""The follower task, batched over worlds: episodes, observation, reward terms, termination.
+"""The follower task, batched over worlds: episodes, references, observation (the engine does the rest).
 
-`FollowerWorlds` runs W worlds of the task on one `sim.simulator.Simulator` (one
-`MjData` for W = 1, a `mujoco.batch.Batch` otherwise). Everything per step is
-batched over worlds; Python loops over worlds happen only at reset. The single and
-the vector env both run it, and both draw episodes with `draw_episode`, which is
-why the vector env equals a `SyncVectorEnv` of single envs step for step.
+`FollowerWorlds` is the follower task on the one engine (`downwash_envs.engine.TaskWorlds`):
+W worlds on one `sim.simulator.Simulator` (one `MjData` for W = 1, a `mujoco.batch.Batch`
+otherwise), the follower the one agent. The single and the vector env both run it, and both
+draw episodes with `draw_episode`, which is why the vector env equals a `SyncVectorEnv` of
+single envs step for step.
 
-The reward and termination are `task_terms` (readable) and its compiled twin
-`task_kernel`, written for A agents so that the swarm env (`downwash_envs.swarm`, every
-follower an agent) runs the same code; here the one agent is the follower. The
-observation is `observation` and its compiled twin `_observe_kernel`.
+The reward and termination are the engine's (`downwash_envs.reward`, shared with the swarm
+task; re-exported here). The observation is `observation` and its compiled twin
+`_observe_kernel`.
 
 Shapes: W worlds, V vehicles (the scene's leader and follower); positions m,
 velocities m/s, accelerations and actions m/s^2, all world frame, z up.
@@ -24,28 +23,21 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.jit import njit
-from downwash_core.status import Status
 from downwash_envs.config import FIELD_KNOBS, FollowerConfig, build_field
+from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
 from downwash_envs.observation import OBS_DIM, OBS_SLICES, OBSERVATION, obs_bounds
+from downwash_envs.reward import (  # noqa: F401  (the follower task's reward, defined once for both tasks)
+    ERROR_CAP, INFO_KEYS, REWARD_TERMS, squared_norm, task_constants, task_kernel, task_terms,
+)
 from sim.predictor import OraclePredictor, ZeroPredictor
 from sim.scene import Scene, build_scene
-from sim.simulator import Simulator
 from downwash_trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
 
 __all__ = [
     "REWARD_TERMS", "INFO_KEYS", "ERROR_CAP", "Episode", "draw_episode", "nominal_episode", "episode_info",
     "task_constants", "task_terms", "task_kernel", "squared_norm", "observation", "StepOutcome", "FollowerWorlds",
 ]  # fmt: skip
-
-# Reward terms, summed in this order: reward = sum(info["reward_" + name] for name in REWARD_TERMS).
-REWARD_TERMS = ("alive", "position", "velocity", "action", "action_rate", "termination")
-# A step's info, in this order: the reward terms, the errors (m, m/s; true state, capped), the status code.
-INFO_KEYS = (*(f"reward_{k}" for k in REWARD_TERMS), "position_error", "velocity_error", "status")
-_OK, _LEFT_BOX = int(Status.OK), int(Status.LEFT_BOX)  # plain ints: no enum conversion per step
-
-ERROR_CAP = 10.0  # m and m/s: position/velocity errors in the reward are capped (a diverged state is not finite)
 
 
 # ----------------------------------------------------------------------------- episodes
@@ -62,10 +54,11 @@ class Episode:
     mass_scale: float  # -, true / nominal follower mass
     # passes: points (K, 3) m, durations (K-1,) s, dwell (K,) s; None for the other references
     pattern: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    vehicle: VehicleScales | None = None  # the follower's drawn factors (mass_randomization, randomize); None: nominal
 
 
 def draw_episode(rng: np.random.Generator, cfg: FollowerConfig) -> Episode:
-    """Draw one episode's parameters, always in the same order (seed, separation, phase, ...)."""
+    """Draw one episode's parameters, always in the same order (seed, separation, phase, ...; `randomize` last)."""
     sim_seed = int(rng.integers(0, 2**63 - 1))
     lo, hi = cfg.separation_range
     separation = float(rng.uniform(lo, hi))
@@ -79,7 +72,12 @@ def draw_episode(rng: np.random.Generator, cfg: FollowerConfig) -> Episode:
         k = int(wp.n_points[0])
         pattern = (wp.points[0, :k].copy(), wp.durations[0, : k - 1].copy(), wp.dwell[0, :k].copy())
         separation = float(cfg.leader_position[2] - pattern[0][0, 2])  # the first waypoint's depth
-    return Episode(sim_seed, separation, phase, scales, mass_scale, pattern)
+    vehicle = draw_vehicle_scales(rng, cfg.vehicle_spreads, 1)  # last: the draws above are an env's without it
+    if cfg.mass_randomization is not None:
+        vehicle = VehicleScales(mass=np.array([mass_scale]))
+    elif vehicle is not None and vehicle.mass is not None:
+        mass_scale = float(vehicle.mass[0])
+    return Episode(sim_seed, separation, phase, scales, mass_scale, pattern, vehicle)
 
 
 def nominal_episode(cfg: FollowerConfig) -> Episode:
@@ -97,6 +95,10 @@ def episode_info(cfg: FollowerConfig, ep: Episode) -> dict[str, Any]:
     info: dict[str, Any] = {"separation": ep.separation, "mass_scale": ep.mass_scale}
     for name, s in zip(cfg.field_scales, ep.field_scales):
         info[f"field_scale_{name}"] = s
+    for name in ("inertia", "motor_lag"):  # the mass factor is mass_scale
+        factors = getattr(ep.vehicle, name) if ep.vehicle is not None else None
+        if factors is not None:
+            info[f"{name}_scale"] = float(factors[0])
     return info
 
 
@@ -126,62 +128,49 @@ class StepOutcome(NamedTuple):
         return dict(zip(INFO_KEYS, (*self.values[:, w].tolist(), int(self.status[w]))))
 
 
+class FollowerWorlds(TaskWorlds):
+    """W worlds of the follower task on the engine: per-world episodes, batched obs and reward."""
 
-class FollowerWorlds:
-    """W worlds of the follower task on one Simulator: per-world episodes, batched obs and reward."""
+    obs_shape = (OBS_DIM,)
 
     def __init__(self, cfg: FollowerConfig, n_worlds: int, n_threads: int = 0):
         self.cfg = cfg
-        self.W = W = int(n_worlds)
-        self.scene = scene = _scene()
+        scene = _scene()
         self.i_leader, self.i_follower = scene.leader, scene.follower
-        base = cfg.sim_base
-        per_control = int(round(1.0 / (base.rates.autopilot_dt * cfg.control_hz)))
-        rates = dataclasses.replace(base.rates, autopilot_per_control=per_control)
-        self.sim_config = dataclasses.replace(base, rates=rates)
         self.leader = np.array(cfg.leader_position, dtype=float)  # (3,) m, where the leader hovers
-        self.bound = cfg.bound
-        self.residual_mode = cfg.action_mode == "residual"
-
         # field: the knobs once; per-world constants when randomised
         field = build_field(cfg.field)  # None, a registered name / spec string, or an object
         knobs = {k: float(getattr(cfg, k)) for k in FIELD_KNOBS if float(getattr(cfg, k)) != 0.0}
         self.base_field = dataclasses.replace(field, **knobs) if knobs else field
         self.scale_names = tuple(cfg.field_scales)
-        self.episodes: list[Episode] = [nominal_episode(cfg)] * W
-
         self.ref_kwargs = dict(cfg.reference_kwargs or {})
-        self.follower_body = np.array([scene.body_ids[self.i_follower]])
-        self.nominal_mass = float(scene.model.body_mass[scene.body_ids[self.i_follower]])  # kg
-
-        field_now = self._field()
-        self.sim = Simulator(
-            scene, self._reference(), [0] * W, config=self.sim_config, field=field_now,
-            predictor=self._predictor(field_now), n_threads=n_threads,
-            controller=FeedbackLinearisedLQR(cfg.lqr), turbulence=cfg.turbulence,
-        )
-        V = self.sim.V
-        self.last_action = np.zeros((W, 3))  # m/s^2, as applied (clipped)
-        # the simulator's (W, V, 3) command; NaN keeps the leader's LQR in acceleration mode
-        self._command = np.zeros((W, V, 3)) if self.residual_mode else np.full((W, V, 3), np.nan)
-        self._obs_cache: tuple[np.ndarray, Any] | None = None  # attitudes and reference of the last step
+        episodes = [nominal_episode(cfg)] * int(n_worlds)
+        field_now = self._field(episodes)
+        super().__init__(cfg, scene, [scene.follower], episodes, n_threads, field=field_now,
+                         predictor=self._predictor(field_now))
         self.obs_low, self.obs_high = obs_bounds(self.bound)
-        self._agents = np.array([self.i_follower])  # the task's one agent, for `task_kernel`
-        self._constants = task_constants(cfg, self.bound)
+
+    def new_episode(self, rng: np.random.Generator) -> Episode:
+        return draw_episode(rng, self.cfg)
 
     # ---------------------------------------------------------------- per-world parameters
-    def _field(self) -> Any:
+    def _field(self, episodes: Sequence[Episode]) -> Any:
         if not self.scale_names:
             return self.base_field
-        scales = np.array([ep.field_scales for ep in self.episodes])  # (W, n)
+        scales = np.array([ep.field_scales for ep in episodes])  # (W, n)
         values = {
-            name: (float(getattr(self.base_field, name)) * scales[:, i]).reshape(self.W, 1, 1)
+            name: (float(getattr(self.base_field, name)) * scales[:, i]).reshape(len(episodes), 1, 1)
             for i, name in enumerate(self.scale_names)
         }
         return dataclasses.replace(self.base_field, **values)
 
     def _predictor(self, field: Any) -> Any:
         return OraclePredictor(field) if self.cfg.predictor == "oracle" else ZeroPredictor()
+
+    def _episodes_changed(self) -> None:
+        if self.scale_names:
+            self.sim.field = self._field(self.episodes)
+            self.sim.predictor = self._predictor(self.sim.field)
 
     def _reference(self) -> Cached:
         """Both vehicles' references (W, V): the leader hovers, the follower flies the episode's path."""
@@ -200,179 +189,36 @@ class FollowerWorlds:
         by_role = {self.i_leader: Hover(self.leader, n_worlds=W), self.i_follower: TimeShifted(follower, t0)}
         return Cached(stack([by_role[i] for i in range(len(by_role))]))
 
-    # ---------------------------------------------------------------- reset
-    def reset_worlds(self, worlds: Sequence[int], episodes: Sequence[Episode]) -> None:
-        """Start the given worlds on the given episodes (their reference's t = 0 state)."""
-        worlds = np.asarray(worlds, dtype=np.int64)
-        for w, ep in zip(worlds, episodes):
-            self.episodes[w] = ep
-        sim = self.sim
-        if self.scale_names:
-            sim.field = self._field()
-            sim.predictor = self._predictor(sim.field)
-        if self.cfg.mass_randomization is not None:
-            # true follower mass = nominal x scale (inertia likewise); the controller keeps nominal
-            scale = np.array([ep.mass_scale for ep in episodes])
-            sim.physics.set_body_mass(worlds, self.follower_body, (self.nominal_mass * scale)[:, None])
-        sim.reset(worlds, seeds=[ep.sim_seed for ep in episodes], reference=self._reference())
-        self.last_action[worlds] = 0.0
-        self._obs_cache = None
-
     # ---------------------------------------------------------------- step
     def check_actions(self, action: Any, shape: tuple[int, ...]) -> np.ndarray:
         """Validate (shape, finite), clip to [-1, 1] and scale by the bound: the action in m/s^2;
         ValueError before any stepping."""
-        try:
-            a = np.array(action, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"action: expected a float array of shape {shape} in [-1, 1], got {action!r}") from None
-        if a.shape != shape:
-            raise ValueError(f"action: expected shape {shape} (world frame, in [-1, 1]), got {a.shape}")
-        if not _clip_finite(a.reshape(-1), 1.0):
-            raise ValueError(f"action: must be finite (in [-1, 1]), got {a.tolist()}")
+        a = check_action("action", action, shape)
         a *= self.bound
         return a
 
     def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> StepOutcome:
         """Advance the `stepping` worlds (default all) one controller period with (W, 3) actions (m/s^2).
 
-        Worlds not stepping must be reset before their next step. Returns the `StepOutcome`
-        of every world, from the true state at the end of the step (`task_terms`, compiled).
+        Worlds not stepping must be reset before their next step (their outcome is zero). Returns
+        the `StepOutcome` of every world, from the true state at the end of the step (`task_terms`, compiled).
         """
-        sim, F = self.sim, self.i_follower
-        if stepping is not None and not stepping.all():
-            sim.active &= stepping
-        cmd = self._command
-        cmd[:, F] = actions
-        if sim.active.any():
-            if self.residual_mode:
-                sim.tick(residual=cmd)
-            else:
-                sim.tick(override=cmd)
-        true = sim.true_states()
-        ref = sim.reference(sim.t)
-        W = self.W
-        status, values, reward = np.empty(W, np.int64), np.empty((len(INFO_KEYS) - 1, W, 1)), np.empty((W, 1))
-        task_kernel(true.pos, true.vel, ref.pos, ref.vel, self._agents, actions[:, None], self.last_action[:, None],
-                    sim.status, self._constants, status, values[:6], reward, values[6], values[7])
-        if stepping is None:
-            self.last_action[:] = actions
-        else:
-            self.last_action[stepping] = actions[stepping]
-        self._obs_cache = (true.rot, ref)
-        return StepOutcome(status != _OK, reward[:, 0], values[:, :, 0], status)
+        out = self.advance(actions[:, None], stepping)
+        return StepOutcome(out.terminated, out.reward[:, 0], out.values[:, :, 0], out.status)
 
-    # ---------------------------------------------------------------- observation
-    def observe(self, fresh: bool = True) -> np.ndarray:
-        """(W, OBS_DIM) float32, the layout of `downwash_envs.observation.OBSERVATION`, clipped to its bounds.
-
-        fresh=False reuses the attitudes and reference of the last step (no reset since).
-        """
+    # ---------------------------------------------------------------- observation (`observe`: the engine's)
+    def _observe_into(self, rot: np.ndarray, ref: Any, out: np.ndarray) -> None:
         sim = self.sim
-        if fresh or self._obs_cache is None:
-            rot = sim.true_states().rot
-            ref = sim.reference(sim.t)
-        else:
-            rot, ref = self._obs_cache
-        o = np.empty((self.W, OBS_DIM))
         _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.i_leader, self.i_follower,
-                        self.last_action, self.obs_low, self.obs_high, o)
-        return o.astype(np.float32)
+                        self.last_action[:, 0], self.obs_low, self.obs_high, out)
+
+    def camera_targets(self, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The leader, the follower and the follower's reference (3,) m."""
+        pos = self.sim.true_states().pos[w]  # (V, 3) m
+        return pos[self.i_leader], pos[self.i_follower], self.sim.reference(self.sim.t).pos[w, self.i_follower]
 
 
-# ----------------------------------------------------------------------------- reward, termination, observation
-
-
-def task_constants(task: FollowerConfig, bound: float) -> np.ndarray:
-    """(8,) float64: max_tracking_error (m), the six reward weights in REWARD_TERMS order (the
-    costs negated, so that each term is weight * value), and bound^2 (m^2/s^4)."""
-    return np.array([
-        task.max_tracking_error, task.alive_reward, -task.position_cost_weight, -task.velocity_cost_weight,
-        -task.action_cost_weight, -task.action_rate_cost_weight, -task.termination_penalty, bound * bound,
-    ])  # fmt: skip
-
-
-def task_terms(
-    true_pos: np.ndarray, true_vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray, agents: np.ndarray,
-    actions: np.ndarray, last_action: np.ndarray, sim_status: np.ndarray, constants: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The readable reward and termination of a step (the envs run its compiled twin `task_kernel`).
-
-    true_pos, true_vel, ref_pos, ref_vel: (W, V, 3) m, m/s at the end of the step; agents (A,);
-    actions, last_action: (W, A, 3) m/s^2 (this step's, the previous); sim_status: (W,) the
-    simulator's `Status` codes; constants: `task_constants`. Returns status (W,) int64 (the
-    simulator's, else LEFT_BOX when any agent is farther than max_tracking_error from its
-    reference, else OK), terms (6, W, A) in REWARD_TERMS order, reward (W, A) (their sum in
-    that order), position and velocity errors (W, A), capped
-    at ERROR_CAP (non-finite: the cap). The world's end is every agent's.
-    """
-    max_err, alive, w_p, w_v, w_a, w_da, w_end, b2 = constants
-    pos_err = _capped(np.sqrt(squared_norm(true_pos[:, agents] - ref_pos[:, agents])))
-    vel_err = _capped(np.sqrt(squared_norm(true_vel[:, agents] - ref_vel[:, agents])))
-    left = ~np.all(pos_err <= max_err, axis=1)
-    status = np.where(sim_status != _OK, sim_status, np.where(left, _LEFT_BOX, _OK)).astype(np.int64)
-    ended = np.repeat((status != _OK)[:, None], len(agents), axis=1).astype(np.float64)  # (W, A) 1.0 / 0.0
-    terms = np.stack([
-        alive * (1.0 - ended), w_p * pos_err, w_v * vel_err, w_a * (squared_norm(actions) / b2),
-        w_da * (squared_norm(actions - last_action) / b2), w_end * ended,
-    ])  # fmt: skip
-    reward = np.zeros(pos_err.shape)
-    for term in terms:
-        reward = reward + term
-    return status, terms, reward, pos_err, vel_err
-
-
-def _capped(n: np.ndarray) -> np.ndarray:
-    return np.where(n <= ERROR_CAP, n, ERROR_CAP)
-
-
-@njit
-def _capped_distance(x, y):
-    """|x - y| of two (3,) vectors, summed x, y, z left to right; non-finite or above ERROR_CAP: the cap."""
-    dx, dy, dz = x[0] - y[0], x[1] - y[1], x[2] - y[2]
-    e = np.sqrt(dx * dx + dy * dy + dz * dz)
-    return e if e <= ERROR_CAP else ERROR_CAP
-
-
-@njit
-def task_kernel(true_pos, true_vel, ref_pos, ref_vel, agents, actions, last_action, sim_status, constants,
-                 status, terms, reward, pos_err, vel_err):
-    """Compiled `task_terms`, written into status (W,), terms (6, W, A), reward, pos_err, vel_err (W, A)."""
-    W, A = pos_err.shape
-    max_err, alive, w_p, w_v = constants[0], constants[1], constants[2], constants[3]
-    w_a, w_da, w_end, b2 = constants[4], constants[5], constants[6], constants[7]
-    for w in range(W):
-        inside = True
-        for i in range(A):
-            a = agents[i]
-            pos_err[w, i] = _capped_distance(true_pos[w, a], ref_pos[w, a])
-            vel_err[w, i] = _capped_distance(true_vel[w, a], ref_vel[w, a])
-            inside = inside and pos_err[w, i] <= max_err
-        if sim_status[w] != _OK:
-            status[w] = sim_status[w]
-        elif not inside:
-            status[w] = _LEFT_BOX
-        else:
-            status[w] = _OK
-        ended = 1.0 if status[w] != _OK else 0.0
-        for i in range(A):
-            ax, ay, az = actions[w, i, 0], actions[w, i, 1], actions[w, i, 2]
-            dx, dy, dz = ax - last_action[w, i, 0], ay - last_action[w, i, 1], az - last_action[w, i, 2]
-            terms[0, w, i] = alive * (1.0 - ended)
-            terms[1, w, i] = w_p * pos_err[w, i]
-            terms[2, w, i] = w_v * vel_err[w, i]
-            terms[3, w, i] = w_a * ((ax * ax + ay * ay + az * az) / b2)
-            terms[4, w, i] = w_da * ((dx * dx + dy * dy + dz * dz) / b2)
-            terms[5, w, i] = w_end * ended
-            r = 0.0
-            for k in range(6):
-                r = r + terms[k, w, i]
-            reward[w, i] = r
-
-
-def squared_norm(x: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (...) squared norm, summed x, y, z left to right (as the compiled kernels)."""
-    return x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2]
+# ----------------------------------------------------------------------------- observation
 
 
 def observation(
@@ -402,17 +248,6 @@ def observation(
     o = np.clip(np.concatenate([parts[e.name] for e in OBSERVATION], axis=1), low, high)
     o[np.isnan(o)] = 0.0
     return o
-
-
-@njit
-def _clip_finite(a, bound):
-    """Clip a (n,) to [-bound, bound] in place, as np.clip; False (a untouched) if a value is not finite."""
-    for i in range(a.size):
-        if not np.isfinite(a[i]):
-            return False
-    for i in range(a.size):
-        a[i] = min(max(a[i], -bound), bound)
-    return True
 
 
 # where each entry starts (numba freezes these globals into the kernel)

@@ -41,12 +41,12 @@ from downwash_core.io import atomic_path
 from downwash_core.params import RATES
 from downwash_core.roles import Role
 from downwash_core.validate import count, positive_float
-from downwash_envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS, ensure_gl_backend
+from downwash_envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS, offscreen_renderer
 from sim.field import DownwashField
 from sim.scene import Scene
 
 __all__ = [
-    "WAKE_DEPTH", "Trajectory", "CameraView", "TiledRenderer", "wake_width", "frame_rows", "render_frames",
+    "WAKE_DEPTH", "Trajectory", "CameraView", "TiledRenderer", "wake_width", "add_wake", "frame_rows", "render_frames",
     "check_writer", "check_video_output", "write_video", "write_conditions_video", "logs_video",
 ]
 
@@ -263,16 +263,7 @@ class TiledRenderer:
         model.vis.map.fogend = _HORIZON / model.stat.extent
         self.model = model
         self.data = mujoco.MjData(model)
-        backend = ensure_gl_backend()
-        try:
-            self._renderer = mujoco.Renderer(model, height=self.height, width=self.width)
-        except (mujoco.FatalError, ImportError, AttributeError, OSError, RuntimeError) as e:
-            raise ConfigError(
-                "a video needs an OpenGL backend for offscreen rendering, and none could be created "
-                f"(MUJOCO_GL={backend or '<unset>'!r}: {type(e).__name__}: {e}). Set MUJOCO_GL=egl (GPU, or Mesa's "
-                "software EGL: apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0) or "
-                "MUJOCO_GL=osmesa (apt-get install libosmesa6) before mujoco is imported."
-            ) from e
+        self._renderer = offscreen_renderer(model, self.width, self.height, what="a video", error=ConfigError)
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_FOG] = True
@@ -319,16 +310,7 @@ class TiledRenderer:
         return _label(img, label, self._font) if label else img
 
     def _add_wake(self, scn: Any, p: np.ndarray, R: np.ndarray) -> None:
-        """A stepped cone below p along -R[:, 2]: radius sigma(s), alpha fading with depth."""
-        n = R[:, 2]
-        w0, slope = self.wake
-        edges = np.linspace(_WAKE_START, WAKE_DEPTH, _WAKE_SEGMENTS + 1)
-        for i in range(_WAKE_SEGMENTS):
-            s = 0.5 * (edges[i] + edges[i + 1])
-            alpha = _WAKE_ALPHA[0] + (_WAKE_ALPHA[1] - _WAKE_ALPHA[0]) * i / (_WAKE_SEGMENTS - 1)
-            half = 0.5 * (edges[i + 1] - edges[i])
-            _add_geom(scn, mujoco.mjtGeom.mjGEOM_CYLINDER, (w0 + slope * s, half, 0.0), p - s * n, R,
-                      (*_WAKE_RGB, alpha))
+        add_wake(scn, p, R, self.wake)
 
     def frame(self, tiles: Sequence[np.ndarray]) -> np.ndarray:
         """The tiles (each (height, width, 3) uint8) laid out `columns` per row, padded to even sizes."""
@@ -348,6 +330,20 @@ class TiledRenderer:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def add_wake(scn: Any, p: np.ndarray, R: np.ndarray, wake: tuple[float, float]) -> None:
+    """Into `scn`: the wake of a vehicle at p (3,) m with body-to-world R (3, 3), as the videos and the
+    viewer draw it: a stepped cone along -R[:, 2] from `_WAKE_START` to `WAKE_DEPTH`, radius
+    width0 + width_slope s, fading with depth. wake: (width0 m, width_slope -)."""
+    n = R[:, 2]
+    w0, slope = wake
+    edges = np.linspace(_WAKE_START, WAKE_DEPTH, _WAKE_SEGMENTS + 1)
+    for i in range(_WAKE_SEGMENTS):
+        s = 0.5 * (edges[i] + edges[i + 1])
+        alpha = _WAKE_ALPHA[0] + (_WAKE_ALPHA[1] - _WAKE_ALPHA[0]) * i / (_WAKE_SEGMENTS - 1)
+        half = 0.5 * (edges[i + 1] - edges[i])
+        _add_geom(scn, mujoco.mjtGeom.mjGEOM_CYLINDER, (w0 + slope * s, half, 0.0), p - s * n, R, (*_WAKE_RGB, alpha))
 
 
 def _add_geom(scn: Any, kind: int, size: Sequence[float], pos: np.ndarray, mat: np.ndarray,

@@ -34,9 +34,8 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_envs.rendering import _REF_RGBA
-from downwash_envs.video import (
-    _PATH_RGBA, _REF_RADIUS, _WAKE_ALPHA, _WAKE_RGB, _WAKE_SEGMENTS, _WAKE_START, WAKE_DEPTH, CameraView,
-    _add_geom, _add_line, decorated, wake_width,
+from downwash_envs.video import (  # add_wake: the viewer draws the wake as the videos do
+    _PATH_RGBA, _REF_RADIUS, CameraView, _add_geom, _add_line, add_wake, decorated, wake_width,
 )
 from sim.scene import Scene
 from sim.simulator import Simulator
@@ -66,20 +65,6 @@ def check_display(what: str) -> None:
         if getattr(mujoco.viewer, "_MJPYTHON", None) is None:
             raise ConfigError(f"{what} opens MuJoCo's passive viewer, which on macOS runs only under mjpython: "
                               "run the script with mjpython instead of python, or use render_mode='rgb_array'")
-
-
-def add_wake(scn: Any, p: np.ndarray, R: np.ndarray, wake: tuple[float, float]) -> None:
-    """Into `scn`: the wake of a vehicle at p (3,) m with body-to-world R (3, 3), as the videos draw it:
-    a stepped cone along -R[:, 2] from `_WAKE_START` to `WAKE_DEPTH`, radius width0 + width_slope s,
-    fading with depth. wake: (width0 m, width_slope -)."""
-    n = R[:, 2]
-    w0, slope = wake
-    edges = np.linspace(_WAKE_START, WAKE_DEPTH, _WAKE_SEGMENTS + 1)
-    for i in range(_WAKE_SEGMENTS):
-        s = 0.5 * (edges[i] + edges[i + 1])
-        alpha = _WAKE_ALPHA[0] + (_WAKE_ALPHA[1] - _WAKE_ALPHA[0]) * i / (_WAKE_SEGMENTS - 1)
-        half = 0.5 * (edges[i + 1] - edges[i])
-        _add_geom(scn, mujoco.mjtGeom.mjGEOM_CYLINDER, (w0 + slope * s, half, 0.0), p - s * n, R, (*_WAKE_RGB, alpha))
 
 
 class Viewer:

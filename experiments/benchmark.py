@@ -302,7 +302,7 @@ def train_equivariant(minutes: float, field: Any) -> tuple[float, Any]:
     v_a, R_a = np.zeros((n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     y = field(np.zeros((n, 3)), v_a, R_a, dp, v_b) + 0.1 * rng.normal(size=(n, 3))
     flight = np.arange(n) // 1425  # 28.5 s flights, as in the staged collection
-    data = Dataset(dp, v_a, v_b, R_a, y, flight, np.zeros(n, int), (np.arange(n) % 1425) * RATES.control_dt, y)
+    data = Dataset.from_pairs(dp, v_a, v_b, R_a, y, flight, t=(np.arange(n) % 1425) * RATES.control_dt, field_mean=y)
     t0 = time.perf_counter()
     model, _ = train_model("equivariant", data, None, TrainConfig(seed=0))
     return time.perf_counter() - t0, model

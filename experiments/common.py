@@ -36,7 +36,7 @@ from downwash_core.errors import ConfigError, TestbedError
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
     "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
-    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS", "MODEL_KINDS",
+    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS", "PAIRWISE_KINDS",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
@@ -46,7 +46,7 @@ A = TypeVar("A")
 # the heavy imports behind them (tests/test_cli.py checks each against its source).
 CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant",
               "equivariant_general")  # downwash.conditions.CONDITIONS
-MODEL_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")  # downwash.models.MODEL_KINDS
+PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")  # downwash.models.PAIRWISE_KINDS
 FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5")  # sim.presets.PRESETS
@@ -123,7 +123,7 @@ class Pipeline:
                 "models_dir": str(self.models_dir), "pipeline": self.record}
 
 
-def resolve_pipeline(args: PipelineArgs, *, models: Sequence[str] = MODEL_KINDS, **settings: Any) -> Pipeline:
+def resolve_pipeline(args: PipelineArgs, *, models: Sequence[str] = PAIRWISE_KINDS, **settings: Any) -> Pipeline:
     """The field (checked), the collection settings (seed and --quick from args, plus `settings`)
     and the folders: the ones given, or those keyed by the provenance. When any of `models` (the
     kinds the run needs) is missing, the run collects and trains: both folders are then checked

@@ -63,7 +63,7 @@ RESULTS_PAGE = ("# Results\n\nEvery number on this page is generated from the co
                 "(`results/*.json`) by `python -m experiments.report`; none is typed.\n\n"
                 f"{BEGIN}\n{END}\n")  # a results page that does not exist yet starts as this
 TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
-ORDER = CONDITIONS  # conditions and models in one order: the references, then MODEL_KINDS (the paper's order)
+ORDER = CONDITIONS  # conditions and models in one order: the references, then PAIRWISE_KINDS (the paper's order)
 PAPER_RMSE = {5.0: {"shallow": 0.263, "deep": 0.255, "equivariant": 0.222},  # the paper's figure 3 table, m/s^2
               15.0: {"shallow": 0.243, "deep": 0.229, "equivariant": 0.218}}
 PAPER_TRACKING = ("Paper (real flights, section 5.E): with the equivariant model, 3D position improves about 36 % "

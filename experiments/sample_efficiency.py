@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from downwash_core.errors import ConfigError
-from experiments.common import (MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, PipelineArgs, ProgressBar, arg,
+from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, PipelineArgs, ProgressBar, arg,
                                 format_table, parse_args, resolve_pipeline, run_main, setup_logging, write_results,
                                 script)
 
@@ -43,7 +43,7 @@ MINUTES = PAPER_MINUTES  # plus the full set
 class EfficiencyArgs(PipelineArgs):
     trials: int = arg(10, "trials per point (different data subsets and seeds; --quick: at most 2)", ge=1)
     minutes: str = arg(",".join(f"{m:g}" for m in MINUTES), "comma list of training minutes; the full set is always added")
-    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(MODEL_KINDS)}")
+    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(PAIRWISE_KINDS)}")
     workers: int = arg(0, "CPUs of the local Ray that trains the models (0: all cores)", ge=0)
     address: str = arg("", "address of a running Ray cluster; default: a local Ray")
     cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with experiments.sweep)", output="dir")

@@ -41,10 +41,9 @@ DEFAULT_PRESETS = "stack3,stack4,swap,formation5"
 
 def conditions() -> list[str]:
     """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix."""
-    from downwash.swarm_collection import DATA_MIXES
-    from downwash.swarm_models import TRAINABLE_SWARM_KINDS
+    from downwash.swarm_collection import DATA_MIXES, TRAINABLE_SET_KINDS
 
-    return ["baseline", "oracle", "summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SWARM_KINDS for m in DATA_MIXES]
+    return ["baseline", "oracle", "summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SET_KINDS for m in DATA_MIXES]
 
 
 @dataclass(frozen=True)
@@ -94,7 +93,8 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
 def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, pair_models_dir: Path,
                 neighbours) -> list:
     from downwash.swarm_collection import swarm_model_path
-    from downwash.swarm_models import SwarmPredictor, wrap_pairwise
+    from downwash.checkpoint import wrap_pairwise
+    from downwash.predictor import LearnedPredictor
     from sim.predictor import OraclePredictor, ZeroPredictor
 
     out = []
@@ -104,11 +104,11 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
         elif c == "oracle":
             out.append(OraclePredictor(field, aggregation=law))
         elif c == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
-            out.append(SwarmPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
+            out.append(LearnedPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
         else:
             kind, mix = c.rsplit("-", 1)
-            out.append(SwarmPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
-                                      expect_neighbours=neighbours,
+            out.append(LearnedPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
+                                        expect_neighbours=neighbours,
                                       expect_aggregation=law if mix == "mixed" else None))
     return out
 

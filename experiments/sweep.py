@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from experiments.common import (FIELD_NAMES, MODEL_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
+from experiments.common import (FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
                                 ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
                                 write_results, script)
 
@@ -40,7 +40,7 @@ class SweepArgs(CommonArgs):
     field: str = arg("", "the fields, separated by ';': each NAME[:KEY=VALUE,...] with NAME one of "
                          f"{', '.join(FIELD_NAMES)} (python -m experiments.fields lists their parameters; '' is "
                          "so2) or MODULE:FACTORY")
-    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(MODEL_KINDS)}")
+    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(PAIRWISE_KINDS)}")
     minutes: str = arg(",".join(f"{m:g}" for m in PAPER_MINUTES), "comma list of training minutes; the full set "
                                                                     "is always added")
     seeds: str = arg(",".join(str(s) for s in range(10)), "comma list of trial seeds (each one data subset and "

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
-from experiments.common import (MODEL_KINDS, CommonArgs, arg, format_table, load_field, parse_args, run_main,
+from experiments.common import (PAIRWISE_KINDS, CommonArgs, arg, format_table, load_field, parse_args, run_main,
                                 setup_logging, write_results, script)
 
 __all__ = ["TrainArgs", "run", "main"]
@@ -26,7 +26,7 @@ __all__ = ["TrainArgs", "run", "main"]
 
 @dataclass(frozen=True)
 class TrainArgs(CommonArgs):
-    model: str = arg("equivariant", "model kind: " + ", ".join(MODEL_KINDS))
+    model: str = arg("equivariant", "model kind: " + ", ".join(PAIRWISE_KINDS))
     logs: str = arg("", "folder of training flight logs (.npz), searched recursively")
     val_logs: str = arg("", "folder of validation flight logs (.npz), searched recursively")
     minutes: float = arg(0.0, "shorten the training data to this many minutes, each stage proportionally (0: all)",
@@ -39,13 +39,13 @@ def run(args: TrainArgs) -> dict:
     from downwash.checkpoint import save_checkpoint
     from downwash.datasets import find_logs, load_dataset, shorten_per_stage
     from downwash.labels import label_noise_floor
-    from downwash.models import MODEL_KINDS, count_parameters
+    from downwash.models import PAIRWISE_KINDS, count_parameters
     from downwash.staged import train_config
     from downwash.train import rmse, train_model
     from downwash_core.provenance import describe, differences
 
-    if args.model not in MODEL_KINDS:
-        raise ConfigError(f"--model: unknown {args.model!r}; allowed: {', '.join(MODEL_KINDS)}")
+    if args.model not in PAIRWISE_KINDS:
+        raise ConfigError(f"--model: unknown {args.model!r}; allowed: {', '.join(PAIRWISE_KINDS)}")
     if not args.logs or not args.val_logs:
         raise ConfigError("--logs and --val-logs: both folders of flight logs are required")
     for option, location in (("--logs", args.logs), ("--val-logs", args.val_logs)):

@@ -1,11 +1,12 @@
-"""The integrator: scene, ground-truth field, turbulence, estimation, physics, the loop, logs, metrics.
+"""The integrator: scene, ground-truth field, turbulence, sensors, estimation, physics, the loop, logs, metrics.
 
 Modules (import them directly):
 
 - `sim.scene`: N quadrotors from `assets/quad.xml` with named roles (`build_scene`)
 - `sim.field`: the ground-truth downwash field (`DownwashField`, `pairwise_field`)
 - `sim.turbulence`: turbulence on the field (`OUTurbulence`)
-- `sim.estimation`: motion capture and the Kalman filter
+- `sim.sensors`: the sensor, motion capture (`MocapConfig`, `BiasedMocap`, `make_sensor`)
+- `sim.estimation`: the Kalman filter on the sensor's positions
 - `sim.physics`: one stepping interface over `MjData` and `mujoco.batch.Batch`
 - `sim.simulator`: the multi-rate loop (`Simulator`, `SimConfig`)
   over `sim.plan` (fused or readable), `sim.fused` (the fused tick), `sim.passes` (the

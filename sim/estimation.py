@@ -1,46 +1,34 @@
-"""Motion capture and the Kalman filter that turns it into position/velocity estimates.
+"""The Kalman filter that turns a sensor's positions into position/velocity estimates.
 
-Motion capture measures every vehicle's position (white noise per axis) and attitude
-(the true attitude turned by a small random body-frame rotation, white per sample:
-`downwash_core.geometry.perturb_quat`) at the autopilot rate (100 Hz, DESIGN: 100-120 Hz).
-The controller's heading, the learned models and the labels use the measured
-attitude; the true one is for the field, the oracle and diagnostics only (the
-autopilot flies on its own onboard attitude, which we take as exact).
+The sensor (`sim.sensors`: motion capture, `SimConfig.mocap`) measures every vehicle's
+position and attitude at the autopilot rate (100 Hz, DESIGN: 100-120 Hz). The
+controller's heading, the learned models and the labels use the measured attitude; the
+true one is for the field, the oracle and diagnostics only (the autopilot flies on its
+own onboard attitude, which we take as exact).
 
 Each axis is an independent double integrator driven by the commanded acceleration,
-with the unmodelled part (downwash, lag) as white process noise. All axes and
-vehicles share the same noise model, so the filter's covariance converges to one
-steady state: we compute that gain once (discrete algebraic Riccati equation, scipy)
-and apply it to the whole batch. `kalman_gain_sequence` runs the time-varying filter
-for the test that the steady-state gain is its limit.
+with the unmodelled part (downwash, lag) as white process noise, and the sensor's
+`measurement_noise` as white measurement noise (a sensor's per-episode offset is no
+noise the filter can average away). All axes and vehicles share the same noise model,
+so the filter's covariance converges to one steady state: we compute that gain once
+(discrete algebraic Riccati equation, scipy) and apply it to the whole batch.
+`kalman_gain_sequence` runs the time-varying filter for the test that the steady-state
+gain is its limit. `MocapConfig` (the default sensor) is defined in `sim.sensors` and
+still imported from here.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.linalg
 
-from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 from downwash_core.numerics import cpu_independent
+from sim.sensors import MocapConfig
 
 __all__ = ["MocapConfig", "steady_state_gain", "kalman_gain_sequence", "MocapKalmanFilter", "kf_predict", "kf_update"]
-
-
-@dataclass(frozen=True)
-class MocapConfig:
-    """Motion capture and estimator settings."""
-
-    position_noise: float = 0.0005  # m, std of each motion-capture position axis
-    attitude_noise: float = 0.002  # rad, std of each axis of the attitude error (body-frame rotation vector)
-    process_accel_noise: float = 2.0  # m/s^2, std of unmodelled acceleration (downwash is ~1-3)
-
-    def __post_init__(self):
-        for name in ("position_noise", "attitude_noise", "process_accel_noise"):
-            if not getattr(self, name) >= 0.0:
-                raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
 
 
 def _model(dt: float, q_acc: float, r_pos: float):
@@ -52,19 +40,20 @@ def _model(dt: float, q_acc: float, r_pos: float):
     return F, G, Qn, H, Rn
 
 
-def steady_state_gain(dt: float, cfg: MocapConfig = MocapConfig()) -> np.ndarray:
-    """Steady-state Kalman gain (2,) [position, velocity] per axis for measurements every dt s.
+def steady_state_gain(dt: float, cfg: Any = MocapConfig()) -> np.ndarray:
+    """Steady-state Kalman gain (2,) [position, velocity] per axis for measurements every dt s by
+    the sensor `cfg` (its `measurement_noise` and `process_accel_noise`).
 
     Rounded to float32 precision (`downwash_core.numerics.cpu_independent`): the Riccati solve's
     last bits differ between CPUs, and flights must not."""
-    F, _, Qn, H, Rn = _model(dt, cfg.process_accel_noise, cfg.position_noise)
+    F, _, Qn, H, Rn = _model(dt, cfg.process_accel_noise, cfg.measurement_noise)
     P = scipy.linalg.solve_discrete_are(F.T, H.T, Qn, Rn)  # prior covariance
     return cpu_independent((P @ H.T @ np.linalg.inv(H @ P @ H.T + Rn)).ravel())
 
 
-def kalman_gain_sequence(dt: float, n: int, cfg: MocapConfig = MocapConfig(), p0: float = 1.0) -> np.ndarray:
+def kalman_gain_sequence(dt: float, n: int, cfg: Any = MocapConfig(), p0: float = 1.0) -> np.ndarray:
     """Gains (n, 2) of the time-varying filter from prior covariance p0 * I (slow reference)."""
-    F, _, Qn, H, Rn = _model(dt, cfg.process_accel_noise, cfg.position_noise)
+    F, _, Qn, H, Rn = _model(dt, cfg.process_accel_noise, cfg.measurement_noise)
     P = np.eye(2) * p0
     gains = np.empty((n, 2))
     for k in range(n):
@@ -80,10 +69,11 @@ class MocapKalmanFilter:
     """Batched predict/update on arrays (..., 3); the state lives with the caller.
 
     Call `update` at each motion-capture sample and `predict` between samples with
-    the commanded acceleration. The filter holds gains, not history.
+    the commanded acceleration. The filter holds gains, not history; its measurement
+    noise is the sensor's (`cfg`, a `sim.sensors` sensor).
     """
 
-    def __init__(self, dt: float, cfg: MocapConfig = MocapConfig()):
+    def __init__(self, dt: float, cfg: Any = MocapConfig()):
         self.dt = dt
         self.cfg = cfg
         self.gain = steady_state_gain(dt, cfg)

@@ -127,6 +127,7 @@ _TAB = (
     "status_new", "kin", "quat", "rot", "quat_est", "rot_est", "yaw", "applied", "mean", "pred", "Kt",
     "field_packed", "oracle_packed", "gust", "wind_noise", "wind_mean", "wind_sigma", "wind_length", "wind_axes",
     "air", "vel_air", "wind_acc", "diverged", "pw_code", "pw_fn", "pw_params", "pw_iparams", "pw_oracle",
+    "mocap_offset",
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
 )
@@ -138,7 +139,7 @@ _TAB = (
  _T_STATUS_NEW, _T_KIN, _T_QUAT, _T_ROT, _T_QUAT_EST, _T_ROT_EST, _T_YAW, _T_APPLIED, _T_MEAN, _T_PRED_OUT, _T_KT,
  _T_FIELD_PACKED, _T_ORACLE_PACKED, _T_GUST, _T_WIND_NOISE, _T_WIND_MEAN, _T_WIND_SIGMA, _T_WIND_LENGTH,
  _T_WIND_AXES, _T_AIR, _T_VEL_AIR, _T_WIND_ACC, _T_DIVERGED, _T_PW_CODE, _T_PW_FN, _T_PW_PARAMS, _T_PW_IPARAMS,
- _T_PW_ORACLE,
+ _T_PW_ORACLE, _T_MOCAP_OFFSET,
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
@@ -275,6 +276,7 @@ def _make_fused_kernel(with_wind: bool):
                 due = carray(_boolp(tab[_T_DUE]), (n_worlds,))[w0:w1]
                 field_on = carray(_boolp(tab[_T_FIELD_ON]), (n_worlds,))[w0:w1]
                 turb = carray(_f64p(tab[_T_TURB]), (n_worlds, V, 3))[w0:w1]
+                mocap_offset = carray(_f64p(tab[_T_MOCAP_OFFSET]), (n_worlds, V, 3))[w0:w1]
                 rot_des = carray(_f64p(tab[_T_ROT_DES]), (n_worlds, V, 3, 3))[w0:w1]
                 yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
                 thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
@@ -313,7 +315,8 @@ def _make_fused_kernel(with_wind: bool):
                         applied = carray(_f64p(tab[_T_APPLIED]), (n_worlds, V, 3))[w0:w1]
                         mean = carray(_f64p(tab[_T_MEAN]), (n_worlds, V, 3))[w0:w1]
                     n_due = _sense_kernel(
-                        qpos_w, qvel_w, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], fc[_F_KF_P], fc[_F_KF_V],
+                        qpos_w, qvel_w, layout, noise, cursor, fc[_F_SIGMA_P], fc[_F_SIGMA_ATT], mocap_offset,
+                        fc[_F_KF_P], fc[_F_KF_V],
                         pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw,
                     )
                     pos, vel = kin[0], kin[1]

@@ -6,7 +6,7 @@ calls (predictor, field, reference, controller); the fused kernel (`sim.fused`) 
 the very same passes inside one compiled call. As NumPy on these small arrays,
 per-call overhead cost several times MuJoCo's own step.
 
-- `_sense_kernel`: the true state, the motion-capture sample, the Kalman update;
+- `_sense_kernel`: the true state, the sensor's sample (`sim.sensors`), the Kalman update;
 - `_wind_sense_kernel`, `_wind_advance_kernel`, `_wind_force_kernel`: the air velocity
   at each vehicle and its drag, the next gust state, the drag into `xfrc_applied`;
 - `_hold_kernel`: the 45 Hz prediction, held;
@@ -15,7 +15,7 @@ per-call overhead cost several times MuJoCo's own step.
 - `_status_kernel`: after a controller tick, which worlds diverged or collided;
 - `_true_states_kernel`: the true states, for `Simulator.true_states`.
 
-The math stays in its module (`controllers.autopilot.rotor_thrusts`,
+The math stays in its module (`controllers.autopilot.rotor_thrusts`, `sim.sensors`,
 `sim.estimation.kf_update` / `kf_predict`, `sim.turbulence.OUTurbulence`, `sim.wind`);
 tests check the passes against the readable components. Every pass loops over the
 flattened (W, V) batch and reads the vehicles' MuJoCo addresses from the simulator's
@@ -25,6 +25,7 @@ per-vehicle table `layout` (V, 7), whose columns are `_QPOS`, `_QVEL`, `_BODY`, 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -42,12 +43,31 @@ _OK, _DIVERGED, _GROUND, _VEHICLE = (int(s) for s in (Status.OK, Status.DIVERGED
 _QPOS, _QVEL, _BODY, _ACT = 0, 1, 2, 3  # free joint in qpos, in qvel, body id, 4 actuator ids
 
 
+class _Sensed(NamedTuple):
+    """What one autopilot tick senses and applies, batched (W, V, ...): the outputs of `_sense_kernel`
+    and `_actuate_kernel`. On the readable path the first tick of a controller period writes into
+    fresh arrays (they become the log row), later ones reuse."""
+
+    kin: np.ndarray  # (5, W, V, 3): true position m, true velocity m/s, mocap position m, KF position, KF velocity m/s
+    quat: np.ndarray  # (W, V, 4) true attitude (w, x, y, z)
+    rot: np.ndarray  # (W, V, 3, 3) true attitude, body to world
+    quat_est: np.ndarray  # (W, V, 4) motion-capture attitude
+    rot_est: np.ndarray  # (W, V, 3, 3) motion-capture attitude, body to world
+    yaw: np.ndarray  # (W, V) rad, motion-capture heading
+    applied: np.ndarray  # (W, V, 3) m/s^2, the field applied (mean + turbulence)
+
+    @classmethod
+    def empty(cls, W: int, V: int) -> "_Sensed":
+        return cls(np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V, 4)),
+                   np.empty((W, V, 3, 3)), np.empty((W, V)), np.empty((W, V, 3)))
+
+
 @njit
 def _sense_kernel(
-    qpos, qvel, layout, noise, cursor, sigma_p, sigma_att, gain_p, gain_v,
+    qpos, qvel, layout, noise, cursor, sigma_p, sigma_att, offset, gain_p, gain_v,
     pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw_meas,
 ):
-    """Read the true state, take the motion-capture sample and apply the Kalman update.
+    """Read the true state, take the sensor's sample and apply the Kalman update.
 
     The arguments before `kin` are the simulator's persistent buffers and constants,
     bound once (`Simulator._sense_args`); the last six are fresh each tick.
@@ -55,6 +75,8 @@ def _sense_kernel(
     qpos (W, nq), qvel (W, nv): live MuJoCo state; layout (V, 7): see Simulator._layout.
     noise (W, block, V, 9) standard normals read at each world's `cursor`: [0:3] mocap
     position, [3:6] mocap attitude (body-frame rotation vector), [6:9] turbulence.
+    sigma_p (m), sigma_att (rad): the sensor's `compiled()` stds; offset (W, V, 3) m: its
+    per-episode position offsets (`sim.sensors`, whose `measure` is this law, in this order).
     pos_est, vel_est (W, V, 3): the Kalman prior, updated in place to the posterior.
     Writes kin (5, W, V, 3) [true position m, true velocity m/s (world), mocap position m,
     posterior position m, posterior velocity m/s], quat (W, V, 4) (w, x, y, z) and
@@ -80,7 +102,7 @@ def _sense_kernel(
             yaw_meas[w, i] = quat_to_rot(q[0], q[1], q[2], q[3], rot_est[w, i])
             for k in range(3):
                 p = qpos[w, a + k]
-                m = p + sigma_p * noise[w, c, i, k]
+                m = p + sigma_p * noise[w, c, i, k] + offset[w, i, k]  # (p + white) + offset: 0 adds nothing
                 kin[0, w, i, k] = p
                 kin[1, w, i, k] = qvel[w, b + k]
                 kin[2, w, i, k] = m

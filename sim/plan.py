@@ -13,6 +13,8 @@ when every component has a compiled form, else None. The fused path needs
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
   `PerWorldPredictor` of those (`_per_world_tables`);
+- the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
+  sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
   (`sim.physics`), and buffers laid out as the kernel reads them (else `_NoPlan`).
 
@@ -128,7 +130,7 @@ class _Plan:
             "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": sim._wind_noise,
             "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
             "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
-            "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool),
+            "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool), "mocap_offset": sim.mocap_offset,
         }
         per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W)
         keep.update({name: a for name, a in per_world.items() if name.startswith("pw_")})

@@ -12,7 +12,9 @@ single flights bit for bit, which a test checks; and a flight without wind draws
 exactly the numbers it drew before wind existed.
 
 The loop is assembled from components, each injected and each with its config in
-its own module: the outer-loop `controller` (`controllers.lqr.FeedbackLinearisedLQR`),
+its own module: the sensor (`SimConfig.mocap`, `sim.sensors`: motion capture and its
+per-episode offsets, drawn at reset from a third stream of the world's, `SENSOR_STREAM`),
+the outer-loop `controller` (`controllers.lqr.FeedbackLinearisedLQR`),
 the `autopilot` (`controllers.autopilot.Autopilot`), the `turbulence`
 (`sim.turbulence.OUTurbulence`), the downwash `field` (`sim.field.DownwashField` or
 any object with its call signature), how several wakes combine (`aggregation`,
@@ -57,7 +59,7 @@ import logging
 import threading
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -65,20 +67,22 @@ from controllers.autopilot import Autopilot
 from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint
 from downwash_core.errors import ConcurrentUseError, ConfigError
 from downwash_core.params import QUAD, RATES, QuadParams, Rates
+from downwash_core.provenance import describe
 from downwash_core.state import VehicleStates
 from downwash_core.status import Status
 from sim import fork_join
 from sim.aggregation import wake_field
-from sim.estimation import MocapConfig, MocapKalmanFilter
+from sim.estimation import MocapKalmanFilter
 from sim.field import DownwashField, check_field
 from sim.fused import _FC, _STEP_CALLER, _TAB
-from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _status_kernel, _true_states_kernel,
+from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _Sensed, _status_kernel, _true_states_kernel,
                         _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
 from sim.physics import check_world_memory, make_physics
 from sim.plan import _compiled_controller, _make_plan, _Plan
 from sim.predictor import Predictor, ZeroPredictor
 from sim.rows import Row
 from sim.scene import Scene
+from sim.sensors import MocapConfig, check_sensor, draw_episode_offset
 from sim.turbulence import OUTurbulence
 from sim.wind import AIRFRAME, DrydenWind
 
@@ -93,15 +97,16 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class SimConfig:
-    """The vehicle, the rates, the motion capture and the failure checks of a flight.
+    """The vehicle, the rates, the sensor and the failure checks of a flight.
 
+    mocap: the sensor, any of `sim.sensors` (`MocapConfig()`, `BiasedMocap(...)`, `make_sensor(name)`).
     The controller, autopilot, turbulence, field, wind and predictor are components of
     the `Simulator`, each with its own settings.
     """
 
     rates: Rates = field(default_factory=lambda: RATES)
     quad: QuadParams = field(default_factory=lambda: QUAD)
-    mocap: MocapConfig = field(default_factory=MocapConfig)
+    mocap: Any = field(default_factory=MocapConfig)  # a `sim.sensors.Sensor`
     ground_clearance: float = 0.03  # m, a vehicle centre below this height has hit the ground
     collision_radius_xy: float = 0.26  # m, vehicles closer than this laterally ...
     collision_radius_z: float = 0.08  # m, ... and vertically (ellipsoid) have collided
@@ -109,25 +114,10 @@ class SimConfig:
     noise_block: int = 256  # autopilot ticks of noise drawn per generator call
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-class _Sensed(NamedTuple):
-    """What one autopilot tick senses and applies, batched (W, V, ...); the first tick of a
-    controller period writes into fresh arrays (they become the log row), later ones reuse."""
-
-    kin: np.ndarray  # (5, W, V, 3): true position m, true velocity m/s, mocap position m, KF position m, KF velocity m/s
-    quat: np.ndarray  # (W, V, 4) true attitude (w, x, y, z)
-    rot: np.ndarray  # (W, V, 3, 3) true attitude, body to world
-    quat_est: np.ndarray  # (W, V, 4) motion-capture attitude
-    rot_est: np.ndarray  # (W, V, 3, 3) motion-capture attitude, body to world
-    yaw: np.ndarray  # (W, V) rad, motion-capture heading
-    applied: np.ndarray  # (W, V, 3) m/s^2, the field applied (mean + turbulence)
-
-    @classmethod
-    def empty(cls, W: int, V: int) -> "_Sensed":
-        return cls(np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V, 4)),
-                   np.empty((W, V, 3, 3)), np.empty((W, V)), np.empty((W, V, 3)))
+        out = asdict(self)
+        if type(self.mocap) is not MocapConfig:  # another sensor: named (the default's record stays as it was)
+            out["mocap"] = describe(self.mocap)
+        return out
 
 
 _NO_CONTROL = fork_join.new_control()  # the control block of a call alone, which never reads it
@@ -137,7 +127,7 @@ _NO_CONTROL = fork_join.new_control()  # the control block of a call alone, whic
 # (its components, and the state arrays the passes address, which are meant to be updated in place).
 _BOUND_INPUTS = frozenset({"field", "predictor", "controller", "autopilot", "turbulence", "wind", "aggregation",
                            "field_enabled", "fast", "t", "tick_index", "active", "pos_est", "vel_est", "turb",
-                           "gust_state", "f_hat", "next_prediction"})
+                           "gust_state", "f_hat", "next_prediction", "mocap_offset"})
 
 
 class Simulator:
@@ -145,7 +135,7 @@ class Simulator:
 
     reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`downwash_trajectories.stack`).
     seeds: one int per world; a world's noise comes only from its own generators.
-    config: `SimConfig` (vehicle, rates, motion capture, failure checks).
+    config: `SimConfig` (vehicle, rates, the sensor `mocap`, failure checks).
     Components (each defaults to the paper's):
       controller: the outer loop, `FeedbackLinearisedLQR(LQRConfig(...))` or any object
         with its `command_setpoint(state, ref, f_hat, out, residual, override, lookahead)`;
@@ -200,6 +190,7 @@ class Simulator:
         if other := sorted({k.name for k in scene.kinds if k.params != cfg.quad}):  # cfg.quad flies every vehicle
             raise ConfigError(f"scene: vehicles of kind {other} would fly with SimConfig.quad's numbers, not theirs; "
                               "pass SimConfig(quad=<the kind>.params) for a scene of one kind (mixed kinds: not yet)")
+        self.sensor = check_sensor(cfg.mocap)  # SimConfig.mocap, the sensor (`sim.sensors`)
         self.reference = reference
         self.controller = controller if controller is not None else FeedbackLinearisedLQR()
         self.autopilot = autopilot if autopilot is not None else Autopilot(cfg.quad)
@@ -221,7 +212,7 @@ class Simulator:
         r = cfg.rates
         check_world_memory(W, V, name="worlds")  # before MuJoCo's batch and the state arrays are allocated
         self.physics = make_physics(scene.model, W, n_threads)
-        self.kf = MocapKalmanFilter(r.autopilot_dt, cfg.mocap)
+        self.kf = MocapKalmanFilter(r.autopilot_dt, self.sensor)  # its measurement noise is the sensor's
         self.mass = cfg.quad.mass
 
         # index arrays, resolved once
@@ -235,7 +226,7 @@ class Simulator:
         ).astype(np.int64)
         # scalars of the hot loop that do not depend on the components, as Python floats
         self._prediction_period = 1.0 / r.predictor_hz  # s
-        self._sigma_p, self._sigma_att = float(cfg.mocap.position_noise), float(cfg.mocap.attitude_noise)
+        self._sigma_p, self._sigma_att = self.sensor.compiled()
         self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
         self._drag_gain = AIRFRAME.gain(self.mass)  # 1/m, of the wind's drag
 
@@ -250,6 +241,7 @@ class Simulator:
         self.pos_est = np.zeros((W, V, 3))  # m, Kalman estimate (prior for the next sample)
         self.vel_est = np.zeros((W, V, 3))  # m/s
         self.turb = np.zeros((W, V, 3))  # -, Ornstein-Uhlenbeck turbulence state
+        self.mocap_offset = np.zeros((W, V, 3))  # m, the sensor's position offsets this episode
         self.gust_state = np.zeros((W, 3, 2))  # m/s, each world's Dryden gust state (zeros without wind)
         self.f_hat = np.zeros((W, V, 3))  # m/s^2, held prediction
         self.next_prediction = np.zeros(W)  # s
@@ -298,7 +290,7 @@ class Simulator:
         # array here is only ever updated in place, so each tick passes just the fresh ones.
         self._sense_args = (
             self.physics.qpos, self.physics.qvel, self._layout, self._noise, self._cursor,
-            self._sigma_p, self._sigma_att, self._kf_gain_p, self._kf_gain_v,
+            self._sigma_p, self._sigma_att, self.mocap_offset, self._kf_gain_p, self._kf_gain_v,
             self.pos_est, self.vel_est, self.t, self.next_prediction, self._due,
         )
         self._actuate_args = (
@@ -364,6 +356,7 @@ class Simulator:
                 self.gust_state[w] = self.wind.stationary_state(self._wind_rngs[w].standard_normal((3, 2)))
             else:
                 self.gust_state[w] = 0.0
+            self.mocap_offset[w] = draw_episode_offset(self.sensor, self.seeds[w], self.V)
             self._refill(w)
         self.t[worlds] = 0.0
         self.tick_index[worlds] = 0

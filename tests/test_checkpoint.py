@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from downwash.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, sidecar_path
-from downwash.models import DeepSNMLP, make_model
+from downwash.models import DeepSNMLP
+from downwash.registry import make_model
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig
 from sim.predictor import VehicleStates
@@ -148,7 +149,7 @@ def test_foreign_and_missing_files(tmp_path):
     torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match=r"other.pt: not a 'downwash-model' checkpoint"):
         load_checkpoint(tmp_path / "other.pt")
-    with pytest.raises(ValueError, match="the key 'model' is reserved"):
+    with pytest.raises(ValueError, match=r"meta: the keys \['model'\] are reserved"):
         save_checkpoint(tmp_path / "x.pt", trained_like("shallow"), {"model": 1})
     with pytest.raises(TypeError, match="not JSON serialisable"):
         save_checkpoint(tmp_path / "x.pt", trained_like("shallow"), {"obj": object()})

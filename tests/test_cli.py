@@ -29,8 +29,8 @@ TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
 CHOICES = {
     "lemniscate": TRACKING, "transect": TRACKING, "outdoor": (*TRACKING, "circle", "line"),
-    "swarm": (*common.PRESETS, *common.AGGREGATIONS), "sweep": common.MODEL_KINDS,
-    "sample_efficiency": common.MODEL_KINDS, "train": common.MODEL_KINDS,
+    "swarm": (*common.PRESETS, *common.AGGREGATIONS), "sweep": common.PAIRWISE_KINDS,
+    "sample_efficiency": common.PAIRWISE_KINDS, "train": common.PAIRWISE_KINDS,
     "vehicles": ("paper_quad", "crazyflie_2_1", "x500"),
 }
 HELP = """
@@ -68,7 +68,7 @@ def test_help_exits_0_lists_the_choices_and_imports_no_heavy_module(name):
 def test_static_choices_match_their_registries():
     """The names `--help` lists without importing the registries are the registries' own."""
     from downwash.conditions import CONDITIONS
-    from downwash.models import MODEL_KINDS
+    from downwash.models import PAIRWISE_KINDS
     from downwash.sweep import PAPER_MINUTES, PAPER_MODELS
     from sim.aggregation import AGGREGATIONS
     from sim.fields.registry import DEFAULT_FIELD, FIELDS
@@ -76,7 +76,7 @@ def test_static_choices_match_their_registries():
     from sim.wind import PRESETS_KT
 
     assert common.CONDITIONS == tuple(CONDITIONS)
-    assert common.MODEL_KINDS == tuple(MODEL_KINDS)
+    assert common.PAIRWISE_KINDS == tuple(PAIRWISE_KINDS)
     assert common.FIELD_NAMES == tuple(FIELDS) and common.DEFAULT_FIELD == DEFAULT_FIELD
     assert common.PRESETS == tuple(PRESETS)
     assert common.AGGREGATIONS == tuple(AGGREGATIONS)

@@ -279,7 +279,7 @@ def test_pipeline_folders_are_checked_only_when_the_run_may_write_there(tmp_path
     resolve_pipeline(bad, models=())  # a run that needs no model (baseline, oracle) writes nothing there
     models = tmp_path / "shared"
     models.mkdir()
-    for kind in common.MODEL_KINDS:
+    for kind in common.PAIRWISE_KINDS:
         (models / f"{kind}.pt").write_text("")
     ok = PipelineArgs(out=str(tmp_path / "o"), collection_dir=str(tmp_path / "f" / "c"), models_dir=str(models))
     assert resolve_pipeline(ok).models_dir == models  # every model there: read only

@@ -27,7 +27,7 @@ import pytest
 
 from downwash_core.errors import DataError
 from downwash_core.locks import LOCK_NAME, holder
-from downwash.models import MODEL_KINDS
+from downwash.models import PAIRWISE_KINDS
 from downwash.manifest import MANIFEST_VERSION, collection_digest, file_sha256
 from downwash.staged import CollectionConfig, collect, ensure_collection, ensure_models
 from downwash.sweep import SweepGrid, load_collection, plan_cells
@@ -95,7 +95,7 @@ def _train(kind: str, base: Path, field) -> None:
         ensure_collection(staged, models, CFG, field)
     elif kind == "ensure_models":
         (models / "deep.pt").unlink()  # a missing model: it would be trained on the logs
-        ensure_models(models, MODEL_KINDS, staged, CFG, field)
+        ensure_models(models, PAIRWISE_KINDS, staged, CFG, field)
     elif kind == "collect":
         collect(CFG, staged, models, field, refly_missing=False)
 

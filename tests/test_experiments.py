@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from downwash.models import MODEL_KINDS
+from downwash.models import PAIRWISE_KINDS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +44,7 @@ def test_staged_collection_results(collection):
     assert [s["stage"] for s in r["stages"]] == [0, 1, 2]
     assert r["stages"][0]["separation"] == [1.35, 1.75] and r["stages"][2]["separation"][0] < 0.6
     assert r["stages"][0]["deployed_val_rmse"] is None and r["stages"][1]["deployed_val_rmse"] > 0
-    for kind in MODEL_KINDS:
+    for kind in PAIRWISE_KINDS:
         assert r["models"][kind]["val_rmse"] > 0
         assert (collection / "models" / f"{kind}.pt").is_file()
     assert r["validation_minutes"] > 0 and r["wall_seconds"] > 0
@@ -56,7 +56,7 @@ def test_lemniscate_all_conditions(collection):
     _run(["experiments.lemniscate", "--quick", "--out", "lem", "--collection-dir", "staged", "--models-dir", "models"],
          collection)
     r = json.loads((collection / "lem" / "results.json").read_text())
-    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", *MODEL_KINDS}
+    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", *PAIRWISE_KINDS}
     for name, c in r["conditions"].items():
         assert c["pos_err_3d_mean"] >= 0 and len(c["per_seed"]["pos_err_3d_mean"]) == 1
         assert c["crash_rate"] == 0.0 and c["per_seed"]["crashed"] == [False]
@@ -124,7 +124,7 @@ def test_train_sample_efficiency_force_maps(collection):
     _run(["experiments.force_maps", "--quick", "--collection-dir", "staged", "--models-dir", "models", "--out", "fm"],
          collection)
     assert (collection / "fm" / "force_maps_down.png").is_file()
-    assert set(json.loads((collection / "fm" / "results.json").read_text())["maps"]) == set(MODEL_KINDS)
+    assert set(json.loads((collection / "fm" / "results.json").read_text())["maps"]) == set(PAIRWISE_KINDS)
 
 
 def test_benchmark_quick(workdir):

@@ -55,41 +55,60 @@ def _field_samples(n, rng):
     v_b, v_a = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 0.05, (n, 3))
     R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     truth = DownwashField()(np.zeros(3), v_a, R, dp, v_b)
-    return Dataset(dp=dp, v_a=v_a, v_b=v_b, R_a=R, y=truth + 0.05 * rng.normal(size=(n, 3)),
-                   flight=np.arange(n) * 10 // n, stage=np.zeros(n, int), t=np.arange(n) * 0.02, field_mean=truth)
+    return Dataset.from_pairs(dp, v_a, v_b, R, truth + 0.05 * rng.normal(size=(n, 3)), np.arange(n) * 10 // n,
+                              t=np.arange(n) * 0.02, field_mean=truth)
 
 
-def test_the_model_recipe_trains_saves_loads_and_flies(tmp_path, monkeypatch):
-    """Registered as the page says (MODEL_KINDS, DEFAULT_LR), the new kind trains, round-trips a
-    checkpoint, and flies in the predictor slot on both backends with the same prediction."""
+def test_the_model_recipe_trains_saves_loads_and_flies_two_vehicles_and_many(tmp_path):
+    """The page's one file registers the new kind; it trains on pair data, round-trips a
+    checkpoint, flies two vehicles on both backends with the same prediction, and many vehicles as
+    a model of sets (wrap_pairwise) with the same prediction as the plain sum over neighbours."""
     import torch
-    from torch import nn
 
-    import downwash.models as models
+    import downwash.registry as registry
     import downwash.train as train
-    from downwash.checkpoint import load_checkpoint, save_checkpoint
+    from downwash.checkpoint import load_checkpoint, save_checkpoint, wrap_pairwise
     from downwash.predictor import LearnedPredictor
     from downwash_core.state import VehicleStates
+    from sim.neighbours import NeighbourSet
 
-    namespace = {"nn": nn, "DownwashModel": models.DownwashModel}
+    namespace: dict = {}
     exec(_blocks("A new model")[0], namespace)
     cls = namespace["WideEquivariant"]
-    monkeypatch.setitem(models.MODEL_KINDS, cls.kind, cls)
-    monkeypatch.setitem(train.DEFAULT_LR, cls.kind, 5e-2)
-    torch.manual_seed(0)
-    data = _field_samples(3000, np.random.default_rng(0))
-    model, history = train.train_model(cls.kind, data, None, train.TrainConfig(max_epochs=3, min_steps=0))
-    path = tmp_path / "wide.pt"
-    save_checkpoint(path, model, {})
-    loaded, _ = load_checkpoint(path, expect_kind=cls.kind)
-    assert isinstance(loaded, cls) and loaded.hidden == (64, 64)
-    rng = np.random.default_rng(1)
-    pos = np.stack([np.broadcast_to(LEADER, (4, 3)), LEADER + rng.uniform(-0.3, 0.3, (4, 3)) - [0, 0, 0.7]], 1)
-    states = VehicleStates(pos, rng.normal(0, 0.2, (4, 2, 3)), np.broadcast_to(np.eye(3), (4, 2, 3, 3)).copy())
-    compiled = LearnedPredictor(loaded)(states, states)
-    readable = LearnedPredictor(loaded, backend="numpy")(states, states)
-    assert np.abs(compiled).max() > 0.1
-    np.testing.assert_allclose(compiled, readable, rtol=0, atol=1e-9)
+    try:
+        assert registry.MODEL_KINDS[cls.kind] is cls and registry.PAIRWISE_KINDS[cls.kind] is cls
+        torch.manual_seed(0)
+        data = _field_samples(3000, np.random.default_rng(0))
+        model, history = train.train_model(cls.kind, data, None, train.TrainConfig(max_epochs=3, min_steps=0))
+        assert history["lr"] == 5e-2
+        path = tmp_path / "wide.pt"
+        save_checkpoint(path, model, {})
+        loaded, _ = load_checkpoint(path, expect_kind=cls.kind)
+        assert isinstance(loaded, cls) and loaded.hidden == (64, 64)
+        rng = np.random.default_rng(1)
+        pos = np.stack([np.broadcast_to(LEADER, (4, 3)), LEADER + rng.uniform(-0.3, 0.3, (4, 3)) - [0, 0, 0.7]], 1)
+        states = VehicleStates(pos, rng.normal(0, 0.2, (4, 2, 3)), np.broadcast_to(np.eye(3), (4, 2, 3, 3)).copy())
+        compiled = LearnedPredictor(loaded)(states, states)
+        readable = LearnedPredictor(loaded, backend="numpy")(states, states)
+        assert np.abs(compiled).max() > 0.1
+        np.testing.assert_allclose(compiled, readable, rtol=0, atol=1e-9)
+        # many vehicles: a stack of four, each vehicle summing its two nearest neighbours above it
+        stack = LEADER - np.array([[0, 0, 0], [0.05, 0, 0.5], [-0.05, 0.05, 1.0], [0, -0.05, 1.5]])
+        many = VehicleStates(np.broadcast_to(stack, (2, 4, 3)).copy(), np.zeros((2, 4, 3)),
+                             np.broadcast_to(np.eye(3), (2, 4, 3, 3)).copy())
+        swarm = wrap_pairwise(path, NeighbourSet(2))
+        got = LearnedPredictor(swarm)(many, many)
+        pair = loaded.numpy_forward()
+        want = np.zeros((4, 3))
+        for j in range(4):
+            near = sorted((i for i in range(4) if i != j), key=lambda i: (np.linalg.norm(stack[j] - stack[i]), i))[:2]
+            for i in near:
+                want[j] += pair(stack[j] - stack[i], np.zeros(3), np.zeros(3), np.eye(3))
+        np.testing.assert_allclose(got, np.broadcast_to(want, (2, 4, 3)), rtol=0, atol=1e-9)
+        assert np.abs(want[3]).max() > 0.1 and (want[0] == 0).all()  # the bottom one feels wakes; the top none
+    finally:
+        registry.MODEL_KINDS.pop(cls.kind, None)
+        registry.PAIRWISE_KINDS.pop(cls.kind, None)
 
 
 def test_the_controller_recipe_flies_a_hover(monkeypatch):
@@ -105,3 +124,39 @@ def test_the_controller_recipe_flies_a_hover(monkeypatch):
     assert sag < -0.1 and sag == pytest.approx(push / 4.0, rel=0.1)
     assert np.abs(log["pos"][-50:, follower, :2]).max() < 0.02  # and holds its place across
     assert "fly(scene, reference" in blocks[2]  # the call the page shows
+
+
+def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch):
+    """The frame-shifted motion capture, registered and flown as the page shows (shortened to 2 s):
+    every vehicle's measurement is off by one offset, its episode's, on the fused path."""
+    import sim.sensors as sensors
+    from sim.flight import fly
+    from sim.scene import build_scene
+    from sim.simulator import SimConfig, Simulator
+    from downwash_trajectories import Hover, stack
+
+    blocks = _blocks("A new sensor noise model")
+    assert blocks[1].startswith("# mypkg/sensors.py")
+    namespace: dict = {"__name__": "mypkg.sensors"}
+    exec(blocks[1], namespace)
+    cls = namespace["FrameShiftedMocap"]
+    monkeypatch.setattr(sensors, "_REGISTRY", dict(sensors._REGISTRY))  # the registration stays in this test
+    monkeypatch.setattr(sensors, "SENSORS", sensors.MappingProxyType(sensors._REGISTRY))
+    scene = build_scene()
+    reference = stack([Hover(LEADER, n_worlds=2), Hover(LEADER - [0, 0, 0.6], n_worlds=2)])
+    run = {"SimConfig": SimConfig, "FrameShiftedMocap": cls, "scene": scene, "reference": reference,
+           "fly": lambda *args, duration, **kw: fly(*args, duration=2.0, **kw)}
+    exec(blocks[2], run)
+    sensor = run["config"].mocap
+    assert type(sensor) is cls and sensor.frame_offset == 0.005
+    assert Simulator(scene, reference, [0, 1], config=run["config"])._plan is not None  # the fused tick flies it
+    for log, seed in zip(run["logs"], (0, 1)):
+        offset = sensors.draw_episode_offset(sensor, seed, 2)
+        assert np.array_equal(offset[0], offset[1]) and np.abs(offset).max() > 0.001
+        error = (log["mocap_pos"] - log["pos"]).mean(axis=0)  # (V, 3): the offset, and white noise averaged
+        np.testing.assert_allclose(error, offset, rtol=0, atol=4 * sensor.position_noise / np.sqrt(len(log)))
+        assert log.meta["config"]["mocap"] == {"type": "mypkg.sensors.FrameShiftedMocap", "position_noise": 0.0005,
+                                              "attitude_noise": 0.002, "process_accel_noise": 2.0,
+                                              "frame_offset": 0.005}
+    with pytest.raises(ValueError, match=r"mocap_frame_shift frame_offset: allowed 0.0 to 0.05 m"):
+        cls(frame_offset=0.1)

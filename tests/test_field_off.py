@@ -7,7 +7,7 @@ import torch
 
 from downwash.checkpoint import save_checkpoint
 from downwash.conditions import CONDITIONS, fly_conditions, learned
-from downwash.models import make_model
+from downwash.registry import make_model
 from downwash_core.status import Status
 from sim.field import check_field
 from sim.fields.registry import resolve_field_spec

@@ -85,7 +85,7 @@ def _field_dataset(field, n, seed):
     R_a = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     y = field(np.zeros((n, 3)), v_a, R_a, dp, v_b)
     flight = np.arange(n) // 500
-    return Dataset(dp, v_a, v_b, R_a, y, flight, np.zeros(n, int), (np.arange(n) % 500) * 0.02, y)
+    return Dataset.from_pairs(dp, v_a, v_b, R_a, y, flight, t=(np.arange(n) % 500) * 0.02, field_mean=y)
 
 
 @pytest.mark.parametrize("knob", [{"swirl": 0.4}, {"skew": 0.35}])

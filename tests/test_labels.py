@@ -125,10 +125,11 @@ def test_labels_recover_the_force_without_noise():
     assert np.max(np.abs(lab["y"] - f)) <= bound + 1e-4, (np.max(np.abs(lab["y"] - f)), bound)
     assert bound < 0.02  # slow signals: the smoothing bias is small
     # inputs: estimated states, the leader's attitude
-    np.testing.assert_allclose(lab["dp"], log["pos_est"][rows, 1] - log["pos_est"][rows, 0])
+    assert lab["mask"].all() and (lab["neighbour"] == 0).all() and (lab["vehicle"] == 1).all()  # the pair: K = 1
+    np.testing.assert_allclose(lab["dp"][:, 0], log["pos_est"][rows, 1] - log["pos_est"][rows, 0])
     np.testing.assert_allclose(lab["v_b"], log["vel_est"][rows, 1])
-    np.testing.assert_allclose(lab["v_a"], log["vel_est"][rows, 0])
-    np.testing.assert_allclose(lab["R_a"], np.broadcast_to(np.eye(3), (rows.size, 3, 3)))
+    np.testing.assert_allclose(lab["v_a"][:, 0], log["vel_est"][rows, 0])
+    np.testing.assert_allclose(lab["R_a"][:, 0], np.broadcast_to(np.eye(3), (rows.size, 3, 3)))
     np.testing.assert_allclose(lab["t"], log["t"][rows])
 
 
@@ -174,7 +175,7 @@ def test_labels_use_the_motion_capture_leader_attitude_not_the_truth():
     """R_a comes from quat_est (tilted here), never from the true quat (level here)."""
     q = np.array([np.cos(0.2), np.sin(0.2), 0.0, 0.0])  # 0.4 rad roll
     lab = labels_from_log(make_log(T=200, leader_quat=q))
-    np.testing.assert_allclose(lab["R_a"], np.broadcast_to(quat_to_rotmat(q), lab["R_a"].shape))
+    np.testing.assert_allclose(lab["R_a"][:, 0], np.broadcast_to(quat_to_rotmat(q), lab["R_a"][:, 0].shape))
 
 
 def test_failed_flights_and_non_finite_rows_are_cut():
@@ -188,10 +189,8 @@ def test_failed_flights_and_non_finite_rows_are_cut():
     cut = labels_from_log(log)
     assert cut["row"][-1] == 400 - HALF - 1 and np.all(np.isfinite(cut["y"]))
     assert len(labels_from_log(make_log(T=15))["y"]) == 0  # shorter than one window
-    log = make_log(T=100)
-    log.meta["follower"] = 0
-    with pytest.raises(ValueError, match=r"flight.npz: leader/follower: expected two distinct vehicle indices in \[0, 1\], got 0, 0"):
-        labels_from_log(log, source="flight.npz")
+    with pytest.raises(ValueError, match=r"flight.npz: targets: expected distinct vehicle indices in \[0, 1\], got \[0, 0\]"):
+        labels_from_log(make_log(T=100), source="flight.npz", targets=[0, 0])
 
 
 def test_load_dataset_from_a_folder(tmp_path):
@@ -248,9 +247,10 @@ def synthetic_dataset(flight_lengths_by_stage, seed=0):
     for stage, lengths in flight_lengths_by_stage.items():
         for n in lengths:
             lab = {k: rng.normal(size=(n, 3)) for k in ("dp", "v_a", "v_b", "y", "field_mean")}
-            lab["R_a"] = np.broadcast_to(np.eye(3), (n, 3, 3))
-            lab["t"] = np.arange(n) * DT + 1.0
-            parts.append(Dataset.from_labels(lab, flight=0, stage=stage, source=f"s{stage}_{n}"))
+            one = Dataset.from_pairs(lab["dp"], lab["v_a"], lab["v_b"], np.broadcast_to(np.eye(3), (n, 3, 3)),
+                                     lab["y"], np.zeros(n, int), np.full(n, stage), np.arange(n) * DT + 1.0,
+                                     lab["field_mean"], sources=[f"s{stage}_{n}"])
+            parts.append(one)
     return concatenate(parts)
 
 
@@ -261,9 +261,9 @@ def test_concatenate_keeps_flights_distinct():
     assert list(c.flights) == [0, 1, 2] and c.sources == ("s0_10", "s0_20", "s1_5")
     sub = c.select_flights([2])
     assert len(sub) == 5 and sub.sources == c.sources and np.all(sub.stage == 1)
-    with pytest.raises(ValueError, match=r"Dataset.y: expected shape \(3, 3\), got \(2, 3\)"):
-        Dataset(dp=np.zeros((3, 3)), v_a=np.zeros((3, 3)), v_b=np.zeros((3, 3)), R_a=np.zeros((3, 3, 3)),
-                y=np.zeros((2, 3)), flight=np.zeros(3), stage=np.zeros(3), t=np.zeros(3), field_mean=np.zeros((3, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match=r"Dataset.dp: expected shape \(2, 1, 3\), got \(3, 1, 3\)"):
+        Dataset.from_pairs(np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3, 3)), np.zeros((2, 3)),
+                           np.zeros(3))
 
 
 def test_shorten_per_stage_keeps_stage_proportions():
@@ -308,11 +308,10 @@ def test_split_by_flight_is_disjoint_and_covers_stages():
         split_by_flight(ds, 0, np.random.default_rng(0))
 
 
-def test_pair_and_swarm_labels_cut_a_flight_at_the_same_row():
-    """One finiteness rule over every vehicle: a NaN on the leader's command (which the pair's labels
-    never read) cuts the pair's labels where it cuts the swarm's (the two had diverged)."""
+def test_a_non_finite_value_on_any_vehicle_cuts_every_targets_labels():
+    """One finiteness rule over every vehicle: a NaN on the leader's command (which the follower's labels
+    never read) cuts the follower's labels, with one neighbour or every vehicle as a target."""
     from downwash.labels import finite_rows, labels_from_log
-    from downwash.swarm_data import swarm_labels_from_log
     from sim.flight import fly
     from sim.neighbours import NeighbourSet
     from sim.scene import build_scene
@@ -325,6 +324,7 @@ def test_pair_and_swarm_labels_cut_a_flight_at_the_same_row():
     log.arrays["u_cmd"][cut:, int(log.meta["leader"])] = np.nan
     assert finite_rows(log.arrays) == cut
     pair = labels_from_log(log)
-    swarm = swarm_labels_from_log(log, NeighbourSet(1), targets=[int(log.meta["follower"])])
-    assert pair["row"].max() < cut and np.array_equal(pair["row"], swarm["row"])
-    np.testing.assert_array_equal(pair["y"], swarm["y"])
+    every = labels_from_log(log, NeighbourSet(3), targets="all")
+    assert pair["row"].max() == cut - HALF - 1 and every["row"].max() == cut - HALF - 1
+    follower = every["vehicle"] == int(log.meta["follower"])
+    np.testing.assert_array_equal(pair["y"], every["y"][follower])

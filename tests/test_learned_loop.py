@@ -5,7 +5,7 @@ import pytest
 
 from downwash_trajectories import Hover, Transect, stack
 from downwash.datasets import Dataset
-from downwash.labels import label_noise_floor, labels_from_log
+from downwash.labels import PAIR, label_noise_floor, labels_from_log
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.field import DownwashField
@@ -35,7 +35,7 @@ def _flight_labels(logs):
     """The labelled samples of simulated flights, one flight id each: nothing synthetic."""
     from downwash.datasets import concatenate
 
-    return concatenate([Dataset.from_labels(labels_from_log(L), flight=i, stage=0) for i, L in enumerate(logs)])
+    return concatenate([Dataset.from_labels(labels_from_log(L), PAIR, flight=i, stage=0) for i, L in enumerate(logs)])
 
 
 def test_labels_equal_the_true_field_within_the_noise_floor(passes_logs):

@@ -6,7 +6,8 @@ import torch
 
 from downwash_core import geometry
 from downwash import features as F
-from downwash.models import MODEL_KINDS, DeepSNMLP, EquivariantModel, ShallowMLP, count_parameters, make_model
+from downwash.models import PAIRWISE_KINDS, DeepSNMLP, EquivariantModel, ShallowMLP, count_parameters
+from downwash.registry import make_model
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, train_model
 from downwash.datasets import Dataset
@@ -62,8 +63,8 @@ def test_parameter_counts():
 
 
 def test_registry_and_attributes():
-    assert list(MODEL_KINDS) == ["shallow", "deep", "equivariant", "equivariant_general"]
-    for kind, cls in MODEL_KINDS.items():
+    assert list(PAIRWISE_KINDS) == ["shallow", "deep", "equivariant", "equivariant_general"]
+    for kind, cls in PAIRWISE_KINDS.items():
         m = make_model(kind)
         assert isinstance(m, cls) and m.kind == kind
         assert m.feature_set == {"equivariant": "5", "equivariant_general": "general"}.get(kind, "raw")
@@ -95,7 +96,7 @@ def test_baselines_are_not_equivariant(kind):
 
 
 def test_float64_forward_and_shapes():
-    for kind in MODEL_KINDS:
+    for kind in PAIRWISE_KINDS:
         model = make_model(kind).double()
         x = torch.zeros(4, 7, 3, dtype=torch.float64)
         R = torch.eye(3, dtype=torch.float64).expand(4, 7, 3, 3)
@@ -125,8 +126,7 @@ def small_field_data(n=3000, seed=0):
     v_a, v_b = rng.normal(size=(n, 3)) * 0.05, rng.normal(size=(n, 3)) * 0.5
     R = np.broadcast_to(np.eye(3), (n, 3, 3))
     y = DownwashField()(np.zeros(3), v_a, R, dp, v_b)
-    return Dataset(dp=dp, v_a=v_a, v_b=v_b, R_a=R, y=y, flight=np.arange(n) * 6 // n, stage=np.zeros(n, int),
-                   t=np.zeros(n), field_mean=y)  # fmt: skip
+    return Dataset.from_pairs(dp, v_a, v_b, R, y, np.arange(n) * 6 // n, field_mean=y)
 
 
 def test_deep_spectral_norms_bounded_after_training():
@@ -155,7 +155,7 @@ def test_deep_spectral_norm_settles_from_a_poor_estimate():
 
 
 def test_bad_kind_and_feature_set():
-    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'equivariant', 'equivariant_general', 'shallow'\], got 'mlp'"):
+    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'deepsets', 'deepsets_equivariant', 'equivariant', 'equivariant_general', 'shallow', 'summed_pairwise'\], got 'mlp'"):
         make_model("mlp")
     with pytest.raises(ValueError, match=r"feature_set: model kind 'shallow' accepts \['raw'\], got '6'"):
         make_model("shallow", "6")
@@ -176,7 +176,7 @@ def test_folded_numpy_layers_match_the_torch_model():
     dp = rng.normal(size=(50, 3))
     va, vb = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
     R = random_rotations(rng, 50, 0.5)
-    for kind in MODEL_KINDS:
+    for kind in PAIRWISE_KINDS:
         model = randomise(make_model(kind), 7)
         if isinstance(model, DeepSNMLP):
             model.settle_spectral_norm()
@@ -255,11 +255,11 @@ def test_predictor_clamp_and_errors():
     assert np.all(norm_clamped <= 0.1 + 1e-12) and np.any(norm_free > 0.1)
     small = norm_free <= 0.1
     np.testing.assert_allclose(clamped[small], free[small])
-    with pytest.raises(ValueError, match="clamp: expected None or a magnitude > 0"):
+    with pytest.raises(ValueError, match="clamp: expected None or a finite magnitude > 0"):
         LearnedPredictor(model, clamp=-1.0)
     with pytest.raises(ValueError, match=r"backend: expected one of \['compiled', 'numpy', 'torch'\], got 'jax'"):
         LearnedPredictor(model, backend="jax")
-    with pytest.raises(TypeError, match="model: expected a DownwashModel"):
+    with pytest.raises(TypeError, match="model: expected a per-neighbour model, a Checkpoint or a path, got Linear"):
         LearnedPredictor(torch.nn.Linear(3, 3))
 
 

@@ -39,7 +39,8 @@ from downwash.features import (
 )
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, FAIL_MARGIN_S, SAMPLE_SCHEMA, labels_from_log
-from downwash.models import MODEL_KINDS, DeepSNMLP, make_model
+from downwash.models import PAIRWISE_KINDS, DeepSNMLP
+from downwash.registry import make_model
 from sim.field import DownwashField, pairwise_field
 from sim.logs import ARRAY_SPECS, FlightLog
 
@@ -449,7 +450,7 @@ def test_labels_equal_exact_acceleration_minus_smoothed_command(case):
     assert set(lab) == set(SAMPLE_SCHEMA)
     np.testing.assert_array_equal(lab["row"], rows)
     for name, (shape, _) in SAMPLE_SCHEMA.items():
-        assert lab[name].shape == (len(rows),) + shape, name
+        assert lab[name].shape == (len(rows), *(1 if d == "K" else d for d in shape)), name  # the pair: K = 1
         assert np.isfinite(lab[name]).all(), name
     if not len(rows):
         return
@@ -457,12 +458,13 @@ def test_labels_equal_exact_acceleration_minus_smoothed_command(case):
     np.testing.assert_allclose(lab["y"], expected["y"], rtol=0, atol=1e-8 * scale)
     leader, follower = log.meta["leader"], log.meta["follower"]
     pos, vel = log["pos_est"][rows], log["vel_est"][rows]
-    np.testing.assert_array_equal(lab["dp"], pos[:, follower] - pos[:, leader])
-    np.testing.assert_array_equal(lab["v_a"], vel[:, leader])
+    assert lab["mask"].all() and (lab["neighbour"] == leader).all() and (lab["vehicle"] == follower).all()
+    np.testing.assert_array_equal(lab["dp"][:, 0], pos[:, follower] - pos[:, leader])
+    np.testing.assert_array_equal(lab["v_a"][:, 0], vel[:, leader])
     np.testing.assert_array_equal(lab["v_b"], vel[:, follower])
     np.testing.assert_array_equal(lab["t"], log["t"][rows])
     np.testing.assert_array_equal(lab["field_mean"], log["field_mean"][rows, follower])
-    R_a = lab["R_a"]  # a rotation, from the leader's (unnormalised) quaternion
+    R_a = lab["R_a"][:, 0]  # a rotation, from the leader's (unnormalised) quaternion
     np.testing.assert_allclose(R_a @ np.swapaxes(R_a, -1, -2), np.broadcast_to(np.eye(3), R_a.shape), atol=1e-12)
 
 
@@ -512,7 +514,7 @@ def _load_or_checkpoint_error(path: Path):
         model, record = load_checkpoint(path)
     except CheckpointError:
         return None
-    assert isinstance(model, tuple(MODEL_KINDS.values())) and isinstance(record, dict)
+    assert isinstance(model, tuple(PAIRWISE_KINDS.values())) and isinstance(record, dict)
     return model
 
 
@@ -552,7 +554,7 @@ def test_bytes_without_a_zip_end_record_raise_checkpoint_error(data):
     assert _load_bytes(data) is None
 
 
-@pytest.mark.parametrize("kind", sorted(MODEL_KINDS))
+@pytest.mark.parametrize("kind", sorted(PAIRWISE_KINDS))
 @_settings(30)
 @given(cut=st.floats(0.0, 1.0, exclude_max=True))
 def test_truncated_checkpoints_raise_checkpoint_error(kind, cut):
@@ -575,7 +577,7 @@ def payloads_with_code(draw, sentinel: Path):
     """A torch.save'd payload holding an object whose unpickling would create `sentinel`:
     alone, or hidden in a valid checkpoint's payload (top level, state dict, nested list)."""
     obj = draw(st.sampled_from(_code_objects(sentinel)))
-    kind = draw(st.sampled_from(sorted(MODEL_KINDS)))
+    kind = draw(st.sampled_from(sorted(PAIRWISE_KINDS)))
     where = draw(st.sampled_from(["alone", "meta_json", "extra_key", "state_dict", "nested"]))
     if where == "alone":
         return _torch_saved(obj)
@@ -612,7 +614,7 @@ def test_checkpoints_holding_code_are_refused_without_running_it(data):
         assert not sentinel.exists()
 
 
-@pytest.mark.parametrize("kind", sorted(MODEL_KINDS))
+@pytest.mark.parametrize("kind", sorted(PAIRWISE_KINDS))
 @_settings(4)
 @given(seed=st.integers(0, 2**31 - 1), double=st.booleans(),
        x=pair_states(shape=(16,), mode="wake"))
@@ -641,7 +643,7 @@ _ZIP64_LOCATOR_ON_DISK_1 = (
 def corrupted_checkpoints(draw):
     """Recipe for a corrupted valid checkpoint: ("bytes", kind, [(offset, byte), ...]) changes
     bytes in place; ("member", kind, name, content) replaces one zip member; ("raw", data)."""
-    kind = draw(st.sampled_from(sorted(MODEL_KINDS)))
+    kind = draw(st.sampled_from(sorted(PAIRWISE_KINDS)))
     if draw(st.booleans()):
         n = len(_valid_checkpoint(kind))
         return ("bytes", kind, draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 255)), min_size=1, max_size=6)))
@@ -677,7 +679,7 @@ def mistyped_payloads(draw):
     """A valid checkpoint's payload (plain containers only, so the safe loader accepts it)
     with one field of the metadata or state dict replaced by a wrong value: ("meta", kind,
     key path, value) or ("state", kind, tensor name, value)."""
-    kind = draw(st.sampled_from(sorted(MODEL_KINDS)))
+    kind = draw(st.sampled_from(sorted(PAIRWISE_KINDS)))
     value = draw(st.one_of(
         st.none(), st.booleans(), st.integers(-3, 3), st.floats(-3.0, 3.0),  # small: `hidden` sizes a layer
         st.lists(st.integers(-3, 3), max_size=2), st.dictionaries(st.sampled_from("ab"), st.integers(-3, 3), max_size=1),

@@ -49,7 +49,7 @@ def fly_and_count(fast: bool) -> dict[str, int]:
     import numpy as np
     from numba.core.registry import CPUDispatcher
 
-    from downwash.models import make_model
+    from downwash.registry import make_model
     from downwash.predictor import LearnedPredictor
     from downwash_trajectories import Hover, Lemniscate, stack
     from sim import fused, passes

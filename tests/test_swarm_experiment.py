@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from downwash.swarm_models import load_swarm_checkpoint
+from downwash.checkpoint import load_checkpoint
 
 
 def _run(args, cwd, check=True):
@@ -54,9 +54,9 @@ def test_each_law_has_its_own_collection_and_models_know_it(swarm_run):
     dirs = {law: r["laws"][law]["collection_dir"] for law in ("linear", "velocity")}
     assert dirs["linear"] != dirs["velocity"]
     for law, d in dirs.items():
-        mixed = load_swarm_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-mixed.pt")
+        mixed = load_checkpoint(swarm_run / d / "models" / "deepsets_equivariant-mixed.pt")
         assert mixed.record["aggregation"]["name"] == law  # trained on this law's many-vehicle flights
-        pair = load_swarm_checkpoint(next(swarm_run.glob("swarm-pair-*/deepsets_equivariant-pair.pt")))
+        pair = load_checkpoint(next(swarm_run.glob("swarm-pair-*/deepsets_equivariant-pair.pt")))
         assert pair.record["aggregation"] is None  # two-vehicle data: every law is the pairwise field
 
 

@@ -10,7 +10,8 @@ import torch
 
 from downwash.datasets import Dataset, split_by_flight
 from downwash_core.errors import DataError
-from downwash.train import DEFAULT_LR, TrainConfig, predict, rmse, train_model
+from downwash.models import EquivariantModel
+from downwash.train import TrainConfig, predict, rmse, train_model
 from sim.field import DownwashField
 
 
@@ -26,8 +27,8 @@ def field_dataset(n, rng, n_flights=10, noise=0.05, stage=0):
     R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     truth = DownwashField()(np.zeros(3), v_a, R, dp, v_b)
     y = truth + noise * rng.normal(size=(n, 3))
-    return Dataset(dp=dp, v_a=v_a, v_b=v_b, R_a=R, y=y, flight=np.arange(n) * n_flights // n,
-                   stage=np.full(n, stage), t=np.arange(n) * 0.02, field_mean=truth)  # fmt: skip
+    return Dataset.from_pairs(dp, v_a, v_b, R, y, np.arange(n) * n_flights // n, np.full(n, stage),
+                              np.arange(n) * 0.02, truth)
 
 
 FAST = TrainConfig(max_epochs=40, min_steps=0, batch_size=512, patience=40)
@@ -45,7 +46,7 @@ def test_equivariant_model_learns_the_field():
     # against the noise-free truth the error is below the label noise (0.05 per axis) plus a margin
     truth_rmse, _ = rmse(model, dataclasses.replace(val, y=val.field_mean))
     assert truth_rmse < 0.1
-    assert hist["kind"] == "equivariant" and hist["lr"] == DEFAULT_LR["equivariant"]
+    assert hist["kind"] == "equivariant" and hist["lr"] == EquivariantModel.default_lr == 5e-2
     assert hist["val_loss"][hist["best_epoch"]] == hist["best_val_loss"] == min(hist["val_loss"])
     pred = predict(model, val)
     assert pred.shape == (3000, 3) and pred.dtype == np.float64
@@ -120,10 +121,10 @@ def test_train_config_and_input_errors():
     with pytest.raises(ValueError, match=r"train.y: contains non-finite values"):
         train_model("equivariant", bad, data, FAST)
     fields = {f.name: getattr(data, f.name) for f in dataclasses.fields(data)}
-    with pytest.raises(ValueError, match=r"val.dp: expected shape \(400, 3\), got \(400, 2\)"):
-        train_model("equivariant", data, SimpleNamespace(**{**fields, "dp": np.zeros((400, 2))}), FAST)
-    with pytest.raises(TypeError, match=r"val: missing array 'R_a'"):
-        train_model("equivariant", data, SimpleNamespace(**{k: v for k, v in fields.items() if k != "R_a"}), FAST)
+    with pytest.raises(TypeError, match=r"val: expected a downwash.datasets.Dataset, got SimpleNamespace"):
+        train_model("equivariant", data, SimpleNamespace(**fields), FAST)
+    with pytest.raises(ValueError, match=r"Dataset.dp: expected shape \(400, 1, 3\), got \(400, 1, 2\)"):
+        dataclasses.replace(data, dp=np.zeros((400, 1, 2)))
 
 
 def test_trainings_in_forked_processes_equal_trainings_here():

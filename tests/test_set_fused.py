@@ -1,13 +1,13 @@
-"""The swarm models' compiled passes (`downwash.swarm_fused`): the NumPy twin's neighbour sets and
+"""The models' compiled passes (`downwash.set_fused`): the NumPy twin's neighbour sets and
 forces, one compiled function per kind, and swarm flights on the simulator's fused path.
 
-Tolerance. The compiled pass and the NumPy twin (`SwarmPredictor(backend="numpy")`) compute the
+Tolerance. The compiled pass and the NumPy twin (`LearnedPredictor(backend="numpy")`) compute the
 same float64 expressions in another order: the twin's networks are BLAS products (their own
 summation order, FMA on some CPUs) and the pair force is assembled as the pair kernel assembles
 it (``f1 px / r`` where the twin has ``f1 (px / r)``). Measured differences are a few ulps of the
 largest output (at most 3e-15 of max(|F|, 1) over 900 random cases of every kind; 60-95 % of the
 components bit-equal); the tests allow `TOL` = 1e-12 of it, the bound the
-twin and the torch model are held to (tests/test_swarm_models.py), while a wrong weight, slot or
+twin and the torch model are held to (tests/test_set_models.py), while a wrong weight, slot or
 neighbour moves the output by far more. NaN appears in the same places in both. The neighbour
 selection itself is compared exactly (indices and mask). Flights: the fused tick and the readable
 path call the same kernel, so their flights are compared bit for bit (as tests/test_fast_path.py
@@ -20,12 +20,14 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import downwash.swarm_models as swarm_models
+import downwash.predictor as predictor_module
 from downwash_core.errors import ConfigError
 from downwash_core.state import VehicleStates
-from downwash.swarm_fused import COMPILED_KINDS
+from downwash.set_fused import COMPILED_KINDS
 from sim.neighbours import select_into
-from downwash.swarm_models import SWARM_MODEL_KINDS, SummedPairwise, SwarmCheckpoint, SwarmPredictor, make_swarm_model
+from downwash.predictor import LearnedPredictor
+from downwash.registry import SET_KINDS, make_model
+from downwash.set_models import SummedPairwise
 from sim.neighbours import NeighbourSet, select_neighbours
 from sim.predictor import PerWorldPredictor
 from sim.presets import make_preset
@@ -33,24 +35,13 @@ from sim.simulator import Simulator
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from test_fast_path import _assert_same
 from test_features import random_rotations
+from test_set_models import _one_torch_thread, _settings, as_checkpoint  # noqa: F401 (an autouse fixture)
 
 TOL = 1e-12  # of max(|F|, 1): see the module docstring
 LINEAR = {"type": "sim.aggregation.LinearSuperposition", "name": "linear"}
-KINDS = list(SWARM_MODEL_KINDS)
+KINDS = list(SET_KINDS)
 PAIR_KINDS = [("equivariant", "5"), ("equivariant", "6"), ("equivariant_general", None), ("shallow", None),
               ("deep", None)]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-def _settings(n: int):
-    return settings(max_examples=n, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 _MODELS: dict = {}
@@ -67,7 +58,7 @@ def random_model(kind: str, seed: int = 0, **architecture):
             model = SummedPairwise(trained_like(pair_kind, feature_set, seed=seed))
         else:
             torch.manual_seed(seed)
-            model = make_swarm_model(kind, **architecture)
+            model = make_model(kind, **architecture)
             g = torch.Generator().manual_seed(seed)
             with torch.no_grad():
                 for p in model.parameters():
@@ -98,8 +89,8 @@ def random_states(rng, W: int, V: int, grid: bool, n_nan: int) -> VehicleStates:
 
 
 def _predictors(model, ns, clamp):
-    ck = SwarmCheckpoint(model, ns, {"aggregation": LINEAR})
-    return SwarmPredictor(ck, clamp=clamp), SwarmPredictor(ck, backend="numpy", clamp=clamp)
+    ck = as_checkpoint(model, ns, {"aggregation": LINEAR})
+    return LearnedPredictor(ck, clamp=clamp), LearnedPredictor(ck, backend="numpy", clamp=clamp)
 
 
 def _assert_close(got, want):
@@ -222,14 +213,14 @@ def test_one_compiled_function_per_kind_for_every_model():
 
 
 def test_the_default_backend_is_compiled_where_the_kind_has_one(monkeypatch):
-    ck = SwarmCheckpoint(random_model("deepsets", 0), NeighbourSet(2), {"aggregation": LINEAR})
-    assert SwarmPredictor(ck).backend == "compiled" and SwarmPredictor(ck).compiled() is not None
+    ck = as_checkpoint(random_model("deepsets", 0), NeighbourSet(2), {"aggregation": LINEAR})
+    assert LearnedPredictor(ck).backend == "compiled" and LearnedPredictor(ck).compiled() is not None
     for backend in ("numpy", "torch"):
-        assert SwarmPredictor(ck, backend=backend).compiled() is None
-    monkeypatch.delitem(swarm_models.COMPILED_KINDS, "deepsets")  # a kind without a compiled form
-    assert SwarmPredictor(ck).backend == "numpy"
+        assert LearnedPredictor(ck, backend=backend).compiled() is None
+    monkeypatch.delitem(predictor_module.COMPILED_KINDS, "deepsets")  # a kind without a compiled form
+    assert LearnedPredictor(ck).backend == "numpy"
     with pytest.raises(ConfigError, match="no compiled form"):
-        SwarmPredictor(ck, backend="compiled")
+        LearnedPredictor(ck, backend="compiled")
 
 
 # ------------------------------------------------------------------------------ in the loop
@@ -252,7 +243,7 @@ def test_a_formation_flies_the_fused_path_as_the_readable_one(kind, W):
     """formation5 with a model of sets: the fused tick (its C function) and the readable path (the same
     kernel through `__call__`) give the same flight bit for bit, and the model acts on it."""
     preset = make_preset("formation5")
-    pred = SwarmPredictor(SwarmCheckpoint(random_model(kind, 1), NeighbourSet(4), {"aggregation": LINEAR}), clamp=3.0)
+    pred = LearnedPredictor(as_checkpoint(random_model(kind, 1), NeighbourSet(4), {"aggregation": LINEAR}), clamp=3.0)
     fused, readable = _fly_both(preset, W, 60, pred)
     _assert_same(fused, readable)
     assert np.abs(fused[1].f_hat).max() > 1e-3 and fused[1].active.all()
@@ -263,10 +254,10 @@ def test_the_fused_flight_follows_the_numpy_twins(kind):
     """The fused flight with the compiled pass and the readable flight with the NumPy twin differ
     only by the twin's rounding, carried through 1.2 s of closed loop (well below a micrometre)."""
     preset = make_preset("formation5")
-    ck = SwarmCheckpoint(random_model(kind, 3), NeighbourSet(4, radius=1.5), {"aggregation": LINEAR})
+    ck = as_checkpoint(random_model(kind, 3), NeighbourSet(4, radius=1.5), {"aggregation": LINEAR})
     sims = []
     for fast, backend in ((True, "compiled"), (False, "numpy")):
-        pred = SwarmPredictor(ck, backend=backend, clamp=1.0)
+        pred = LearnedPredictor(ck, backend=backend, clamp=1.0)
         sim = Simulator(preset.scene(), preset.reference(2), [4, 5], predictor=pred, fast=fast)
         assert (sim._plan is not None) == fast
         for _ in range(60):
@@ -281,7 +272,7 @@ def test_a_batch_of_swarm_models_per_world_flies_the_fused_path():
     """One batch, a model of each kind (and two of one kind) world by world (`PerWorldPredictor`): each
     world calls its kind's C function with its model's constants, as the readable path routes them."""
     ns = NeighbourSet(4)
-    predictors = [SwarmPredictor(SwarmCheckpoint(random_model(kind, seed), ns, {"aggregation": LINEAR}), clamp=3.0)
+    predictors = [LearnedPredictor(as_checkpoint(random_model(kind, seed), ns, {"aggregation": LINEAR}), clamp=3.0)
                   for kind, seed in (("summed_pairwise", 2), ("deepsets_equivariant", 1), ("deepsets", 1),
                                      ("deepsets_equivariant", 4))]
     W = 6

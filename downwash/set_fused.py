@@ -1,10 +1,10 @@
-"""The swarm models as compiled passes: neighbour sets, networks, pooling and clamp in one loop.
+"""The learned predictor as compiled passes: neighbour sets, networks, pooling and clamp in one loop.
 
-`SwarmPredictor(backend="compiled")`, the default for every kind of
-`downwash.swarm_models.SWARM_MODEL_KINDS`, evaluates a model of sets in the 45 Hz slot with
-these kernels, and the simulator's fused tick calls them as C functions of
-`sim.predictor.PREDICTOR_SIGNATURE` (`SwarmPredictor.compiled()`), so a swarm flight with a
-learned model stays in compiled code. Per world and target vehicle each kernel
+`LearnedPredictor(backend="compiled")`, the default for every kind of
+`downwash.registry.MODEL_KINDS`, evaluates a model in the 45 Hz slot with these kernels (a
+per-neighbour model as ``summed_pairwise``), and the simulator's fused tick calls them as C
+functions of `sim.predictor.PREDICTOR_SIGNATURE` (`LearnedPredictor.compiled()`), so a
+flight with a learned model stays in compiled code. Per world and target vehicle each kernel
 
 1. selects the neighbour set as `sim.neighbours.select_neighbours` does (its compiled twin `sim.neighbours.select_into`): the
    other vehicles at a finite squared distance ``(dx dx + dy dy) + dz dz`` (the same sum),
@@ -20,7 +20,7 @@ learned model stays in compiled code. Per world and target vehicle each kernel
    `downwash.predictor.clamp_magnitude`).
 
 One kernel and one C function per kind serve every model of that kind: a model's constants
-travel in ``(params float64, iparams int64)`` (`pack_swarm`), never as compile-time constants::
+travel in ``(params float64, iparams int64)`` (`pack_model`), never as compile-time constants::
 
     params  = [clamp (<= 0: none), radius^2 (inf: none), extra..., w1..., b1..., w2..., b2...]
     iparams = [K, feature code, L, G, n_basis, len(extra), len(w1), len(b1), len(widths1),
@@ -31,11 +31,11 @@ phi; net 2: rho) and ``extra`` the normalisation (deepsets_equivariant: in_mean,
 out_scale; deepsets: in_mean, in_std, out_mean, out_std; summed_pairwise: none, folded into
 the layers as for the pair predictor).
 
-The readable reference is each model's float64 NumPy twin (`SwarmModel.numpy_forward`,
-`SwarmPredictor(backend="numpy")`). The kernels agree with it to float64 rounding, not bit
+The readable reference is each model's float64 NumPy twin (`SetModel.numpy_forward`,
+`LearnedPredictor(backend="numpy")`). The kernels agree with it to float64 rounding, not bit
 for bit: the twin's networks are BLAS products (another summation order, FMA on some CPUs)
 and the pair force is assembled as the pair kernel assembles it (``f1 px / r`` where the twin
-has ``f1 (px / r)``); `tests/test_swarm_fused.py` bounds the difference. numba checks a cached
+has ``f1 (px / r)``); `tests/test_set_fused.py` bounds the difference. numba checks a cached
 kernel against its own file only: after editing `downwash/fused.py` delete the caches (see
 `downwash_core.jit`), or these kernels keep the old pieces.
 """
@@ -54,11 +54,11 @@ from sim.predictor import PREDICTOR_SIGNATURE, CompiledPredictor
 
 __all__ = [
     "COMPILED_KINDS",
-    "SwarmKernel",
+    "KindKernel",
     "summed_pairwise_into",
     "deepsets_equivariant_into",
     "deepsets_into",
-    "pack_swarm",
+    "pack_model",
 ]
 
 # iparams header: see the module docstring
@@ -138,7 +138,7 @@ def summed_pairwise_into(pos, vel, rot, params, iparams, out):
 
 @njit
 def deepsets_equivariant_into(pos, vel, rot, params, iparams, out):
-    """``deepsets_equivariant`` (`downwash.swarm_models.DeepSetsEquivariant.decode`, step for step)
+    """``deepsets_equivariant`` (`downwash.set_models.DeepSetsEquivariant.decode`, step for step)
     on every vehicle into out (W, V, 3) m/s^2: per neighbour the invariant features and basis rows,
     phi -> (z_i, a_i); S = sum z_i, U_g = sum_i,c a_i,g,c b_i,c; rho(z_i, S, U . b_i) -> c_i;
     F = out_scale sum_i,c c_i,c b_i,c."""
@@ -210,7 +210,7 @@ def deepsets_equivariant_into(pos, vel, rot, params, iparams, out):
 
 @njit
 def deepsets_into(pos, vel, rot, params, iparams, out):
-    """``deepsets`` (Neural-Swarm2's, `downwash.swarm_models.DeepSets.decode`) on every vehicle into
+    """``deepsets`` (Neural-Swarm2's, `downwash.set_models.DeepSets.decode`) on every vehicle into
     out (W, V, 3) m/s^2: rho(sum_i phi(([dp_i, v_i, v_b] - in_mean) / in_std)) out_std + out_mean,
     0 for a target without neighbours."""
     W, V = pos.shape[0], pos.shape[1]
@@ -282,7 +282,7 @@ def _deepsets_c(n_worlds, n_veh, pos, vel, rot, true_pos, true_vel, true_rot, pa
     deepsets_into(p, v, r, f, i, o)
 
 
-class SwarmKernel(NamedTuple):
+class KindKernel(NamedTuple):
     """A kind's compiled form: kernel(pos, vel, rot, params, iparams, out) (C-contiguous float64
     arrays; iparams int64) and the address of the same as a C function of `PREDICTOR_SIGNATURE`."""
 
@@ -290,12 +290,12 @@ class SwarmKernel(NamedTuple):
     address: int
 
 
-# kind -> its kernel and C function (every kind of SWARM_MODEL_KINDS; a new kind needs its own, and its
-# constants in `pack_swarm`); `SwarmPredictor` looks them up by kind, so an unpickled one finds them
-COMPILED_KINDS: dict[str, SwarmKernel] = {
-    "summed_pairwise": SwarmKernel(summed_pairwise_into, _summed_pairwise_c.address),
-    "deepsets_equivariant": SwarmKernel(deepsets_equivariant_into, _deepsets_equivariant_c.address),
-    "deepsets": SwarmKernel(deepsets_into, _deepsets_c.address),
+# kind -> its kernel and C function (every kind of SET_KINDS; a new kind needs its own, and its
+# constants in `pack_model`); `LearnedPredictor` looks them up by kind, so an unpickled one finds them
+COMPILED_KINDS: dict[str, KindKernel] = {
+    "summed_pairwise": KindKernel(summed_pairwise_into, _summed_pairwise_c.address),
+    "deepsets_equivariant": KindKernel(deepsets_equivariant_into, _deepsets_equivariant_c.address),
+    "deepsets": KindKernel(deepsets_into, _deepsets_c.address),
 }
 
 
@@ -305,7 +305,7 @@ _NO_NET = (np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
 
 
 def _in_out(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`pack_layers` of `downwash.swarm_models._numpy_layers`' [(W (in, out), b), ...] (the NumPy twin's
+    """`pack_layers` of `downwash.set_models._numpy_layers`' [(W (in, out), b), ...] (the NumPy twin's
     own float64 weights)."""
     return pack_layers([(w.T, b) for w, b in layers])
 
@@ -320,23 +320,23 @@ def _abi(K: int, code: int, L: int, G: int, nb: int, neighbours: NeighbourSet, c
     return np.ascontiguousarray(params, dtype=np.float64), np.ascontiguousarray(iparams, dtype=np.int64)
 
 
-def pack_swarm(model: Any, neighbours: NeighbourSet,
-               clamp: float | None = None) -> tuple[SwarmKernel, CompiledPredictor]:
-    """A swarm model's compiled form: (its kind's `SwarmKernel`, `CompiledPredictor(address, params,
+def pack_model(model: Any, neighbours: NeighbourSet,
+               clamp: float | None = None) -> tuple[KindKernel, CompiledPredictor]:
+    """A model's compiled form: (its kind's `KindKernel`, `CompiledPredictor(address, params,
     iparams)`) with the model's constants as its NumPy twin has them (eval mode, float64).
 
-    model: a `downwash.swarm_models.SwarmModel` of a kind in `COMPILED_KINDS`, in eval mode;
+    model: a `downwash.set_models.SetModel` of a kind in `COMPILED_KINDS`, in eval mode;
     neighbours: its neighbour set; clamp: m/s^2 bound on each vehicle's magnitude, or None.
     KeyError for a kind without a compiled form.
     """
-    from downwash.swarm_models import _numpy_layers  # the twin's own weights (swarm_models imports this module)
+    from downwash.set_models import _numpy_layers  # the twin's own weights
 
     kind = model.kind
     entry = COMPILED_KINDS[kind]
     K = neighbours.max_neighbours
     f64 = lambda t: t.detach().double().numpy().ravel()  # noqa: E731
     if kind == "summed_pairwise":
-        pair = model.pairwise  # as LearnedPredictor packs it: the folded float64 layers
+        pair = model.pairwise  # the folded float64 layers of its NumPy twin
         abi = _abi(K, feature_code(pair.feature_set), 0, 0, 0, neighbours, clamp, np.zeros(0),
                    pack_layers(pair.folded_layers()), _NO_NET)
     elif kind == "deepsets_equivariant":

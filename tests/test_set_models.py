@@ -1,5 +1,5 @@
-"""Models for many vehicles: neighbour-set data from logs, the three swarm models, training,
-checkpoints and the predictor in the loop."""
+"""Models of sets: neighbour-set data from logs, the three models of sets, training, checkpoints
+and the predictor in the loop."""
 
 import copy
 import functools
@@ -15,31 +15,14 @@ from downwash_core.errors import CheckpointError, ConfigError, DataError
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import differences
 from downwash_core.state import VehicleStates
-from downwash.checkpoint import save_checkpoint
-from downwash.labels import labels_from_log
+from downwash.checkpoint import Checkpoint, load_checkpoint, save_checkpoint, wrap_pairwise
+from downwash.datasets import Dataset, concatenate, load_dataset, log_provenance
+from downwash.labels import follower_acceleration, labels_from_log, smooth_command
 from downwash.predictor import LearnedPredictor
-from downwash.swarm_data import (
-    SwarmDataset,
-    concatenate_swarm,
-    load_swarm_dataset,
-    log_provenance,
-    swarm_labels_from_log,
-)
+from downwash.registry import SET_KINDS, make_model
+from downwash.set_models import DeepSets, DeepSetsEquivariant, SummedPairwise
+from downwash.train import TrainConfig, predict, rmse, save_trained, train_model
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
-from downwash.swarm_models import (
-    SWARM_MODEL_KINDS,
-    DeepSets,
-    DeepSetsEquivariant,
-    SummedPairwise,
-    SwarmCheckpoint,
-    SwarmPredictor,
-    load_swarm_checkpoint,
-    make_swarm_model,
-    save_swarm_checkpoint,
-    wrap_pairwise,
-)
-from downwash.swarm_train import predict_swarm, save_trained, swarm_rmse, train_swarm_model
-from downwash.train import TrainConfig
 from sim.field import DownwashField, pairwise_field
 from sim.flight import fly
 from sim.logs import save_log
@@ -50,6 +33,11 @@ from downwash_trajectories import Hover, Transect, stack
 
 LEADER = np.array(LEADER_POSITION)
 LINEAR = {"type": "sim.aggregation.LinearSuperposition", "name": "linear"}
+
+
+def as_checkpoint(model, neighbours, record):
+    """A model of sets with what it was made for, as `load_checkpoint` returns it."""
+    return Checkpoint(model, {**record, "neighbours": neighbours.describe()})
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -88,44 +76,48 @@ def pair_log():
     return fly(build_scene(), ref, [2], 3.0)[0]
 
 
-def test_two_vehicle_log_with_one_neighbour_gives_exactly_the_pair_labels(pair_log):
-    """K = 1 on a two-vehicle log: the follower's samples are labels_from_log's, bit for bit."""
+def test_two_vehicle_log_with_one_neighbour_gives_exactly_the_pair_formula(pair_log):
+    """K = 1 on a two-vehicle log (the defaults): the follower's samples are the pair's, computed here
+    the plain way from the leader's and the follower's columns, bit for bit."""
     log = pair_log
-    pair = labels_from_log(log)
-    swarm = swarm_labels_from_log(log, NeighbourSet(1))
-    mine = swarm["vehicle"] == log.meta["follower"]
-    assert swarm["mask"].all() and (swarm["neighbour"][mine] == log.meta["leader"]).all()
-    for name, value in pair.items():
-        got = swarm[name][mine]
-        got = got[:, 0] if name in ("dp", "v_a", "R_a") else got
-        assert np.array_equal(got, value), name
-    ds = SwarmDataset.from_labels(swarm, NeighbourSet(1), flight=0, stage=0, provenance=log_provenance(log.meta))
-    pairs = ds.subset(ds.vehicle == log.meta["follower"]).pairs()
-    assert np.array_equal(pairs.dp, pair["dp"]) and np.array_equal(pairs.y, pair["y"])
+    f, l = int(log.meta["follower"]), int(log.meta["leader"])
+    lab = labels_from_log(log)
+    assert lab["mask"].all() and (lab["vehicle"] == f).all() and (lab["neighbour"] == l).all()
+    rows, end = lab["row"], len(log)
+    pos, vel = log["pos_est"][rows], log["vel_est"][rows]
+    want_y = (follower_acceleration(log["t"][:end], log["mocap_pos"][:end, f]) - smooth_command(log["u_cmd"][:end, f]))[rows]
+    assert np.array_equal(lab["y"], want_y)
+    assert np.array_equal(lab["dp"][:, 0], pos[:, f] - pos[:, l])
+    assert np.array_equal(lab["v_a"][:, 0], vel[:, l].astype(np.float64))
+    assert np.array_equal(lab["v_b"], vel[:, f].astype(np.float64))
+    assert np.array_equal(lab["R_a"][:, 0], geometry.quat_to_mat(log["quat_est"][rows, l].astype(np.float64)))
+    ds = Dataset.from_labels(lab, NeighbourSet(1), flight=0, stage=0, provenance=log_provenance(log.meta))
+    pairs = ds.pairs()
+    assert np.array_equal(pairs.dp, lab["dp"][:, 0]) and np.array_equal(pairs.y, lab["y"])
 
 
 def test_every_vehicle_gets_its_own_label_and_neighbours(three_logs, tmp_path):
     """Each target's label is labels_from_log's with that vehicle as the follower; K = 2 holds the
-    other two; a radius drops the far one; the files load through load_swarm_dataset."""
+    other two; a radius drops the far one; the files load through load_dataset."""
     log = three_logs[0]
-    swarm = swarm_labels_from_log(log, NeighbourSet(2))
+    swarm = labels_from_log(log, NeighbourSet(2), targets="all")
     for j in range(3):
-        alias = copy.copy(log)
-        alias.meta = {**log.meta, "leader": (j + 1) % 3, "follower": j}
-        ref = labels_from_log(alias)
         mine = swarm["vehicle"] == j
-        assert np.array_equal(swarm["y"][mine], ref["y"]) and np.array_equal(swarm["v_b"][mine], ref["v_b"])
+        rows = swarm["row"][mine]
+        acc = follower_acceleration(log["t"], log["mocap_pos"][:, j]) - smooth_command(log["u_cmd"][:, j])
+        assert np.array_equal(swarm["y"][mine], acc[rows])
+        assert np.array_equal(swarm["v_b"][mine], log["vel_est"][rows, j].astype(np.float64))
         assert (np.sort(swarm["neighbour"][mine], axis=1) == sorted({0, 1, 2} - {j})).all()
     # a radius keeps the vehicles within it: at the end the top vehicle has the middle one
     # (~0.5 m) and not the bottom one (~1 m); earlier, on the way in from the spawn points, others
-    near = swarm_labels_from_log(log, NeighbourSet(2, radius=0.8), targets=[0])
+    near = labels_from_log(log, NeighbourSet(2, radius=0.8), targets=[0])
     dist = np.linalg.norm(log["pos_est"][near["row"], :, None] - log["pos_est"][near["row"], None], axis=-1)[:, 0]
     for k, i in enumerate((1, 2)):
         assert np.array_equal((near["neighbour"] == i).any(1), dist[:, i] <= 0.8)
     assert near["neighbour"][-1].tolist() == [1, -1] and near["mask"][-1].tolist() == [True, False]
     for i, L in enumerate(three_logs):
         save_log(tmp_path / f"flight_{i}.npz", L)
-    ds = load_swarm_dataset(tmp_path, NeighbourSet(3))
+    ds = load_dataset(tmp_path, NeighbourSet(3), targets="all")
     assert ds.flights.tolist() == [0, 1] and ds.mask.shape[1] == 3 and (ds.mask.sum(1) == 2).all()
     assert ds.provenance["aggregation"] == LINEAR and ds.provenance["field"] == log.meta["field"]
 
@@ -135,27 +127,27 @@ def test_two_vehicle_data_joins_many_vehicle_data_of_any_one_law(pair_log, three
     as None and joins 3-vehicle data of one law (whose record the result keeps); 3-vehicle data
     of two laws never mix; a log on disk joins the same log in memory (JSON lists vs tuples)."""
     ns = NeighbourSet(2)
-    as_set = lambda L: SwarmDataset.from_labels(swarm_labels_from_log(L, ns), ns, flight=0, stage=0,  # noqa: E731
+    as_set = lambda L: Dataset.from_labels(labels_from_log(L, ns, targets="all"), ns, flight=0, stage=0,  # noqa: E731
                                                 provenance=log_provenance(L.meta))
     pair, swarm = as_set(pair_log), as_set(three_logs[0])
     assert pair.provenance["aggregation"] is None and swarm.provenance["aggregation"] == LINEAR
-    mixed = concatenate_swarm([pair, swarm])
+    mixed = concatenate([pair, swarm])
     assert mixed.provenance == swarm.provenance and mixed.flights.tolist() == [0, 1]
-    assert concatenate_swarm([pair, pair]).provenance["aggregation"] is None
+    assert concatenate([pair, pair]).provenance["aggregation"] is None
     velocity = {"type": "sim.aggregation.VelocitySuperposition", "name": "velocity", "exponent": 2.0}
-    other = SwarmDataset.from_labels(swarm_labels_from_log(three_logs[1], ns), ns, flight=0, stage=0,
+    other = Dataset.from_labels(labels_from_log(three_logs[1], ns, targets="all"), ns, flight=0, stage=0,
                                      provenance={**log_provenance(three_logs[1].meta), "aggregation": velocity})
-    assert concatenate_swarm([pair, other]).provenance["aggregation"] == velocity
+    assert concatenate([pair, other]).provenance["aggregation"] == velocity
     with pytest.raises(DataError, match="(?s)other settings.*aggregation.name"):
-        concatenate_swarm([pair, swarm, other])
+        concatenate([pair, swarm, other])
     save_log(tmp_path / "f.npz", three_logs[0])
-    assert concatenate_swarm([swarm, load_swarm_dataset(tmp_path / "f.npz", ns)]).provenance == swarm.provenance
+    assert concatenate([swarm, load_dataset(tmp_path / "f.npz", ns, targets="all")]).provenance == swarm.provenance
     # a model trained on two-vehicle data only was trained for no law in particular
     path = tmp_path / "pair_only.pt"
-    save_swarm_checkpoint(path, copy.deepcopy(random_model("deepsets", 0)).float(), ns, pair.provenance)
-    assert load_swarm_checkpoint(path).record["aggregation"] is None
+    save_checkpoint(path, copy.deepcopy(random_model("deepsets", 0)).float(), neighbours=ns, provenance=pair.provenance)
+    assert load_checkpoint(path).record["aggregation"] is None
     with pytest.raises(CheckpointError, match="trained on two-vehicle flights only"):
-        SwarmPredictor(path, expect_aggregation="linear")
+        LearnedPredictor(path, expect_aggregation="linear")
 
 
 @_settings(40)
@@ -182,7 +174,7 @@ def random_model(kind, seed, pair_kind="equivariant_general"):
     if kind == "summed_pairwise":
         return SummedPairwise(trained_like(pair_kind, seed=seed)).double().eval()
     torch.manual_seed(seed)
-    model = make_swarm_model(kind).double()
+    model = make_model(kind).double()
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in model.parameters():
@@ -208,7 +200,7 @@ def run(model, dp, v_a, v_b, R_a, mask):
         return model(dp, v_a, v_b, R_a, mask).numpy()
 
 
-KINDS = list(SWARM_MODEL_KINDS)
+KINDS = list(SET_KINDS)
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -313,8 +305,8 @@ def test_summed_pairwise_equals_the_learned_predictors_sum(pair_kind):
     for model, rtol in ((pair64, 1e-10), (pair, 1e-5)):
         want = LearnedPredictor(model)(states, states)
         assert np.abs(want).max() > 0.1 and (want[:, 0] == 0).all()  # the top vehicle is below nobody
-        for backend in SwarmPredictor.BACKENDS:
-            got = SwarmPredictor(wrap_pairwise(model, NeighbourSet(3)), backend=backend)(states, states)
+        for backend in LearnedPredictor.BACKENDS:
+            got = LearnedPredictor(wrap_pairwise(model, NeighbourSet(3)), backend=backend)(states, states)
             np.testing.assert_allclose(got, want, rtol=0, atol=rtol * np.abs(want).max())
 
 
@@ -330,8 +322,8 @@ def test_numpy_twin_equals_the_torch_model(kind, seed, B, K):
     want = run(model, *batch)
     np.testing.assert_allclose(model.numpy_forward()(*batch), want, rtol=0, atol=1e-12 * max(np.abs(want).max(), 1))
     states = _stacked_states(rng, 3, 4)
-    ck = SwarmCheckpoint(copy.deepcopy(model).float(), NeighbourSet(K), {"aggregation": LINEAR})
-    a, *others = (SwarmPredictor(ck, backend=backend)(states, states) for backend in SwarmPredictor.BACKENDS)
+    ck = as_checkpoint(copy.deepcopy(model).float(), NeighbourSet(K), {"aggregation": LINEAR})
+    a, *others = (LearnedPredictor(ck, backend=backend)(states, states) for backend in LearnedPredictor.BACKENDS)
     for b in others:  # compiled, numpy and torch agree
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(np.abs(b).max(), 1))
 
@@ -342,7 +334,7 @@ def test_predictor_uses_only_the_estimates_and_matches_the_training_inputs(kind,
     a log row's estimates, exactly the inputs the data set built for that row."""
     model = random_model(kind, 0)
     ns = NeighbourSet(2)
-    pred = SwarmPredictor(SwarmCheckpoint(model, ns, {"aggregation": LINEAR}))
+    pred = LearnedPredictor(as_checkpoint(model, ns, {"aggregation": LINEAR}))
     log = three_logs[1]
     rows = np.arange(20, 120, 7)
     est = VehicleStates(log["pos_est"][rows], log["vel_est"][rows], geometry.quat_to_mat(log["quat_est"][rows]))
@@ -351,10 +343,10 @@ def test_predictor_uses_only_the_estimates_and_matches_the_training_inputs(kind,
     assert out.shape == (rows.size, 3, 3) and out.dtype == np.float64
     assert np.array_equal(pred(est, est), out) and np.array_equal(pred(est, None), out)
     assert not np.allclose(pred(true, est), out)  # the states do matter
-    data = SwarmDataset.from_labels(swarm_labels_from_log(log, ns), ns, flight=0, stage=0)
+    data = Dataset.from_labels(labels_from_log(log, ns, targets="all"), ns, flight=0, stage=0)
     for v in range(3):
         sel = (data.vehicle == v) & np.isin(data.t, log["t"][rows])
-        np.testing.assert_allclose(predict_swarm(model, data.subset(sel)), out[:, v], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(predict(model, data.subset(sel)), out[:, v], rtol=1e-12, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------ training
@@ -374,9 +366,9 @@ def synthetic_set(n_flights=4, n=300, K=2, seed=0):
         labels = {"dp": flat(g["dp"]), "v_a": flat(g["v_a"]), "v_b": flat(g["v_b"]), "R_a": flat(g["R_a"]),
                   "mask": flat(mask), "neighbour": flat(index), "vehicle": np.tile(np.arange(3), n),
                   "y": flat(y), "t": np.repeat(np.arange(n) * 0.02, 3), "field_mean": flat(y)}
-        parts.append(SwarmDataset.from_labels(labels, ns, flight=0, stage=0,
+        parts.append(Dataset.from_labels(labels, ns, flight=0, stage=0,
                                               provenance={"field": "true", "aggregation": LINEAR}))
-    return concatenate_swarm(parts)
+    return concatenate(parts)
 
 
 TINY = TrainConfig(max_epochs=6, min_steps=0, batch_size=256, patience=6)
@@ -387,14 +379,14 @@ def test_training_is_deterministic_and_reduces_the_validation_error(kind):
     data = synthetic_set(n=200)
     train, val = data.select_flights([0, 1, 2]), data.select_flights([3])
     config = TrainConfig(max_epochs=20, min_steps=0, batch_size=256, patience=20)
-    model, history = train_swarm_model(kind, train, val, config, seed=3)
+    model, history = train_model(kind, train, val, config, seed=3)
     with torch.random.fork_rng():
         torch.manual_seed(3)
-        untrained = make_swarm_model(kind)
+        untrained = make_model(kind)
     untrained.fit_normalization(untrained.encode(train.dp, train.v_a, train.v_b, train.R_a, train.mask),
                                 torch.as_tensor(train.y, dtype=torch.float32))
-    before = swarm_rmse(untrained.eval(), val)[0]
-    after = swarm_rmse(model, val)[0]
+    before = rmse(untrained.eval(), val)[0]
+    after = rmse(model, val)[0]
     scale = np.sqrt(np.mean(val.y**2))
     # seeded: after / before 0.26 and 0.69, after / scale 0.43 and 0.60 for the two kinds
     assert after < 0.75 * before and after < 0.65 * scale, (before, after, scale)
@@ -402,9 +394,9 @@ def test_training_is_deterministic_and_reduces_the_validation_error(kind):
     assert history["neighbours"] == NeighbourSet(2).describe() and history["provenance"]["aggregation"] == LINEAR
     # same seed: the same weights bit for bit; another seed: other weights
     small = data.select_flights([0, 1])
-    a, _ = train_swarm_model(kind, small, val, TINY, seed=7)
-    b, _ = train_swarm_model(kind, small, val, TINY, seed=7)
-    c, _ = train_swarm_model(kind, small, val, TINY, seed=8)
+    a, _ = train_model(kind, small, val, TINY, seed=7)
+    b, _ = train_model(kind, small, val, TINY, seed=7)
+    c, _ = train_model(kind, small, val, TINY, seed=8)
     sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     assert not all(torch.equal(sa[k], sc[k]) for k in sa)
@@ -413,32 +405,32 @@ def test_training_is_deterministic_and_reduces_the_validation_error(kind):
 def test_training_argument_errors():
     data = synthetic_set(n_flights=2, n=50)
     with pytest.raises(ConfigError, match="no training of its own.*wrap_pairwise"):
-        train_swarm_model("summed_pairwise", data)
-    with pytest.raises(ConfigError, match="swarm model kind: expected one of"):
-        train_swarm_model("transformer", data)
+        train_model("summed_pairwise", data)
+    with pytest.raises(ConfigError, match="model kind: expected one of"):
+        train_model("transformer", data)
     other = synthetic_set(n_flights=1, n=50, K=3)
     with pytest.raises(DataError, match="neighbour set"):
-        train_swarm_model("deepsets", data, other, TINY)
+        train_model("deepsets", data, other, TINY)
     with pytest.raises(DataError, match="neighbour set"):
-        concatenate_swarm([data, other])
-    odd = SwarmDataset(**{k: getattr(data, k) for k in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y",
+        concatenate([data, other])
+    odd = Dataset(**{k: getattr(data, k) for k in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y",
                                                         "flight", "stage", "t", "field_mean")},
                        neighbours=data.neighbours, provenance={"field": "other", "aggregation": LINEAR})
     with pytest.raises(DataError, match="field"):
-        concatenate_swarm([data, odd])
+        concatenate([data, odd])
     with pytest.raises(ConfigError, match="max_neighbours"):
         NeighbourSet(0)
     with pytest.raises(ConfigError, match="radius"):
         NeighbourSet(2, radius=-1.0)
     with pytest.raises(ConfigError, match="backend: expected one of"):
-        SwarmPredictor(SwarmCheckpoint(random_model("deepsets", 0), NeighbourSet(2), {"aggregation": LINEAR}),
+        LearnedPredictor(as_checkpoint(random_model("deepsets", 0), NeighbourSet(2), {"aggregation": LINEAR}),
                        backend="jax")
     with pytest.raises(ConfigError, match="latent: expected an integer in"):
-        make_swarm_model("deepsets_equivariant", latent=0)
+        make_model("deepsets_equivariant", latent=0)
     with pytest.raises(ConfigError, match="feature_set: 'deepsets_equivariant' accepts"):
-        make_swarm_model("deepsets_equivariant", feature_set="raw")
+        make_model("deepsets_equivariant", feature_set="raw")
     with pytest.raises(TypeError, match="bad architecture arguments"):
-        make_swarm_model("deepsets", feature_set="general")
+        make_model("deepsets", feature_set="general")
     with pytest.raises(ConfigError, match="dp: expected"):
         random_model("deepsets", 0)(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3, 3)),
                                     np.ones(2, bool))
@@ -452,10 +444,10 @@ def test_checkpoint_round_trip_and_what_it_records(tmp_path, kind, pair_kind):
     model = copy.deepcopy(random_model(kind, 1, pair_kind)).float()
     ns = NeighbourSet(3, radius=2.0)
     path = tmp_path / f"{kind}.pt"
-    record = save_swarm_checkpoint(path, model, ns, {"field": {"type": "f", "k": 1.0}, "aggregation": "linear",
-                                                     "config": {"a": 1}}, meta={"seed": 3})
+    record = save_checkpoint(path, model, {"seed": 3}, neighbours=ns,
+                             provenance={"field": {"type": "f", "k": 1.0}, "aggregation": "linear", "config": {"a": 1}})
     assert path.with_suffix(".json").is_file()
-    loaded = load_swarm_checkpoint(path, expect_kind=kind, expect_neighbours=ns, expect_aggregation="linear")
+    loaded = load_checkpoint(path, expect_kind=kind, expect_neighbours=ns, expect_aggregation="linear")
     assert loaded.neighbours == ns and loaded.record == record
     assert record["aggregation"] == LINEAR and record["field"] == {"type": "f", "k": 1.0}
     assert record["neighbours"]["radius"] == 2.0 and record["model"]["kind"] == kind and record["seed"] == 3
@@ -463,8 +455,8 @@ def test_checkpoint_round_trip_and_what_it_records(tmp_path, kind, pair_kind):
     batch = neighbour_batch(rng, 16, 3)
     assert np.array_equal(run(loaded.model, *batch), run(model, *batch))
     states = _stacked_states(rng, 2, 4)
-    in_memory = SwarmPredictor(SwarmCheckpoint(model, ns, record))
-    assert np.array_equal(SwarmPredictor(path)(states, states), in_memory(states, states))
+    in_memory = LearnedPredictor(as_checkpoint(model, ns, record))
+    assert np.array_equal(LearnedPredictor(path)(states, states), in_memory(states, states))
 
 
 def test_a_model_for_another_neighbour_set_or_law_stops_before_flight(tmp_path):
@@ -473,84 +465,85 @@ def test_a_model_for_another_neighbour_set_or_law_stops_before_flight(tmp_path):
     wrapped = wrap_pairwise(pair_path, NeighbourSet(2))
     assert wrapped.record["field"] == {"type": "true"} and wrapped.record["aggregation"] == LINEAR
     path = tmp_path / "swarm.pt"
-    save_swarm_checkpoint(path, wrapped.model, wrapped.neighbours, wrapped.record)
+    save_checkpoint(path, wrapped.model, neighbours=wrapped.neighbours,
+                    provenance={k: v for k, v in wrapped.record.items() if k not in ("model", "neighbours")})
     other_law = {"type": "sim.aggregation.Other", "name": "other"}
     with pytest.raises(CheckpointError, match=r"swarm.pt: trained for the neighbour set .*max_neighbours': 2"):
-        load_swarm_checkpoint(path, expect_neighbours=NeighbourSet(3))
+        load_checkpoint(path, expect_neighbours=NeighbourSet(3))
     other_law_error = '(?s)swarm.pt: trained for another aggregation law.*name: "linear" here, "other" asked for'
     with pytest.raises(CheckpointError, match=other_law_error):
-        SwarmPredictor(path, expect_aggregation=other_law)
+        LearnedPredictor(path, expect_aggregation=other_law)
     with pytest.raises(CheckpointError, match="neighbour set"):
-        SwarmPredictor(wrapped, expect_neighbours=NeighbourSet(2, radius=1.0))
+        LearnedPredictor(wrapped, expect_neighbours=NeighbourSet(2, radius=1.0))
     with pytest.raises(CheckpointError, match="aggregation law"):
-        SwarmPredictor(wrapped, expect_aggregation=other_law)
+        LearnedPredictor(wrapped, expect_aggregation=other_law)
     with pytest.raises(ConfigError, match="aggregation: unknown 'other'"):
-        SwarmPredictor(wrapped, expect_aggregation="other")
-    SwarmPredictor(path, expect_neighbours=NeighbourSet(2), expect_aggregation="linear")  # what it was made for
+        LearnedPredictor(wrapped, expect_aggregation="other")
+    LearnedPredictor(path, expect_neighbours=NeighbourSet(2), expect_aggregation="linear")  # what it was made for
     with pytest.raises(CheckpointError, match="model kind is 'summed_pairwise', expected 'deepsets'"):
-        load_swarm_checkpoint(path, expect_kind="deepsets")
-    with pytest.raises(CheckpointError, match="two-vehicle model checkpoint.*wrap_pairwise"):
-        load_swarm_checkpoint(pair_path)
+        load_checkpoint(path, expect_kind="deepsets")
+    with pytest.raises(CheckpointError, match="swarm.pt: a 'summed_pairwise' model of sets, not a per-neighbour model"):
+        wrap_pairwise(path)
 
 
 def test_bad_checkpoint_files_raise_checkpoint_errors(tmp_path):
     with pytest.raises(CheckpointError, match="no such checkpoint"):
-        load_swarm_checkpoint(tmp_path / "missing.pt")
+        load_checkpoint(tmp_path / "missing.pt")
     path = tmp_path / "m.pt"
     model = copy.deepcopy(random_model("deepsets", 0)).float()
-    save_swarm_checkpoint(path, model, NeighbourSet(2), {"aggregation": "linear"})
+    save_checkpoint(path, model, neighbours=NeighbourSet(2), provenance={"aggregation": "linear"})
     data = path.read_bytes()
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
     with pytest.raises(CheckpointError, match="cut.pt: not a readable torch checkpoint"):
-        load_swarm_checkpoint(tmp_path / "cut.pt")
+        load_checkpoint(tmp_path / "cut.pt")
     torch.save({"format": "downwash-swarm-model", "version": 1, "evil": DeepSets}, tmp_path / "evil.pt")
     with pytest.raises(CheckpointError, match="evil.pt: refused by the safe loader"):
-        load_swarm_checkpoint(tmp_path / "evil.pt")
+        load_checkpoint(tmp_path / "evil.pt")
     payload = torch.load(path, weights_only=True)
     payload["state_dict"] = {k: v for k, v in payload["state_dict"].items() if not k.startswith("rho.0.")}
     torch.save(payload, tmp_path / "short.pt")
     with pytest.raises(CheckpointError, match="short.pt: weights do not match.*missing tensor 'rho.0"):
-        load_swarm_checkpoint(tmp_path / "short.pt")
+        load_checkpoint(tmp_path / "short.pt")
 
 
 def test_trained_model_checkpoint_records_its_data(tmp_path, three_logs):
     """save_trained stores the neighbour set, the logs' field and aggregation law and the training record;
     the reloaded predictor flies (finite output) on the estimates."""
     ns = NeighbourSet(2)
-    data = concatenate_swarm([SwarmDataset.from_labels(swarm_labels_from_log(L, ns), ns, flight=0, stage=0,
+    data = concatenate([Dataset.from_labels(labels_from_log(L, ns, targets="all"), ns, flight=0, stage=0,
                                                        provenance=log_provenance(L.meta)) for L in three_logs])
-    model, history = train_swarm_model("deepsets_equivariant", data, None, TINY, seed=1)
+    model, history = train_model("deepsets_equivariant", data, None, TINY, seed=1)
     record = save_trained(tmp_path / "m.pt", model, history, data)
     assert record["field"] == three_logs[0].meta["field"] and record["aggregation"] == LINEAR
     assert record["neighbours"] == ns.describe() and record["training"]["seed"] == 1
     assert differences(record["provenance"]["config"], three_logs[0].meta["config"]) == []
-    pred = SwarmPredictor(tmp_path / "m.pt", expect_neighbours=ns, expect_aggregation="linear")
+    pred = LearnedPredictor(tmp_path / "m.pt", expect_neighbours=ns, expect_aggregation="linear")
     L = three_logs[0]
     est = VehicleStates(L["pos_est"][40:45], L["vel_est"][40:45], geometry.quat_to_mat(L["quat_est"][40:45]))
     assert np.isfinite(pred(est, est)).all()
 
 
 def test_model_classes_are_registered():
-    assert SWARM_MODEL_KINDS == {"summed_pairwise": SummedPairwise, "deepsets_equivariant": DeepSetsEquivariant,
+    assert SET_KINDS == {"summed_pairwise": SummedPairwise, "deepsets_equivariant": DeepSetsEquivariant,
                                  "deepsets": DeepSets}
 
 
-@pytest.mark.parametrize("backend", SwarmPredictor.BACKENDS)
+@pytest.mark.parametrize("backend", LearnedPredictor.BACKENDS)
 def test_the_swarm_predictor_clamps_as_the_pair_predictor(backend):
     """The same bound as `LearnedPredictor(clamp=...)`: no vehicle's prediction exceeds it, and those
     below it pass unchanged."""
     rng = np.random.default_rng(7)
     states = _stacked_states(rng, 3, 4)
     pair = copy.deepcopy(trained_like("equivariant", seed=2)).double()
-    free = SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend)(states, states)
+    free = LearnedPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend)(states, states)
     norm = np.linalg.norm(free, axis=-1)
     bound = float(np.median(norm[norm > 0]))  # some vehicles above it, some below
-    got = SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend, clamp=bound)(states, states)
+    got = LearnedPredictor(wrap_pairwise(pair, NeighbourSet(3)), backend=backend, clamp=bound)(states, states)
     assert np.all(np.linalg.norm(got, axis=-1) <= bound * (1 + 1e-12))
     np.testing.assert_array_equal(got[norm <= bound], free[norm <= bound])
     np.testing.assert_allclose(got, LearnedPredictor(pair, clamp=bound)(states, states), rtol=0, atol=1e-10 * bound)
     with pytest.raises(ConfigError, match="clamp"):
-        SwarmPredictor(wrap_pairwise(pair, NeighbourSet(3)), clamp=float("nan"))
+        LearnedPredictor(wrap_pairwise(pair, NeighbourSet(3)), clamp=float("nan"))
 
 
 def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):

@@ -1,6 +1,6 @@
-"""Models for many vehicles: the force on a target from its whole neighbour set.
+"""Models of sets: the force on a target from its whole neighbour set.
 
-Every model takes a batch of padded neighbour sets (`downwash.swarm_data`)::
+Every model takes a batch of padded neighbour sets (`downwash.datasets.Dataset`)::
 
     dp   (B, K, 3)    m     p_target - p_neighbour, world frame (z up)
     v_a  (B, K, 3)    m/s   neighbour velocities
@@ -10,9 +10,10 @@ Every model takes a batch of padded neighbour sets (`downwash.swarm_data`)::
     F    (B, 3)       m/s^2 predicted force on the target, world frame
 
 and is invariant to the order of the neighbours (sums over the set) and to padding;
-a target without neighbours gets exactly 0. The registry `SWARM_MODEL_KINDS`:
+a target without neighbours gets exactly 0. The kinds (`SET_KINDS`; `downwash.registry`
+lists them with the per-neighbour kinds):
 
-- ``summed_pairwise``: a trained two-vehicle model (any of `downwash.models.MODEL_KINDS`)
+- ``summed_pairwise``: a trained per-neighbour model (any of `downwash.models.PAIRWISE_KINDS`)
   on each (neighbour, target) pair, summed: the paper's naive multi-vehicle approach
   (its conclusion) and `downwash.predictor.LearnedPredictor`'s law, with the same gate
   (a pair whose target is not below the neighbour, depth <= 0, adds 0). No training.
@@ -35,58 +36,27 @@ The deep-sets networks are spectrally normalised as the paper's deep baseline
 ``gamma = 2``). Each holds its input normalisation and output scaling as buffers; the
 equivariant one scales its outputs by one scalar, which keeps it equivariant.
 
-Checkpoints (`save_swarm_checkpoint`, `load_swarm_checkpoint`) load without executing
-code and record the kind, the neighbour set, the aggregation law and the field of the
-training data; asking for another neighbour set or law raises `CheckpointError` before
-any flight. `SwarmPredictor` puts a model in the control loop (`sim.predictor.Predictor`),
-by default as one compiled pass (`downwash.swarm_fused`, which the simulator's fused tick calls
-as a C function), checked against the model's float64 NumPy twin (`SwarmModel.numpy_forward`),
-which is tested against the torch model, the readable reference and the training path.
+Checkpoints (`downwash.checkpoint`) record the neighbour set and the aggregation law a
+model of sets was trained for; `downwash.predictor.LearnedPredictor` flies it, by default
+as one compiled pass (`downwash.set_fused`), checked against the model's float64 NumPy
+twin (`SetModel.numpy_forward`), which is tested against the torch model.
 """
 
 from __future__ import annotations
 
-import copy
-import math
-import os
-from pathlib import Path
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
-from downwash_core.errors import CheckpointError, ConfigError
-from downwash_core.provenance import differences
-from downwash_core.state import VehicleStates
+from downwash_core.errors import ConfigError
 from downwash_core.validate import count, positive_float
-from downwash.checkpoint import CHECKPOINT_FORMAT, MAX_WIDTH, load_checkpoint, read_payload, write_checkpoint
 from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
-from downwash.predictor import LearnedPredictor, clamp_magnitude
-from downwash.models import MODEL_KINDS, DeepSNMLP, DownwashModel, _SpectralLinear, count_parameters, make_model
-from downwash.swarm_data import aggregation_record
-from downwash.swarm_fused import COMPILED_KINDS, pack_swarm
-from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
-from sim.predictor import CompiledPredictor
+from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters,
+                             settle_spectral_norm)
 
-__all__ = [
-    "Encoded",
-    "SwarmModel",
-    "SummedPairwise",
-    "DeepSetsEquivariant",
-    "DeepSets",
-    "SWARM_MODEL_KINDS",
-    "TRAINABLE_SWARM_KINDS",
-    "make_swarm_model",
-    "SwarmCheckpoint",
-    "SWARM_CHECKPOINT_FORMAT",
-    "SWARM_CHECKPOINT_VERSION",
-    "wrap_pairwise",
-    "save_swarm_checkpoint",
-    "load_swarm_checkpoint",
-    "check_expectations",
-    "SwarmPredictor",
-]
+__all__ = ["Encoded", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
 
 _STD_FLOOR = 1e-6  # a feature or output with a smaller spread is left unscaled
 RAW_SWARM_FEATURES = ("dp_x", "dp_y", "dp_z", "va_x", "va_y", "va_z", "vb_x", "vb_y", "vb_z")
@@ -207,7 +177,7 @@ def _numpy_inputs(dp, v_a, v_b, R_a, mask) -> tuple[np.ndarray, ...]:
     return dp, v_a, np.broadcast_to(v_b[:, None, :], dp.shape), R_a, np.asarray(mask, dtype=bool)
 
 
-class SwarmModel(nn.Module):
+class SetModel(nn.Module):
     """Common part: the batched call, encode (parameter-free) -> decode (network), description.
 
     Subclasses set ``kind`` and implement `_features` and `decode`.
@@ -215,6 +185,12 @@ class SwarmModel(nn.Module):
 
     kind: str = ""
     trainable: bool = True
+    # Peak learning rates of the trainable kinds were picked on 3-vehicle flight data (four 30 s
+    # flights, a hovering leader and two followers on transects 0.5 and 1.0 m below; two more for
+    # validation; the TrainConfig defaults): validation RMSE (m/s^2) at lr 2e-3, 5e-3, 1e-2, 3e-2 was
+    # deepsets_equivariant 0.127, 0.119, 0.118, 0.119 and deepsets 0.149, 0.144, 0.146, 0.166
+    # (label-noise floor 0.105).
+    default_lr: float = 1e-2
 
     @property
     def dtype(self) -> torch.dtype:
@@ -265,13 +241,27 @@ class SwarmModel(nn.Module):
     def spectral_layers(self) -> list[_SpectralLinear]:
         return [m for m in self.modules() if isinstance(m, _SpectralLinear)]
 
-    @torch.no_grad()
     def settle_spectral_norm(self) -> None:
         """Power iterations to convergence, so eval mode bounds every layer exactly (see `DeepSNMLP`)."""
-        DeepSNMLP.settle_spectral_norm(self)  # the same procedure: it only walks spectral_layers()
+        settle_spectral_norm(self)
+
+    # -- the trainer's protocol (`downwash.train`): the same three steps for every kind -----------
+    def encode_samples(self, data: Any) -> tuple[Encoded, torch.Tensor]:
+        """(encoding, labels (B, 3)) of the padded neighbour sets of a `Dataset`."""
+        with torch.no_grad():
+            enc = self.encode(data.dp, data.v_a, data.v_b, data.R_a, data.mask)
+        return enc, torch.as_tensor(np.asarray(data.y), dtype=enc.x.dtype)
+
+    def fit_samples(self, enc: Encoded, y: torch.Tensor) -> None:
+        """The normalisation fitted on a training encoding and its labels."""
+        self.fit_normalization(enc, y)
+
+    def decode_samples(self, enc: Encoded) -> torch.Tensor:
+        """Predictions (B, 3) m/s^2 on an encoding."""
+        return self.decode(enc)
 
 
-class SummedPairwise(SwarmModel):
+class SummedPairwise(SetModel):
     """A two-vehicle model applied to each (neighbour, target) pair and summed (masked).
 
     pairwise: a `DownwashModel` (used as is, not copied), or the record of one
@@ -282,6 +272,7 @@ class SummedPairwise(SwarmModel):
 
     kind = "summed_pairwise"
     trainable = False
+    default_lr = 0.0
 
     def __init__(self, pairwise: DownwashModel | dict):
         super().__init__()
@@ -304,12 +295,12 @@ class SummedPairwise(SwarmModel):
         return torch.where(enc.mask[..., None], f, 0.0).sum(1)
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        pairs = LearnedPredictor(self.pairwise, backend="numpy")  # its float64 pair law, depth gate included
+        pairs = self.pairwise.numpy_forward()  # its float64 pair law, depth gate included
 
         def forward(dp, v_a, v_b, R_a, mask):
             _check_shapes(dp, v_a, v_b, R_a, mask)
             B, K = np.shape(mask)
-            f = pairs.predict_pairs(np.reshape(dp, (B * K, 3)), np.reshape(v_a, (B * K, 3)),
+            f = pairs(np.reshape(dp, (B * K, 3)), np.reshape(v_a, (B * K, 3)),
                                     np.repeat(np.asarray(v_b, dtype=np.float64), K, axis=0),
                                     np.reshape(R_a, (B * K, 3, 3)))
             return np.where(np.asarray(mask)[..., None], f.reshape(B, K, 3), 0.0).sum(1)
@@ -327,13 +318,17 @@ class SummedPairwise(SwarmModel):
 
 def _rebuild_pairwise(record: dict) -> DownwashModel:
     kind = record.get("kind")
-    if kind not in MODEL_KINDS:
-        raise ConfigError(f"pairwise kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
-    model = make_model(kind, record.get("feature_set"), **dict(record.get("architecture") or {}))
+    if kind not in PAIRWISE_KINDS:
+        raise ConfigError(f"pairwise kind: expected one of {sorted(PAIRWISE_KINDS)}, got {kind!r}")
+    architecture = dict(record.get("architecture") or {})
+    try:
+        model = PAIRWISE_KINDS[kind](record.get("feature_set"), **architecture)
+    except TypeError as e:
+        raise TypeError(f"pairwise kind {kind!r}: bad architecture arguments {sorted(architecture)}: {e}") from e
     return model.double() if record.get("dtype") == "float64" else model
 
 
-class _DeepSetsBase(SwarmModel):
+class _DeepSetsBase(SetModel):
     """Input normalisation (k,) of the per-neighbour features, fitted over real neighbours only."""
 
     def __init__(self, n_features: int):
@@ -448,6 +443,7 @@ class DeepSets(_DeepSetsBase):
     """
 
     kind = "deepsets"
+    default_lr = 5e-3
 
     def __init__(self, phi_hidden: Sequence[int] = (48, 48), latent: int = 24, rho_hidden: Sequence[int] = (48, 48),
                  gamma: float = 2.0):
@@ -493,322 +489,9 @@ class DeepSets(_DeepSetsBase):
                 "gamma": self.gamma}
 
 
-# The one registry of multi-vehicle model kinds.
-SWARM_MODEL_KINDS: dict[str, type[SwarmModel]] = {
+# The models of sets; `downwash.registry.MODEL_KINDS` lists them with the per-neighbour kinds.
+SET_KINDS: dict[str, type[SetModel]] = {
     "summed_pairwise": SummedPairwise,
     "deepsets_equivariant": DeepSetsEquivariant,
     "deepsets": DeepSets,
 }
-TRAINABLE_SWARM_KINDS = tuple(k for k, cls in SWARM_MODEL_KINDS.items() if cls.trainable)
-
-
-def make_swarm_model(kind: str, **architecture: Any) -> SwarmModel:
-    """A fresh model of a registered kind (float32, initialised from torch's global RNG).
-
-    ``summed_pairwise`` needs ``pairwise=`` (a trained `DownwashModel`, or its record);
-    ConfigError naming the allowed kinds, TypeError for bad architecture arguments.
-    """
-    if kind not in SWARM_MODEL_KINDS:
-        raise ConfigError(f"swarm model kind: expected one of {sorted(SWARM_MODEL_KINDS)}, got {kind!r}")
-    try:
-        return SWARM_MODEL_KINDS[kind](**architecture)
-    except TypeError as e:
-        raise TypeError(f"swarm model kind {kind!r}: bad architecture arguments {sorted(architecture)}: {e}") from e
-
-
-# -- checkpoints -----------------------------------------------------------------------------
-
-SWARM_CHECKPOINT_FORMAT = "downwash-swarm-model"
-SWARM_CHECKPOINT_VERSION = 1
-
-
-class SwarmCheckpoint(NamedTuple):
-    """A model with what it was made for: its neighbour set and its record (``aggregation``,
-    ``field``, ``provenance``, training ...; the fields `save_swarm_checkpoint` stores)."""
-
-    model: SwarmModel
-    neighbours: NeighbourSet
-    record: dict[str, Any]
-
-
-def _field_of(record: dict[str, Any]) -> Any:
-    """The field a two-vehicle checkpoint's data was flown on (staged: provenance.field;
-    experiments.train: provenance.flights.field), or None when it does not say."""
-    prov = record.get("provenance")
-    if not isinstance(prov, dict):
-        return None
-    if "field" in prov:
-        return prov["field"]
-    flights = prov.get("flights")
-    return flights.get("field") if isinstance(flights, dict) else None
-
-
-def wrap_pairwise(pairwise: DownwashModel | str | os.PathLike, neighbours: NeighbourSet | None = None,
-                  expect_kind: str | None = None) -> SwarmCheckpoint:
-    """``summed_pairwise`` from a trained two-vehicle model or its checkpoint file.
-
-    The aggregation law recorded is the linear sum (what summing pairs assumes); the field is
-    that of the pair model's data when its checkpoint says. neighbours: default `NeighbourSet()`
-    (every other vehicle).
-    """
-    neighbours = NeighbourSet() if neighbours is None else neighbours
-    record: dict[str, Any] = {}
-    if isinstance(pairwise, (str, os.PathLike)):
-        path = pairwise
-        pairwise, record = load_checkpoint(path, expect_kind=expect_kind)
-        record = {"pairwise_checkpoint": str(path), "pairwise_provenance": record.get("provenance")}
-        record["field"] = _field_of({"provenance": record["pairwise_provenance"]})
-    elif expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
-        raise ConfigError(f"pairwise: model kind is {getattr(pairwise, 'kind', None)!r}, expected {expect_kind!r}")
-    model = SummedPairwise(copy.deepcopy(pairwise)).eval()  # the caller's model stays as it is
-    record = {**record, "aggregation": aggregation_record("linear")}
-    record.setdefault("field", None)
-    return SwarmCheckpoint(model, neighbours, record)
-
-
-def save_swarm_checkpoint(path: str | os.PathLike, model: SwarmModel, neighbours: NeighbourSet,
-                          provenance: dict[str, Any] | None, meta: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write ``model`` and its record to ``path`` atomically (a ``.json`` copy of the record beside it).
-
-    provenance: what the training data was flown with (`SwarmDataset.provenance`, or a
-      `SwarmCheckpoint.record`); its ``aggregation`` (required: a law or its record, or None
-      for two-vehicle data only) and ``field`` are stored at the top of the record, where the
-      loader checks them.
-    meta: extra JSON-serialisable metadata (training history, data summary, seed); the keys
-      "model", "neighbours", "aggregation", "field" are reserved. Returns the stored record.
-    """
-    if not isinstance(model, SwarmModel):
-        raise TypeError(f"model: expected a SwarmModel, got {type(model).__name__}")
-    if not isinstance(neighbours, NeighbourSet):
-        raise TypeError(f"neighbours: expected a NeighbourSet, got {type(neighbours).__name__}")
-    meta = dict(meta or {})
-    reserved = sorted({"model", "neighbours", "aggregation", "field"} & set(meta))
-    if reserved:
-        raise ValueError(f"meta: the keys {reserved} are reserved")
-    provenance = dict(provenance or {})
-    if "aggregation" not in provenance:
-        raise ValueError("provenance: must name the aggregation law of the training data ('aggregation')")
-    record = {
-        **meta,
-        "provenance": {k: v for k, v in provenance.items() if k not in ("aggregation", "field")} or None,
-        "model": {**model.describe(), "normalization": model.normalization(),
-                  "dtype": str(model.dtype).replace("torch.", "")},
-        "neighbours": neighbours.describe(),
-        "aggregation": None if provenance["aggregation"] is None else aggregation_record(provenance["aggregation"]),
-        "field": provenance.get("field"),
-    }
-    return write_checkpoint(path, model, record, SWARM_CHECKPOINT_FORMAT, SWARM_CHECKPOINT_VERSION)
-
-
-def _read(path: Path) -> tuple[dict, dict]:
-    """(payload, record) of a swarm model checkpoint (`downwash.checkpoint.read_payload`), its model
-    record and state dict checked; CheckpointError naming the file."""
-    payload, record = read_payload(path, SWARM_CHECKPOINT_FORMAT, SWARM_CHECKPOINT_VERSION, hints={
-        CHECKPOINT_FORMAT: "a two-vehicle model checkpoint, not a swarm model; wrap it with "
-                           "downwash.swarm_models.wrap_pairwise (kind 'summed_pairwise')"})
-    state = payload.get("state_dict")
-    if not isinstance(record.get("model"), dict):
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: no model record")
-    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
-                                              for k, v in state.items()):
-        raise CheckpointError(f"{path}: corrupt checkpoint: the state dict must map names to tensors")
-    return payload, record
-
-
-def _widths(value: Any) -> list[int]:
-    """Every integer in an architecture record (layer widths, latent sizes)."""
-    if isinstance(value, dict):
-        return [w for v in value.values() for w in _widths(v)]
-    if isinstance(value, list):
-        return [w for v in value for w in _widths(v)]
-    return [value] if isinstance(value, int) and not isinstance(value, bool) else []
-
-
-def check_expectations(where: Any, neighbours: NeighbourSet, record: dict[str, Any],
-                       expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None) -> None:
-    """CheckpointError when a model's neighbour set or aggregation law is not the one asked for.
-
-    expect_aggregation: a registered name, a law object or a stored record (`aggregation_record`).
-    """
-    if expect_neighbours is not None and neighbours != expect_neighbours:
-        raise CheckpointError(f"{where}: trained for the neighbour set {neighbours.describe()}, but the flight "
-                              f"asks for {expect_neighbours.describe()}; train or wrap a model for that set")
-    if expect_aggregation is not None:
-        want = aggregation_record(expect_aggregation)
-        have = record.get("aggregation")
-        if have is None:
-            raise CheckpointError(f"{where}: trained on two-vehicle flights only (where every law is the pairwise "
-                                  f"force), not for the flight's aggregation law {want}")
-        diffs = differences(have, want)
-        if diffs:
-            raise CheckpointError(f"{where}: trained for another aggregation law than the flight's:\n  "
-                                  + "\n  ".join(diffs))
-
-
-def load_swarm_checkpoint(path: str | os.PathLike, expect_kind: str | None = None,
-                          expect_neighbours: NeighbourSet | None = None,
-                          expect_aggregation: Any = None) -> SwarmCheckpoint:
-    """Rebuild a model from ``path`` (eval mode), with its neighbour set and record.
-
-    Raises CheckpointError naming the file when it is missing, unreadable, holds anything
-    but tensors and plain containers, is not a swarm checkpoint of this project, or its
-    kind, neighbour set, aggregation law or tensors differ from what was asked for.
-    """
-    path = Path(path)
-    payload, record = _read(path)
-    desc = record["model"]
-    kind, architecture = desc.get("kind"), desc.get("architecture", {})
-    if not isinstance(kind, str) or not isinstance(architecture, dict):
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: kind {kind!r}, architecture {architecture!r}")
-    if any(not 1 <= w <= MAX_WIDTH for w in _widths(architecture)):
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: architecture {architecture} "
-                              f"(sizes must lie in 1-{MAX_WIDTH})")
-    if expect_kind is not None and kind != expect_kind:
-        raise CheckpointError(f"{path}: model kind is {kind!r}, expected {expect_kind!r}")
-    if kind not in SWARM_MODEL_KINDS:
-        raise CheckpointError(f"{path}: unknown swarm model kind {kind!r} (known: {sorted(SWARM_MODEL_KINDS)})")
-    try:
-        neighbours = NeighbourSet.from_record(record.get("neighbours"))
-    except ConfigError as e:
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e}") from e
-    if "aggregation" not in record or not isinstance(record["aggregation"], (dict, type(None))):
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata: no aggregation law record")
-    check_expectations(path, neighbours, record, expect_neighbours, expect_aggregation)
-    try:
-        model = make_swarm_model(kind, **architecture)
-    except (ValueError, TypeError, RuntimeError) as e:
-        raise CheckpointError(f"{path}: cannot rebuild the model: {e}") from e
-    if desc.get("dtype") == "float64":
-        model = model.double()
-    state = payload["state_dict"]
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    found = {k: tuple(v.shape) for k, v in state.items()}
-    problems = [f"missing tensor {k!r} (expected shape {s})" for k, s in expected.items() if k not in found]
-    problems += [f"unexpected tensor {k!r}" for k in found if k not in expected]
-    problems += [f"tensor {k!r} has shape {found[k]}, expected {s}" for k, s in expected.items()
-                 if k in found and found[k] != s]
-    if problems:
-        raise CheckpointError(f"{path}: weights do not match a {kind!r} model: " + "; ".join(problems))
-    model.load_state_dict(state, strict=True)
-    return SwarmCheckpoint(model.eval(), neighbours, record)
-
-
-# -- the model in the loop -----------------------------------------------------------------------
-
-
-@torch.no_grad()
-def _fold_spectral(model: nn.Module) -> nn.Module:
-    """Replace every spectrally normalised layer (in eval mode) by a plain linear layer with its
-    effective weight: the same function, without the per-call normalisation (inference only)."""
-    for module in list(model.modules()):
-        for name, child in list(module.named_children()):
-            if isinstance(child, _SpectralLinear):
-                w = child.effective_weight()
-                plain = nn.Linear(w.shape[1], w.shape[0], dtype=w.dtype)
-                plain.weight.copy_(w)
-                plain.bias.copy_(child.linear.bias)
-                setattr(module, name, plain)
-    return model
-
-
-class SwarmPredictor:
-    """A swarm model in the predictor slot: (W, V, 3) m/s^2, world frame, float64.
-
-    checkpoint: a `SwarmCheckpoint` (e.g. from `load_swarm_checkpoint` or `wrap_pairwise`) or
-      the path of a swarm checkpoint file.
-    expect_neighbours, expect_aggregation: what the flight needs; a model made for another
-      neighbour set or aggregation law raises CheckpointError here, before any flight.
-    backend: "compiled" (the default for a kind in `downwash.swarm_fused.COMPILED_KINDS`, every
-      kind here): selection, model and clamp in one compiled pass, float64, which the simulator's
-      fused tick calls without leaving compiled code (`compiled()`); "numpy" (the default for
-      a kind without a compiled form): the model's float64 NumPy twin (`SwarmModel.numpy_forward`),
-      the compiled pass's readable reference; "torch": the frozen torch model under
-      ``torch.inference_mode``, the twin's readable reference, 2-5x slower on these small batches.
-      All three agree to float64 rounding (tests).
-    dtype: the torch backend's precision (default float64: the model is copied and converted).
-    num_threads: torch intra-op threads during a torch call (default 1: these small batches
-      ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
-    clamp: optional bound (m/s^2) on the magnitude of each vehicle's prediction, as the pair
-      predictor's (`downwash.predictor.clamp_magnitude`).
-
-    Each call selects every vehicle's neighbour set from the ESTIMATED positions (the
-    data's `select_neighbours`) and evaluates all worlds and vehicles in one batch.
-    """
-
-    def __init__(self, checkpoint: SwarmCheckpoint | str | os.PathLike, *,
-                 expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
-                 backend: str | None = None, dtype: torch.dtype = torch.float64, num_threads: int | None = 1,
-                 clamp: float | None = None):
-        if isinstance(checkpoint, (str, os.PathLike)):
-            checkpoint = load_swarm_checkpoint(checkpoint, expect_neighbours=expect_neighbours,
-                                               expect_aggregation=expect_aggregation)
-        elif isinstance(checkpoint, SwarmCheckpoint):
-            check_expectations(f"{checkpoint.model.kind} model", checkpoint.neighbours, checkpoint.record,
-                               expect_neighbours, expect_aggregation)
-        else:
-            raise TypeError(f"checkpoint: expected a SwarmCheckpoint or a path, got {type(checkpoint).__name__}")
-        if backend is None:
-            backend = "compiled" if checkpoint.model.kind in COMPILED_KINDS else "numpy"
-        if backend not in self.BACKENDS:
-            raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
-        if backend == "compiled" and checkpoint.model.kind not in COMPILED_KINDS:
-            raise ConfigError(f"backend: {checkpoint.model.kind!r} has no compiled form (kinds with one: "
-                              f"{sorted(COMPILED_KINDS)}); use 'numpy' or 'torch'")
-        if clamp is not None and not (math.isfinite(clamp) and clamp > 0):
-            raise ConfigError(f"clamp: expected None or a finite magnitude > 0 (m/s^2), got {clamp!r}")
-        self.clamp = None if clamp is None else float(clamp)
-        self.backend = backend
-        model = copy.deepcopy(checkpoint.model).eval()  # eval: the spectral-norm estimates stay as stored
-        self._numpy = model.numpy_forward() if backend == "numpy" else None
-        # the compiled pass's constants (params, iparams): the twin's, packed before the torch copy is converted
-        # and folded; the kernel and its C function are looked up by kind (valid in any process, e.g. unpickled)
-        self._abi = pack_swarm(model, checkpoint.neighbours, self.clamp)[1][1:] if backend == "compiled" else None
-        model = _fold_spectral(model.to(dtype))
-        for p in model.parameters():
-            p.requires_grad_(False)
-        self.model = model
-        self.neighbours = checkpoint.neighbours
-        self.record = checkpoint.record
-        self.kind = model.kind
-        self.num_threads = None if num_threads is None else count("num_threads", num_threads, 1)
-
-    BACKENDS = ("compiled", "numpy", "torch")
-
-    def compiled(self) -> CompiledPredictor | None:
-        """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`): one
-        per model kind, this model's constants in its params; None for "numpy" and "torch"."""
-        return None if self._abi is None else CompiledPredictor(COMPILED_KINDS[self.kind].address, *self._abi)
-
-    def describe(self) -> dict[str, Any]:
-        return {"kind": self.kind, "neighbours": self.neighbours.describe(),
-                "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
-
-    def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
-        """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored."""
-        pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
-        W, V = pos.shape[:2]
-        if V < 2:
-            return np.zeros((W, V, 3))
-        if self._abi is not None:  # selection, model and clamp in one pass
-            out = np.empty((W, V, 3))
-            COMPILED_KINDS[self.kind].kernel(*(np.ascontiguousarray(a, dtype=np.float64) for a in (pos, vel, rot)),
-                                             *self._abi, out)
-            return out
-        index, mask = select_neighbours(pos, self.neighbours)
-        g = gather_neighbours(pos, vel, rot, index, mask)
-        K = index.shape[-1]
-        batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
-                 g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
-        if self._numpy is not None:
-            out = self._numpy(*batch).reshape(W, V, 3)
-        else:
-            old_threads = torch.get_num_threads()
-            if self.num_threads is not None:
-                torch.set_num_threads(self.num_threads)
-            try:
-                with torch.inference_mode():
-                    out = self.model(*batch).double().numpy().reshape(W, V, 3)
-            finally:
-                if self.num_threads is not None:
-                    torch.set_num_threads(old_threads)
-        return out if self.clamp is None else clamp_magnitude(out, self.clamp)
