@@ -53,8 +53,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-import numpy as np
-
 from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
@@ -65,19 +63,19 @@ from downwash_core.status import Status
 from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
 from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.labels import label_noise_floor
-from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, log_record,
-                               read_manifest, rerun_command, verify_collection)
+from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, read_manifest,
+                               rerun_command, verify_collection)
 from downwash.models import PAIRWISE_KINDS
 from downwash.predictor import LearnedPredictor
+from downwash.stages import ProgressFactory, Stage, accept_reflown, fly_stage, record_stage
 from downwash.train import TrainConfig, rmse, train_model
-from sim.flight import fly
-from sim.logs import SCHEMA_VERSION, save_log
+from sim.logs import SCHEMA_VERSION
 from sim.physics import resolve_threads, usable_cores
 from sim.predictor import ZeroPredictor
 from sim.scene import build_scene
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
-from downwash_trajectories import LEMNISCATE_SHARE, collection_reference
+from downwash_trajectories import LEMNISCATE_SHARE
 
 __all__ = [
     "STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "provenance", "pipeline_dirs", "collect",
@@ -86,7 +84,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-LEADER = np.array(LEADER_POSITION)  # m, Alpha hovers here
 STAGES = (
     {"separation": (1.35, 1.75)},  # stage 0: far enough for the nominal controller
     {"separation": (0.85, 1.35)},  # stage 1: closer, stage-0 model compensating
@@ -94,7 +91,6 @@ STAGES = (
 )
 DEPLOYED_KIND = "equivariant"  # the model each stage trains and the next stage flies with
 _QUICK_TRAINING = {"max_epochs": 3, "min_steps": 30}  # --quick: a few steps, enough to exercise the code
-ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
 
 
 @dataclass(frozen=True)
@@ -180,8 +176,7 @@ def pipeline_dirs(record: dict[str, Any], root: str | Path = "runs/pipeline") ->
 
 def _stage_paths(sdir: Path, cfg: CollectionConfig) -> list[Path]:
     """The logs of a stage, in flight order: train/flight_000.npz, ..., then val/."""
-    n_train = cfg.n_train
-    return [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + cfg.n_val)]
+    return _stage(0, cfg, None).paths(sdir, cfg.n_train, cfg.n_val)
 
 
 def _check_stage(k: int, sdir: Path, entry: dict, cfg: CollectionConfig, deployed: Path | None) -> None:
@@ -307,58 +302,21 @@ def _val_rmse(checkpoint: Path, kind: str, val_data: Dataset) -> float:
     return rmse(model, val_data)[0]
 
 
+def _stage(k: int, cfg: CollectionConfig, deployed: Path | None) -> Stage:
+    """Stage k of the collection: the follower in the stage's band of separations below the leader."""
+    return Stage(f"stage{k}", LEADER_POSITION, (STAGES[k]["separation"],), ((cfg.seed, k),),
+                 cfg.seed * 100_000 + 1000 * k, {"stage": k, "deployed_model": str(deployed)})
+
+
 def _fly_stage(k: int, sdir: Path, cfg: CollectionConfig, field: Any, deployed: Path | None,
                progress: ProgressFactory) -> int:
-    """Fly the stage's missing flights in batches, writing each log as soon as its batch lands; how many flew."""
-    n_train, n_val, seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
-    paths = _stage_paths(sdir, cfg)
-    todo = [i for i, p in enumerate(paths) if not p.is_file()]
-    if not todo:
-        return 0
-    log.info("stage %d: %d of %d flights to fly into %s", k, len(todo), len(paths), sdir)
+    """Fly the stage's missing flights (`downwash.stages.fly_stage`), with the previous stage's model
+    clamped; how many flew."""
     predictor = (ZeroPredictor() if deployed is None
                  else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
-    scene = build_scene()
-    for start in range(0, len(todo), cfg.batch_flights):
-        batch = todo[start:start + cfg.batch_flights]
-        reference = collection_reference((cfg.seed, k), batch, n_train, n_val, LEADER, STAGES[k]["separation"], seconds)
-        seeds = [cfg.seed * 100_000 + 1000 * k + i for i in batch]  # train: i < n_train, val: the rest
-        meta = [{"stage": k, "index": i, "role": "train" if i < n_train else "val", "deployed_model": str(deployed)}
-                for i in batch]
-        label = f"stage {k}: flights {batch[0]}-{batch[-1]} of {len(paths)}"
-        flights = fly(scene, reference, seeds, seconds, field=field, predictor=predictor, meta=meta,
-                      n_threads=cfg.threads, progress=progress(label))
-        for i, L in zip(batch, flights):
-            save_log(paths[i], L)
-    return len(todo)
-
-
-def _record_stage(sdir: Path, entry: dict, cfg: CollectionConfig) -> None:
-    """Record every log of a stage whose flights are all on disk (its digests, rows, samples, status)."""
-    entry["files"] = {p.relative_to(sdir).as_posix(): log_record(p) for p in _stage_paths(sdir, cfg)}
-    entry["failed"] = [f["message"] for f in entry["files"].values() if f["message"]]
-    entry["flights_done"] = True
-
-
-def _accept_reflown(sdir: Path, entry: dict, paths: list[Path], out: Path, models_dir: Path) -> None:
-    """Record the re-flown logs `paths` of a finished stage if they hold the data recorded for them (what
-    the models were trained on); else remove them all and raise DataError."""
-    new = {path: log_record(path) for path in paths}
-    rel = {path: path.relative_to(sdir).as_posix() for path in paths}
-    differ = [path for path in paths if new[path]["data_sha256"] != entry["files"][rel[path]]["data_sha256"]]
-    if differ:
-        for path in paths:
-            path.unlink()
-        raise DataError(
-            f"{', '.join(map(str, differ))}: re-flown, but the data differ from the logs recorded in "
-            f"{out / 'manifest.json'}, which the collection's models were trained on: this code or machine flies "
-            "those flights differently (the manifest's provenance names the code that flew them). The re-flown "
-            f"logs were removed. Delete {out} and {models_dir} to collect afresh, or restore the original logs."
-        )
-    for path in paths:
-        if new[path]["sha256"] != entry["files"][rel[path]]["sha256"]:
-            log.info("%s: re-flown with the same data (its metadata differ: another code version or folder)", path)
-        entry["files"][rel[path]] = new[path]
+    return fly_stage(_stage(k, cfg, deployed), sdir, cfg.n_train, cfg.n_val, cfg.effective_flight_seconds,
+                     field=field, predictor=predictor, batch_flights=cfg.batch_flights, threads=cfg.threads,
+                     progress=progress)
 
 
 def collect(
@@ -429,11 +387,11 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         deployed = None if k == 0 else out / f"stage{k - 1}" / f"{DEPLOYED_KIND}.pt"
         if not entry.get("flights_done"):
             run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
-            _record_stage(sdir, entry, cfg)
+            record_stage(sdir, entry, _stage_paths(sdir, cfg))
             atomic_write_json(manifest_path, manifest)
         elif sdir in refly:
             run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
-            _accept_reflown(sdir, entry, refly[sdir], out, models_dir)
+            accept_reflown(sdir, entry, refly[sdir], f"{out} and {models_dir}")
             atomic_write_json(manifest_path, manifest)
         _check_stage(k, sdir, entry, cfg, deployed)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]

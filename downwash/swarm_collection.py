@@ -40,16 +40,15 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
-
-import numpy as np
+from typing import Any
 
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import describe, differences, fingerprint
-from downwash_core.roles import VEHICLE_NAMES, Role
+from downwash.manifest import check_logs, integrity_error, listed_logs, read_manifest
 from downwash.staged import STAGES, train_config
+from downwash.stages import ProgressFactory, Stage, accept_reflown, fly_stage, record_stage
 from downwash.train import TrainConfig
 from downwash.datasets import concatenate, load_dataset
 from sim.neighbours import NeighbourSet
@@ -57,21 +56,16 @@ from downwash.checkpoint import load_checkpoint, wrap_pairwise
 from downwash.predictor import LearnedPredictor
 from downwash.registry import SET_KINDS
 from downwash.train import rmse, save_trained, train_model
-from sim.flight import fly
-from sim.logs import load_log, save_log
-from sim.scene import build_scene
-from downwash_trajectories import Hover, collection_reference, stack
+from sim.logs import load_log
 
 __all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_train_config",
            "swarm_provenance", "pair_models_key", "collect_swarm", "swarm_model_path"]
 
-LEADER = np.array(LEADER_POSITION)
 DEPTH_BANDS = ((0.45, 0.75), (1.0, 1.3), (1.55, 1.85))  # m below the leader, follower k of a swarm stage
 SWARM_STAGES = (3, 4)  # vehicles per swarm stage
 DEPLOYED_SWARM_KIND = "deepsets_equivariant"  # trained after stage 3, flown in stage 4
 DATA_MIXES = ("pair", "mixed")  # the two-vehicle data only, or all of it
 TRAINABLE_SET_KINDS = tuple(k for k, cls in SET_KINDS.items() if cls.trainable)  # the models of sets trained here
-ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
 
 
 @dataclass(frozen=True)
@@ -144,11 +138,11 @@ def swarm_model_path(models_dir: str | Path, kind: str, mix: str) -> Path:
     return Path(models_dir) / f"{kind}-{mix}.pt"
 
 
-def _stage_reference(cfg: SwarmCollectionConfig, n_vehicles: int, flights: list[int]):
-    """The leader's hover and one collection pattern per follower, each in its own depth band."""
-    followers = [collection_reference((cfg.seed, 100 + n_vehicles, k), flights, cfg.n_train, cfg.n_val, LEADER,
-                                      DEPTH_BANDS[k - 1], cfg.seconds).refs[1] for k in range(1, n_vehicles)]
-    return stack([Hover(LEADER, n_worlds=len(flights)), *followers])
+def _stage(cfg: SwarmCollectionConfig, n_vehicles: int) -> Stage:
+    """The swarm stage of n vehicles: a hovering leader, follower k in depth band k."""
+    return Stage(f"stage{n_vehicles}", LEADER_POSITION, DEPTH_BANDS[:n_vehicles - 1],
+                 tuple((cfg.seed, 100 + n_vehicles, k) for k in range(1, n_vehicles)),
+                 cfg.seed * 100_000 + 10_000 * n_vehicles, {"stage": n_vehicles})
 
 
 def _pair_dirs(pair_collection: Path, split: str) -> list[Path]:
@@ -189,7 +183,8 @@ def collect_swarm(
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(manifest_path, manifest)
     neighbours = cfg.neighbours
-    load = _Loader(neighbours)
+    load = _Loader(neighbours, {out: manifest, pair_collection: read_manifest(pair_collection / "manifest.json")},
+                   f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
     stages = []
     for n_vehicles in SWARM_STAGES:
         sdir = out / f"stage{n_vehicles}"
@@ -198,7 +193,17 @@ def collect_swarm(
         else:
             model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
         deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
-        _fly_stage(cfg, sdir, n_vehicles, field, law, deployed, progress)
+        stage, entry = _stage(cfg, n_vehicles), manifest["stages"].setdefault(str(n_vehicles), {})
+        paths = stage.paths(sdir, cfg.n_train, cfg.n_val)
+        missing = [p for p in paths if not p.is_file()]
+        if missing or not entry.get("flights_done"):
+            fly_stage(stage, sdir, cfg.n_train, cfg.n_val, cfg.seconds, field=field, predictor=deployed,
+                      aggregation=law, batch_flights=cfg.batch_flights, threads=cfg.threads, progress=progress)
+            if entry.get("flights_done"):
+                accept_reflown(sdir, entry, missing, str(out))
+            else:
+                record_stage(sdir, entry, paths)
+            atomic_write_json(manifest_path, manifest)
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
             if not path.is_file():
@@ -230,15 +235,20 @@ def collect_swarm(
 
 
 class _Loader:
-    """Swarm data sets per folder, loaded once per run."""
+    """Data sets per folder of the two-vehicle collection and of the swarm stages, each folder's logs
+    checked against its collection's manifest before they are read, loaded once per run."""
 
-    def __init__(self, neighbours: NeighbourSet):
-        self.neighbours, self._cache, self.skipped = neighbours, {}, {}
+    def __init__(self, neighbours: NeighbourSet, manifests: dict[Path, dict], rerun: str):
+        self.neighbours, self.manifests, self.rerun, self._cache, self.skipped = neighbours, manifests, rerun, {}, {}
 
     def __call__(self, dirs: list[Path], skip_failed: bool = False):
         for d in dirs:
             if (d, skip_failed) not in self._cache:
-                files = sorted(d.glob("*.npz"))
+                root = d.parent.parent  # <collection>/stage<k>/<train|val>
+                problems = check_logs(root, self.manifests[root], [d])
+                if problems:
+                    raise integrity_error(root, problems, self.rerun)
+                files = [p for p in listed_logs(root, self.manifests[root]) if p.parent == d]
                 ok = [f for f in files if not skip_failed or load_log(f).meta.get("status", 0) == 0]
                 self.skipped[d] = len(files) - len(ok)
                 # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they
@@ -250,21 +260,3 @@ class _Loader:
 def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig) -> None:
     model, history = train_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick))
     save_trained(path, model, history, data)
-
-
-def _fly_stage(cfg: SwarmCollectionConfig, sdir: Path, n_vehicles: int, field: Any, law: Any, predictor: Any,
-               progress: ProgressFactory) -> None:
-    """The stage's missing flights, in batches; each log written as soon as its batch lands."""
-    n_all = cfg.n_train + cfg.n_val
-    paths = [sdir / ("train" if i < cfg.n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_all)]
-    todo = [i for i, p in enumerate(paths) if not p.is_file()]
-    scene = build_scene([(VEHICLE_NAMES[k], Role.LEADER if k == 0 else Role.FOLLOWER) for k in range(n_vehicles)])
-    for start in range(0, len(todo), cfg.batch_flights):
-        batch = todo[start:start + cfg.batch_flights]
-        seeds = [cfg.seed * 100_000 + 10_000 * n_vehicles + i for i in batch]
-        meta = [{"stage": n_vehicles, "index": i, "role": "train" if i < cfg.n_train else "val"} for i in batch]
-        logs = fly(scene, _stage_reference(cfg, n_vehicles, batch), seeds, cfg.seconds, field=field,
-                   aggregation=law, predictor=predictor, meta=meta, n_threads=cfg.threads,
-                   progress=progress(f"swarm stage {n_vehicles}: flights {batch[0]}-{batch[-1]} of {n_all}"))
-        for i, L in zip(batch, logs):
-            save_log(paths[i], L)

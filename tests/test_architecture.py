@@ -54,7 +54,6 @@ MAX_MODULE_LINES = 600
 # modules still over the limit, each at most as long as now (a ratchet: they may only shrink;
 # each is to be split as the simulator was)
 OVER_THE_LIMIT = {
-    "downwash/staged.py": 601,
     "experiments/report.py": 620,
     "downwash/sweep.py": 825,
     "downwash/ensemble.py": 855,

@@ -71,6 +71,34 @@ def test_a_rerun_reuses_the_collections_and_reproduces_the_numbers(swarm_run):
     assert r2["summary"] == r1["summary"]  # same seeds, same models: the same numbers
 
 
+def test_swarm_stage_logs_are_checked_a_missing_one_reflown_an_altered_one_refused(swarm_run):
+    """The swarm stages' manifest records every log, as the two-vehicle collection's: a missing log is
+    flown again with the same data; an altered one stops the run, named, before any training."""
+    import numpy as np
+
+    from sim.logs import load_log
+
+    r = json.loads((swarm_run / "sw" / "results.json").read_text())
+    sdir = swarm_run / r["laws"]["linear"]["collection_dir"] / "stage3"
+    manifest = json.loads((sdir.parent / "manifest.json").read_text())
+    assert manifest["stages"]["3"]["flights_done"] and "train/flight_000.npz" in manifest["stages"]["3"]["files"]
+    victim = sdir / "train" / "flight_000.npz"
+    before = load_log(victim).arrays
+    victim.unlink()
+    _run(ARGS + ["--out", "sw3", "--presets", "stack3", "--aggregations", "linear"], swarm_run)
+    after = load_log(victim).arrays
+    assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k], equal_nan=True) for k in before)
+    rel = next(k for k in sorted(manifest["stages"]["3"]["files"]) if k.startswith("val/"))
+    altered = sdir / rel
+    original = altered.read_bytes()
+    altered.write_bytes(original + b"x")
+    try:
+        proc = _run(ARGS + ["--out", "sw4", "--presets", "stack3", "--aggregations", "linear"], swarm_run, check=False)
+        assert proc.returncode != 0 and "do not match its manifest" in proc.stderr and rel in proc.stderr
+    finally:
+        altered.write_bytes(original)
+
+
 @pytest.mark.parametrize("args, message", [
     (["--presets", "stack:n=9"], "2-8 vehicles, got 9"),
     (["--presets", "ring"], "preset: unknown 'ring'"),

@@ -1,0 +1,136 @@
+"""A collection stage and the one driver that flies it: the pair's stages and the swarm's alike.
+
+A `Stage` is a hovering leader over followers, each follower flying the collection
+patterns (`downwash_trajectories.collection_reference`: passes through and beside the
+wakes, lemniscates) in its own band of depths below the leader, so that no two vehicles
+share a height. The pair's stages (`downwash.staged`) have one follower; the swarm's
+(`downwash.swarm_collection`) two or three. A stage has ``n_train`` training flights, then
+``n_val`` validation flights; flight i flies the noise seed ``flight_seed + i`` and each
+follower's patterns from ``default_rng([*pattern_seed, i])``, so a flight never depends on
+which others share its batch and a collection resumes flight by flight (`fly_stage` flies
+only the missing logs). What a stage flies with, the deployed model and its clamp, is the
+predictor handed to `fly_stage`.
+
+As the stage's flights are done, `record_stage` writes every log's digests, rows, labelled
+samples and status into the stage's manifest entry (`downwash.manifest`), against which
+the logs are checked before anything is trained on them; a finished stage's missing logs
+are re-flown and kept only if they hold the recorded data (`accept_reflown`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from downwash_core.errors import DataError
+from downwash_core.roles import VEHICLE_NAMES, Role
+from downwash.manifest import log_record
+from sim.flight import fly
+from sim.logs import save_log
+from sim.scene import build_scene
+from downwash_trajectories import Hover, StackedReference, collection_reference, stack
+
+__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "ProgressFactory"]
+
+log = logging.getLogger(__name__)
+
+ProgressFactory = Callable[[str], Callable[[int, int], None] | None]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One collection stage (see the module doc).
+
+    name: its folder within the collection; leader: m, where the leader hovers;
+    bands: (min, max) m below the leader, one per follower (top first);
+    pattern_seeds: the seed of each follower's patterns; flight_seed: flight i's noise seed
+    is flight_seed + i; meta: recorded in every log's metadata (with "index" and "role").
+    """
+
+    name: str
+    leader: tuple[float, float, float]
+    bands: tuple[tuple[float, float], ...]
+    pattern_seeds: tuple[tuple[int, ...], ...]
+    flight_seed: int
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.bands or len(self.bands) != len(self.pattern_seeds):
+            raise ValueError(f"Stage {self.name}: one depth band and one pattern seed per follower, got "
+                             f"{len(self.bands)} and {len(self.pattern_seeds)}")
+
+    @property
+    def n_vehicles(self) -> int:
+        return 1 + len(self.bands)
+
+    def paths(self, sdir: Path, n_train: int, n_val: int) -> list[Path]:
+        """The stage's logs in flight order: train/flight_000.npz, ..., then val/."""
+        return [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + n_val)]
+
+    def reference(self, flights: list[int], n_train: int, n_val: int, seconds: float) -> StackedReference:
+        """The leader's hover and each follower's patterns in its band, for these flights (the worlds of a batch)."""
+        leader = np.asarray(self.leader, dtype=float)
+        followers = [collection_reference(seed, flights, n_train, n_val, leader, band, seconds).refs[1]
+                     for seed, band in zip(self.pattern_seeds, self.bands)]
+        return stack([Hover(leader, n_worlds=len(flights)), *followers])
+
+    def scene(self):
+        """A leader over the followers, top first."""
+        return build_scene([(VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER)
+                            for i in range(self.n_vehicles)])
+
+
+def fly_stage(stage: Stage, sdir: Path, n_train: int, n_val: int, seconds: float, *, field: Any, predictor: Any,
+              aggregation: Any = None, batch_flights: int, threads: int,
+              progress: ProgressFactory = lambda label: None) -> int:
+    """Fly the stage's missing flights in batches of `batch_flights`, writing each log as soon as its batch
+    lands (a kill loses at most the batch in flight); how many flew."""
+    paths = stage.paths(sdir, n_train, n_val)
+    todo = [i for i, p in enumerate(paths) if not p.is_file()]
+    if not todo:
+        return 0
+    log.info("%s: %d of %d flights to fly into %s", stage.name, len(todo), len(paths), sdir)
+    scene = stage.scene()
+    for start in range(0, len(todo), batch_flights):
+        batch = todo[start:start + batch_flights]
+        meta = [{**stage.meta, "index": i, "role": "train" if i < n_train else "val"} for i in batch]
+        logs = fly(scene, stage.reference(batch, n_train, n_val, seconds), [stage.flight_seed + i for i in batch],
+                   seconds, field=field, aggregation=aggregation, predictor=predictor, meta=meta, n_threads=threads,
+                   progress=progress(f"{stage.name}: flights {batch[0]}-{batch[-1]} of {len(paths)}"))
+        for i, flown in zip(batch, logs):
+            save_log(paths[i], flown)
+    return len(todo)
+
+
+def record_stage(sdir: Path, entry: dict, paths: list[Path]) -> None:
+    """Record every log of a stage whose flights are all on disk in its manifest entry (digests, rows,
+    samples, status; `downwash.manifest.log_record`)."""
+    entry["files"] = {p.relative_to(sdir).as_posix(): log_record(p) for p in paths}
+    entry["failed"] = [f["message"] for f in entry["files"].values() if f["message"]]
+    entry["flights_done"] = True
+
+
+def accept_reflown(sdir: Path, entry: dict, paths: list[Path], collection: str) -> None:
+    """Record the re-flown logs `paths` of a finished stage if they hold the data recorded for them (what
+    the collection's models were trained on); else remove them all and raise DataError (`collection`:
+    the folders to delete to collect afresh)."""
+    new = {path: log_record(path) for path in paths}
+    rel = {path: path.relative_to(sdir).as_posix() for path in paths}
+    differ = [path for path in paths if new[path]["data_sha256"] != entry["files"][rel[path]]["data_sha256"]]
+    if differ:
+        for path in paths:
+            path.unlink()
+        raise DataError(
+            f"{', '.join(map(str, differ))}: re-flown, but the data differ from the logs recorded in "
+            f"{sdir.parent / 'manifest.json'}, which the collection's models were trained on: this code or machine "
+            "flies those flights differently (the manifest's provenance names the code that flew them). The "
+            f"re-flown logs were removed. Delete {collection} to collect afresh, or restore the original logs."
+        )
+    for path in paths:
+        if new[path]["sha256"] != entry["files"][rel[path]]["sha256"]:
+            log.info("%s: re-flown with the same data (its metadata differ: another code version or folder)", path)
+        entry["files"][rel[path]] = new[path]
