@@ -10,6 +10,8 @@ Modules (import them directly; this package imports nothing heavy on its own):
 - `downwash.registry`: the one registry of model kinds (`MODEL_KINDS`, `make_model`)
 - `downwash.train`: `TrainConfig`, `train_model` for every kind, `rmse`, `save_trained`
 - `downwash.ensemble`: `train_ensemble`, many per-neighbour models of one kind as one batched network
+- `downwash.ensemble_network`: the ensemble's batched network, every member's arithmetic its own
+- `downwash.ensemble_settle`: the deep members' spectral norms settled after training, side by side
 - `downwash.checkpoint`: `save_checkpoint`, `load_checkpoint`, `wrap_pairwise` (no code runs on load)
 - `downwash.predictor`: `LearnedPredictor`, any model in the control loop (`sim.predictor.Predictor`)
 - `downwash.fused`: the per-neighbour models' compiled pieces
@@ -18,12 +20,16 @@ Modules (import them directly; this package imports nothing heavy on its own):
 - `downwash.staged`: the staged collection pipeline, provenance and `ensure_models`
 - `downwash.manifest`: a staged collection's record of every log, checked before training
 - `downwash.swarm_collection`: the many-vehicle stages and the models of sets trained on them
-- `downwash.sweep`: cached, resumable sweeps on Ray, bootstrap intervals, the paired claim
+- `downwash.sweep`: cached, resumable sweeps on Ray (`run_sweep`)
+- `downwash.sweep_cells`: a sweep's grid, its cells, their training in batches and their cache
+- `downwash.sweep_stats`: a sweep's bootstrap intervals and the paired claim
+- `downwash.sweep_report`: a sweep's tables and figure
 
 Data flows one way: `downwash` may import `sim`, never `experiments`.
 """
 
 __all__ = [
-    "features", "labels", "datasets", "models", "set_models", "registry", "train", "ensemble", "checkpoint",
-    "predictor", "fused", "set_fused", "conditions", "staged", "manifest", "swarm_collection", "sweep",
+    "features", "labels", "datasets", "models", "set_models", "registry", "train", "ensemble", "ensemble_network",
+    "ensemble_settle", "checkpoint", "predictor", "fused", "set_fused", "conditions", "staged", "manifest",
+    "swarm_collection", "sweep", "sweep_cells", "sweep_stats", "sweep_report",
 ]

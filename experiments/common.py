@@ -52,8 +52,8 @@ DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5")  # sim.presets.PRESETS
 AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS
 WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
-PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep.PAPER_MINUTES
-PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep.PAPER_MODELS
+PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep_cells.PAPER_MINUTES
+PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep_cells.PAPER_MODELS
 
 FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
                  f"lists their parameters), or MODULE:FACTORY returning a field object")

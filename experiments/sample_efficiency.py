@@ -51,8 +51,9 @@ class EfficiencyArgs(PipelineArgs):
 
 
 def grid_of(args: EfficiencyArgs) -> Any:
-    """The sweep this preset runs, a `downwash.sweep.SweepGrid` (ConfigError before any work)."""
-    from downwash.sweep import SweepGrid, grid_from_text
+    """The sweep this preset runs, a `downwash.sweep_cells.SweepGrid` (ConfigError before any work)."""
+    from downwash.sweep import grid_from_text
+    from downwash.sweep_cells import SweepGrid
 
     if isinstance(args.trials, bool) or args.trials < 1:
         raise ConfigError(f"--trials: expected >= 1, got {args.trials}")
@@ -64,7 +65,8 @@ def grid_of(args: EfficiencyArgs) -> Any:
 
 
 def run(args: EfficiencyArgs) -> dict:
-    from downwash.sweep import check_execution, claim_text, markdown, minute_labels, plot_field, run_sweep, table_rows
+    from downwash.sweep import check_execution, run_sweep
+    from downwash.sweep_report import claim_text, markdown, minute_labels, plot_field, table_rows
     from downwash_core.io import atomic_write_bytes
 
     t_start = time.perf_counter()

@@ -53,8 +53,8 @@ class SweepArgs(CommonArgs):
 
 
 def run(args: SweepArgs) -> dict:
-    from downwash.sweep import (check_execution, claim_text, grid_from_text, markdown, minute_labels, plot_field,
-                                run_sweep, table_rows)
+    from downwash.sweep import check_execution, grid_from_text, run_sweep
+    from downwash.sweep_report import claim_text, markdown, minute_labels, plot_field, table_rows
     from downwash_core.io import atomic_write_bytes
 
     t_start = time.perf_counter()

@@ -6,7 +6,7 @@ NaN or infinite state is never a neighbour), within ``radius`` if one is given, 
 first by squared distance of the estimated positions (ties by vehicle index), padded to
 ``max_neighbours`` slots with a mask. `select_neighbours` is the readable selection and
 `select_into` its compiled twin (one target at a time), which the swarm env's compiled
-observation and the compiled models of sets (`downwash.swarm_fused`) call; tests tie the
+observation and the compiled predictor passes (`downwash.set_fused`) call; tests tie the
 two together.
 """
 

@@ -40,23 +40,23 @@ def test_lower_layers_import_no_learning_or_rl_library(module, banned):
 
 
 def test_no_experiment_imports_another():
-    """Experiments share only `experiments.common` and the tracking table (lemniscate and transect are its entries)."""
+    """Experiments share only `experiments.common` and the tracking table (lemniscate and transect are its entries);
+    an experiment that is a package (`experiments.report`) imports its own modules besides."""
     shared = {"common", "tracking"}
-    for path in (ROOT / "experiments").glob("*.py"):
+    for path in (ROOT / "experiments").rglob("*.py"):
+        parts = path.relative_to(ROOT / "experiments").parts
+        own = {parts[0]} if len(parts) > 1 else set()  # the experiment's package, for a module inside one
         text = path.read_text()
         for line in text.splitlines():
             if line.startswith(("from experiments", "import experiments")):
                 target = line.split()[1].split(".")[1] if "." in line.split()[1] else ""
-                assert target in shared, f"{path.name}: {line}"
+                assert target in shared | own, f"{path.relative_to(ROOT)}: {line}"
 
 
 MAX_MODULE_LINES = 600
 # modules still over the limit, each at most as long as now (a ratchet: they may only shrink;
 # each is to be split as the simulator was)
 OVER_THE_LIMIT = {
-    "experiments/report.py": 620,
-    "downwash/sweep.py": 825,
-    "downwash/ensemble.py": 855,
 }
 
 

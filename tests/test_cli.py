@@ -69,7 +69,7 @@ def test_static_choices_match_their_registries():
     """The names `--help` lists without importing the registries are the registries' own."""
     from downwash.conditions import CONDITIONS
     from downwash.models import PAIRWISE_KINDS
-    from downwash.sweep import PAPER_MINUTES, PAPER_MODELS
+    from downwash.sweep_cells import PAPER_MINUTES, PAPER_MODELS
     from sim.aggregation import AGGREGATIONS
     from sim.fields.registry import DEFAULT_FIELD, FIELDS
     from sim.presets import PRESETS

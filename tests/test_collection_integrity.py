@@ -30,7 +30,7 @@ from downwash_core.locks import LOCK_NAME, holder
 from downwash.models import PAIRWISE_KINDS
 from downwash.manifest import MANIFEST_VERSION, collection_digest, file_sha256
 from downwash.staged import CollectionConfig, collect, ensure_collection, ensure_models
-from downwash.sweep import SweepGrid, load_collection, plan_cells
+from downwash.sweep_cells import SweepGrid, load_collection, plan_cells
 from experiments.common import load_field
 from sim.logs import load_log
 
@@ -199,7 +199,7 @@ def test_a_manifest_of_the_older_format_is_refused(copy, field):
 def test_sweep_cells_follow_the_data(copy, collection):
     """The same provenance with other data (a collection flown again by code that flies
     differently: its manifest records other data digests) gives other cells."""
-    from downwash.sweep import _load_collection
+    from downwash.sweep_cells import _load_collection
 
     grid = SweepGrid(models=("shallow",), minutes=(0.1,), seeds=(0, 1), quick=True)
     *_, digest = _load_collection(collection / "staged")

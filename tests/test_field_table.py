@@ -8,7 +8,7 @@ import pytest
 
 from downwash.conditions import CONDITIONS
 from experiments.fields import TABLE_KEYS
-from experiments.report import render_field_table
+from experiments.report.sections import render_field_table
 
 
 def _run(args, cwd, check=True):

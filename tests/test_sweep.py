@@ -22,7 +22,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from downwash_core.errors import ConfigError
-from downwash.sweep import FULL, Claim, SweepGrid, bootstrap_ci, paired_comparison, plan_cells, run_sweep
+from downwash.sweep import run_sweep
+from downwash.sweep_cells import FULL, SweepGrid, plan_cells
+from downwash.sweep_stats import Claim, bootstrap_ci, paired_comparison
 from experiments.common import PipelineArgs, parse_args, resolve_pipeline
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -224,7 +226,7 @@ def test_full_set_cells_are_the_collections_own_models(first, pipeline):
     """The whole training set with the collection's seed is exactly how the staged collection trains
     its final models: the cell (one member of an ensemble) must score what the checkpoint scores."""
     from downwash.checkpoint import load_checkpoint
-    from downwash.sweep import load_collection
+    from downwash.sweep_cells import load_collection
     from downwash.train import rmse
 
     _, results, _ = first

@@ -1,0 +1,252 @@
+"""The results page's sections: one renderer per experiment's results file, and the machine and provenance lines.
+
+`RENDERERS` maps each experiment's name (`experiments.report.results.EXPERIMENTS`) to
+the function that renders its results as markdown; `_render_one` adds the
+provenance line and turns a file the renderer cannot read into a ConfigError.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from downwash_core.errors import ConfigError
+from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
+from experiments.report.formatting import ORDER, _ordered, _table, fmt, pct, short
+
+__all__ = [
+    "TRACKED", "PAPER_RMSE", "RENDERERS", "render_machine", "render_provenance", "render_staged", "render_efficiency",
+    "render_tracking", "render_outdoor", "render_swarm", "render_force_maps", "render_benchmark", "render_field_table",
+]
+
+TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
+PAPER_RMSE = {5.0: {"shallow": 0.263, "deep": 0.255, "equivariant": 0.222},  # the paper's figure 3 table, m/s^2
+              15.0: {"shallow": 0.243, "deep": 0.229, "equivariant": 0.218}}
+
+
+def render_machine(record: dict) -> str:
+    files = record.get("files", {})
+    if not files:
+        return "No results have been copied yet: run the experiments, then `python -m experiments.report`."
+
+    def line(m: dict) -> str:
+        return (f"{m.get('cpu')}, {m.get('cores')} cores, {m.get('os')}, Python {m.get('python')}, "
+                f"mujoco {m.get('mujoco')}, torch {m.get('torch')}")
+
+    dates = sorted(f.get("written", "?") for f in files.values())
+    when = f"The results were written {dates[0]}" + (f" to {dates[-1]}" if dates[-1] != dates[0] else "") + "."
+    machines = {line(f.get("machine", {})) for f in files.values()}
+    if len(machines) == 1:
+        return f"{when} Machine (recorded when the report copied them from `runs/`): {machines.pop()}."
+    return f"{when} Machines (recorded when the report copied each file from `runs/`):\n\n" + "\n".join(
+        f"- `{n}`: {line(f.get('machine', {}))}" for n, f in sorted(files.items()))
+
+
+def render_provenance(name: str, data: dict, record: dict, label: str) -> str:
+    """One line: what made the file (code, seed, field, pipeline key) and when."""
+    p, a = data.get("provenance", {}), data.get("args", {})
+    code = p.get("code") or {}
+    parts = [f"code {code.get('version')} at {(code.get('commit') or 'unknown commit')[:12]}"
+             + (" with uncommitted changes" if code.get("dirty") else ""),
+             f"seed {p.get('seed', a.get('seed'))}", f"field {p.get('field_spec', a.get('field') or 'built-in')}"]
+    if p.get("pipeline_key"):
+        parts.append(f"pipeline key `{p['pipeline_key']}`")
+    entry = record.get("files", {}).get(name)
+    if entry:
+        parts.append(f"written {entry.get('written')}, copied {entry.get('copied')}")
+    quick = " **A `--quick` smoke run: not a measurement.**" if a.get("quick") else ""
+    return f"Provenance of `{label}`: " + ", ".join(parts) + "." + quick
+
+
+def render_staged(r: dict, label: str) -> str:
+    rows, failed = [], []
+    for s in r["stages"]:
+        dep = s.get("deployed_model")
+        rows.append([str(s["stage"]), "-".join(short(x) for x in s["separation"]), fmt(s["minutes"]),
+                     str(s["samples"]), "none" if dep is None else f"{Path(dep).parent.name} {Path(dep).stem}",
+                     fmt(s["deployed_val_rmse"])])
+        failed += s.get("failed_flights", [])
+    floor = (r.get("noise_floor") or {}).get("rmse_mean")
+    models = [[k, fmt(m["val_rmse"]), pct(m["val_rmse"] / floor - 1) if floor and m["val_rmse"] is not None else "-",
+               fmt(m.get("train_seconds"))] for k, m in _ordered(r["models"])]
+    return "\n\n".join([
+        f"Stages (`{label}`):",
+        _table(["stage", "separation (m)", "training min", "samples", "deployed model",
+                "its val RMSE on this stage (m/s^2)"], rows),
+        f"Final models (`{label}`), validation RMSE in m/s^2:",
+        _table(["model", "val RMSE", "above the noise floor", "train s"], models),
+        f"{fmt(r.get('training_minutes'))} min of training data, {fmt(r.get('validation_minutes'))} min of validation "
+        f"data. Label-noise floor (labels against the true mean field): {fmt(floor)} m/s^2. "
+        + (f"Failed flights ({len(failed)}): " + "; ".join(failed) + "." if failed else "No flight failed.")
+        + (f" The collection and its training took {fmt(r['collection_seconds'])} s"
+           f" (this run: {fmt(r.get('wall_seconds'))} s)." if r.get("collection_seconds") is not None
+           else f" Wall time {fmt(r.get('wall_seconds'))} s.")])
+
+
+def render_efficiency(r: dict, label: str) -> str:
+    minutes = r["minutes"]
+    models = r["models"]
+
+    def cell(k: str, i: int) -> str:
+        return f"{fmt(models[k]['rmse_mean'][i])} ± {fmt(models[k]['rmse_std'][i], 2)}" if k in models else "-"
+
+    header = ["model"] + [f"{short(m)} min" for m in minutes[:-1]] + [f"{short(minutes[-1])} min (full)"]
+    rows = [[k] + [cell(k, i) for i in range(len(minutes))] for k, _ in _ordered(models)]
+    nearest = {t: min(range(len(minutes)), key=lambda i: abs(minutes[i] - t)) for t in PAPER_RMSE}
+    said = ", ".join(f"{short(t)} min: ours at {short(minutes[i])} min" for t, i in nearest.items())
+    paper_rows = [[k] + [c for t, i in nearest.items() for c in (cell(k, i), fmt(PAPER_RMSE[t][k]))]
+                  for k in PAPER_RMSE[5.0]]
+    paper_header = ["model"] + [c for t, i in nearest.items() for c in (f"ours {short(minutes[i])} min",
+                                                                          f"paper {short(t)} min")]
+    return "\n\n".join([
+        f"Validation RMSE (m/s^2), mean ± std over {r.get('trials')} trials (`{label}`):",
+        _table(header, rows),
+        f"Label-noise floor: {fmt(r['noise_floor'])} m/s^2; validation set {fmt(r.get('validation_minutes'))} min.",
+        f"Beside the paper's table (its means; nearest point present, {said}; `{label}`):",
+        _table(paper_header, paper_rows)] + ([_claim(r["claim"])] if r.get("claim") else []))
+
+
+def _claim(c: dict) -> str:
+    """The paired test of the paper's claim, and whether it holds (the 95 % interval excludes 0)."""
+    holds = c["ci_high"] < 0
+    refuted = c["ci_low"] > 0
+    verdict = "holds" if holds else ("does not hold" if refuted else "is not established: the interval contains 0")
+    return (f"The paper's claim, \"{c['statement']}\", paired over {c['n']} trials (the same data subsets for every "
+            f"model): mean difference {c['mean_difference']:+.4f} m/s^2, 95 % bootstrap interval "
+            f"[{c['ci_low']:+.4f}, {c['ci_high']:+.4f}]; it holds in {pct(c['fraction_holds'])} of the trials. "
+            f"The claim {verdict}.")
+
+
+def render_tracking(r: dict, label: str) -> str:
+    rows = []
+    for c, e in _ordered(r["conditions"]):
+        gap = e.get("gap_to_oracle_pos_3d")
+        rows.append([c] + [fmt(e[k]) for k in TRACKED] + [pct(e.get(f"improvement_pos_{k}")) for k in ("3d", "z")]
+                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)), pct(e["crash_rate"])])
+    header = ["condition", "pos 3D (m)", "pos xy", "pos z", "peak 3D", "vel 3D (m/s)", "improvement 3D",
+              "improvement z", "gap to oracle (m)", "crash rate"]
+    return "\n\n".join([f"{len(r['seeds'])} seeds, {short(r['separation'])} m below the leader, "
+                        f"{short(r['duration'])} s (`{label}`):", _table(header, rows)])
+
+
+def render_outdoor(r: dict, label: str) -> str:
+    a, wind = r["leader_airspeed"], r.get("wind")
+    if wind is None:
+        air = "no wind"
+    else:
+        air = (f"wind: mean ({', '.join(short(x) for x in wind['mean'])}) m/s plus Dryden gusts (W20 {fmt(wind['w20'])} m/s, sigma_u "
+               f"{fmt(wind['sigma_u'])} m/s, L_u {fmt(wind['L_u'])} m)")
+    head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
+            f"the follower {short(r['separation'])} m beneath it; {air}. The models are those of the staged collection "
+            "(hovering leader, still air).")
+    c = r["conditions"]
+    models = [k for k in ORDER if k in c and k not in ("no_downwash", "baseline", "oracle")]
+    best = max(models, key=lambda k: c[k].get("improvement_pos_3d") or -math.inf) if models else None
+    crashed = [f"`{k}` ({pct(c[k]['crash_rate'])})" for k in models if c[k].get("crash_rate")]
+    verdict = []
+    if "oracle" in c and c["oracle"].get("improvement_pos_3d") is not None:
+        verdict.append(f"The oracle improves the 3D position error by {pct(c['oracle']['improvement_pos_3d'])} over the "
+                       "baseline")
+    if best is not None:
+        verdict.append(f"the best model, `{best}`, by {pct(c[best].get('improvement_pos_3d'))}")
+    if crashed:
+        verdict.append("crashes (counted with the crash penalty): " + ", ".join(crashed))
+    return "\n\n".join([head, render_tracking(r, label), "; ".join(verdict) + "."])
+
+
+def _share_of_oracle(entry: dict, condition: str) -> float | None:
+    """A condition's improvement over the baseline as a share of the oracle's (1: as good as the truth)."""
+    oracle, got = entry["oracle"].get("improvement_pos_3d"), entry.get(condition, {}).get("improvement_pos_3d")
+    return None if oracle in (None, 0) or got is None else got / oracle
+
+
+def render_swarm(r: dict, label: str) -> str:
+    shown = r["conditions"][1:]  # all but the baseline
+    parts = [f"{len(r['seeds'])} seeds per preset and law; metrics over every follower of a flight. Each cell: the "
+             "improvement of the followers' mean 3D position error over the baseline, and in brackets the gap to "
+             "the oracle (m). `summed_pairwise` is the paper's two-vehicle equivariant model summed over neighbours; "
+             "`-pair` models were trained on two-vehicle data only, `-mixed` ones on two-vehicle data plus the swarm "
+             f"stages flown under that law (`{label}`):"]
+    verdicts = []
+    for law, by_preset in r["summary"].items():
+        rows = []
+        for preset, entry in by_preset.items():
+            rows.append([f"`{preset}`"] + [pct(entry[c].get("improvement_pos_3d")) + (
+                "" if entry[c].get("gap_to_oracle_pos_3d") is None else f" ({entry[c]['gap_to_oracle_pos_3d']:+.3f})")
+                + (f", {pct(entry[c]['crash_rate'])} crashed" if entry[c].get("crash_rate") else "") for c in shown])
+        parts += [f"**{law} aggregation** ({r['laws'][law]['law'].get('name', law)}):",
+                  _table(["preset"] + shown, rows)]
+        shares = {c: [x for e in by_preset.values() if (x := _share_of_oracle(e, c)) is not None] for c in shown[1:]}
+        mean = {c: sum(v) / len(v) for c, v in shares.items() if v}
+        best = max(mean, key=mean.get) if mean else None
+        if "summed_pairwise" in mean:
+            verdicts.append(f"under the {law} law, summing the pairwise model recovers {pct(mean['summed_pairwise'])} "
+                            f"of the oracle's improvement on average over the presets; the best condition is `{best}` "
+                            f"with {pct(mean[best])}")
+    if verdicts:
+        parts.append("Does summing pairwise models hold up? " + "; ".join(verdicts) + ".")
+    return "\n\n".join(parts)
+
+
+def render_force_maps(r: dict, label: str) -> str:
+    keys = ("down_top_rmse_vs_truth", "down_side_rmse_vs_truth", "lateral_rmse_vs_truth_pos",
+            "lateral_rmse_vs_truth_neg")
+    rows = [[k] + [fmt(m.get(key)) for key in keys] for k, m in _ordered(r["maps"])]
+    header = ["model", "downward, top view", "downward, side view", "lateral, +v", "lateral, -v"]
+    return "\n\n".join([f"RMSE of each model's maps against the truth, m/s^2, follower speed {short(r['speed'])} "
+                        f"m/s (`{label}`):", _table(header, rows)])
+
+
+def render_benchmark(r: dict, label: str) -> str:
+    parts = []
+    targets = r.get("targets") or {}
+    if targets:
+        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
+        ceiling = r.get("mujoco_batch_over_bare")
+        parts += [f"The speed targets against the ratios measured in this run ({r.get('rounds')} rounds, each "
+                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
+                  "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
+                  f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
+                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
+                  _table(["ratio", "target", "measured", "met"], rows)]
+        if ceiling is not None:
+            parts.append(f"For scale: `mujoco.batch` stepping {r.get('batched_worlds')} worlds with no control at all "
+                         f"reaches {fmt(ceiling, 3)}x bare on the same machine.")
+    rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
+    parts += [f"{r.get('cpu_count')} cores, mujoco {r.get('mujoco')}, {r.get('batched_worlds')} batched "
+              f"worlds (`{label}`):", _table(["key", "value"], rows)]
+    return "\n\n".join(parts)
+
+
+def render_field_table(r: dict, label: str) -> str:
+    table = r["table"]
+    shown = [c for c in ORDER if c not in ("no_downwash", "baseline") and any(c in e["conditions"] for e in table.values())]
+    rows = []
+    for name, e in sorted(table.items(), key=lambda kv: (list(FIELDS).index(kv[0]) if kv[0] in FIELDS else len(FIELDS), kv[0])):
+        cells = []
+        for c in shown:
+            m = e["conditions"].get(c, {})
+            gap = m.get("gap_to_oracle_pos_3d")
+            cells.append(pct(m.get("improvement_pos_3d")) + ("" if gap is None or c == "oracle" else f" ({gap:+.3f})"))
+        rows.append([f"`{name}`", fmt(e["conditions"].get("baseline", {}).get("pos_err_3d_mean"))] + cells
+                    + [pct(max((m.get("crash_rate") or 0.0) for m in e["conditions"].values())), f"{e['wall_seconds']:.0f}"])
+    first = next(iter(table.values()))
+    return "\n\n".join([
+        f"The lemniscate (`python -m experiments.lemniscate --field NAME`, {first['seeds']} seeds, {short(first['duration'])} s) "
+        "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
+        "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
+        f"oracle). The wall time is the whole main job, collection and training included (`{label}`):",
+        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate", "wall (s)"], rows)])
+
+
+RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
+             "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
+             "swarm": render_swarm,
+             "field_table": render_field_table, "benchmark": render_benchmark}
+
+
+def _render_one(name: str, data: dict, record: dict, label: str) -> list[str]:
+    try:
+        return [RENDERERS[name](data, label), render_provenance(name, data, record, label)]
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        raise ConfigError(f"{label}: cannot render this {name} results file ({type(e).__name__}: {e})") from e
