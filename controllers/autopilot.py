@@ -3,15 +3,20 @@
 Runs on the autopilot grid (100 Hz by default), batched over any leading shape.
 It takes the collective specific thrust and desired attitude from feedback
 linearisation and returns per-rotor thrust commands (N), which the MuJoCo rotor
-actuators follow with their first-order lag.
+actuators follow with their first-order lag. One `Autopilot` is one vehicle's; the
+simulator flies a scene of several kinds with `Autopilot.tables`: the same attitude loop
+for every vehicle, each through its own inertia, mixer and rotor limit.
 """
 
 from __future__ import annotations
+
+from typing import Sequence
 
 import numpy as np
 
 from downwash_core.jit import njit
 from downwash_core.params import QUAD, QuadParams
+from downwash_core.vehicles import as_params
 
 __all__ = ["mixer_matrix", "Autopilot", "rotor_thrusts"]
 
@@ -49,6 +54,8 @@ class Autopilot:
         omega_yaw: float = 4.0,  # rad/s
         zeta_yaw: float = 0.9,
     ):
+        self.params = as_params(params)  # the vehicle's numbers (a VehicleKind's as a plain QuadParams)
+        self.gains = (omega_rp, zeta_rp, omega_yaw, zeta_yaw)  # the attitude loop, the same for any vehicle
         J = np.asarray(params.inertia)
         self.kR = J * np.array([omega_rp**2, omega_rp**2, omega_yaw**2])  # N m / rad
         self.kW = J * np.array([2 * zeta_rp * omega_rp, 2 * zeta_rp * omega_rp, 2 * zeta_yaw * omega_yaw])  # N m s
@@ -68,6 +75,18 @@ class Autopilot:
                 self.kW[2] * torque_rows[2:3],  # yaw-rate set-point
             ]
         )
+
+    def for_vehicle(self, params: QuadParams) -> "Autopilot":
+        """This autopilot (the same natural frequencies and damping) for a vehicle of `params`:
+        itself when `params` are its own vehicle's, so its `gain` flies as it is."""
+        return self if as_params(params) == self.params else Autopilot(params, *self.gains)
+
+    def tables(self, vehicles: Sequence[QuadParams]) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled callers' per-vehicle tables for V vehicles of these params: gain (V, 14, 4)
+        and max_thrust (V,) N, each vehicle's through its own inertia, mixer and rotor limit."""
+        each = [self.for_vehicle(q) for q in vehicles]
+        gain = np.ascontiguousarray(np.stack([a.gain for a in each]), dtype=np.float64)
+        return gain, np.array([float(a.max_thrust) for a in each])
 
     def __call__(
         self,

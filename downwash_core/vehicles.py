@@ -26,9 +26,18 @@ The wakes a vehicle sheds scale with it (docs/fields.md, "Vehicles of other kind
   paper quad's, the factor to multiply `strength` by (`basis="thrust"`: the far wake's
   scaling, the thrust ratio).
 
-The simulator still flies every vehicle with one set of parameters (`SimConfig.quad`);
-the kinds reach the MuJoCo model (`sim.scene`) but not yet the controller and mixer.
-Units: SI (kg, m, N, s).
+Between two vehicles of any kinds (`sim.vehicle_params.pair_field` applies these, the one
+place the simulator does):
+
+- `so2_pair_scale(leader, follower)`: the factor on the paper's law for a pair, the
+  leader's disc-loading scale times what the follower catches of the wake per kilogram;
+- `momentum_wake_kwargs(leader, follower)` with `momentum_drag_area_scale(leader, follower)`
+  on the airframe's drag area;
+- `airframe_area_scale(kind)`: the airframe's frontal area (the wind's drag) over the paper
+  quad's; `size_scale(kind)`: its half-diagonal over the paper quad's (the collision ellipsoid).
+
+Every factor is exactly 1.0 for two paper quads. The simulator flies each vehicle with its
+own kind's numbers (`sim.vehicle_params`). Units: SI (kg, m, N, s).
 """
 
 from __future__ import annotations
@@ -45,7 +54,8 @@ from downwash_core.params import GRAVITY, QUAD, QuadParams
 __all__ = [
     "VehicleKind", "VEHICLES", "VEHICLE_NAMES", "DEFAULT_VEHICLE", "PAPER_QUAD", "CRAZYFLIE_2_1", "X500",
     "AIR_DENSITY", "N_ROTORS", "get_vehicle", "hover_induced_velocity", "so2_strength_scale",
-    "momentum_wake_kwargs",
+    "momentum_wake_kwargs", "so2_pair_scale", "momentum_drag_area_scale", "airframe_area_scale", "size_scale",
+    "as_params",
 ]
 
 AIR_DENSITY = 1.225  # kg/m^3, ISA sea level (the same as sim.wind.AIR_DENSITY; a test ties them)
@@ -310,7 +320,9 @@ def so2_strength_scale(leader: "str | VehicleKind", reference: "str | VehicleKin
       depth s scales with the thrust: scale = m_l / m_ref.
 
     1 for the reference. Use: `DownwashField(strength=DownwashField().strength * scale)`. The
-    width, the fade-in and the follower (the paper quad) are left as they are.
+    width, the fade-in and the follower (the paper quad) are left as they are; the simulator's
+    factor for a pair, the follower's kind included, is `so2_pair_scale` (this one for a
+    paper-quad follower under a leader of larger discs).
     """
     a, ref = get_vehicle(leader), get_vehicle(reference)
     if basis == "disc_loading":
@@ -320,8 +332,8 @@ def so2_strength_scale(leader: "str | VehicleKind", reference: "str | VehicleKin
     raise ConfigError(f"basis: unknown {basis!r}; allowed: disc_loading, thrust")
 
 
-def momentum_wake_kwargs(leader: "str | VehicleKind",
-                         follower: "str | VehicleKind" = DEFAULT_VEHICLE) -> dict[str, Any]:
+def momentum_wake_kwargs(leader: "str | QuadParams",
+                         follower: "str | QuadParams" = DEFAULT_VEHICLE) -> dict[str, Any]:
     """The `sim.fields.momentum.MomentumWake` parameters for a leader and a follower of these kinds.
 
     The leader's hover thrust m g on its disc area n pi r^2 sets the wake's induced velocity
@@ -329,8 +341,88 @@ def momentum_wake_kwargs(leader: "str | VehicleKind",
     plane; the follower's mass, rotor radius and arm set how its rotors feel the stream.
     `MomentumWake(**momentum_wake_kwargs(leader, follower))`; the follower is the paper quad
     unless given, and both `paper_quad` gives the field's defaults. (The follower's airframe
-    drag keeps `sim.wind.AIRFRAME`'s constants.)
+    drag area is the field's `drag_area` times `momentum_drag_area_scale(leader, follower)`,
+    applied by `sim.vehicle_params.pair_field`.) A kind, its name, or a plain `QuadParams`.
     """
-    a, b = get_vehicle(leader), get_vehicle(follower)
+    a, b = _numbers(leader), _numbers(follower)
     return {"leader_mass": a.mass, "rotor_radius": a.rotor_radius, "n_rotors": N_ROTORS, "fade_depth": a.rotor_radius,
             "follower_mass": b.mass, "follower_rotor_radius": b.rotor_radius, "follower_arm": b.arm_length}
+
+
+def as_params(kind: QuadParams) -> QuadParams:
+    """A vehicle's numbers as a plain `QuadParams` (a `VehicleKind` compares unequal to its own numbers:
+    a dataclass compares its class too), so that vehicles of the same numbers compare equal."""
+    return kind.params if isinstance(kind, VehicleKind) else kind
+
+
+def _numbers(kind: "str | QuadParams") -> QuadParams:
+    """A kind's numbers: a `QuadParams` (a `VehicleKind` is one) as it is, a name looked up."""
+    return kind if isinstance(kind, QuadParams) else get_vehicle(kind)
+
+
+def _disc_area(q: QuadParams) -> float:
+    """m^2, n pi r^2 (`VehicleKind.disc_area`, for any `QuadParams`)."""
+    return N_ROTORS * math.pi * q.rotor_radius**2
+
+
+def so2_pair_scale(leader: "str | QuadParams", follower: "str | QuadParams") -> float:
+    """-, the factor on `sim.field.DownwashField.strength` for a leader and a follower of these kinds.
+
+    The paper's law is an acceleration of a paper quad in a paper quad's wake. For other kinds:
+
+    - the leader's wake: its dynamic pressure q ~ T_l / A_l (its disc loading,
+      `so2_strength_scale`: the near wake, where the testbed's vehicles fly);
+    - the follower: the wake pushes on the part of its rotor discs inside the wake, at most
+      the leader's own disc area (the wake's cross-section near the leader: narrower than
+      the follower, it is caught whole), so the force is q min(A_l, A_f) and the
+      acceleration that over the follower's mass m_f.
+
+    Relative to two paper quads (q_p A_p / m_p):
+
+        scale = (T_l / A_l) min(A_l, A_f) / m_f / (T_p / m_p) = (m_l / m_f) min(1, A_f / A_l)
+
+    Same kinds: exactly 1.0 (m / m and A / A are exact). A paper-quad follower under a
+    larger-disc leader: the disc-loading ratio `so2_strength_scale(leader)`; under a
+    smaller-disc leader: the thrust ratio m_l / m_p (the whole jet is caught). A light
+    follower under a heavy leader is pushed hardest: a Crazyflie under an X500, 1.84; under
+    a paper quad, 7.6; a paper quad under an X500, 0.242 (the paper quad's 0.04 m rotors
+    are a collision size that loads them heavily: docs/fields.md).
+    """
+    a, b = _numbers(leader), _numbers(follower)
+    return (a.mass / b.mass) * min(1.0, _disc_area(b) / _disc_area(a))
+
+
+def momentum_drag_area_scale(leader: "str | QuadParams", follower: "str | QuadParams") -> float:
+    """-, the factor on `MomentumWake.drag_area` (the paper quad's airframe) for this pair.
+
+    The field's drag term is a point follower's: the wake's speed at its centre on its whole
+    frontal area. The follower's area is its own (`airframe_area_scale`), of which at most
+    the wake's cross-section is in the stream; as for `so2_pair_scale`, the wake near the
+    leader is taken as wide as the leader's discs, so the area is capped at the disc-area
+    ratio: airframe_area_scale(f) min(1, A_l / A_f). An X500 under a paper quad's 0.12 m
+    jet: 7.5 x 0.082 = 0.61 (its 0.075 m^2 airframe is not all in the jet); a Crazyflie under
+    anything larger: its own 0.26. Exactly 1.0 for two paper quads.
+    """
+    a, b = _numbers(leader), _numbers(follower)
+    return airframe_area_scale(b) * min(1.0, _disc_area(a) / _disc_area(b))
+
+
+def airframe_area_scale(kind: "str | QuadParams") -> float:
+    """-, the airframe's frontal area over the paper quad's: (arm / arm_paper)^2.
+
+    `sim.wind.AIRFRAME`'s A_ref = 0.01 m^2 is the paper quad's body and arms; another kind
+    is taken geometrically similar (its body and arms scale with its arm length): the
+    Crazyflie 0.26 (2.6 cm^2), the X500 7.5 (0.075 m^2). Exactly 1.0 for the paper quad.
+    """
+    return (_numbers(kind).arm_length / PAPER_QUAD.arm_length) ** 2
+
+
+def size_scale(kind: "str | QuadParams") -> float:
+    """-, the half-diagonal (arm + rotor radius: the reach of the rotor tips) over the paper quad's.
+
+    The Crazyflie 0.535, the X500 2.97; exactly 1.0 for the paper quad. `sim.vehicle_params`
+    scales `SimConfig`'s collision ellipsoid (set for two paper quads) per pair by the mean of
+    the two vehicles' factors.
+    """
+    q = _numbers(kind)
+    return (q.arm_length + q.rotor_radius) / (PAPER_QUAD.arm_length + PAPER_QUAD.rotor_radius)

@@ -41,7 +41,7 @@ from downwash_core.geometry import dot as _dot
 from downwash_core.jit import njit
 from downwash_core.validate import check_trailing_shapes
 
-__all__ = ["DownwashField", "pairwise_field", "pairwise_forces", "check_field"]
+__all__ = ["DownwashField", "pairwise_field", "pairwise_forces", "check_field", "unit_pair_scale"]
 
 _EPS = np.array(1e-12)  # m, guards the division by r in v_r (at r = 0, r_vec = 0 so v_r = 0)
 _C4_CORE = 0.5  # -, radius (in units of sigma) inside which the c4 modulation tapers to 0
@@ -156,7 +156,7 @@ class DownwashField:
         """
         if self._packed is None:
             return None
-        return _pairwise_kernel(pos, vel, rot, self._packed)  # numba takes strided views as they are
+        return _pairwise_kernel(pos, vel, rot, self._packed, unit_pair_scale(pos.shape[1]))  # strided views as they are
 
     def pair_forces(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray) -> np.ndarray | None:
         """Compiled `pairwise_forces(self, ...)` for (W, V, 3) inputs; None with per-world constants.
@@ -167,7 +167,7 @@ class DownwashField:
         """
         if self._packed is None:
             return None
-        return _pair_forces_kernel(pos, vel, rot, self._packed)
+        return _pair_forces_kernel(pos, vel, rot, self._packed, unit_pair_scale(pos.shape[1]))
 
     def __call__(
         self,
@@ -365,14 +365,22 @@ def _off_diagonal(n_veh: int) -> np.ndarray:
     return mask
 
 
+@functools.lru_cache(maxsize=None)
+def unit_pair_scale(n_veh: int) -> np.ndarray:
+    """(V, V) ones: the per-pair strength factors of a field flown as given (never written to;
+    writeable, so that the kernels see one array type whatever the caller)."""
+    return np.ones((n_veh, n_veh))
+
+
 @njit
-def _pairwise_kernel(pos, vel, rot, c):
+def _pairwise_kernel(pos, vel, rot, c, scale):
     """Loop form of pairwise_field(DownwashField(...)) for (W, V, ...) arrays.
 
     c: the DownwashField constants in declaration order (strength, strength_depth,
     width0, width_slope, fade_start, fade_end, approach_gain, approach_speed,
     radial_gain, radial_offset, radial_speed_gain, radial_speed, leader_speed_scale,
-    c4_amplitude, swirl, skew).
+    c4_amplitude, swirl, skew). scale (V_leader, V_follower): each pair's factor on the
+    strength (`sim.vehicle_params`: the two vehicles' kinds); 1.0, exact, flies the law as given.
     """
     strength, depth0, width0, width_slope, fade_start, fade_end = c[0], c[1], c[2], c[3], c[4], c[5]
     approach_gain, approach_speed, radial_gain, radial_offset = c[6], c[7], c[8], c[9]
@@ -404,7 +412,7 @@ def _pairwise_kernel(pos, vel, rot, c):
                 v_r = (ux * rx + uy * ry + uz * rz) / max(r, 1e-12)
                 sigma = width0 + width_slope * sp
                 rho = r / sigma
-                a = strength / (1.0 + sp / depth0) ** 2
+                a = strength * scale[i, j] / (1.0 + sp / depth0) ** 2  # (strength x 1.0 is exact)
                 kawg = k * a * t * t * (3.0 - 2.0 * t) * np.exp(-0.5 * rho * rho)
                 down = kawg * (1.0 - approach_gain * np.tanh(v_r / approach_speed) * rho)
                 if c4 != 0.0:
@@ -427,14 +435,14 @@ def _pairwise_kernel(pos, vel, rot, c):
 
 
 @njit
-def _pair_forces_kernel(pos, vel, rot, c):
+def _pair_forces_kernel(pos, vel, rot, c, scale):
     """(W, V_leader, V_follower, 3): the terms of `_pairwise_kernel`'s sum, kept per pair.
 
     The same statements as `_pairwise_kernel`, accumulating into out[w, i, j] instead
     of out[w, j] (so for V = 2 the two agree bit for bit). A copy rather than a shared
     helper: numba does not inline across cached functions, and a helper called per pair
     cost `_pairwise_kernel`, the 100 Hz path, 20-100 % (measured); the tests pin the two
-    loops to each other and to `DownwashField.__call__`. c as in `_pairwise_kernel`.
+    loops to each other and to `DownwashField.__call__`. c and scale as in `_pairwise_kernel`.
     """
     strength, depth0, width0, width_slope, fade_start, fade_end = c[0], c[1], c[2], c[3], c[4], c[5]
     approach_gain, approach_speed, radial_gain, radial_offset = c[6], c[7], c[8], c[9]
@@ -466,7 +474,7 @@ def _pair_forces_kernel(pos, vel, rot, c):
                 v_r = (ux * rx + uy * ry + uz * rz) / max(r, 1e-12)
                 sigma = width0 + width_slope * sp
                 rho = r / sigma
-                a = strength / (1.0 + sp / depth0) ** 2
+                a = strength * scale[i, j] / (1.0 + sp / depth0) ** 2  # (strength x 1.0 is exact)
                 kawg = k * a * t * t * (3.0 - 2.0 * t) * np.exp(-0.5 * rho * rho)
                 down = kawg * (1.0 - approach_gain * np.tanh(v_r / approach_speed) * rho)
                 if c4 != 0.0:

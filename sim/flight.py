@@ -10,6 +10,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.provenance import code_version, describe
 from downwash_core.status import Status
+from downwash_core.vehicles import DEFAULT_VEHICLE
 from sim.aggregation import LinearSuperposition
 from sim.logs import ARRAY_SPECS, FlightLog
 from sim.rows import Row
@@ -41,7 +42,8 @@ def fly(
     log's metadata; the others fly on.
     With a wind (`wind=sim.wind.DrydenWind(...)`, not off) the logs also hold "wind" (the
     air velocity at each vehicle, (T, V, 3) m/s) and "wind_acc" (its drag, m/s^2), and
-    the metadata its `describe()` under "wind".
+    the metadata its `describe()` under "wind". A scene of other vehicle kinds than the paper
+    quad names each vehicle's kind under "kinds" (and describes each in full under "scene").
     """
     if not duration > 0:
         raise ConfigError(f"duration: must be > 0 s, got {duration}")
@@ -70,6 +72,8 @@ def fly(
         meta = [dict(meta or {}) for _ in range(W)]
     if len(meta) != W:
         raise ConfigError(f"meta: expected {W} entries (one per world), got {len(meta)}")
+    kind_names = list(sim.vehicle_params.names)  # each vehicle's kind, named in the meta unless all the paper quad
+    kinds = {"kinds": kind_names} if any(n != DEFAULT_VEHICLE for n in kind_names) else {}
     logs = []
     for w in range(W):
         n = int(sim.tick_index[w])
@@ -81,7 +85,8 @@ def fly(
             "roles": [r.value for r in scene.roles],
             "leader": scene.leader,
             "follower": scene.follower,
-            "scene": scene.describe(),
+            "scene": scene.describe(),  # with each vehicle's kind in full unless all are the paper quad
+            **kinds,
             "controller": describe(sim.controller),
             "turbulence": describe(sim.turbulence),
             "field": describe(sim.field),

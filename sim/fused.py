@@ -127,7 +127,7 @@ _TAB = (
     "status_new", "kin", "quat", "rot", "quat_est", "rot_est", "yaw", "applied", "mean", "pred", "Kt",
     "field_packed", "oracle_packed", "gust", "wind_noise", "wind_mean", "wind_sigma", "wind_length", "wind_axes",
     "air", "vel_air", "wind_acc", "diverged", "pw_code", "pw_fn", "pw_params", "pw_iparams", "pw_oracle",
-    "mocap_offset",
+    "mocap_offset", "max_thrust", "mass", "drag_gain", "field_scale", "radius_xy", "radius_z",
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
 )
@@ -139,18 +139,18 @@ _TAB = (
  _T_STATUS_NEW, _T_KIN, _T_QUAT, _T_ROT, _T_QUAT_EST, _T_ROT_EST, _T_YAW, _T_APPLIED, _T_MEAN, _T_PRED_OUT, _T_KT,
  _T_FIELD_PACKED, _T_ORACLE_PACKED, _T_GUST, _T_WIND_NOISE, _T_WIND_MEAN, _T_WIND_SIGMA, _T_WIND_LENGTH,
  _T_WIND_AXES, _T_AIR, _T_VEL_AIR, _T_WIND_ACC, _T_DIVERGED, _T_PW_CODE, _T_PW_FN, _T_PW_PARAMS, _T_PW_IPARAMS,
- _T_PW_ORACLE, _T_MOCAP_OFFSET,
+ _T_PW_ORACLE, _T_MOCAP_OFFSET, _T_MAX_THRUST, _T_MASS, _T_DRAG_GAIN, _T_FIELD_SCALE, _T_RADIUS_XY, _T_RADIUS_Z,
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
+# (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
+# pairs' field_scale, radius_xy, radius_z (V, V): `sim.vehicle_params`.)
 _FC = (
-    "sigma_p", "sigma_att", "kf_gain_p", "kf_gain_v", "ou_a", "ou_b", "intensity", "mass", "max_thrust", "dt",
-    "prediction_period", "lookahead", "tan_tilt", "min_vertical", "min_airspeed", "drag_gain",
-    "max_distance", "ground", "radius_xy", "radius_z",
+    "sigma_p", "sigma_att", "kf_gain_p", "kf_gain_v", "ou_a", "ou_b", "intensity", "dt",
+    "prediction_period", "lookahead", "tan_tilt", "min_vertical", "min_airspeed", "max_distance", "ground",
 )
-(_F_SIGMA_P, _F_SIGMA_ATT, _F_KF_P, _F_KF_V, _F_OU_A, _F_OU_B, _F_INTENSITY, _F_MASS, _F_MAX_THRUST, _F_DT,
- _F_PRED_PERIOD, _F_LOOKAHEAD, _F_TAN_TILT, _F_MIN_VERTICAL, _F_MIN_AIRSPEED, _F_DRAG_GAIN,
- _F_MAX_DISTANCE, _F_GROUND, _F_RADIUS_XY, _F_RADIUS_Z) = range(len(_FC))
+(_F_SIGMA_P, _F_SIGMA_ATT, _F_KF_P, _F_KF_V, _F_OU_A, _F_OU_B, _F_INTENSITY, _F_DT,
+ _F_PRED_PERIOD, _F_LOOKAHEAD, _F_TAN_TILT, _F_MIN_VERTICAL, _F_MIN_AIRSPEED, _F_MAX_DISTANCE, _F_GROUND) = range(len(_FC))
 # predictor codes: zero, oracle (field kernel), C function, and one of these per world (`PerWorldPredictor`)
 _PRED_ZERO, _PRED_ORACLE, _PRED_C, _PRED_PER_WORLD = 0, 1, 2, 3
 
@@ -281,7 +281,10 @@ def _make_fused_kernel(with_wind: bool):
                 yaw_rate_des = carray(_f64p(tab[_T_YAW_RATE_DES]), (n_worlds, V))[w0:w1]
                 thrust_acc = carray(_f64p(tab[_T_THRUST]), (n_worlds, V))[w0:w1]
                 mass_believed = carray(_f64p(tab[_T_MASS_BELIEVED]), (n_worlds, V))[w0:w1]
-                ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (14, 4))
+                ap_gain = carray(_f64p(tab[_T_AP_GAIN]), (V, 14, 4))  # each vehicle's (sim.vehicle_params)
+                max_thrust = carray(_f64p(tab[_T_MAX_THRUST]), (V,))
+                mass = carray(_f64p(tab[_T_MASS]), (V,))
+                field_scale = carray(_f64p(tab[_T_FIELD_SCALE]), (V, V))
                 active = carray(_boolp(tab[_T_ACTIVE]), (n_worlds,))[w0:w1]
                 f_hat = carray(_f64p(tab[_T_F_HAT]), (n_worlds, V, 3))[w0:w1]
                 rot = carray(_f64p(tab[_T_ROT]), (n_worlds, V, 3, 3))[w0:w1]
@@ -332,8 +335,8 @@ def _make_fused_kernel(with_wind: bool):
                         vel_air = carray(_f64p(tab[_T_VEL_AIR]), (n_worlds, V, 3))[w0:w1]
                         gust = carray(_f64p(tab[_T_GUST]), (n_worlds, 3, 2))[w0:w1]
                         wind_mean = carray(_f64p(tab[_T_WIND_MEAN]), (3,))
-                        _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean, fc[_F_DRAG_GAIN],
-                                           vel, air, vel_air, wind_acc)
+                        _wind_sense_kernel(gust, carray(_f64p(tab[_T_WIND_AXES]), (3, 3)), wind_mean,
+                                           carray(_f64p(tab[_T_DRAG_GAIN]), (V,)), vel, air, vel_air, wind_acc)
                         _wind_advance_kernel(
                             gust, carray(_f64p(tab[_T_WIND_NOISE]), (n_worlds, block, 3, 2))[w0:w1], cursor, vel, dt, wind_mean,
                             carray(_f64p(tab[_T_WIND_SIGMA]), (3,)), carray(_f64p(tab[_T_WIND_LENGTH]), (3,)), fc[_F_MIN_AIRSPEED],
@@ -345,7 +348,8 @@ def _make_fused_kernel(with_wind: bool):
                         if kind == _PRED_ZERO:
                             pred[:] = 0.0
                         elif kind == _PRED_ORACLE:
-                            _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,))))
+                            _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, carray(_f64p(tab[_T_ORACLE_PACKED]), (16,)),
+                                                              field_scale))
                         elif kind == _PRED_PER_WORLD:  # world by world, each its own predictor, as PerWorldPredictor
                             pw_code = carray(_i64p(tab[_T_PW_CODE]), (n_worlds,))[w0:w1]
                             pw_fn = carray(_i64p(tab[_T_PW_FN]), (n_worlds,))[w0:w1]
@@ -355,7 +359,7 @@ def _make_fused_kernel(with_wind: bool):
                             for w in range(W):
                                 if pw_code[w] == _PRED_ORACLE:
                                     _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1],
-                                                                               pw_oracle[w]))
+                                                                               pw_oracle[w], field_scale))
                                 elif pw_code[w] == _PRED_C:  # one world: its rows of C-contiguous (W, ...) arrays
                                     _call_predictor(
                                         pw_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data, rot_est[w].ctypes.data,
@@ -374,7 +378,7 @@ def _make_fused_kernel(with_wind: bool):
                             )
                         _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
 
-                    _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed))
+                    _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed, field_scale))
 
                     if first:  # the LQR and feedback linearisation at 50 Hz
                         _copy_into(_row_view(row, tab[_T_ROW_REF_POS], n_worlds, V3, w0, w1).reshape((W, V, 3)), ref_pos_w)
@@ -386,12 +390,12 @@ def _make_fused_kernel(with_wind: bool):
                         _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
 
                     _actuate_kernel(
-                        field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], fc[_F_MASS], xfrc_w, layout,
-                        qvel_w, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, fc[_F_MAX_THRUST], ctrl_w,
+                        field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], mass, xfrc_w, layout,
+                        qvel_w, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, max_thrust, ctrl_w,
                         pos_est, vel_est, dt, t, active, mean, applied, rot, u_cmd,
                     )
                     if with_wind:
-                        _wind_force_kernel(xfrc_w, layout, fc[_F_MASS], wind_acc)
+                        _wind_force_kernel(xfrc_w, layout, mass, wind_acc)
                     if stepping == _STEP_SERIAL:
                         if active[0]:
                             for _ in range(tab[_T_NPHYS]):
@@ -414,7 +418,8 @@ def _make_fused_kernel(with_wind: bool):
                         diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
                 total += _status_kernel(
                     qpos_w, layout, qvel_w, diverged, active, carray(_i64p(tab[_T_TICK_INDEX]), (n_worlds,))[w0:w1],
-                    fc[_F_MAX_DISTANCE], fc[_F_GROUND], fc[_F_RADIUS_XY], fc[_F_RADIUS_Z],
+                    fc[_F_MAX_DISTANCE], fc[_F_GROUND], carray(_f64p(tab[_T_RADIUS_XY]), (V, V)),
+                    carray(_f64p(tab[_T_RADIUS_Z]), (V, V)),
                     carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
                 )
             if helper:

@@ -151,10 +151,12 @@ def _actuate_kernel(
     turb (W, V, 3): Ornstein-Uhlenbeck state, advanced in place with noise[w, cursor[w], :, 6:9]:
     turb = decay turb + diffusion xi; applied = mean + intensity |mean| turb (written to
     applied (W, V, 3) m/s^2, so the turbulence is zero outside the wake and scales with it),
-    and mass * applied (N, world frame) into xfrc (W, nbody, 6) at each vehicle's body.
+    and mass[i] * applied (N, world frame; mass (V,) kg, each vehicle's) into xfrc (W, nbody, 6)
+    at each vehicle's body.
     Autopilot (controllers.autopilot.rotor_thrusts) on rot (W, V, 3, 3), body rates from
     qvel (W, nv), set-points rot_des (W, V, 3, 3), yaw_rate_des (W, V) rad/s,
-    thrust_acc (W, V) m/s^2, mass_believed (W, V) kg -> rotor thrusts (N) into ctrl (W, nu).
+    thrust_acc (W, V) m/s^2, mass_believed (W, V) kg, each vehicle's tables ap_gain (V, 14, 4)
+    and max_thrust (V,) N (`Autopilot.tables`) -> rotor thrusts (N) into ctrl (W, nu).
     Addresses from layout (V, 7), see Simulator._layout. Kalman prediction of pos_est, vel_est (W, V, 3) over dt (s) with
     acc_cmd (W, V, 3) m/s^2, in place. Then t (W,) s advances by dt where active and
     every cursor by one.
@@ -175,11 +177,11 @@ def _actuate_kernel(
             for k in range(3):
                 turb[w, i, k] = decay * turb[w, i, k] + diffusion * noise[w, c, i, 6 + k]
                 applied[w, i, k] = mean[w, i, k] + intensity * mag * turb[w, i, k]
-                xfrc[w, layout[i, _BODY], k] = mass * applied[w, i, k]
+                xfrc[w, layout[i, _BODY], k] = mass[i] * applied[w, i, k]
             b = layout[i, _QVEL] + 3
             rotor_thrusts(
                 rot[w, i], qvel[w, b:b + 3], rot_des[w, i], yaw_rate_des[w, i], thrust_acc[w, i],
-                mass_believed[w, i], ap_gain, max_thrust, x, out,
+                mass_believed[w, i], ap_gain[i], max_thrust[i], x, out,
             )
             for k in range(4):
                 ctrl[w, layout[i, _ACT + k]] = out[k]
@@ -194,7 +196,8 @@ def _actuate_kernel(
 def _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, wind_acc):
     """The wind at every vehicle from each world's gust state state (W, 3, 2) m/s.
 
-    axes (3, 3), mean (3,) m/s: `DrydenWind.kernel_constants`; gain = rho C_d A / (2 m) (1/m).
+    axes (3, 3), mean (3,) m/s: `DrydenWind.kernel_constants`; gain (V,) 1/m: each vehicle's
+    rho C_d A / (2 m) (`sim.vehicle_params`).
     vel (W, V, 3) m/s true velocities. Writes air (W, V, 3) m/s (mean + gust, the same at
     every vehicle of a world), vel_air = vel - air and wind_acc (W, V, 3) m/s^2, the
     drag `sim.wind.drag_acceleration(air, vel, ...)`.
@@ -208,7 +211,7 @@ def _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, wind_acc):
                 air[w, i, k] = mean[k] + gust[k]
                 vel_air[w, i, k] = vel[w, i, k] - air[w, i, k]
             rx, ry, rz = air[w, i, 0] - vel[w, i, 0], air[w, i, 1] - vel[w, i, 1], air[w, i, 2] - vel[w, i, 2]
-            f = drag_gain_speed(rx, ry, rz, gain)
+            f = drag_gain_speed(rx, ry, rz, gain[i])
             wind_acc[w, i, 0], wind_acc[w, i, 1], wind_acc[w, i, 2] = f * rx, f * ry, f * rz
 
 
@@ -234,12 +237,12 @@ def _wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, min
 
 @njit
 def _wind_force_kernel(xfrc, layout, mass, wind_acc):
-    """Add the wind drag mass * wind_acc (W, V, 3) m/s^2 (N, world frame) to xfrc (W, nbody, 6)."""
+    """Add the wind drag mass[i] * wind_acc (W, V, 3) m/s^2 (N, world frame; mass (V,) kg) to xfrc (W, nbody, 6)."""
     for w in range(wind_acc.shape[0]):
         for i in range(wind_acc.shape[1]):
             b = layout[i, _BODY]
             for k in range(3):
-                xfrc[w, b, k] = xfrc[w, b, k] + mass * wind_acc[w, i, k]
+                xfrc[w, b, k] = xfrc[w, b, k] + mass[i] * wind_acc[w, i, k]
 
 
 @njit
@@ -248,7 +251,8 @@ def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distanc
     the `Status` codes of those that end now (OK elsewhere).
 
     qpos (W, nq): vehicle positions (m) at qpos[w, layout[i, _QPOS] + (0, 1, 2)];
-    diverged (W,) bool from the physics. Returns how many worlds end.
+    diverged (W,) bool from the physics; radius_xy, radius_z (V, V) m: each pair's collision
+    ellipsoid (`sim.vehicle_params.collision_radii`). Returns how many worlds end.
     """
     W, V = qpos.shape[0], layout.shape[0]
     q_adr = layout[:, _QPOS]
@@ -275,7 +279,7 @@ def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distanc
                 for j in range(i + 1, V):
                     a, b = q_adr[i], q_adr[j]
                     dx, dy, dz = qpos[w, a] - qpos[w, b], qpos[w, a + 1] - qpos[w, b + 1], qpos[w, a + 2] - qpos[w, b + 2]
-                    if (dx * dx + dy * dy) / radius_xy**2 + dz * dz / radius_z**2 < 1.0:
+                    if (dx * dx + dy * dy) / radius_xy[i, j] ** 2 + dz * dz / radius_z[i, j] ** 2 < 1.0:
                         status[w] = _VEHICLE
         n_ended += status[w] != _OK
     return n_ended

@@ -7,9 +7,10 @@ when every component has a compiled form, else None. The fused path needs
 - the controller: exactly `controllers.lqr.FeedbackLinearisedLQR` (any `LQRConfig`; not a
   subclass, which may override `command_setpoint`), see `_compiled_controller`; its gains
   and limits run as `controllers.lqr._command_setpoint_kernel`;
-- the autopilot: a `controllers.autopilot.Autopilot` (its `gain` and `max_thrust`);
+- the autopilot: a `controllers.autopilot.Autopilot` (its per-vehicle tables, `Autopilot.tables`);
 - the field: a `sim.field.DownwashField` with scalar constants and linear aggregation
-  (`_packed_field`), whose pairwise sum is `sim.field._pairwise_kernel`;
+  (`_packed_field`), whose pairwise sum is `sim.field._pairwise_kernel` with the scene's
+  per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads);
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
   `PerWorldPredictor` of those (`_per_world_tables`);
@@ -121,7 +122,7 @@ class _Plan:
             "vel_est": sim.vel_est, "t": sim.t, "next_prediction": sim.next_prediction, "due": sim._due,
             "field_enabled": sim.field_enabled, "turb": sim.turb, "rot_des": sim._rot_des,
             "yaw_rate_des": sim._yaw_rate_des, "thrust_acc": sim._thrust_acc, "mass_believed": sim._mass_believed,
-            "ap_gain": np.ascontiguousarray(sim.autopilot.gain, dtype=np.float64), "active": sim.active,
+            "ap_gain": sim._ap_gain, "max_thrust": sim._max_thrust, "active": sim.active,
             "f_hat": sim.f_hat, "tick_index": sim.tick_index, "status_new": sim._status_new,
             "kin": np.empty((5, W, V, 3)), "quat": np.empty((W, V, 4)), "rot": np.empty((W, V, 3, 3)),
             "quat_est": np.empty((W, V, 4)), "rot_est": np.empty((W, V, 3, 3)), "yaw": np.empty((W, V)),
@@ -131,6 +132,10 @@ class _Plan:
             "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
             "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
             "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool), "mocap_offset": sim.mocap_offset,
+            # each vehicle's numbers and each pair's (sim.vehicle_params)
+            "mass": sim.vehicle_params.mass, "drag_gain": sim.vehicle_params.drag_gain,
+            "field_scale": sim.vehicle_params.field_scale, "radius_xy": sim.vehicle_params.collision_xy,
+            "radius_z": sim.vehicle_params.collision_z,
         }
         per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W)
         keep.update({name: a for name, a in per_world.items() if name.startswith("pw_")})
@@ -185,11 +190,9 @@ class _Plan:
         fc = {
             "sigma_p": sim._sigma_p, "sigma_att": sim._sigma_att, "kf_gain_p": sim._kf_gain_p,
             "kf_gain_v": sim._kf_gain_v, "ou_a": sim._ou_a, "ou_b": sim._ou_b, "intensity": sim._turbulence_intensity,
-            "mass": sim.mass, "max_thrust": sim._max_thrust, "dt": r.autopilot_dt,
-            "prediction_period": sim._prediction_period, "lookahead": r.control_dt,
+            "dt": r.autopilot_dt, "prediction_period": sim._prediction_period, "lookahead": r.control_dt,
             "tan_tilt": math.tan(lqr.max_tilt), "min_vertical": lqr.min_vertical,
-            "min_airspeed": wind_consts[4], "drag_gain": sim._drag_gain, "max_distance": cfg.max_distance,
-            "ground": cfg.ground_clearance, "radius_xy": cfg.collision_radius_xy, "radius_z": cfg.collision_radius_z,
+            "min_airspeed": wind_consts[4], "max_distance": cfg.max_distance, "ground": cfg.ground_clearance,
         }
         self.fc = np.array([float(fc[name]) for name in _FC])
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call

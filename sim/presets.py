@@ -14,14 +14,24 @@ evaluated on every ordered pair and combined by the aggregation law, `sim.aggreg
 | stack:n=N | N = 2-8 | the same with N (spacing 0.6 m, or `spacing=`) |
 | swap | 3 | two vehicles at different heights cross beneath a hovering third, in opposite directions |
 | formation5 | 5 | every vehicle moving: horizontal circles at five heights, alternating direction, so each passes through the wakes above it |
+| heavy_over_light | 2 | an X500 (2.06 kg) hovers, a paper quad flies the pair's lemniscate 0.8 m beneath it (`separation=`) |
+| crazyflie_stack | 4 | four Crazyflie 2.1 stacked 0.25 m apart, as labs fly them: the top hovers, the others on small lemniscates |
+| mixed_formation | 5 | formation5's circles with three Crazyflies above two paper quads (a small/large mix, as Neural-Swarm2's) |
 
 Followers' lemniscates are phase-shifted so that no two move in step. A start in which
 two vehicles lie inside each other's collision ellipsoid is refused before any flight
 (`sim.scene.check_clearance`).
 
-Every preset's vehicles are the paper quad. `preset.with_kinds(["x500", "paper_quad", ...])`
-gives the same preset with vehicles of other kinds (`downwash_core.vehicles`), one per
-vehicle, for its `scene()`; the simulator still flies every vehicle with `SimConfig.quad`.
+The last three mix vehicle kinds (`downwash_core.vehicles`); the others are paper quads, and
+`preset.with_kinds(["x500", "paper_quad", ...])` gives any preset with vehicles of other kinds,
+one per vehicle, for its `scene()`. Each vehicle flies its own kind's numbers and each wake
+scales with its pair of kinds (`sim.vehicle_params`); a mixed preset's collision ellipsoid is
+per pair, scaled by the two vehicles' sizes. Why the mixes are as they are (the default field,
+`so2_pair_scale`): a Crazyflie beneath a paper quad is pushed 7.6x as hard as a paper quad
+there, beyond its thrust margin (thrust to weight 1.53), and falls to the ground within 3 s
+(as in formation5's order with the paper quads on top, and under `momentum` too), so the
+small vehicles fly above the large ones; beneath an X500 a paper quad feels 0.24x the pair's
+law under `so2` (its light disc loading) but a push on the pair's scale under `momentum`.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from downwash_core.params import LEADER_POSITION
 from downwash_core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
 from downwash_core.vehicles import PAPER_QUAD, VEHICLES
 from sim.scene import Scene, build_scene, check_clearance, resolve_kinds
+from sim.vehicle_params import collision_radii
 from downwash_trajectories.base import Reference
 from downwash_trajectories.combinators import StackedReference, TimeShifted, stack
 from downwash_trajectories.primitives import Circle, Hover, Lemniscate, Transect
@@ -92,10 +103,18 @@ class Preset:
 
     def reference(self, n_worlds: int = 1, radius_xy: float = 0.26, radius_z: float = 0.08) -> StackedReference:
         """The stacked reference of `n_worlds` identical worlds; ConfigError if two vehicles start
-        inside each other's collision ellipsoid (radii m, as `SimConfig`'s)."""
+        inside each other's collision ellipsoid (radii m, as `SimConfig`'s: two paper quads'; per
+        pair scaled by the vehicles' sizes, `collision_radii`, as the loop checks them)."""
         ref = stack(self.make_refs(int(n_worlds)))
-        check_clearance(ref(np.zeros(ref.n_worlds)).pos, [n for n, _ in self.vehicles], radius_xy, radius_z)
+        check_clearance(ref(np.zeros(ref.n_worlds)).pos, [n for n, _ in self.vehicles],
+                        *self.collision_radii(radius_xy, radius_z))
         return ref
+
+    def collision_radii(self, radius_xy: float = 0.26, radius_z: float = 0.08) -> tuple[Any, Any]:
+        """Each pair's collision radii (m): the given ones for paper quads, (V, V) arrays for mixed kinds."""
+        if not self.kinds:
+            return radius_xy, radius_z
+        return collision_radii(resolve_kinds(self.kinds, self.n_vehicles), radius_xy, radius_z)
 
     def describe(self) -> dict[str, Any]:
         out = {"preset": self.name, "vehicles": [n for n, _ in self.vehicles],
@@ -157,6 +176,57 @@ def _formation5(radius: float = 0.4, speed: float = 0.5, spacing: float = 0.45) 
                   make_refs, lap, {"radius": radius, "speed": speed, "spacing": spacing})
 
 
+def _heavy_over_light(separation: float = 0.8) -> Preset:
+    """An X500 leader hovers; a paper quad flies the pair's lemniscate `separation` below it.
+
+    0.8 m: twice the X500's rotor-tip reach (0.39 m) below it, clear of its legs, and inside the
+    X500's near wake (momentum theory: the jet of its 0.28 m equivalent disc holds its speed to
+    B d0 = 5.8 x 0.39 m = 2.3 m down), where the two fields differ most (see the module docstring).
+    """
+    if not 0.6 <= separation <= 2.0:
+        raise ConfigError(f"separation: allowed 0.6-2.0 m (closer reaches the X500's legs, 0.39 m rotor tips and "
+                          f"its collision ellipsoid; farther leaves little wake), got {separation}")
+    period = 10.0  # s, the pair's
+
+    def make_refs(W: int) -> list[Reference]:
+        return [Hover(_TOP, n_worlds=W, duration=period),
+                Lemniscate(_TOP - [0.0, 0.0, separation], half_length=0.3, half_width=0.15, period=period, n_worlds=W)]
+
+    name = "heavy_over_light" if separation == 0.8 else f"heavy_over_light:separation={separation}"
+    return Preset(name, f"an X500 hovers, a paper quad flies a lemniscate {separation} m beneath it", _roles(2),
+                  make_refs, period, {"separation": separation}, kinds=("x500", "paper_quad"))
+
+
+def _crazyflie_stack() -> Preset:
+    """Four Crazyflie 2.1 stacked 0.25 m apart: the stack preset at a Crazyflie lab's spacing.
+
+    0.25 m (labs fly Crazyflies 0.15-0.3 m apart): under the default field a Crazyflie 0.25 m
+    below another feels what a paper quad 0.25 m below a paper quad would (`so2_pair_scale`
+    is 1 for a pair of one kind), 5.1 m/s^2 on the axis, about its thrust margin (0.53 g);
+    the lower ones cross the axes above on the stack's small lemniscates, not hover in them.
+    """
+    top, spacing, period = _TOP.copy(), 0.25, 10.0  # m, m, s: the stack's period and lemniscates
+
+    def make_refs(W: int) -> list[Reference]:
+        refs: list[Reference] = [Hover(top, n_worlds=W, duration=period)]
+        for k in range(1, 4):
+            lem = Lemniscate(top - [0.0, 0.0, k * spacing], half_length=0.3, half_width=0.15, period=period, n_worlds=W)
+            refs.append(TimeShifted(lem, np.full(W, (k - 1) * period / 3)) if k > 1 else lem)
+        return refs
+
+    return Preset("crazyflie_stack", "four Crazyflie 2.1 stacked 0.25 m apart", _roles(4), make_refs, period,
+                  {"n": 4, "spacing": spacing}, kinds=("crazyflie_2_1",) * 4)
+
+
+def _mixed_formation() -> Preset:
+    """formation5's circles with three Crazyflies on the upper three and two paper quads on the lower two."""
+    base = _formation5()
+    return dataclasses.replace(base, name="mixed_formation",
+                               description="three Crazyflies above two paper quads, all moving, each through the wakes "
+                                           "above it",
+                               kinds=("crazyflie_2_1",) * 3 + ("paper_quad",) * 2)
+
+
 # name -> (factory, its parameters and their types): `stack` is the parametrised family
 _FACTORIES: MappingProxyType = MappingProxyType({
     "pair": (lambda: _stack(2), {}),
@@ -165,16 +235,20 @@ _FACTORIES: MappingProxyType = MappingProxyType({
     "stack": (_stack, {"n": int, "spacing": float}),
     "swap": (_swap, {}),
     "formation5": (_formation5, {}),
+    "heavy_over_light": (_heavy_over_light, {"separation": float}),
+    "crazyflie_stack": (_crazyflie_stack, {}),
+    "mixed_formation": (_mixed_formation, {}),
 })
 PRESETS = tuple(_FACTORIES)
-_SPEC = re.compile(r"^([a-z0-9]+)(?::(.*))?$")
+_SPEC = re.compile(r"^([a-z0-9_]+)(?::(.*))?$")
 
 
 def parse_preset_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """'stack:n=6,spacing=0.5' -> ('stack', {'n': 6, 'spacing': 0.5}); ConfigError naming what is allowed."""
     m = _SPEC.match(spec.strip()) if isinstance(spec, str) else None
     if m is None or m.group(1) not in _FACTORIES:
-        raise ConfigError(f"preset: unknown {spec!r}; allowed: {', '.join(PRESETS)} (stack takes n=2-8, spacing=)")
+        raise ConfigError(f"preset: unknown {spec!r}; allowed: {', '.join(PRESETS)} (stack takes n=2-8, spacing=; "
+                          "heavy_over_light separation=)")
     name, rest = m.group(1), m.group(2)
     types = _FACTORIES[name][1]
     params: dict[str, Any] = {}

@@ -8,7 +8,7 @@ A `paper_quad` is `assets/quad.xml` as written (so a default scene is the same m
 for byte, as before kinds existed); any other kind is that file with the kind's numbers
 written over before it is attached (`apply_kind`): the body's mass and inertia, the rotor
 sites and the drawn arms and propellers, and each rotor actuator's thrust limit, motor lag
-and yaw moment. The simulator still flies every vehicle with `SimConfig.quad`'s numbers.
+and yaw moment. The simulator flies each vehicle with its kind's numbers (`sim.vehicle_params`).
 """
 
 from __future__ import annotations

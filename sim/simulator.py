@@ -84,7 +84,8 @@ from sim.rows import Row
 from sim.scene import Scene
 from sim.sensors import MocapConfig, check_sensor, draw_episode_offset
 from sim.turbulence import OUTurbulence
-from sim.wind import AIRFRAME, DrydenWind
+from sim.vehicle_params import VehicleParams, scene_field, scene_predictor
+from sim.wind import DrydenWind
 
 __all__ = ["SimConfig", "Simulator", "WIND_STREAM"]
 
@@ -99,6 +100,8 @@ log = logging.getLogger(__name__)
 class SimConfig:
     """The vehicle, the rates, the sensor and the failure checks of a flight.
 
+    quad: the vehicle of a scene without kinds; a scene's vehicles of kinds (`build_scene(kinds=...)`,
+    the paper quad by default) fly each its own kind's numbers (`sim.vehicle_params`).
     mocap: the sensor, any of `sim.sensors` (`MocapConfig()`, `BiasedMocap(...)`, `make_sensor(name)`).
     The controller, autopilot, turbulence, field, wind and predictor are components of
     the `Simulator`, each with its own settings.
@@ -108,7 +111,7 @@ class SimConfig:
     quad: QuadParams = field(default_factory=lambda: QUAD)
     mocap: Any = field(default_factory=MocapConfig)  # a `sim.sensors.Sensor`
     ground_clearance: float = 0.03  # m, a vehicle centre below this height has hit the ground
-    collision_radius_xy: float = 0.26  # m, vehicles closer than this laterally ...
+    collision_radius_xy: float = 0.26  # m, paper quads closer than this laterally (other kinds: by size, per pair) ...
     collision_radius_z: float = 0.08  # m, ... and vertically (ellipsoid) have collided
     max_distance: float = 100.0  # m, beyond this from the origin the flight has diverged
     noise_block: int = 256  # autopilot ticks of noise drawn per generator call
@@ -136,10 +139,12 @@ class Simulator:
     reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`downwash_trajectories.stack`).
     seeds: one int per world; a world's noise comes only from its own generators.
     config: `SimConfig` (vehicle, rates, the sensor `mocap`, failure checks).
+    Each vehicle flies its kind's numbers, and each pair's wake scales with its two kinds
+    (`sim.vehicle_params`: for the field and an oracle predictor alike).
     Components (each defaults to the paper's):
       controller: the outer loop, `FeedbackLinearisedLQR(LQRConfig(...))` or any object
         with its `command_setpoint(state, ref, f_hat, out, residual, override, lookahead)`;
-      autopilot: `Autopilot(quad, ...)` (its `gain` and `max_thrust` run compiled);
+      autopilot: `Autopilot(quad, ...)` (its attitude loop, for each vehicle through `Autopilot.tables`);
       turbulence: `OUTurbulence(intensity, time_constant)`;
       field: any object with the `DownwashField` call signature;
       aggregation: how the wakes of several leaders combine on a vehicle, passed to
@@ -187,9 +192,7 @@ class Simulator:
             raise ConfigError(f"wind: expected a sim.wind.DrydenWind or None, got {type(wind).__name__}")
         self.scene = scene
         self.cfg = cfg = config if config is not None else SimConfig()
-        if other := sorted({k.name for k in scene.kinds if k.params != cfg.quad}):  # cfg.quad flies every vehicle
-            raise ConfigError(f"scene: vehicles of kind {other} would fly with SimConfig.quad's numbers, not theirs; "
-                              "pass SimConfig(quad=<the kind>.params) for a scene of one kind (mixed kinds: not yet)")
+        self.vehicle_params = vp = VehicleParams.of(scene, cfg)  # each vehicle's own numbers (sim.vehicle_params)
         self.sensor = check_sensor(cfg.mocap)  # SimConfig.mocap, the sensor (`sim.sensors`)
         self.reference = reference
         self.controller = controller if controller is not None else FeedbackLinearisedLQR()
@@ -213,7 +216,7 @@ class Simulator:
         check_world_memory(W, V, name="worlds")  # before MuJoCo's batch and the state arrays are allocated
         self.physics = make_physics(scene.model, W, n_threads)
         self.kf = MocapKalmanFilter(r.autopilot_dt, self.sensor)  # its measurement noise is the sensor's
-        self.mass = cfg.quad.mass
+        self.mass = vp.mass[:, None]  # (V, 1) kg: (W, V, 3) accelerations times this are forces
 
         # index arrays, resolved once
         qa, va = scene.qpos_adr, scene.qvel_adr
@@ -228,7 +231,7 @@ class Simulator:
         self._prediction_period = 1.0 / r.predictor_hz  # s
         self._sigma_p, self._sigma_att = self.sensor.compiled()
         self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
-        self._drag_gain = AIRFRAME.gain(self.mass)  # 1/m, of the wind's drag
+        self._drag_gain = vp.drag_gain  # (V,) 1/m, of the wind's drag
 
         # per-world state beyond MuJoCo's; pos_est, vel_est, turb, gust_state, f_hat, t,
         # tick_index and next_prediction are updated in place (copy to keep a value; the
@@ -249,7 +252,8 @@ class Simulator:
         self._wind_rngs: list[np.random.Generator | None] = [None] * W
         self._noise = np.zeros((W, cfg.noise_block, V, 9))  # per tick: mocap position, attitude, turbulence
         self._wind_noise = np.zeros((W, cfg.noise_block, 3, 2))  # per tick: the gusts' draws (wind on only)
-        self._mass_believed = np.full((W, V), cfg.quad.mass)  # kg, the controller's model
+        self._mass_believed = np.tile(vp.mass, (W, 1))  # (W, V) kg, the controller's model
+        self._hover_controls = vp.hover_controls(scene.act_ids, self.physics.ctrl.shape[1])  # (nu,) N, at reset
         self._cursor = np.zeros(W, np.int64)
         self._cursor_max = 0  # max(self._cursor), kept as a Python int (no reduction per tick)
         self._due = np.zeros(W, bool)
@@ -279,7 +283,9 @@ class Simulator:
         cfg, r = self.cfg, self.cfg.rates
         self._wind_on = self.wind is not None and not self.wind.off
         self._ou_a, self._ou_b = self.turbulence.coefficients(r.autopilot_dt)
-        self._max_thrust = float(self.autopilot.max_thrust)
+        self._ap_gain, self._max_thrust = self.vehicle_params.autopilot_tables(self.autopilot)  # (V, 14, 4), (V,) N
+        self._scene_field = scene_field(self.field, self.vehicle_params)  # each pair with its kinds
+        self._scene_predictor = scene_predictor(self.predictor, self.vehicle_params)
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -295,9 +301,9 @@ class Simulator:
         )
         self._actuate_args = (
             self.field_enabled, self._noise, self._cursor, self.turb,
-            self._ou_a, self._ou_b, self._turbulence_intensity, self.mass, self.physics.xfrc_applied, self._layout,
-            self.physics.qvel, self._rot_des, self._yaw_rate_des, self._thrust_acc, self._mass_believed,
-            self.autopilot.gain, self._max_thrust, self.physics.ctrl,
+            self._ou_a, self._ou_b, self._turbulence_intensity, self.vehicle_params.mass, self.physics.xfrc_applied,
+            self._layout, self.physics.qvel, self._rot_des, self._yaw_rate_des, self._thrust_acc, self._mass_believed,
+            self._ap_gain, self._max_thrust, self.physics.ctrl,
             self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
         )
         self._plan = _make_plan(self) if self.fast else None
@@ -347,8 +353,8 @@ class Simulator:
             qpos[w, self._quat_idx] = np.stack([np.cos(half), 0 * half, 0 * half, np.sin(half)], axis=-1)
             qvel[w] = 0.0
             qvel[w, self._vel_idx] = ref.vel[w]
-            ph.act[w] = self.cfg.quad.hover_rotor_thrust
-            ph.ctrl[w] = self.cfg.quad.hover_rotor_thrust
+            ph.act[w] = self._hover_controls  # each vehicle's rotors at its own hover thrust
+            ph.ctrl[w] = self._hover_controls
             ph.xfrc_applied[w] = 0.0
             self._rngs[w] = np.random.default_rng(self.seeds[w])
             if self._wind_on:  # the gusts start stationary, from the world's own wind stream
@@ -527,11 +533,11 @@ class Simulator:
 
             # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
             if n_due:
-                pred = self.predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot))
+                pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot))
                 _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
 
             # downwash field, applied as an external force until the next autopilot tick
-            mean = wake_field(self.field, pos, vel_air, rot, self.aggregation)
+            mean = wake_field(self._scene_field, pos, vel_air, rot, self.aggregation)
 
             if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
@@ -553,7 +559,7 @@ class Simulator:
             # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
             _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
             if wind:
-                _wind_force_kernel(ph.xfrc_applied, self._layout, self.mass, wind_acc)
+                _wind_force_kernel(ph.xfrc_applied, self._layout, self.vehicle_params.mass, wind_acc)
             self.__dict__["_cursor_max"] += 1
             d = ph.step(r.physics_per_autopilot, self.active)
             diverged = d if diverged is None else diverged | d
@@ -566,7 +572,8 @@ class Simulator:
         status = self._status_new
         n_ended = _status_kernel(
             self.physics.qpos, self._layout, self.physics.qvel, diverged, self.active, self.tick_index,
-            cfg.max_distance, cfg.ground_clearance, cfg.collision_radius_xy, cfg.collision_radius_z, status,
+            cfg.max_distance, cfg.ground_clearance, self.vehicle_params.collision_xy, self.vehicle_params.collision_z,
+            status,
         )
         if n_ended:
             self._end_worlds(status)

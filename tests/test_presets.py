@@ -86,7 +86,8 @@ def test_vehicles_starting_inside_each_other_are_refused():
 
 
 def test_presets_listed():
-    assert set(PRESETS) == {"pair", "stack3", "stack4", "stack", "swap", "formation5"}
+    assert set(PRESETS) == {"pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light",
+                            "crazyflie_stack", "mixed_formation"}  # the last three of mixed kinds: test_heterogeneous
 
 
 def test_n_vehicle_flights_batched_equal_serial_and_are_deterministic():

@@ -23,6 +23,7 @@ from sim.scene import build_scene, resolve_kinds
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = list(VEHICLES.values())
+MIXED_PRESETS = ("heavy_over_light", "crazyflie_stack", "mixed_formation")
 
 
 # ----------------------------------------------------------------------------- the registry
@@ -263,6 +264,9 @@ def test_presets_take_kinds_without_changing_the_built_in_ones():
 
     for name in PRESETS:
         preset = make_preset("stack:n=5" if name == "stack" else name)
+        if name in MIXED_PRESETS:  # the presets of other kinds name them
+            assert preset.kinds and preset.describe()["kinds"] == list(preset.kinds)
+            continue
         assert preset.kinds == () and "kinds" not in preset.describe()
         assert preset.with_kinds("paper_quad") == preset
     stack = make_preset("stack3").with_kinds(["x500", "paper_quad", "crazyflie_2_1"])
@@ -366,9 +370,9 @@ def test_vehicles_listing_options(tmp_path):
     assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
 
 
-def test_the_simulator_flies_a_scene_of_one_kind_with_its_numbers_and_refuses_others():
-    """Until per-vehicle parameters reach the kernels, a scene flies with SimConfig.quad for every
-    vehicle: a Crazyflie stack with the Crazyflie's numbers hovers; with the paper quad's it is refused."""
+def test_the_simulator_flies_each_kind_with_its_numbers_and_refuses_a_contradicting_sim_config():
+    """A Crazyflie stack flies with the Crazyflie's numbers from its kinds, bit for bit as with
+    SimConfig(quad=<the kind>) (which agrees); a SimConfig.quad that contradicts the kinds is refused."""
     from sim.scene import build_scene
     from sim.simulator import SimConfig, Simulator
     from downwash_core.vehicles import CRAZYFLIE_2_1
@@ -377,12 +381,15 @@ def test_the_simulator_flies_a_scene_of_one_kind_with_its_numbers_and_refuses_ot
     leader = np.array([0.0, 0.0, 1.5])
     reference = stack([Hover(leader, n_worlds=2), Hover(leader - [0, 0, 0.25], n_worlds=2)])
     scene = build_scene(kinds="crazyflie_2_1")
-    with pytest.raises(ConfigError, match=r"crazyflie_2_1.*SimConfig\(quad="):
-        Simulator(scene, reference, [0, 1])
-    # (no downwash: the fields' strengths are the paper quad's until they scale with the leader)
-    sim = Simulator(scene, reference, [0, 1], config=SimConfig(quad=CRAZYFLIE_2_1.params),
-                    field_enabled=np.zeros(2, bool))
-    for _ in range(100):
-        sim.tick()
-    assert sim.active.all()
-    assert np.abs(sim.physics.qpos[:, sim._pos_idx[1]] - (leader - [0, 0, 0.25])).max() < 0.1
+    with pytest.raises(ConfigError, match=r"SimConfig.quad: .*crazyflie_2_1.*each vehicle flies its own kind"):
+        Simulator(build_scene(), reference, [0, 1], config=SimConfig(quad=CRAZYFLIE_2_1.params))
+    off = np.zeros(2, bool)  # no downwash: the vehicle's own numbers alone (test_heterogeneous flies the wakes)
+    sims = [Simulator(scene, reference, [0, 1], field_enabled=off, **kw)
+            for kw in ({}, {"config": SimConfig(quad=CRAZYFLIE_2_1.params)})]
+    for sim in sims:
+        np.testing.assert_array_equal(sim.vehicle_params.mass, CRAZYFLIE_2_1.mass)
+        for _ in range(100):
+            sim.tick()
+        assert sim.active.all()
+        assert np.abs(sim.physics.qpos[:, sim._pos_idx[1]] - (leader - [0, 0, 0.25])).max() < 0.1
+    np.testing.assert_array_equal(sims[0].physics.qpos, sims[1].physics.qpos)

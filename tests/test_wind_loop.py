@@ -145,12 +145,13 @@ def test_compiled_wind_passes_equal_the_readable_law():
     vel = rng.normal(size=(W, V, 3)) * [3.0, 3.0, 0.5]
     vel[0] = mean  # airspeed 0: the floor
     air, vel_air, acc = (np.empty((W, V, 3)) for _ in range(3))
-    gain = AIRFRAME.gain(0.7)
+    masses = np.array([0.7, 0.0319, 2.064])  # kg, each vehicle its own drag gain (sim.vehicle_params)
+    gain = np.array([AIRFRAME.gain(m) for m in masses])
     _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, acc)
     want_air = np.broadcast_to(wind.wind(state)[:, None], (W, V, 3))
     np.testing.assert_allclose(air, want_air, rtol=1e-15, atol=1e-15)
     assert np.array_equal(vel_air, vel - air)
-    np.testing.assert_allclose(acc, AIRFRAME.acceleration(air, vel, 0.7), rtol=1e-15, atol=1e-17)
+    np.testing.assert_allclose(acc, AIRFRAME.acceleration(air, vel, masses), rtol=1e-15, atol=1e-17)
     noise = rng.normal(size=(W, 5, 3, 2))
     cursor = np.array([0, 4, 2, 1])
     want = wind.step(state, noise[np.arange(W), cursor], dt, wind.airspeed(vel.mean(axis=1)))

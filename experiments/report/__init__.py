@@ -111,6 +111,11 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
     else:
         parts.append("No tracking results yet (`python -m experiments.lemniscate`, then "
                      f"`python -m experiments.report`); see the [results page]({link}).")
+    if "swarm" in found:
+        try:
+            parts.append(_swarm_headline(found["swarm"], link))
+        except (KeyError, TypeError, IndexError, ValueError, StopIteration) as e:
+            raise ConfigError(f"{results_dir}: cannot render the headline swarm table ({type(e).__name__}: {e})") from e
     lines = []
     if "staged_collection" in found:
         r = found["staged_collection"]
@@ -126,6 +131,39 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
     if lines:
         parts.append(" ".join(lines))
     return "\n\n".join(parts) + "\n"
+
+
+# The many-vehicle conditions the headline shows: the equivariant models first, then Neural-Swarm2's plain deep sets.
+_SWARM_EQUIVARIANT = ("summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed")
+_SWARM_PLAIN = ("deepsets-pair", "deepsets-mixed")
+_LARGER_FORCES = "heavy_over_light"  # the preset of larger forces: a heavier leader over the paper's vehicle
+
+
+def _swarm_headline(r: dict, link: str) -> str:
+    """Improvement over the baseline per preset (the first law, linear when present), and whether the
+    equivariant models keep their advantage over the plain deep sets where the forces are larger."""
+    law = "linear" if "linear" in r["summary"] else next(iter(r["summary"]))
+    summary = r["summary"][law]
+    conds = [c for c in ("oracle", *_SWARM_EQUIVARIANT, *_SWARM_PLAIN) if c in r["conditions"]]
+    rows = [[f"`{preset}`"] + [pct(entry.get(c, {}).get("improvement_pos_3d")) for c in conds]
+            for preset, entry in summary.items()]
+    text = (f"Many vehicles, the wakes combined by {law} superposition: improvement of the followers' mean 3D "
+            f"error over the baseline, over {len(r['seeds'])} seeds per preset (the presets and the models of "
+            f"sets are described on the [results page]({link})).")
+    out = [text, _table(["preset"] + [f"`{c}`" for c in conds], rows)]
+
+    def best(entry: dict, names: tuple[str, ...]) -> tuple[float, str]:
+        return max((entry[c]["improvement_pos_3d"], c) for c in names if entry.get(c, {}).get("improvement_pos_3d")
+                   is not None)
+
+    if _LARGER_FORCES in summary:
+        eq, eq_name = best(summary[_LARGER_FORCES], _SWARM_EQUIVARIANT)
+        plain, plain_name = best(summary[_LARGER_FORCES], _SWARM_PLAIN)
+        kept = "keep" if eq > plain else "do not keep"
+        out.append(f"With larger forces (`{_LARGER_FORCES}`), the equivariant models {kept} their advantage: the best, "
+                   f"`{eq_name}`, improves {pct(eq)} against {pct(plain)} for the best plain deep sets, "
+                   f"`{plain_name}`. Every model here was trained on the paper's vehicle only.")
+    return "\n\n".join(out)
 
 
 def _headline_cell(e: dict | None) -> str:
