@@ -1,6 +1,6 @@
 """Many vehicles: does summing two-vehicle models hold up, and what do models of sets learn?
 
-    python -m experiments.swarm [--presets stack3,stack4,swap,formation5] [--aggregations linear,velocity]
+    python -m experiments.swarm [--presets stack3,stack4,swap,formation5,...] [--aggregations linear,velocity]
                                 [--seeds 3] [--quick] [--video swarm.mp4]
 
 The paper's section 6 asks how downwash models carry over to many vehicles. For each
@@ -14,7 +14,11 @@ vehicles combine) this experiment
    batch per preset and law: baseline (no model), oracle (the true mean wake, combined
    by the law), summed_pairwise (the paper's two-vehicle equivariant model summed over
    neighbours), and deepsets_equivariant / deepsets from each data mix.
-Metrics are taken over every follower of a flight (`sim.metrics.follower_metrics`).
+Metrics are taken over every follower of a flight (`sim.metrics.follower_metrics`). The
+presets of other vehicle kinds (`heavy_over_light`, `crazyflie_stack`, `mixed_formation`)
+ask whether the models, all trained on the paper's vehicle, carry over to other forces;
+each preset records how strong its wakes are: the mean magnitude of the true mean field on
+its followers in the baseline flights (`force_mean`, m/s^2).
 Writes `<out>/<preset>/results.json` and a figure per preset, and `<out>/results.json`
 with all of them and the summary: per law and preset, each model's improvement over
 the baseline and gap to the oracle.
@@ -36,7 +40,7 @@ from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, Pipel
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
-DEFAULT_PRESETS = "stack3,stack4,swap,formation5"
+DEFAULT_PRESETS = "stack3,stack4,swap,formation5,heavy_over_light,crazyflie_stack,mixed_formation"
 
 
 def conditions() -> list[str]:
@@ -158,9 +162,12 @@ def run(args: SwarmArgs) -> dict:
             per_condition = {c: logs[i * K:(i + 1) * K] for i, c in enumerate(names)}
             first_logs = first_logs or (preset, per_condition)
             entry = {"preset": preset.describe(), "law": law_name, "duration": duration, "seeds": seeds,
+                     "force_mean": _force_mean(per_condition["baseline"]),
                      "conditions": aggregate_conditions(per_condition, metrics=follower_metrics)}
             results["presets"].setdefault(preset.name, {})[law_name] = entry
     results["summary"] = _summary(results)
+    results["force_mean"] = {law: {preset: by_law[law]["force_mean"] for preset, by_law in results["presets"].items()}
+                             for law in results["summary"]}  # law -> preset -> m/s^2 (baseline flights)
     results["wall_seconds"] = time.perf_counter() - t_start
     for name, by_law in results["presets"].items():  # one results.json per preset (DESIGN section 10)
         write_results(out / name.replace(":", "_"), {"experiment": "swarm", "preset": name, "laws": by_law}, args,
@@ -177,6 +184,17 @@ def run(args: SwarmArgs) -> dict:
                        columns=min(len(per_condition), 4))
         print(f"wrote {args.video} ({n} frames)")
     return results
+
+
+def _force_mean(logs: Sequence[Any]) -> float:
+    """m/s^2, the mean magnitude of the true mean field on the followers over the flights (their
+    finite rows): how strong a preset's wakes are where its vehicles fly."""
+    norms = []
+    for log in logs:
+        followers = [v for v, role in enumerate(log.meta["roles"]) if role != "leader"]
+        f = np.linalg.norm(log["field_mean"][:, followers], axis=-1)
+        norms.append(f[np.isfinite(f)])
+    return float(np.mean(np.concatenate(norms)))
 
 
 def _summary(results: dict) -> dict:

@@ -136,33 +136,36 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
 # The many-vehicle conditions the headline shows: the equivariant models first, then Neural-Swarm2's plain deep sets.
 _SWARM_EQUIVARIANT = ("summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed")
 _SWARM_PLAIN = ("deepsets-pair", "deepsets-mixed")
-_LARGER_FORCES = "heavy_over_light"  # the preset of larger forces: a heavier leader over the paper's vehicle
 
 
 def _swarm_headline(r: dict, link: str) -> str:
-    """Improvement over the baseline per preset (the first law, linear when present), and whether the
-    equivariant models keep their advantage over the plain deep sets where the forces are larger."""
+    """Improvement over the baseline per preset (the first law, linear when present), with how strong the
+    preset's wakes are, and whether the equivariant models keep their advantage over the plain deep sets
+    on the preset of the largest forces."""
     law = "linear" if "linear" in r["summary"] else next(iter(r["summary"]))
-    summary = r["summary"][law]
+    summary, force = r["summary"][law], (r.get("force_mean") or {}).get(law, {})
     conds = [c for c in ("oracle", *_SWARM_EQUIVARIANT, *_SWARM_PLAIN) if c in r["conditions"]]
-    rows = [[f"`{preset}`"] + [pct(entry.get(c, {}).get("improvement_pos_3d")) for c in conds]
+    rows = [[f"`{preset}`", fmt(force.get(preset))] + [pct(entry.get(c, {}).get("improvement_pos_3d")) for c in conds]
             for preset, entry in summary.items()]
-    text = (f"Many vehicles, the wakes combined by {law} superposition: improvement of the followers' mean 3D "
-            f"error over the baseline, over {len(r['seeds'])} seeds per preset (the presets and the models of "
-            f"sets are described on the [results page]({link})).")
-    out = [text, _table(["preset"] + [f"`{c}`" for c in conds], rows)]
+    out = [f"Many vehicles, the wakes combined by {law} superposition: improvement of the followers' mean 3D "
+           f"error over the baseline, over {len(r['seeds'])} seeds per preset; |f| is the mean magnitude of the true "
+           f"mean field on the followers, m/s^2 (the presets and the models of sets are on the "
+           f"[results page]({link})). Every model was trained on the paper's vehicle only.",
+           _table(["preset", "\\|f\\|"] + [f"`{c}`" for c in conds], rows)]
 
     def best(entry: dict, names: tuple[str, ...]) -> tuple[float, str]:
         return max((entry[c]["improvement_pos_3d"], c) for c in names if entry.get(c, {}).get("improvement_pos_3d")
                    is not None)
 
-    if _LARGER_FORCES in summary:
-        eq, eq_name = best(summary[_LARGER_FORCES], _SWARM_EQUIVARIANT)
-        plain, plain_name = best(summary[_LARGER_FORCES], _SWARM_PLAIN)
+    if force:
+        strongest = max(force, key=force.get)
+        weakest = min(force, key=force.get)
+        eq, eq_name = best(summary[strongest], _SWARM_EQUIVARIANT)
+        plain, plain_name = best(summary[strongest], _SWARM_PLAIN)
         kept = "keep" if eq > plain else "do not keep"
-        out.append(f"With larger forces (`{_LARGER_FORCES}`), the equivariant models {kept} their advantage: the best, "
-                   f"`{eq_name}`, improves {pct(eq)} against {pct(plain)} for the best plain deep sets, "
-                   f"`{plain_name}`. Every model here was trained on the paper's vehicle only.")
+        out.append(f"Where the forces are largest (`{strongest}`, |f| {fmt(force[strongest])} m/s^2 against "
+                   f"{fmt(force[weakest])} on `{weakest}`), the equivariant models {kept} their advantage: the best, "
+                   f"`{eq_name}`, improves {pct(eq)} against {pct(plain)} for the best plain deep sets, `{plain_name}`.")
     return "\n\n".join(out)
 
 
