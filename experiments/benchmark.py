@@ -162,7 +162,7 @@ def run(args: BenchmarkArgs) -> dict:
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
     five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
-    sets = LearnedPredictor(deepsets_equivariant(), clamp=6.0)  # its speed does not depend on the weights
+    sets = LearnedPredictor(deepsets_equivariant(), clamp=6.0)
     batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
     flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
         "closed_loop_serial_steps_per_s": (closed_loop_sim(1, field, learned), seconds),
@@ -295,7 +295,9 @@ def predictor_us_per_call(predictor: LearnedPredictor, n_worlds: int, n_calls: i
 
 def deepsets_equivariant() -> Any:
     """A `deepsets_equivariant` model of sets (seeded initial weights) with four neighbour slots: every other
-    vehicle of the 5-vehicle preset, as the swarm experiment flies it."""
+    vehicle of the 5-vehicle preset, as the swarm experiment flies it. Its output scale is 0: the kernel
+    does all of its work (its cost does not depend on the weights) and predicts 0, so the flight flies
+    on rather than ending in the crash an untrained model's push would cause."""
     import torch
 
     from downwash.checkpoint import Checkpoint
@@ -305,6 +307,7 @@ def deepsets_equivariant() -> Any:
 
     torch.manual_seed(0)
     model = make_model("deepsets_equivariant").eval()
+    model.out_scale.zero_()
     return Checkpoint(model, {"neighbours": NeighbourSet(4).describe(), "aggregation": aggregation_record("linear")})
 
 

@@ -35,7 +35,7 @@ from sim.simulator import Simulator
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from test_fast_path import _assert_same
 from test_features import random_rotations
-from test_set_models import _one_torch_thread, _settings, as_checkpoint  # noqa: F401 (an autouse fixture)
+from test_set_models import _one_torch_thread, _settings, as_checkpoint, randomised  # noqa: F401 (an autouse fixture)
 
 TOL = 1e-12  # of max(|F|, 1): see the module docstring
 LINEAR = {"type": "sim.aggregation.LinearSuperposition", "name": "linear"}
@@ -58,15 +58,7 @@ def random_model(kind: str, seed: int = 0, **architecture):
             model = SummedPairwise(trained_like(pair_kind, feature_set, seed=seed))
         else:
             torch.manual_seed(seed)
-            model = make_model(kind, **architecture)
-            g = torch.Generator().manual_seed(seed)
-            with torch.no_grad():
-                for p in model.parameters():
-                    p.add_(0.3 * torch.randn(p.shape, generator=g, dtype=p.dtype))
-                for name, buf in model.named_buffers():
-                    if "." not in name:  # the normalisation buffers, not spectral-norm state
-                        buf.copy_(torch.rand(buf.shape, generator=g, dtype=buf.dtype) + 0.5)
-            model.settle_spectral_norm()
+            model = randomised(make_model(kind, **architecture), seed)
         _MODELS[key] = (model.double() if double else model).eval()
     return _MODELS[key]
 

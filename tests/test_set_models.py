@@ -174,7 +174,12 @@ def random_model(kind, seed, pair_kind="equivariant_general"):
     if kind == "summed_pairwise":
         return SummedPairwise(trained_like(pair_kind, seed=seed)).double().eval()
     torch.manual_seed(seed)
-    model = make_model(kind).double()
+    return randomised(make_model(kind).double(), seed).eval()
+
+
+def randomised(model, seed):
+    """`model` (changed in place) with its weights jittered and a random normalisation, from `seed`; its
+    spectral norms settled."""
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in model.parameters():
@@ -183,7 +188,7 @@ def random_model(kind, seed, pair_kind="equivariant_general"):
             if "." not in name:  # the normalisation buffers, not spectral-norm state
                 buf.copy_(torch.rand(buf.shape, generator=g, dtype=buf.dtype) + 0.5)
     model.settle_spectral_norm()
-    return model.eval()
+    return model
 
 
 def neighbour_batch(rng, B, K, max_tilt=0.5, p_mask=0.7):

@@ -163,9 +163,11 @@ def _swarm_headline(r: dict, link: str) -> str:
         eq, eq_name = best(summary[strongest], _SWARM_EQUIVARIANT)
         plain, plain_name = best(summary[strongest], _SWARM_PLAIN)
         kept = "keep" if eq > plain else "do not keep"
+        crashed = lambda c: pct(summary[strongest][c].get("crash_rate"))  # noqa: E731
         out.append(f"Where the forces are largest (`{strongest}`, |f| {fmt(force[strongest])} m/s^2 against "
                    f"{fmt(force[weakest])} on `{weakest}`), the equivariant models {kept} their advantage: the best, "
-                   f"`{eq_name}`, improves {pct(eq)} against {pct(plain)} for the best plain deep sets, `{plain_name}`.")
+                   f"`{eq_name}`, improves {pct(eq)} ({crashed(eq_name)} of its flights crashed) against {pct(plain)} "
+                   f"for the best plain deep sets, `{plain_name}` ({crashed(plain_name)} crashed).")
     return "\n\n".join(out)
 
 
