@@ -183,7 +183,7 @@ def collect_swarm(
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(manifest_path, manifest)
     neighbours = cfg.neighbours
-    load = _Loader(neighbours, {out: manifest, pair_collection: read_manifest(pair_collection / "manifest.json")},
+    load = _Loader(neighbours, {out: manifest},
                    f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
     stages = []
     for n_vehicles in SWARM_STAGES:
@@ -245,6 +245,8 @@ class _Loader:
         for d in dirs:
             if (d, skip_failed) not in self._cache:
                 root = d.parent.parent  # <collection>/stage<k>/<train|val>
+                if root not in self.manifests:  # the two-vehicle collection's, read when first needed
+                    self.manifests[root] = read_manifest(root / "manifest.json")
                 problems = check_logs(root, self.manifests[root], [d])
                 if problems:
                     raise integrity_error(root, problems, self.rerun)

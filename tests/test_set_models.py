@@ -563,11 +563,11 @@ def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):
     class Flown(Exception):
         pass
 
-    def fly_stage(cfg, sdir, n_vehicles, field, law, predictor, progress):
+    def fly_stage(stage, sdir, n_train, n_val, seconds, *, predictor, **settings):
         deployed.append(predictor)
         raise Flown
 
-    monkeypatch.setattr(sc, "_fly_stage", fly_stage)
+    monkeypatch.setattr(sc, "fly_stage", fly_stage)
     cfg = sc.SwarmCollectionConfig(quick=True, clamp=2.5)
     with pytest.raises(Flown):
         sc.collect_swarm(cfg, tmp_path / "swarm", tmp_path / "pair", pair_path, {}, None, make_aggregation("linear"),
