@@ -120,10 +120,9 @@ class LearnedPredictor:
                         expect_kind: str | None = None, expect_feature_set: str | None = None,
                         **options: Any) -> "LearnedPredictor":
         """A predictor from a checkpoint file (`downwash.checkpoint.save_checkpoint`); expect_kind,
-        expect_feature_set as `load_checkpoint`; options as the constructor's."""
-        checkpoint = load_checkpoint(path, expect_kind=expect_kind, expect_feature_set=expect_feature_set,
-                                     expect_neighbours=options.get("expect_neighbours"),
-                                     expect_aggregation=options.get("expect_aggregation"))
+        expect_feature_set as `load_checkpoint`; options (the neighbour set and law expected among
+        them, checked by the constructor) as the constructor's."""
+        checkpoint = load_checkpoint(path, expect_kind=expect_kind, expect_feature_set=expect_feature_set)
         return cls(checkpoint, clamp, backend, **options)
 
     def compiled(self) -> CompiledPredictor | None:

@@ -17,7 +17,7 @@ from downwash_core.errors import ConfigError
 from downwash.models import PAIRWISE_KINDS
 from downwash.set_models import SET_KINDS
 
-__all__ = ["MODEL_KINDS", "PAIRWISE_KINDS", "SET_KINDS", "register", "trainable_kinds", "make_model", "is_pairwise"]
+__all__ = ["MODEL_KINDS", "PAIRWISE_KINDS", "SET_KINDS", "register", "trainable_kinds", "make_model"]
 
 MODEL_KINDS: dict[str, type[nn.Module]] = {**PAIRWISE_KINDS, **SET_KINDS}
 
@@ -45,13 +45,6 @@ def trainable_kinds() -> tuple[str, ...]:
     return tuple(kind for kind, cls in MODEL_KINDS.items() if cls.trainable)
 
 
-def is_pairwise(kind: str) -> bool:
-    """True for a per-neighbour kind, False for a model of sets; ConfigError for an unknown kind."""
-    if kind not in MODEL_KINDS:
-        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
-    return kind in PAIRWISE_KINDS
-
-
 def make_model(kind: str, feature_set: str | None = None, **architecture: Any) -> nn.Module:
     """A fresh model of a registered kind (float32, initialised from torch's global RNG).
 
@@ -61,7 +54,8 @@ def make_model(kind: str, feature_set: str | None = None, **architecture: Any) -
       trained per-neighbour model or its record). ConfigError naming the allowed kinds or
       feature sets, TypeError naming bad architecture arguments.
     """
-    is_pairwise(kind)  # ConfigError naming the registered kinds
+    if kind not in MODEL_KINDS:
+        raise ConfigError(f"model kind: expected one of {sorted(MODEL_KINDS)}, got {kind!r}")
     cls = MODEL_KINDS[kind]
     if feature_set is not None:
         architecture = {"feature_set": feature_set, **architecture}

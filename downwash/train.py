@@ -247,8 +247,12 @@ def _adam(model: torch.nn.Module, lr: float, weight_decay: float) -> torch.optim
 def predict(model: torch.nn.Module, data: Dataset, batch_size: int = 65536) -> np.ndarray:
     """Model predictions (N, 3) m/s^2, float64 NumPy, for the samples the model is trained on: the
     real pairs of ``data`` for a per-neighbour kind, its targets for a model of sets (sets eval mode)."""
+    return _decoded(model, model.encode_samples(data)[0], batch_size)
+
+
+def _decoded(model: torch.nn.Module, enc: Any, batch_size: int = 65536) -> np.ndarray:
+    """The model's predictions on an encoding, in batches, float64 NumPy (sets eval mode)."""
     model.eval()
-    enc, _ = model.encode_samples(data)
     n = enc.x.shape[0]
     out = np.empty((n, 3))
     with torch.inference_mode():
@@ -262,10 +266,9 @@ def rmse(model: torch.nn.Module, data: Dataset) -> tuple[float, np.ndarray]:
 
     overall = sqrt(mean over samples and the three axes): the training loss's root.
     """
-    _, y = model.encode_samples(data)
-    err = predict(model, data) - y.double().numpy()
+    enc, y = model.encode_samples(data)  # encoded once, for the predictions and their labels
+    err = _decoded(model, enc) - y.double().numpy()
     return float(np.sqrt(np.mean(err**2))), np.sqrt(np.mean(err**2, axis=0))
-
 
 def save_trained(path: str | os.PathLike, model: torch.nn.Module, history: dict[str, Any], train: Dataset) -> dict[str, Any]:
     """Checkpoint a trained model with the training record (without the per-epoch losses), the

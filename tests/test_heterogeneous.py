@@ -25,6 +25,7 @@ from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.presets import make_preset
 from sim.scene import build_scene, check_clearance
 from sim.simulator import SimConfig, Simulator
+from test_fast_path import _assert_same  # tests/ is on sys.path under pytest
 from sim.vehicle_params import KindPairs, VehicleParams, collision_radii, pair_field, scene_field
 from sim.wind import AIRFRAME, DrydenWind
 
@@ -52,18 +53,6 @@ def _fly_both(scene, W, n_ticks, **components):
         assert (sim._plan is not None) == fast, "the fused path was expected to apply"
         out.append(([dict(sim.tick()) for _ in range(n_ticks)], sim))
     return out
-
-
-def _assert_same(fused, readable):
-    (rows_f, sim_f), (rows_r, sim_r) = fused, readable
-    for k, (a, b) in enumerate(zip(rows_f, rows_r)):
-        assert a.keys() == b.keys()
-        for name in a:
-            assert np.array_equal(a[name], b[name], equal_nan=True), (k, name)
-    for name in ("t", "tick_index", "status", "active", "pos_est", "vel_est", "turb", "gust_state", "f_hat"):
-        assert np.array_equal(getattr(sim_f, name), getattr(sim_r, name), equal_nan=True), name
-    assert np.array_equal(sim_f.physics.qpos, sim_r.physics.qpos)
-    assert np.array_equal(sim_f.physics.ctrl, sim_r.physics.ctrl)
 
 
 # ----------------------------------------------------------------------------- the two paths agree
