@@ -123,7 +123,8 @@ class Pairs(NamedTuple):
 
 # the arrays a Dataset holds: name -> trailing shape (K: the neighbour count)
 _ARRAYS: dict[str, tuple[str | int, ...]] = {
-    **{name: SAMPLE_SCHEMA[name][0] for name in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y")},
+    **{name: SAMPLE_SCHEMA[name][0] for name in ("dp", "v_a", "v_b", "R_a", "mask", "kind_a", "kind_b", "neighbour",
+                                                 "vehicle", "y")},
     "flight": (),
     "stage": (),
     "t": (),
@@ -137,7 +138,9 @@ class Dataset:
     """N target samples with their neighbour sets (world frame, SI units).
 
     dp (N, K, 3) m, v_a (N, K, 3) m/s, v_b (N, 3) m/s, R_a (N, K, 3, 3), mask (N, K) bool:
-      model inputs (module doc); neighbour (N, K), vehicle (N,): vehicle indices in the log;
+      model inputs (module doc); kind_a (N, K, D), kind_b (N, D): the neighbour's and target's
+      vehicle kinds (`downwash.features.KIND_FEATURES`; default 0: paper quads);
+      neighbour (N, K), vehicle (N,): vehicle indices in the log;
     y (N, 3) m/s^2: labels; flight (N,), stage (N,): flight id (an index into ``sources``)
       and collection stage; t (N,) s; field_mean (N, 3) m/s^2: the true mean field;
     neighbours: the neighbour set the samples were built with (K = its max_neighbours);
@@ -158,6 +161,8 @@ class Dataset:
     stage: np.ndarray
     t: np.ndarray
     field_mean: np.ndarray
+    kind_a: np.ndarray | None = None
+    kind_b: np.ndarray | None = None
     neighbours: NeighbourSet = PAIR
     sources: tuple[str, ...] = ()
     provenance: dict | None = None
@@ -168,7 +173,10 @@ class Dataset:
         K = self.neighbours.max_neighbours
         n = np.shape(self.y)[0] if np.ndim(self.y) else -1
         for name, trail in _ARRAYS.items():
-            a = np.asarray(getattr(self, name))
+            a = getattr(self, name)
+            if a is None and name in ("kind_a", "kind_b"):  # not given: every vehicle a paper quad
+                a = np.zeros((max(n, 0), *(K if d == "K" else d for d in trail)))
+            a = np.asarray(a)
             if name == "mask":
                 a = a.astype(bool, copy=False)
             elif name in _INTEGER:
@@ -251,12 +259,13 @@ class Dataset:
     @staticmethod
     def from_labels(labels: dict[str, np.ndarray], neighbours: NeighbourSet, flight: int, stage: int,
                     source: str = "", provenance: dict | None = None) -> "Dataset":
-        """One flight's `swarm_labels_from_log` output with the given flight id and stage."""
+        """One flight's `downwash.labels.labels_from_log` output with the given flight id and stage."""
         n = len(labels["y"])
         sources = [""] * (flight + 1)
         sources[flight] = str(source)
         return Dataset(
             **{name: labels[name] for name in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y", "t")},
+            kind_a=labels.get("kind_a"), kind_b=labels.get("kind_b"),
             flight=np.full(n, flight), stage=np.full(n, stage),
             field_mean=labels.get("field_mean", np.full((n, 3), np.nan)), neighbours=neighbours,
             sources=tuple(sources), provenance=provenance,

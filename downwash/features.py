@@ -51,6 +51,7 @@ import numpy as np
 import torch
 
 from downwash_core.geometry import dot
+from downwash_core.vehicles import PAPER_QUAD, get_vehicle
 
 __all__ = [
     "R_EPS",
@@ -69,6 +70,8 @@ __all__ = [
     "assemble",
     "project_onto_basis",
     "model_inputs",
+    "KIND_FEATURES",
+    "kind_descriptors",
 ]
 
 R_EPS = 1e-3  # m, softening of the radial unit vector and of the cosine near the wake axis
@@ -261,3 +264,21 @@ def model_inputs(feature_set: str, dp, v_a, v_b, R_a):
     if feature_set in RAW_FEATURE_SETS:
         return raw_features(dp, v_b), None
     raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {feature_set!r}")
+
+
+# Vehicle kinds as model inputs (Neural-Swarm2's heterogeneous sets): each vehicle's kind as a few
+# scalars. Scalars do not rotate, so a model that appends them to its invariant features stays
+# equivariant. Log-ratios to the paper quad: 0 for the paper quad, so data of paper quads alone
+# carries zeros. Mass sets how hard a vehicle pushes (its thrust) and how little a push moves
+# it; the rotor radius sets its disc area (the wake's speed and width, `downwash_core.vehicles`).
+KIND_FEATURES = ("log_mass", "log_rotor_radius")
+
+
+def kind_descriptors(kinds: Any) -> np.ndarray:
+    """(V, len(KIND_FEATURES)) float64: each vehicle's kind (a `VehicleKind` or a registered name of
+    `downwash_core.vehicles.VEHICLES`) as `KIND_FEATURES`, log-ratios to the paper quad."""
+    out = np.zeros((len(kinds), len(KIND_FEATURES)))
+    for v, kind in enumerate(kinds):
+        q = get_vehicle(kind)  # ConfigError naming the registered kinds
+        out[v] = np.log(q.mass / PAPER_QUAD.mass), np.log(q.rotor_radius / PAPER_QUAD.rotor_radius)
+    return out

@@ -32,6 +32,8 @@ from scipy.signal import savgol_coeffs, savgol_filter
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import quat_to_mat
+from downwash_core.vehicles import DEFAULT_VEHICLE
+from downwash.features import KIND_FEATURES, kind_descriptors
 from sim.logs import FlightLog, load_log
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 
@@ -47,6 +49,7 @@ __all__ = [
     "command_kernel",
     "smooth_command",
     "log_targets",
+    "log_kinds",
     "labels_from_log",
     "label_noise_floor",
     "LABEL_ARRAYS",
@@ -77,6 +80,8 @@ SAMPLE_SCHEMA: dict[str, tuple[tuple[str | int, ...], str]] = {
     "v_b": ((3,), "m/s, target velocity (estimate), world frame"),
     "R_a": (("K", 3, 3), "neighbour body-to-world rotation (motion capture); identity in padding"),
     "mask": (("K",), "True for a real neighbour, False for padding"),
+    "kind_a": (("K", len(KIND_FEATURES)), "the neighbour's vehicle kind (`downwash.features.KIND_FEATURES`); 0 in padding"),
+    "kind_b": ((len(KIND_FEATURES),), "the target's vehicle kind (`downwash.features.KIND_FEATURES`)"),
     "neighbour": (("K",), "vehicle index of each neighbour in the log, -1 in padding"),
     "vehicle": ((), "vehicle index of the target in the log"),
     "y": ((3,), "m/s^2, label f = a - u on the target, world frame"),
@@ -178,6 +183,15 @@ def log_targets(log: FlightLog, targets: Sequence[int] | str | None = None) -> l
     return out
 
 
+def log_kinds(log: FlightLog) -> list[str]:
+    """Each vehicle's kind in a log (``meta['kinds']``; a log without it flew paper quads only)."""
+    V = log.arrays["pos"].shape[1]
+    kinds = list(log.meta.get("kinds") or [DEFAULT_VEHICLE] * V)
+    if len(kinds) != V:
+        raise ConfigError(f"log meta 'kinds': expected {V} vehicle kinds, got {kinds}")
+    return kinds
+
+
 def labels_from_log(
     log: FlightLog,
     neighbours: NeighbourSet = PAIR,
@@ -199,6 +213,8 @@ def labels_from_log(
       v_b (N, 3)         the target's velocity (estimate)
       R_a (N, K, 3, 3)   the neighbour's body-to-world rotation (motion-capture quat_est)
       mask, neighbour (N, K), vehicle (N,)   real slots and vehicle indices in the log
+      kind_a (N, K, D), kind_b (N, D)        the neighbour's and target's kinds (`log_kinds`,
+                                             as `downwash.features.kind_descriptors`)
       y (N, 3) m/s^2     label f = a - u on the target (module doc), world frame
       t, row (N,)        the tick time and row index in the log
       field_mean, field_applied (N, 3) m/s^2   the true field on the target
@@ -232,6 +248,8 @@ def labels_from_log(
     rot = quat_to_mat(arr["quat_est"][rows].astype(np.float64))
     index, mask = select_neighbours(pos, neighbours)  # (R, V, K)
     inputs = gather_neighbours(pos, vel, rot, index, mask)
+    kinds = kind_descriptors(log_kinds(log))  # (V, D)
+    kind_a = np.where(mask[..., None], kinds[np.maximum(index, 0)], 0.0)  # (R, V, K, D)
     parts = []
     for v in targets:  # one vehicle at a time: each target's filter runs over its own column
         acc = follower_acceleration(arr["t"][:end], arr["mocap_pos"][:end, v], window, polyorder)
@@ -239,6 +257,7 @@ def labels_from_log(
         parts.append({
             "dp": inputs["dp"][:, v], "v_a": inputs["v_a"][:, v], "v_b": inputs["v_b"][:, v].astype(np.float64),
             "R_a": inputs["R_a"][:, v], "mask": mask[:, v], "neighbour": index[:, v],
+            "kind_a": kind_a[:, v], "kind_b": np.broadcast_to(kinds[v], (rows.size, kinds.shape[1])),
             "vehicle": np.full(rows.size, v, dtype=np.int64), "y": acc[rows] - u[rows],
             "t": arr["t"][rows].astype(np.float64), "row": rows.astype(np.int64),
             "field_mean": arr["field_mean"][rows, v].astype(np.float64),

@@ -8,6 +8,10 @@ pair (neighbour i, target j != i) of every world the model is evaluated on ``dp 
 neighbours. A pair whose target is not below its neighbour (depth ``s = -(dp . n_i) <= 0``)
 contributes 0: the models are trained on targets below only and have no business
 extrapolating above a wake. A model of sets (`downwash.set_models`) takes the padded set.
+
+A model that reads the vehicle kinds (``kinds=True``) is told each vehicle's kind: the simulator
+binds it to its scene (`LearnedPredictor.for_vehicles`, called by `sim.vehicle_params.scene_predictor`);
+unbound it reads every vehicle as the paper quad.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from downwash_core.geometry import dot
 from downwash_core.state import VehicleStates
 from downwash_core.validate import count
 from downwash.checkpoint import Checkpoint, check_expectations, load_checkpoint, wrap_pairwise
+from downwash.features import kind_descriptors
 from downwash.models import DownwashModel, _SpectralLinear
 from downwash.set_models import SetModel
 from downwash.set_fused import COMPILED_KINDS, pack_model
@@ -68,6 +73,9 @@ class LearnedPredictor:
     neighbours: the neighbour set of a per-neighbour model (a checkpoint brings its own).
     expect_neighbours, expect_aggregation: what the flight needs; a model made for another
       neighbour set or aggregation law raises CheckpointError here, before any flight.
+    vehicle_kinds: each vehicle's kind (`downwash_core.vehicles` names or kinds), for a model that
+      reads them; None: every vehicle a paper quad, or the scene's once the simulator binds it
+      (`for_vehicles`). Ignored by a model that does not read them.
     dtype: the torch backend's precision (default float64: the model is copied and converted).
     num_threads: torch intra-op threads during a torch call (default 1: these small batches
       ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
@@ -78,7 +86,7 @@ class LearnedPredictor:
     def __init__(self, model: DownwashModel | Checkpoint | str | os.PathLike, clamp: float | None = None,
                  backend: str | None = None, *, neighbours: NeighbourSet | None = None,
                  expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
-                 dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
+                 vehicle_kinds: Any = None, dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
         if isinstance(model, (str, os.PathLike)):
             model = load_checkpoint(model, expect_neighbours=expect_neighbours, expect_aggregation=expect_aggregation)
         if isinstance(model, DownwashModel) or (isinstance(model, Checkpoint) and isinstance(model.model, DownwashModel)):
@@ -101,11 +109,16 @@ class LearnedPredictor:
             raise ConfigError(f"clamp: expected None or a finite magnitude > 0 (m/s^2), got {clamp!r}")
         self.clamp = None if clamp is None else float(clamp)
         self.backend = backend
+        reads_kinds = bool(getattr(model.model, "kinds", False))
+        self.vehicle_kinds = None if vehicle_kinds is None or not reads_kinds else tuple(vehicle_kinds)
+        self._kinds = None if self.vehicle_kinds is None else kind_descriptors(self.vehicle_kinds)  # (V, D)
         frozen = copy.deepcopy(model.model).eval()  # eval: the spectral-norm estimates stay as stored
         self._numpy = frozen.numpy_forward() if backend == "numpy" else None
         # the compiled pass's constants (params, iparams): the twin's, packed before the torch copy is converted
         # and folded; the kernel and its C function are looked up by kind (valid in any process, e.g. unpickled)
-        self._abi = pack_model(frozen, model.neighbours, self.clamp)[1][1:] if backend == "compiled" else None
+        self._abi = pack_model(frozen, model.neighbours, self.clamp, self._kinds)[1][1:] if backend == "compiled" else None
+        # what `for_vehicles` rebuilds a kind-reading model from (a copy: the caller's may change)
+        self._checkpoint = Checkpoint(copy.deepcopy(model.model), model.record) if reads_kinds else None
         frozen = _fold_spectral(frozen.to(dtype))
         for p in frozen.parameters():
             p.requires_grad_(False)
@@ -125,20 +138,33 @@ class LearnedPredictor:
         checkpoint = load_checkpoint(path, expect_kind=expect_kind, expect_feature_set=expect_feature_set)
         return cls(checkpoint, clamp, backend, **options)
 
+    def for_vehicles(self, kinds: Any) -> "LearnedPredictor":
+        """This predictor for a scene of these vehicle kinds (V names or kinds): itself for a model that
+        does not read kinds or when they are its own, else a copy that tells the model each kind."""
+        kinds = tuple(getattr(k, "name", k) for k in kinds)
+        if self._checkpoint is None or kinds == self.vehicle_kinds:
+            return self
+        return LearnedPredictor(self._checkpoint, self.clamp, self.backend, vehicle_kinds=kinds,
+                                dtype=next(self.model.parameters()).dtype, num_threads=self.num_threads)
+
     def compiled(self) -> CompiledPredictor | None:
         """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`): one
         per model kind, this model's constants in its params; None for "numpy" and "torch"."""
         return None if self._abi is None else CompiledPredictor(COMPILED_KINDS[self.kind].address, *self._abi)
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": self.kind, "neighbours": self.neighbours.describe(),
-                "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
+        out = {"kind": self.kind, "neighbours": self.neighbours.describe(),
+               "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
+        return out if self.vehicle_kinds is None else {**out, "vehicle_kinds": list(self.vehicle_kinds)}
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
         """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored
         (a learned model only knows the estimates)."""
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
         W, V = pos.shape[:2]
+        if self._kinds is not None and len(self._kinds) != V:
+            raise ConfigError(f"vehicle_kinds: the predictor was given {len(self._kinds)} vehicle kinds, the states "
+                              f"hold {V} vehicles")
         if V < 2:
             return np.zeros((W, V, 3))
         if self._abi is not None:  # selection, model and clamp in one pass
@@ -151,6 +177,9 @@ class LearnedPredictor:
         K = index.shape[-1]
         batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
                  g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
+        if self._kinds is not None:  # each slot's neighbour kind (0 in padding) and the target's
+            kind_a = np.where(mask[..., None], self._kinds[np.maximum(index, 0)], 0.0)
+            batch += (kind_a.reshape(W * V, K, -1), np.broadcast_to(self._kinds, (W, V, self._kinds.shape[1])).reshape(W * V, -1))
         if self._numpy is not None:
             out = self._numpy(*batch).reshape(W, V, 3)
         else:

@@ -24,12 +24,15 @@ travel in ``(params float64, iparams int64)`` (`pack_model`), never as compile-t
 
     params  = [clamp (<= 0: none), radius^2 (inf: none), extra..., w1..., b1..., w2..., b2...]
     iparams = [K, feature code, L, G, n_basis, len(extra), len(w1), len(b1), len(widths1),
-               len(w2), len(b2), len(widths2), widths1..., widths2...]
+               len(w2), len(b2), len(widths2), D, V_kinds, widths1..., widths2...]
 
 with the networks as `downwash.fused.pack_layers` lays them out (net 1: the pair network or
 phi; net 2: rho) and ``extra`` the normalisation (deepsets_equivariant: in_mean, in_std,
 out_scale; deepsets: in_mean, in_std, out_mean, out_std; summed_pairwise: none, folded into
-the layers as for the pair predictor).
+the layers as for the pair predictor), then, for a model that reads the vehicle kinds
+(D = len(`downwash.features.KIND_FEATURES`), else 0), each vehicle's kind (V_kinds, D): the
+scene's (`LearnedPredictor.for_vehicles`), or none (V_kinds = 0: every vehicle a paper quad, 0).
+A table of another vehicle count than the call's gives NaN: a loud flight, never a silent one.
 
 The readable reference is each model's float64 NumPy twin (`SetModel.numpy_forward`,
 `LearnedPredictor(backend="numpy")`). The kernels agree with it to float64 rounding, not bit
@@ -47,7 +50,9 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
+from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
+from downwash.features import KIND_FEATURES
 from downwash.fused import clamped, feature_code, mlp_inplace, pack_layers, pair_force, pair_inputs
 from sim.neighbours import NeighbourSet, select_into
 from sim.predictor import PREDICTOR_SIGNATURE, CompiledPredictor
@@ -64,7 +69,8 @@ __all__ = [
 # iparams header: see the module docstring
 _I_K, _I_CODE, _I_LATENT, _I_VECTORS, _I_BASIS = 0, 1, 2, 3, 4
 _I_EXTRA, _I_W1, _I_B1, _I_L1, _I_W2, _I_B2, _I_L2 = 5, 6, 7, 8, 9, 10, 11
-_N_IHEADER = 12
+_I_KIND_D, _I_KIND_V = 12, 13
+_N_IHEADER = 14
 _P_CLAMP, _P_RADIUS2 = 0, 1  # params header
 _N_FHEADER = 2
 
@@ -90,6 +96,26 @@ def _unpack(params, iparams):
     widths1 = iparams[_N_IHEADER:_N_IHEADER + n_l1]
     widths2 = iparams[_N_IHEADER + n_l1:_N_IHEADER + n_l1 + n_l2]
     return extra, w1, b1, widths1, w2, b2, widths2
+
+
+@njit
+def _kind_table(extra, start, iparams):
+    """(D, kinds (V_kinds, D)): the vehicles' kinds that follow the normalisation at extra[start:]."""
+    D, n = iparams[_I_KIND_D], iparams[_I_KIND_V]
+    return D, extra[start:start + n * D].reshape((n, D))
+
+
+@njit
+def _kinds_into(x, start, D, kinds, i, j, V):
+    """x[start:start + 2 D] = neighbour i's kind, then target j's (0 without a table: paper quads;
+    NaN for a table of another vehicle count than V). False when x holds NaN."""
+    for q in range(D):
+        if kinds.shape[0] == 0:
+            x[start + q], x[start + D + q] = 0.0, 0.0
+        elif kinds.shape[0] == V:
+            x[start + q], x[start + D + q] = kinds[i, q], kinds[j, q]
+        else:
+            x[start + q], x[start + D + q] = np.nan, np.nan
 
 
 @njit
@@ -149,6 +175,7 @@ def deepsets_equivariant_into(pos, vel, rot, params, iparams, out):
     extra, w_phi, b_phi, widths_phi, w_rho, b_rho, widths_rho = _unpack(params, iparams)
     k = widths_phi[0]
     mean, std, scale = extra[:k], extra[k:2 * k], extra[2 * k]
+    D, kinds = _kind_table(extra, 2 * k + 1, iparams)
     width = _max_width(widths_phi, widths_rho)
     x, y = np.empty(width), np.empty(width)
     key, idx = np.empty(max(V - 1, 1)), np.empty(max(V - 1, 1), np.int64)
@@ -176,6 +203,7 @@ def deepsets_equivariant_into(pos, vel, rot, params, iparams, out):
                     basis[s, 2, 0] = ny * rz - nz * ry
                     basis[s, 2, 1] = nz * rx - nx * rz
                     basis[s, 2, 2] = nx * ry - ny * rx
+                _kinds_into(x, k - 2 * D, D, kinds, i, j, V)
                 for q in range(k):
                     x[q] = (x[q] - mean[q]) / std[q]
                 mlp_inplace(x, y, w_phi, b_phi, widths_phi)
@@ -219,6 +247,7 @@ def deepsets_into(pos, vel, rot, params, iparams, out):
     extra, w_phi, b_phi, widths_phi, w_rho, b_rho, widths_rho = _unpack(params, iparams)
     k, L = widths_phi[0], widths_rho[0]
     mean, std, out_mean, out_std = extra[:k], extra[k:2 * k], extra[2 * k:2 * k + 3], extra[2 * k + 3:2 * k + 6]
+    D, kinds = _kind_table(extra, 2 * k + 6, iparams)
     width = _max_width(widths_phi, widths_rho)
     x, y = np.empty(width), np.empty(width)
     key, idx = np.empty(max(V - 1, 1)), np.empty(max(V - 1, 1), np.int64)
@@ -234,6 +263,7 @@ def deepsets_into(pos, vel, rot, params, iparams, out):
                     x[t] = pos[w, j, t] - pos[w, i, t]
                     x[3 + t] = vel[w, i, t]
                     x[6 + t] = vel[w, j, t]
+                _kinds_into(x, 9, D, kinds, i, j, V)
                 for q in range(k):
                     x[q] = (x[q] - mean[q]) / std[q]
                 mlp_inplace(x, y, w_phi, b_phi, widths_phi)
@@ -311,22 +341,27 @@ def _in_out(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np
 
 
 def _abi(K: int, code: int, L: int, G: int, nb: int, neighbours: NeighbourSet, clamp: float | None,
-         extra: np.ndarray, net1: tuple, net2: tuple) -> tuple[np.ndarray, np.ndarray]:
+         extra: np.ndarray, net1: tuple, net2: tuple, kinds: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """kinds: None for a model that reads no kinds (D = 0), else the vehicles' (V_kinds, D) table."""
     (w1, b1, l1), (w2, b2, l2) = net1, net2
+    table = np.zeros((0, 0)) if kinds is None else np.asarray(kinds, dtype=np.float64)
+    D = table.shape[1]
     radius2 = np.inf if neighbours.radius is None else neighbours.radius**2  # as select_neighbours squares it
-    params = np.concatenate([[0.0 if clamp is None else float(clamp), radius2], extra, w1, b1, w2, b2])
-    iparams = np.concatenate([[K, code, L, G, nb, extra.size, w1.size, b1.size, l1.size, w2.size, b2.size, l2.size],
-                              l1, l2])
+    params = np.concatenate([[0.0 if clamp is None else float(clamp), radius2], extra, table.ravel(), w1, b1, w2, b2])
+    iparams = np.concatenate([[K, code, L, G, nb, extra.size + table.size, w1.size, b1.size, l1.size, w2.size,
+                               b2.size, l2.size, D, table.shape[0]], l1, l2])
     return np.ascontiguousarray(params, dtype=np.float64), np.ascontiguousarray(iparams, dtype=np.int64)
 
 
-def pack_model(model: Any, neighbours: NeighbourSet,
-               clamp: float | None = None) -> tuple[KindKernel, CompiledPredictor]:
+def pack_model(model: Any, neighbours: NeighbourSet, clamp: float | None = None,
+               kinds: np.ndarray | None = None) -> tuple[KindKernel, CompiledPredictor]:
     """A model's compiled form: (its kind's `KindKernel`, `CompiledPredictor(address, params,
     iparams)`) with the model's constants as its NumPy twin has them (eval mode, float64).
 
     model: a `downwash.set_models.SetModel` of a kind in `COMPILED_KINDS`, in eval mode;
-    neighbours: its neighbour set; clamp: m/s^2 bound on each vehicle's magnitude, or None.
+    neighbours: its neighbour set; clamp: m/s^2 bound on each vehicle's magnitude, or None;
+    kinds: (V, D) the vehicles' kinds (`downwash.features.kind_descriptors`) for a model that reads
+    them (None: every vehicle a paper quad); a model that does not ignores them.
     KeyError for a kind without a compiled form.
     """
     from downwash.set_models import _numpy_layers  # the twin's own weights
@@ -335,6 +370,15 @@ def pack_model(model: Any, neighbours: NeighbourSet,
     entry = COMPILED_KINDS[kind]
     K = neighbours.max_neighbours
     f64 = lambda t: t.detach().double().numpy().ravel()  # noqa: E731
+    if not getattr(model, "kinds", False):
+        table = None
+    elif kinds is None:
+        table = np.zeros((0, len(KIND_FEATURES)))
+    else:
+        table = np.asarray(kinds, dtype=np.float64)
+        if table.ndim != 2 or table.shape[1] != len(KIND_FEATURES):
+            raise ConfigError(f"kinds: expected (V, {len(KIND_FEATURES)}) vehicle kinds (kind_descriptors), "
+                              f"got shape {table.shape}")
     if kind == "summed_pairwise":
         pair = model.pairwise  # the folded float64 layers of its NumPy twin
         abi = _abi(K, feature_code(pair.feature_set), 0, 0, 0, neighbours, clamp, np.zeros(0),
@@ -342,11 +386,11 @@ def pack_model(model: Any, neighbours: NeighbourSet,
     elif kind == "deepsets_equivariant":
         extra = np.concatenate([f64(model.in_mean), f64(model.in_std), [float(model.out_scale)]])
         abi = _abi(K, feature_code(model.feature_set), model.latent, model.vectors, model.n_basis, neighbours, clamp,
-                   extra, _in_out(_numpy_layers(model.phi)), _in_out(_numpy_layers(model.rho)))
+                   extra, _in_out(_numpy_layers(model.phi)), _in_out(_numpy_layers(model.rho)), table)
     elif kind == "deepsets":
         extra = np.concatenate([f64(model.in_mean), f64(model.in_std), f64(model.out_mean), f64(model.out_std)])
         abi = _abi(K, 0, model.latent, 0, 0, neighbours, clamp, extra, _in_out(_numpy_layers(model.phi)),
-                   _in_out(_numpy_layers(model.rho)))
+                   _in_out(_numpy_layers(model.rho)), table)
     else:  # pragma: no cover - COMPILED_KINDS and this function list the same kinds
         raise KeyError(kind)
     return entry, CompiledPredictor(entry.address, *abi)

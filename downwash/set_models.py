@@ -7,6 +7,8 @@ Every model takes a batch of padded neighbour sets (`downwash.datasets.Dataset`)
     v_b  (B, 3)       m/s   target velocity
     R_a  (B, K, 3, 3) -     neighbour body-to-world rotations
     mask (B, K)       bool  real neighbours (False: padding, ignored whatever it holds)
+    kind_a (B, K, D)  -     the neighbours' vehicle kinds (`downwash.features.KIND_FEATURES`),
+    kind_b (B, D)     -     and the target's; optional, default 0 (paper quads)
     F    (B, 3)       m/s^2 predicted force on the target, world frame
 
 and is invariant to the order of the neighbours (sums over the set) and to padding;
@@ -31,6 +33,13 @@ lists them with the per-neighbour kinds):
 - ``deepsets``: Neural-Swarm2's deep sets on raw world-frame inputs: phi([dp_i, v_i, v_b])
   summed, then rho -> 3 world axes. Not equivariant.
 
+Vehicles of other kinds (``kinds=True``, both deep sets): each neighbour's features also hold
+its kind and the target's (`kind_columns`), as Neural-Swarm2's heterogeneous deep sets tell
+vehicle types apart (they keep an encoder per type; one encoder that reads the kind serves any
+number of kinds, also kinds it interpolates between). The kinds are scalars, which no rotation
+changes, so the equivariant model stays equivariant. A model without them (the default) reads
+every vehicle as the paper quad.
+
 The deep-sets networks are spectrally normalised as the paper's deep baseline
 (`torch.nn.utils.parametrizations.spectral_norm`, largest singular value of each layer
 ``gamma = 2``). Each holds its input normalisation and output scaling as buffers; the
@@ -52,11 +61,11 @@ from torch import nn
 
 from downwash_core.errors import ConfigError
 from downwash_core.validate import count, positive_float
-from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, N_BASIS, depth, model_inputs
+from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEATURES, N_BASIS, depth, model_inputs
 from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters,
                              settle_spectral_norm)
 
-__all__ = ["Encoded", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
+__all__ = ["Encoded", "kind_columns", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
 
 _STD_FLOOR = 1e-6  # a feature or output with a smaller spread is left unscaled
 RAW_SWARM_FEATURES = ("dp_x", "dp_y", "dp_z", "va_x", "va_y", "va_z", "vb_x", "vb_y", "vb_z")
@@ -95,6 +104,18 @@ def _check_shapes(dp, v_a, v_b, R_a, mask) -> None:
     for name, shape in want.items():
         if shapes[name] != shape:
             raise ConfigError(f"{name}: expected {shape} (B, K from dp), got {shapes[name]}")
+
+
+def kind_columns(kind_a: Any, kind_b: Any, B: int, K: int) -> np.ndarray:
+    """(B, K, 2 D) float64: per neighbour slot its kind and the target's (`KIND_FEATURES` each), the
+    columns a kind-aware model appends to its features; None stands for paper quads (0)."""
+    D = len(KIND_FEATURES)
+    a = np.zeros((B, K, D)) if kind_a is None else np.asarray(kind_a, dtype=np.float64)
+    b = np.zeros((B, D)) if kind_b is None else np.asarray(kind_b, dtype=np.float64)
+    if a.shape != (B, K, D) or b.shape != (B, D):
+        raise ConfigError(f"kind_a, kind_b: expected ({B}, {K}, {D}) and ({B}, {D}) (B, K from dp; "
+                          f"D = len(KIND_FEATURES)), got {a.shape} and {b.shape}")
+    return np.concatenate([a, np.broadcast_to(b[:, None, :], (B, K, D))], -1)
 
 
 def _floored_std(a: torch.Tensor) -> torch.Tensor:
@@ -171,6 +192,11 @@ def _numpy_mlp(layers: list[tuple[np.ndarray, np.ndarray]], h: np.ndarray) -> np
     return out.reshape(*lead, -1)
 
 
+def _with_kinds(kinds: bool, x: np.ndarray, kind_a: Any, kind_b: Any) -> np.ndarray:
+    """x (B, K, k) with the kind columns appended for a model that reads the kinds (NumPy twins)."""
+    return np.concatenate([x, kind_columns(kind_a, kind_b, *x.shape[:2])], -1) if kinds else x
+
+
 def _numpy_inputs(dp, v_a, v_b, R_a, mask) -> tuple[np.ndarray, ...]:
     _check_shapes(dp, v_a, v_b, R_a, mask)
     dp, v_a, v_b, R_a = (np.asarray(a, dtype=np.float64) for a in (dp, v_a, v_b, R_a))
@@ -185,6 +211,7 @@ class SetModel(nn.Module):
 
     kind: str = ""
     trainable: bool = True
+    kinds: bool = False  # whether the model reads the vehicle kinds (module doc)
     # Peak learning rates of the trainable kinds were picked on 3-vehicle flight data (four 30 s
     # flights, a hovering leader and two followers on transects 0.5 and 1.0 m below; two more for
     # validation; the TrainConfig defaults): validation RMSE (m/s^2) at lr 2e-3, 5e-3, 1e-2, 3e-2 was
@@ -201,22 +228,26 @@ class SetModel(nn.Module):
         """(x (B, K, k), basis or None) of tensors; v_b is broadcast to (B, K, 3)."""
         raise NotImplementedError
 
-    def encode(self, dp, v_a, v_b, R_a, mask) -> Encoded:
+    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> Encoded:
         """Features, basis and mask of a batch (module doc for the shapes), in the model's dtype."""
         _check_shapes(dp, v_a, v_b, R_a, mask)
         dtype = self.dtype
+        B, K = np.shape(mask)
+        columns = kind_columns(kind_a, kind_b, B, K) if self.kinds else None  # checked before any work
         dp, v_a, v_b, R_a = (_tensor(a, dtype) for a in (dp, v_a, v_b, R_a))
         mask = _tensor(mask, torch.bool)
         x, basis = self._features(dp, v_a, v_b[:, None, :].expand_as(dp), R_a)
+        if columns is not None:
+            x = torch.cat([x, _tensor(columns, dtype)], -1)
         return Encoded(x, basis, mask)
 
     def decode(self, enc: Encoded) -> torch.Tensor:
         """Force on each target (B, 3) m/s^2, world frame."""
         raise NotImplementedError
 
-    def forward(self, dp, v_a, v_b, R_a, mask) -> torch.Tensor:
+    def forward(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> torch.Tensor:
         """Predicted force on each target (B, 3) m/s^2 (see the module doc)."""
-        return self.decode(self.encode(dp, v_a, v_b, R_a, mask))
+        return self.decode(self.encode(dp, v_a, v_b, R_a, mask, kind_a, kind_b))
 
     def fit_normalization(self, enc: Encoded, y: torch.Tensor) -> None:
         """Set the normalisation buffers from training inputs and labels y (B, 3) m/s^2."""
@@ -233,8 +264,8 @@ class SetModel(nn.Module):
         return {"kind": self.kind, "architecture": self.architecture(), "n_parameters": count_parameters(self)}
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        """The model as a float64 NumPy function ``f(dp, v_a, v_b, R_a, mask) -> F (B, 3)`` (the
-        inputs of `forward`): the weights as they are now (eval mode), copied. The predictor's
+        """The model as a float64 NumPy function ``f(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None)
+        -> F (B, 3)`` (the inputs of `forward`): the weights as they are now (eval mode), copied. The predictor's
         default path: a few hundred microseconds less per call than torch's per-operation cost."""
         raise NotImplementedError
 
@@ -249,7 +280,7 @@ class SetModel(nn.Module):
     def encode_samples(self, data: Any) -> tuple[Encoded, torch.Tensor]:
         """(encoding, labels (B, 3)) of the padded neighbour sets of a `Dataset`."""
         with torch.no_grad():
-            enc = self.encode(data.dp, data.v_a, data.v_b, data.R_a, data.mask)
+            enc = self.encode(data.dp, data.v_a, data.v_b, data.R_a, data.mask, data.kind_a, data.kind_b)
         return enc, torch.as_tensor(np.asarray(data.y), dtype=enc.x.dtype)
 
     def fit_samples(self, enc: Encoded, y: torch.Tensor) -> None:
@@ -282,8 +313,8 @@ class SummedPairwise(SetModel):
             raise ConfigError(f"pairwise: expected a DownwashModel or its record, got {type(pairwise).__name__}")
         self.pairwise = pairwise
 
-    def encode(self, dp, v_a, v_b, R_a, mask) -> Encoded:
-        enc = super().encode(dp, v_a, v_b, R_a, mask)
+    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> Encoded:
+        enc = super().encode(dp, v_a, v_b, R_a, mask)  # a per-neighbour model reads no kinds
         below = depth(_tensor(dp, self.dtype), _tensor(R_a, self.dtype)) > 0
         return Encoded(enc.x, enc.basis, enc.mask & below)
 
@@ -297,7 +328,7 @@ class SummedPairwise(SetModel):
     def numpy_forward(self) -> Callable[..., np.ndarray]:
         pairs = self.pairwise.numpy_forward()  # its float64 pair law, depth gate included
 
-        def forward(dp, v_a, v_b, R_a, mask):
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # the kinds: not read
             _check_shapes(dp, v_a, v_b, R_a, mask)
             B, K = np.shape(mask)
             f = pairs(np.reshape(dp, (B * K, 3)), np.reshape(v_a, (B * K, 3)),
@@ -331,8 +362,12 @@ def _rebuild_pairwise(record: dict) -> DownwashModel:
 class _DeepSetsBase(SetModel):
     """Input normalisation (k,) of the per-neighbour features, fitted over real neighbours only."""
 
-    def __init__(self, n_features: int):
+    def __init__(self, n_features: int, kinds: bool = False):
         super().__init__()
+        if not isinstance(kinds, bool):
+            raise ConfigError(f"kinds: expected True or False (whether the model reads the vehicle kinds), got {kinds!r}")
+        self.kinds = kinds
+        n_features += 2 * len(KIND_FEATURES) if kinds else 0
         self.n_features = n_features
         self.register_buffer("in_mean", torch.zeros(n_features))
         self.register_buffer("in_std", torch.ones(n_features))
@@ -365,6 +400,7 @@ class DeepSetsEquivariant(_DeepSetsBase):
     vectors: G, the pooled world-vector channels.
     rho_hidden: rho's hidden widths; rho maps (z_i, S, U . b_i) (2 L + G n_basis) to n_basis.
     gamma: largest singular value of every layer.
+    kinds: read the vehicle kinds (`kind_columns`: 2 D more features per neighbour).
     Buffers: in_mean, in_std (k,) of the features; out_scale (1,) m/s^2, one scalar for
     every output channel (keeps the model equivariant).
     """
@@ -372,11 +408,11 @@ class DeepSetsEquivariant(_DeepSetsBase):
     kind = "deepsets_equivariant"
 
     def __init__(self, feature_set: str = "general", phi_hidden: Sequence[int] = (32, 32), latent: int = 16,
-                 vectors: int = 4, rho_hidden: Sequence[int] = (32, 32), gamma: float = 2.0):
+                 vectors: int = 4, rho_hidden: Sequence[int] = (32, 32), gamma: float = 2.0, kinds: bool = False):
         if feature_set not in EQUIVARIANT_FEATURE_SETS:
             raise ConfigError(f"feature_set: {self.kind!r} accepts {list(EQUIVARIANT_FEATURE_SETS)}, "
                               f"got {feature_set!r}")
-        super().__init__(len(FEATURE_SETS[feature_set]))
+        super().__init__(len(FEATURE_SETS[feature_set]), kinds)
         self.feature_set = feature_set
         self.n_basis = N_BASIS[feature_set]
         self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
@@ -408,11 +444,13 @@ class DeepSetsEquivariant(_DeepSetsBase):
         phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
         mean, std = self.in_mean.double().numpy().copy(), self.in_std.double().numpy().copy()
         scale, L, G, nb, feature_set = float(self.out_scale), self.latent, self.vectors, self.n_basis, self.feature_set
+        kinds = self.kinds
 
-        def forward(dp, v_a, v_b, R_a, mask):  # decode, step for step
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # decode, step for step
             dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
             B, K = mask.shape
             x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
+            x = _with_kinds(kinds, x, kind_a, kind_b)
             m = mask[..., None]
             basis = np.where(m[..., None], basis, 0.0)
             h = np.where(m, _numpy_mlp(phi, np.where(m, (x - mean) / std, 0.0)), 0.0)
@@ -432,7 +470,8 @@ class DeepSetsEquivariant(_DeepSetsBase):
 
     def architecture(self) -> dict[str, Any]:
         return {"feature_set": self.feature_set, "phi_hidden": list(self.phi_hidden), "latent": self.latent,
-                "vectors": self.vectors, "rho_hidden": list(self.rho_hidden), "gamma": self.gamma}
+                "vectors": self.vectors, "rho_hidden": list(self.rho_hidden), "gamma": self.gamma,
+                **({"kinds": True} if self.kinds else {})}  # (a kind-blind model's record as before kinds existed)
 
 
 class DeepSets(_DeepSetsBase):
@@ -446,8 +485,8 @@ class DeepSets(_DeepSetsBase):
     default_lr = 5e-3
 
     def __init__(self, phi_hidden: Sequence[int] = (48, 48), latent: int = 24, rho_hidden: Sequence[int] = (48, 48),
-                 gamma: float = 2.0):
-        super().__init__(len(RAW_SWARM_FEATURES))
+                 gamma: float = 2.0, kinds: bool = False):
+        super().__init__(len(RAW_SWARM_FEATURES), kinds)
         self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
         self.latent = count("latent", latent, 1, MAX_WIDTH)
         self.gamma = positive_float("gamma", gamma, "(largest singular value)")
@@ -469,11 +508,13 @@ class DeepSets(_DeepSetsBase):
         phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
         mean, std, out_mean, out_std = (getattr(self, k).double().numpy().copy()
                                         for k in ("in_mean", "in_std", "out_mean", "out_std"))
+        kinds = self.kinds
 
-        def forward(dp, v_a, v_b, R_a, mask):  # decode, step for step
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # decode, step for step
             dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
             m = mask[..., None]
-            xn = np.where(m, (np.concatenate([dp, v_a, v_b], -1) - mean) / std, 0.0)
+            x = _with_kinds(kinds, np.concatenate([dp, v_a, v_b], -1), kind_a, kind_b)
+            xn = np.where(m, (x - mean) / std, 0.0)
             pooled = np.where(m, _numpy_mlp(phi, xn), 0.0).sum(1)
             out = _numpy_mlp(rho, pooled) * out_std + out_mean
             return np.where(mask.any(1)[:, None], out, 0.0)
@@ -486,7 +527,7 @@ class DeepSets(_DeepSetsBase):
 
     def architecture(self) -> dict[str, Any]:
         return {"phi_hidden": list(self.phi_hidden), "latent": self.latent, "rho_hidden": list(self.rho_hidden),
-                "gamma": self.gamma}
+                "gamma": self.gamma, **({"kinds": True} if self.kinds else {})}
 
 
 # The models of sets; `downwash.registry.MODEL_KINDS` lists them with the per-neighbour kinds.

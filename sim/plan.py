@@ -41,6 +41,7 @@ from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _
 from sim.physics import _SerialPhysics
 from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.rows import _row_layout
+from sim.vehicle_params import told_kinds
 
 
 class _NoPlan(Exception):
@@ -77,7 +78,7 @@ def _make_plan(sim: Any) -> _Plan | None:
     if type(predictor) is ZeroPredictor:
         code = _PRED_ZERO
     elif type(predictor) is PerWorldPredictor:
-        per_world = _per_world_tables(predictor, sim.W)
+        per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params)
         if per_world is None:
             return None
         code = _PRED_PER_WORLD
@@ -87,7 +88,7 @@ def _make_plan(sim: Any) -> _Plan | None:
             return None
         code, oracle_packed = _PRED_ORACLE, packed
     else:
-        compiled = getattr(predictor, "compiled", lambda: None)()
+        compiled = getattr(told_kinds(predictor, sim.vehicle_params), "compiled", lambda: None)()
         if compiled is None:
             return None
         code = _PRED_C
@@ -137,7 +138,7 @@ class _Plan:
             "field_scale": sim.vehicle_params.field_scale, "radius_xy": sim.vehicle_params.collision_xy,
             "radius_z": sim.vehicle_params.collision_z,
         }
-        per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W)
+        per_world = per_world if per_world is not None else _per_world_tables(ZeroPredictor(), W, None)
         keep.update({name: a for name, a in per_world.items() if name.startswith("pw_")})
         self.per_world = per_world  # keeps the worlds' predictors' functions and constants alive
         if compiled is not None:
@@ -221,7 +222,7 @@ def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
     return sizes
 
 
-def _per_world_tables(predictor: Any, W: int) -> dict[str, Any] | None:
+def _per_world_tables(predictor: Any, W: int, vehicles: Any) -> dict[str, Any] | None:
     """The fused kernel's tables for a `PerWorldPredictor` (a `ZeroPredictor`: all worlds zero): per
     world its predictor's code, C function, constants' addresses and oracle field (pw_*), and
     the compiled forms (kept alive); None when one of its predictors has no compiled form."""
@@ -241,7 +242,7 @@ def _per_world_tables(predictor: Any, W: int) -> dict[str, Any] | None:
                 return None
             out["pw_code"][worlds], out["pw_oracle"][worlds] = _PRED_ORACLE, packed
             continue
-        compiled = getattr(p, "compiled", lambda: None)()
+        compiled = getattr(told_kinds(p, vehicles), "compiled", lambda: None)()
         if compiled is None:
             return None
         params = np.ascontiguousarray(compiled.params, dtype=np.float64)

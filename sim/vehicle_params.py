@@ -228,7 +228,9 @@ def scene_field(field: Any, vehicles: VehicleParams) -> Any:
 
 def scene_predictor(predictor: Any, vehicles: VehicleParams) -> Any:
     """The predictor as it runs in this scene: an `OraclePredictor` (also inside a `PerWorldPredictor`)
-    evaluates the scene's pairs as the truth does (`scene_field`); any other predictor as it is."""
+    evaluates the scene's pairs as the truth does (`scene_field`); a predictor with a
+    ``for_vehicles(kinds)`` method (a learned model that reads the vehicle kinds) is told the
+    scene's kinds by name; any other predictor as it is."""
     if type(predictor) is OraclePredictor:
         field = scene_field(predictor.field, vehicles)
         return predictor if field is predictor.field else OraclePredictor(field, predictor.aggregation)
@@ -239,4 +241,11 @@ def scene_predictor(predictor: Any, vehicles: VehicleParams) -> Any:
         out = copy.copy(predictor)
         out.predictors = inner
         return out
-    return predictor
+    return told_kinds(predictor, vehicles)
+
+
+def told_kinds(predictor: Any, vehicles: VehicleParams) -> Any:
+    """``predictor.for_vehicles(the scene's kind names)`` where it has that method (a learned model
+    that reads the vehicle kinds), else the predictor itself."""
+    bind = getattr(predictor, "for_vehicles", None)
+    return bind(list(vehicles.names)) if callable(bind) else predictor
