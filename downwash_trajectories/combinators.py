@@ -9,7 +9,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -71,24 +72,54 @@ class StackedReference:
         if len(set(counts)) != 1:
             raise ConfigError(f"refs: all references must have the same n_worlds, got {counts}")
         self.refs = refs
-        self._into = [getattr(r, "_sample_into", None) for r in refs]
         self.n_worlds = counts[0]
         self.n_vehicles = len(refs)
         self.duration: np.ndarray = np.max(
             [np.broadcast_to(np.asarray(r.duration, dtype=float), (self.n_worlds,)) for r in refs], axis=0
         )
+        self._writers = _writers(refs, self.n_worlds)
 
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)): pos/vel/acc (W, V, 3), yaw/yaw_rate (W, V)."""
         t = sample_times(t, self.n_worlds)
         vec, ang, out = empty_sample(self.n_worlds, self.n_vehicles)
-        for v, (ref, into) in enumerate(zip(self.refs, self._into)):
-            if into is not None:  # our references write their slots directly
-                into(t, vec, ang, v)
-            else:  # any other Reference: sample, then copy
-                for dst, src in zip(out, ref(t)):
-                    dst[:, v] = src
+        for into, slots in self._writers:
+            into(t, vec, ang, slots)
         return out
+
+
+def _writers(refs: list[Reference], n_worlds: int) -> list[tuple[Callable[..., None], Any]]:
+    """(into, slots) pairs: `into(t, vec, ang, slots)` fills those vehicle slots of a stacked sample.
+
+    References of a class with `_group_into` (possibly under one `TimeShifted`) share one `into`
+    per class, with their slots (V_g,): one compiled call for, say, five circles, where one each
+    cost more than the sample. Other references with `_sample_into` fill their own slot v; any
+    other Reference is sampled and copied. The slots are disjoint, so the order does not matter.
+    """
+    groups: dict[type, list[tuple[int, Reference, np.ndarray | None]]] = {}
+    writers: list[tuple[Callable[..., None], Any]] = []
+    for v, ref in enumerate(refs):
+        inner, shift = ref, None
+        if type(ref) is TimeShifted:
+            t0 = np.asarray(ref.t0)
+            if t0.dtype == np.float64 and t0.shape in ((), (n_worlds,)):  # else t + t0 is not plain float64 (W,)
+                inner, shift = ref.ref, np.broadcast_to(t0, (n_worlds,))
+        if hasattr(type(inner), "_group_into"):
+            groups.setdefault(type(inner), []).append((v, inner, shift))
+        elif (into := getattr(ref, "_sample_into", None)) is not None:
+            writers.append((into, v))
+        else:
+            writers.append((functools.partial(_copy_into, ref), v))
+    for cls, members in groups.items():
+        slots, grouped, shifts = zip(*members)
+        writers.append((cls._group_into(list(grouped), list(shifts)), np.array(slots, dtype=np.int64)))
+    return writers
+
+
+def _copy_into(ref: Reference, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    """Sample `ref` at t and copy it into vehicle slot v (a Reference without `_sample_into`)."""
+    for dst, src in zip((vec[0, :, v], vec[1, :, v], vec[2, :, v], ang[0, :, v], ang[1, :, v]), ref(t)):
+        dst[...] = src
 
 
 def stack(refs: Sequence[Reference]) -> StackedReference:

@@ -8,9 +8,10 @@
 - `Line`, `Circle`: a leader that translates at constant speed (the outdoor regime of
   the paper's future work), in a straight line or around a horizontal circle.
 
-Each serves W worlds (each world may have its own parameters) and has a compiled
-`_sample_into` for stacking (see `downwash_trajectories.base`); the tests check every
-derivative against finite differences.
+Each serves W worlds (each world may have its own parameters); all but `Waypoints` and
+`Line` have a compiled `_sample_into` for stacking, and `Circle` a `_group_into` that fills
+all the circles of a stack in one call (see `downwash_trajectories.base`); the tests check
+every derivative against finite differences.
 """
 
 from __future__ import annotations
@@ -89,6 +90,32 @@ def _transect_into(t, omega, base, half_length, vec, ang, v):
         vec[2, w, v, 2] = 0.0
         ang[0, w, v] = 0.0
         ang[1, w, v] = 0.0
+
+
+@njit
+def _circles_into(t, vec, ang, slots, shift, phase, omega, center, radius):
+    """Circle g at t (W,) + shift (W, G) s into vehicle slot slots[g] of vec (3, W, V, 3), ang (2, W, V).
+
+    phase, omega, radius: (W, G); center: (W, G, 3). Element by element, so a circle's sample
+    is the same bits whichever group (or none) it is sampled in.
+    """
+    for w in range(t.shape[0]):
+        for g in range(slots.shape[0]):
+            v = slots[g]
+            r, om = radius[w, g], omega[w, g]
+            th = phase[w, g] + om * (t[w] + shift[w, g])
+            c, s = np.cos(th), np.sin(th)
+            vec[0, w, v, 0] = center[w, g, 0] + r * c
+            vec[0, w, v, 1] = center[w, g, 1] + r * s
+            vec[0, w, v, 2] = center[w, g, 2] + 0.0  # as NumPy's center + [.., .., 0]: -0.0 becomes 0.0
+            vec[1, w, v, 0] = -r * om * s
+            vec[1, w, v, 1] = r * om * c
+            vec[1, w, v, 2] = 0.0
+            vec[2, w, v, 0] = -r * om * om * c
+            vec[2, w, v, 1] = -r * om * om * s
+            vec[2, w, v, 2] = 0.0
+            ang[0, w, v] = 0.0
+            ang[1, w, v] = 0.0
 
 
 # ----------------------------------------------------------------------------- simple references
@@ -517,18 +544,31 @@ class Circle:
         self.speed = np.broadcast_to(v, (w,)).copy()  # (W,) m/s
         self.phase = np.broadcast_to(ph, (w,)).copy()  # (W,) rad
         self._omega = self.speed / self.radius  # (W,) rad/s
+        # _circles_into's arguments as a group of one (shift -0.0: t + -0.0 is t bit for bit, even t = -0.0)
+        self._alone = (np.full((w, 1), -0.0), self.phase[:, None], self._omega[:, None], self.center[:, None],
+                       self.radius[:, None])
         lap = 2.0 * np.pi * self.radius / np.abs(self.speed)
         self.duration: np.ndarray | float = float(lap[0]) if np.ndim(r) == 0 and v.ndim == 0 else lap
 
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
-        t = sample_times(t, self.n_worlds)
-        th = self.phase + self._omega * t
-        c, s = np.cos(th), np.sin(th)
-        r, om = self.radius, self._omega
-        zero = np.zeros(self.n_worlds)
-        pos = self.center + np.stack([r * c, r * s, zero], axis=1)
-        vel = np.stack([-r * om * s, r * om * c, zero], axis=1)
-        acc = np.stack([-r * om * om * c, -r * om * om * s, zero], axis=1)
-        yaw, yaw_rate = zero_yaw(self.n_worlds)
-        return RefSample(pos, vel, acc, yaw, yaw_rate)
+        vec, ang, _ = empty_sample(self.n_worlds, 1)
+        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        return single(vec, ang)
+
+    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+        _circles_into(t, vec, ang, np.array([v]), *self._alone)
+
+    @classmethod
+    def _group_into(cls, circles: list["Circle"], shifts: list[np.ndarray | None]):
+        """`into(t, vec, ang, slots)` that fills vehicle slots (G,) of a stacked sample with several
+        circles, circle g at t + shifts[g] (s, (W,) float; None: at t): one compiled call for them
+        all, not one each (a stack is sampled at every control tick). Reads the circles now."""
+        w = circles[0].n_worlds
+        shift = np.stack([np.full(w, -0.0) if s is None else s for s in shifts], axis=1)  # (W, G) s
+
+        def col(name: str) -> np.ndarray:  # (W, G) or (W, G, 3)
+            return np.stack([getattr(c, name) for c in circles], axis=1)
+
+        args = (shift, col("phase"), col("_omega"), col("center"), col("radius"))
+        return lambda t, vec, ang, slots: _circles_into(t, vec, ang, slots, *args)
