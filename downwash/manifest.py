@@ -25,7 +25,7 @@ from downwash.labels import labels_from_log
 from sim.logs import FlightLog, load_log
 
 __all__ = ["MANIFEST_VERSION", "file_sha256", "log_record", "read_manifest", "verify_collection", "check_logs",
-           "integrity_error", "listed_logs", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
+           "integrity_error", "listed_logs", "stage_folder", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
 
 MANIFEST_VERSION = 3  # 3: every log's digests and sample count, checked before training; 2: provenance, resume
 _CHUNK = 1 << 20  # bytes read at a time when hashing a log
@@ -61,14 +61,21 @@ def log_record(path: Path) -> dict[str, Any]:
             "status": log_.meta.get("status_name"), "message": log_.meta.get("message", "")}
 
 
-def finished_stages(manifest: dict) -> list[tuple[int, dict]]:
-    """(stage, entry) of every stage whose logs the manifest records, in stage order."""
-    return sorted((int(k), e) for k, e in manifest.get("stages", {}).items() if e.get("flights_done"))
+def stage_folder(key: int | str) -> str:
+    """The folder of a manifest's stage: stage<k> for a numbered stage, else its name (e.g. kinds-heavy)."""
+    return f"stage{key}" if str(key).isdigit() else str(key)
+
+
+def finished_stages(manifest: dict) -> list[tuple[int | str, dict]]:
+    """(stage, entry) of every stage whose logs the manifest records: numbered stages in order, then
+    named ones (the swarm's stages of other vehicle kinds) in name order."""
+    done = [(int(k) if k.isdigit() else k, e) for k, e in manifest.get("stages", {}).items() if e.get("flights_done")]
+    return sorted(done, key=lambda ke: (isinstance(ke[0], str), str(ke[0]).zfill(9)))
 
 
 def listed_logs(out: Path, manifest: dict) -> dict[Path, dict]:
     """Every log the manifest records (finished stages), by path, in stage and flight order."""
-    return {out / f"stage{k}" / rel: info for k, entry in finished_stages(manifest)
+    return {out / stage_folder(k) / rel: info for k, entry in finished_stages(manifest)
             for rel, info in sorted(entry.get("files", {}).items())}
 
 
@@ -77,7 +84,7 @@ def check_logs(out: Path, manifest: dict, scope: Sequence[Path] | None = None) -
     stage) that is missing or altered, and every .npz file there that the manifest does not list."""
     listed = listed_logs(out, manifest)
     if scope is None:
-        scope = [out / f"stage{k}" for k, _ in finished_stages(manifest)]
+        scope = [out / stage_folder(k) for k, _ in finished_stages(manifest)]
     problems = []
     for path, info in listed.items():
         if not any(path.is_relative_to(s) for s in scope):
@@ -140,7 +147,7 @@ def collection_logs(collection_dir: str | Path, role: str, manifest: dict | None
     """The logs of a role ("train" or "val") of a collection, per stage, as its manifest lists them (not checked)."""
     out = Path(collection_dir)
     manifest = read_manifest(out / "manifest.json") if manifest is None else manifest
-    return [[out / f"stage{k}" / rel for rel in sorted(e.get("files", {})) if rel.startswith(f"{role}/")]
+    return [[out / stage_folder(k) / rel for rel in sorted(e.get("files", {})) if rel.startswith(f"{role}/")]
             for k, e in finished_stages(manifest)]
 
 
@@ -149,7 +156,7 @@ def collection_digest(collection_dir: str | Path, manifest: dict | None = None) 
     and validation, as the manifest records them. Keys the sweep's cells: other data, other cells."""
     out = Path(collection_dir)
     manifest = read_manifest(out / "manifest.json") if manifest is None else manifest
-    data = {f"stage{k}/{rel}": info["data_sha256"] for k, e in manifest.get("stages", {}).items()
+    data = {f"{stage_folder(k)}/{rel}": info["data_sha256"] for k, e in manifest.get("stages", {}).items()
             for rel, info in e.get("files", {}).items()}
     if not data:
         raise DataError(f"{out / 'manifest.json'}: records no logs; run `{rerun_command(out)}` to collect them")

@@ -48,7 +48,8 @@ class Stage:
     name: its folder within the collection; leader: m, where the leader hovers;
     bands: (min, max) m below the leader, one per follower (top first);
     pattern_seeds: the seed of each follower's patterns; flight_seed: flight i's noise seed
-    is flight_seed + i; meta: recorded in every log's metadata (with "index" and "role").
+    is flight_seed + i; meta: recorded in every log's metadata (with "index" and "role");
+    kinds: each vehicle's kind, leader first (`downwash_core.vehicles`; empty: paper quads).
     """
 
     name: str
@@ -57,11 +58,14 @@ class Stage:
     pattern_seeds: tuple[tuple[int, ...], ...]
     flight_seed: int
     meta: dict[str, Any] = field(default_factory=dict)
+    kinds: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.bands or len(self.bands) != len(self.pattern_seeds):
             raise ValueError(f"Stage {self.name}: one depth band and one pattern seed per follower, got "
                              f"{len(self.bands)} and {len(self.pattern_seeds)}")
+        if self.kinds and len(self.kinds) != self.n_vehicles:
+            raise ValueError(f"Stage {self.name}: {len(self.kinds)} vehicle kinds for {self.n_vehicles} vehicles")
 
     @property
     def n_vehicles(self) -> int:
@@ -79,9 +83,9 @@ class Stage:
         return stack([Hover(leader, n_worlds=len(flights)), *followers])
 
     def scene(self):
-        """A leader over the followers, top first."""
+        """A leader over the followers, top first, each of its kind."""
         return build_scene([(VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER)
-                            for i in range(self.n_vehicles)])
+                            for i in range(self.n_vehicles)], kinds=list(self.kinds) or None)
 
 
 def fly_stage(stage: Stage, sdir: Path, n_train: int, n_val: int, seconds: float, *, field: Any, predictor: Any,

@@ -14,9 +14,17 @@ swarm stages add vehicles deeper in the stack:
 Every follower flies the collection patterns of `downwash_trajectories.collection_reference`
 (passes through and beside the wakes, lemniscates) within its own depth band, so no two
 vehicles ever share a height (the bands are 0.25 m apart: no collision is possible).
-After the last stage, each trainable model of sets (`downwash.set_models`) is trained twice:
-on the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation
-question of the paper's section 6. The "pair" models depend on no law, so they live in
+
+Then the stages of other vehicle kinds (`KIND_STAGES`), flown with no model (there is none
+for these kinds yet, as for the paper's first stage): an X500 over two paper quads, a stack
+of four Crazyflies at their own scale of depths, and Crazyflies over a paper quad. Small
+vehicles fly above large ones, as in the presets (a Crazyflie beneath a paper quad is pushed
+past its thrust margin, `sim.presets`).
+
+After the last stage, each trainable model of sets (`downwash.set_models`) is trained on
+the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation question
+of the paper's section 6, and once more on all of it reading the vehicle kinds ("kinds",
+``kinds=True``), so that "mixed" against "kinds" isolates what knowing the kinds is worth. The "pair" models depend on no law, so they live in
 a folder of their own (`pair_models_dir`) that every law's collection shares. The
 models of sets train on a shorter schedule than the two-vehicle models
 (`swarm_train_config`: at least 600 steps, at most 20 epochs, against 1500 and 60), so
@@ -58,13 +66,20 @@ from downwash.registry import SET_KINDS
 from downwash.train import rmse, save_trained, train_model
 from sim.logs import load_log
 
-__all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "SwarmCollectionConfig", "swarm_train_config",
+__all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "KIND_STAGES", "CRAZYFLIE_BANDS", "SwarmCollectionConfig", "swarm_train_config",
            "swarm_provenance", "pair_models_key", "collect_swarm", "swarm_model_path"]
 
 DEPTH_BANDS = ((0.45, 0.75), (1.0, 1.3), (1.55, 1.85))  # m below the leader, follower k of a swarm stage
 SWARM_STAGES = (3, 4)  # vehicles per swarm stage
 DEPLOYED_SWARM_KIND = "deepsets_equivariant"  # trained after stage 3, flown in stage 4
-DATA_MIXES = ("pair", "mixed")  # the two-vehicle data only, or all of it
+DATA_MIXES = ("pair", "mixed", "kinds")  # the two-vehicle data only, all of it, all of it reading the kinds
+CRAZYFLIE_BANDS = ((0.15, 0.25), (0.32, 0.42), (0.49, 0.59))  # m below the leader: Crazyflies as labs stack them
+# (name, each vehicle's kind leader first, the followers' depth bands): the stages of other kinds
+KIND_STAGES = (
+    ("heavy", ("x500", "paper_quad", "paper_quad"), DEPTH_BANDS[:2]),
+    ("crazyflies", ("crazyflie_2_1",) * 4, CRAZYFLIE_BANDS),
+    ("small_over_large", ("crazyflie_2_1", "crazyflie_2_1", "paper_quad"), (CRAZYFLIE_BANDS[0], DEPTH_BANDS[0])),
+)
 TRAINABLE_SET_KINDS = tuple(k for k, cls in SET_KINDS.items() if cls.trainable)  # the models of sets trained here
 
 
@@ -127,6 +142,7 @@ def swarm_provenance(cfg: SwarmCollectionConfig, law: Any, pair_record: dict) ->
     controller, ...), the aggregation law and the swarm settings."""
     return {"pair": {k: v for k, v in pair_record.items() if k != "code"}, "aggregation": describe(law),
             "swarm": {"stages": list(SWARM_STAGES), "depth_bands": [list(b) for b in DEPTH_BANDS],
+                      "kind_stages": [[name, list(kinds), [list(b) for b in bands]] for name, kinds, bands in KIND_STAGES],
                       "stage_minutes": 0.1 if cfg.quick else cfg.stage_minutes, "seconds": cfg.seconds,
                       "n_train": cfg.n_train, "n_val": cfg.n_val, "neighbours": cfg.neighbours.describe(),
                       "clamp": cfg.clamp, "deployed_kind": DEPLOYED_SWARM_KIND, "seed": cfg.seed,
@@ -143,6 +159,18 @@ def _stage(cfg: SwarmCollectionConfig, n_vehicles: int) -> Stage:
     return Stage(f"stage{n_vehicles}", LEADER_POSITION, DEPTH_BANDS[:n_vehicles - 1],
                  tuple((cfg.seed, 100 + n_vehicles, k) for k in range(1, n_vehicles)),
                  cfg.seed * 100_000 + 10_000 * n_vehicles, {"stage": n_vehicles})
+
+
+def _kind_stages(cfg: SwarmCollectionConfig) -> list[Stage]:
+    """The stages of other vehicle kinds (`KIND_STAGES`), stage ids 10, 11, ... in the logs."""
+    return [Stage(f"kinds-{name}", LEADER_POSITION, bands, tuple((cfg.seed, 200 + i, k) for k in range(1, len(kinds))),
+                  cfg.seed * 100_000 + 50_000 + 1_000 * i, {"stage": 10 + i}, kinds)
+            for i, (name, kinds, bands) in enumerate(KIND_STAGES)]
+
+
+def _swarm_dirs(cfg: SwarmCollectionConfig, out: Path, split: str) -> list[Path]:
+    """The train or val folders of every swarm stage and stage of other kinds."""
+    return [out / f"stage{n}" / split for n in SWARM_STAGES] + [out / st.name / split for st in _kind_stages(cfg)]
 
 
 def _pair_dirs(pair_collection: Path, split: str) -> list[Path]:
@@ -183,17 +211,10 @@ def collect_swarm(
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(manifest_path, manifest)
     neighbours = cfg.neighbours
-    load = _Loader(neighbours, {out: manifest},
-                   f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
-    stages = []
-    for n_vehicles in SWARM_STAGES:
-        sdir = out / f"stage{n_vehicles}"
-        if n_vehicles == SWARM_STAGES[0]:
-            model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
-        else:
-            model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
-        deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
-        stage, entry = _stage(cfg, n_vehicles), manifest["stages"].setdefault(str(n_vehicles), {})
+
+    def fly_recorded(stage: Stage, key: str, deployed: Any) -> None:
+        """Fly the stage's missing flights with `deployed` and record them in the manifest (entry `key`)."""
+        sdir, entry = out / stage.name, manifest["stages"].setdefault(key, {})
         paths = stage.paths(sdir, cfg.n_train, cfg.n_val)
         missing = [p for p in paths if not p.is_file()]
         if missing or not entry.get("flights_done"):
@@ -204,6 +225,17 @@ def collect_swarm(
             else:
                 record_stage(sdir, entry, paths)
             atomic_write_json(manifest_path, manifest)
+
+    load = _Loader(neighbours, {out: manifest},
+                   f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
+    stages = []
+    for n_vehicles in SWARM_STAGES:
+        if n_vehicles == SWARM_STAGES[0]:
+            model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
+        else:
+            model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
+        deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
+        fly_recorded(_stage(cfg, n_vehicles), str(n_vehicles), deployed)
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
             if not path.is_file():
@@ -212,18 +244,21 @@ def collect_swarm(
                 _train(DEPLOYED_SWARM_KIND, data, path, cfg)
         stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
                        "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
+    for stage in _kind_stages(cfg):
+        fly_recorded(stage, stage.name, None)
+        stages.append({"vehicles": stage.n_vehicles, "kinds": list(stage.kinds), "flights": cfg.n_train + cfg.n_val,
+                       "minutes": cfg.n_train * cfg.seconds / 60, "deployed": None})
 
-    train_swarm = [out / f"stage{n}" / "train" for n in SWARM_STAGES]
-    val_swarm = [out / f"stage{n}" / "val" for n in SWARM_STAGES]
     pair_data = load(_pair_dirs(pair_collection, "train"))
-    data = {"pair": pair_data, "mixed": concatenate([pair_data, load(train_swarm, True)])}
-    val = load(val_swarm, True)  # every model is judged on the same many-vehicle validation flights
+    everything = concatenate([pair_data, load(_swarm_dirs(cfg, out, "train"), True)])
+    data = {"pair": pair_data, "mixed": everything, "kinds": everything}
+    val = load(_swarm_dirs(cfg, out, "val"), True)  # every model is judged on the same many-vehicle validation flights
     models = {}
     for kind in TRAINABLE_SET_KINDS:
         for mix in DATA_MIXES:
             path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
             if not path.is_file():
-                _train(kind, data[mix], path, cfg)
+                _train(kind, data[mix], path, cfg, kinds=mix == "kinds")
             model = load_checkpoint(path, expect_kind=kind).model
             models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
     manifest["complete"] = True
@@ -259,6 +294,8 @@ class _Loader:
         return concatenate([self._cache[d, skip_failed] for d in dirs])
 
 
-def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig) -> None:
-    model, history = train_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick))
+def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig, kinds: bool = False) -> None:
+    """Train and save a model of sets (kinds: one that reads the vehicle kinds)."""
+    model, history = train_model(kind, data, None, swarm_train_config(cfg.seed, cfg.quick),
+                                 **({"kinds": True} if kinds else {}))
     save_trained(path, model, history, data)

@@ -8,15 +8,16 @@ aggregation law of the ground truth (`sim.aggregation`: how the wakes of several
 vehicles combine) this experiment
 1. reuses the two-vehicle staged collection and its equivariant model (the main job's);
 2. runs the swarm stages (`downwash.swarm_collection`: stacks of 3, then 4, vehicles,
-   flown with the models so far) and trains the models of sets twice, on the two-vehicle
-   data only ("pair") and on all of it ("mixed");
+   flown with the models so far) and the stages of other vehicle kinds, and trains the models
+   of sets on the two-vehicle data only ("pair"), on all of it ("mixed"), and on all of it
+   reading each vehicle's kind ("kinds");
 3. flies every preset (`sim.presets`) with the conditions on the same seeds, in one
    batch per preset and law: baseline (no model), oracle (the true mean wake, combined
    by the law), summed_pairwise (the paper's two-vehicle equivariant model summed over
    neighbours), and deepsets_equivariant / deepsets from each data mix.
 Metrics are taken over every follower of a flight (`sim.metrics.follower_metrics`). The
 presets of other vehicle kinds (`heavy_over_light`, `crazyflie_stack`, `mixed_formation`)
-ask whether the models, all trained on the paper's vehicle, carry over to other forces;
+ask whether the models carry over to other forces, and what knowing the kinds is worth;
 each preset records how strong its wakes are: the mean magnitude of the true mean field on
 its followers in the baseline flights (`force_mean`, m/s^2).
 Writes `<out>/<preset>/results.json` and a figure per preset, and `<out>/results.json`
@@ -113,7 +114,7 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
             kind, mix = c.rsplit("-", 1)
             out.append(LearnedPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
                                         expect_neighbours=neighbours,
-                                      expect_aggregation=law if mix == "mixed" else None))
+                                        expect_aggregation=None if mix == "pair" else law))
     return out
 
 

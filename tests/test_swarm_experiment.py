@@ -32,7 +32,7 @@ def swarm_run(tmp_path_factory):
 def test_every_preset_law_and_condition_is_reported(swarm_run):
     r = json.loads((swarm_run / "sw" / "results.json").read_text())
     names = ["baseline", "oracle", "summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed",
-             "deepsets-pair", "deepsets-mixed"]
+             "deepsets_equivariant-kinds", "deepsets-pair", "deepsets-mixed", "deepsets-kinds"]
     assert r["conditions"] == names
     assert set(r["summary"]) == {"linear", "velocity"}
     for law in ("linear", "velocity"):
@@ -58,6 +58,25 @@ def test_each_law_has_its_own_collection_and_models_know_it(swarm_run):
         assert mixed.record["aggregation"]["name"] == law  # trained on this law's many-vehicle flights
         pair = load_checkpoint(next(swarm_run.glob("swarm-pair-*/deepsets_equivariant-pair.pt")))
         assert pair.record["aggregation"] is None  # two-vehicle data: every law is the pairwise field
+
+
+def test_the_stages_of_other_kinds_are_flown_and_the_kinds_models_read_them(swarm_run):
+    from downwash.swarm_collection import KIND_STAGES
+    from downwash_core.vehicles import DEFAULT_VEHICLE
+    from sim.logs import load_log
+
+    r = json.loads((swarm_run / "sw" / "results.json").read_text())
+    d = swarm_run / r["laws"]["linear"]["collection_dir"]
+    for name, kinds, _ in KIND_STAGES:
+        logs = sorted((d / f"kinds-{name}" / "train").glob("*.npz"))
+        assert logs, name
+        assert load_log(logs[0]).meta.get("kinds", [DEFAULT_VEHICLE] * len(kinds)) == list(kinds)
+    for kind in ("deepsets_equivariant", "deepsets"):
+        reads = load_checkpoint(d / "models" / f"{kind}-kinds.pt").model
+        blind = load_checkpoint(d / "models" / f"{kind}-mixed.pt").model
+        assert reads.kinds and not blind.kinds
+        # the same data: its kind columns vary (the X500 and the Crazyflies), so their spread was fitted
+        assert (reads.in_std[-4:] != 1.0).all()
 
 
 def test_a_rerun_reuses_the_collections_and_reproduces_the_numbers(swarm_run):

@@ -166,7 +166,9 @@ def render_swarm(r: dict, label: str) -> str:
              "improvement of the followers' mean 3D position error over the baseline, and in brackets the gap to "
              "the oracle (m). `summed_pairwise` is the paper's two-vehicle equivariant model summed over neighbours; "
              "`-pair` models were trained on two-vehicle data only, `-mixed` ones on two-vehicle data plus the swarm "
-             f"stages flown under that law (`{label}`):"]
+             "stages flown under that law" + (" and its stages of other vehicle kinds, `-kinds` ones on the same data "
+                                              "reading each vehicle's kind" if any(c.endswith("-kinds") for c in shown)
+                                              else "") + f" (`{label}`):"]
     verdicts = []
     for law, by_preset in r["summary"].items():
         rows = []
