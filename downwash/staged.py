@@ -67,7 +67,7 @@ from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, li
                                rerun_command, verify_collection)
 from downwash.models import PAIRWISE_KINDS
 from downwash.predictor import LearnedPredictor
-from downwash.stages import ProgressFactory, Stage, accept_reflown, fly_stage, record_stage
+from downwash.stages import ProgressFactory, Stage, fly_recorded
 from downwash.train import TrainConfig, rmse, train_model
 from sim.logs import SCHEMA_VERSION
 from sim.physics import resolve_threads, usable_cores
@@ -172,11 +172,6 @@ def pipeline_dirs(record: dict[str, Any], root: str | Path = "runs/pipeline") ->
     name = field.get("type", "field").rsplit(".", 1)[-1] if isinstance(field, dict) else "field"
     base = Path(root) / f"{name}-{fingerprint(record)}"
     return base / "collection", base / "models"
-
-
-def _stage_paths(sdir: Path, cfg: CollectionConfig) -> list[Path]:
-    """The logs of a stage, in flight order: train/flight_000.npz, ..., then val/."""
-    return _stage(0, cfg, None).paths(sdir, cfg.n_train, cfg.n_val)
 
 
 def _check_stage(k: int, sdir: Path, entry: dict, cfg: CollectionConfig, deployed: Path | None) -> None:
@@ -308,15 +303,10 @@ def _stage(k: int, cfg: CollectionConfig, deployed: Path | None) -> Stage:
                  cfg.seed * 100_000 + 1000 * k, {"stage": k, "deployed_model": str(deployed)})
 
 
-def _fly_stage(k: int, sdir: Path, cfg: CollectionConfig, field: Any, deployed: Path | None,
-               progress: ProgressFactory) -> int:
-    """Fly the stage's missing flights (`downwash.stages.fly_stage`), with the previous stage's model
-    clamped; how many flew."""
-    predictor = (ZeroPredictor() if deployed is None
-                 else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
-    return fly_stage(_stage(k, cfg, deployed), sdir, cfg.n_train, cfg.n_val, cfg.effective_flight_seconds,
-                     field=field, predictor=predictor, batch_flights=cfg.batch_flights, threads=cfg.threads,
-                     progress=progress)
+def _deployed(deployed: Path | None, cfg: CollectionConfig) -> Any:
+    """What a stage flies with: the previous stage's model, clamped (none in the first stage)."""
+    return (ZeroPredictor() if deployed is None
+            else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
 
 
 def collect(
@@ -385,14 +375,12 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         sdir = out / f"stage{k}"
         entry = manifest["stages"].setdefault(str(k), {})
         deployed = None if k == 0 else out / f"stage{k - 1}" / f"{DEPLOYED_KIND}.pt"
-        if not entry.get("flights_done"):
-            run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
-            record_stage(sdir, entry, _stage_paths(sdir, cfg))
-            atomic_write_json(manifest_path, manifest)
-        elif sdir in refly:
-            run["flights"] += _fly_stage(k, sdir, cfg, field, deployed, progress)
-            accept_reflown(sdir, entry, refly[sdir], f"{out} and {models_dir}")
-            atomic_write_json(manifest_path, manifest)
+        if not entry.get("flights_done") or sdir in refly:  # (a done stage's missing logs: refly_missing)
+            run["flights"] += fly_recorded(
+                _stage(k, cfg, deployed), sdir, entry, n_train, n_val, flight_seconds,
+                collection=f"{out} and {models_dir}", save=lambda: atomic_write_json(manifest_path, manifest),
+                field=field, predictor=_deployed(deployed, cfg), batch_flights=cfg.batch_flights, threads=cfg.threads,
+                progress=progress)
         _check_stage(k, sdir, entry, cfg, deployed)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]
         # the stage-k model, deployed in stage k + 1 (the last stage's would be the final model of its kind)

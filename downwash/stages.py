@@ -34,7 +34,7 @@ from sim.logs import save_log
 from sim.scene import build_scene
 from downwash_trajectories import Hover, StackedReference, collection_reference, stack
 
-__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "ProgressFactory"]
+__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "fly_recorded", "ProgressFactory"]
 
 log = logging.getLogger(__name__)
 
@@ -138,3 +138,23 @@ def accept_reflown(sdir: Path, entry: dict, paths: list[Path], collection: str) 
         if new[path]["sha256"] != entry["files"][rel[path]]["sha256"]:
             log.info("%s: re-flown with the same data (its metadata differ: another code version or folder)", path)
         entry["files"][rel[path]] = new[path]
+
+
+def fly_recorded(stage: Stage, sdir: Path, entry: dict, n_train: int, n_val: int, seconds: float, *,
+                 collection: str, save: Callable[[], None], **flight: Any) -> int:
+    """A stage brought up to its manifest entry: the missing flights flown (`fly_stage`, with `flight`:
+    field, predictor, aggregation, batch_flights, threads, progress), then every log recorded
+    (`record_stage`) if the stage was not done, else the re-flown ones accepted against their
+    records (`accept_reflown`; collection: what to delete to collect afresh); `save()` writes the
+    manifest. How many flew (0: nothing was missing)."""
+    paths = stage.paths(sdir, n_train, n_val)
+    missing = [p for p in paths if not p.is_file()]
+    if entry.get("flights_done") and not missing:
+        return 0
+    flown = fly_stage(stage, sdir, n_train, n_val, seconds, **flight)
+    if entry.get("flights_done"):
+        accept_reflown(sdir, entry, missing, collection)
+    else:
+        record_stage(sdir, entry, paths)
+    save()
+    return flown

@@ -56,7 +56,7 @@ from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import describe, differences, fingerprint
 from downwash.manifest import check_logs, integrity_error, listed_logs, read_manifest
 from downwash.staged import STAGES, train_config
-from downwash.stages import ProgressFactory, Stage, accept_reflown, fly_stage, record_stage
+from downwash.stages import ProgressFactory, Stage, fly_recorded
 from downwash.train import TrainConfig
 from downwash.datasets import concatenate, load_dataset
 from sim.neighbours import NeighbourSet
@@ -212,19 +212,12 @@ def collect_swarm(
     atomic_write_json(manifest_path, manifest)
     neighbours = cfg.neighbours
 
-    def fly_recorded(stage: Stage, key: str, deployed: Any) -> None:
-        """Fly the stage's missing flights with `deployed` and record them in the manifest (entry `key`)."""
-        sdir, entry = out / stage.name, manifest["stages"].setdefault(key, {})
-        paths = stage.paths(sdir, cfg.n_train, cfg.n_val)
-        missing = [p for p in paths if not p.is_file()]
-        if missing or not entry.get("flights_done"):
-            fly_stage(stage, sdir, cfg.n_train, cfg.n_val, cfg.seconds, field=field, predictor=deployed,
-                      aggregation=law, batch_flights=cfg.batch_flights, threads=cfg.threads, progress=progress)
-            if entry.get("flights_done"):
-                accept_reflown(sdir, entry, missing, str(out))
-            else:
-                record_stage(sdir, entry, paths)
-            atomic_write_json(manifest_path, manifest)
+    def fly(stage: Stage, key: str, deployed: Any) -> None:
+        """The stage flown with `deployed` where flights are missing, recorded in the manifest's entry `key`."""
+        fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(key, {}), cfg.n_train, cfg.n_val,
+                     cfg.seconds, collection=str(out), save=lambda: atomic_write_json(manifest_path, manifest),
+                     field=field, predictor=deployed, aggregation=law, batch_flights=cfg.batch_flights,
+                     threads=cfg.threads, progress=progress)
 
     load = _Loader(neighbours, {out: manifest},
                    f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
@@ -235,7 +228,7 @@ def collect_swarm(
         else:
             model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
         deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
-        fly_recorded(_stage(cfg, n_vehicles), str(n_vehicles), deployed)
+        fly(_stage(cfg, n_vehicles), str(n_vehicles), deployed)
         if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
             path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
             if not path.is_file():
@@ -245,7 +238,7 @@ def collect_swarm(
         stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
                        "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
     for stage in _kind_stages(cfg):
-        fly_recorded(stage, stage.name, None)
+        fly(stage, stage.name, None)
         stages.append({"vehicles": stage.n_vehicles, "kinds": list(stage.kinds), "flights": cfg.n_train + cfg.n_val,
                        "minutes": cfg.n_train * cfg.seconds / 60, "deployed": None})
 

@@ -553,6 +553,7 @@ def test_the_swarm_predictor_clamps_as_the_pair_predictor(backend):
 
 def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):
     """Its provenance records the clamp, and the deployed predictor applies it (it was never applied)."""
+    import downwash.stages as stages
     import downwash.swarm_collection as sc
     from sim.aggregation import make_aggregation
 
@@ -567,7 +568,7 @@ def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):
         deployed.append(predictor)
         raise Flown
 
-    monkeypatch.setattr(sc, "fly_stage", fly_stage)
+    monkeypatch.setattr(stages, "fly_stage", fly_stage)  # the one stage driver's flights
     cfg = sc.SwarmCollectionConfig(quick=True, clamp=2.5)
     with pytest.raises(Flown):
         sc.collect_swarm(cfg, tmp_path / "swarm", tmp_path / "pair", pair_path, {}, None, make_aggregation("linear"),
