@@ -169,14 +169,24 @@ def _swarm_headline(r: dict, link: str) -> str:
                    f"{fmt(force[weakest])} on `{weakest}`), the equivariant models {kept} their advantage: the best, "
                    f"`{eq_name}`, improves {pct(eq)} ({crashed(eq_name)} of its flights crashed) against {pct(plain)} "
                    f"for the best plain deep sets, `{plain_name}` ({crashed(plain_name)} crashed).")
-        pairs = [(k, summary[strongest].get(f"{k}-mixed", {}).get("improvement_pos_3d"),
-                  summary[strongest].get(f"{k}-kinds", {}).get("improvement_pos_3d"))
-                 for k in ("deepsets_equivariant", "deepsets")]
-        pairs = [(k, m, kk) for k, m, kk in pairs if m is not None and kk is not None]
-        if pairs:
-            out[-1] += " Reading the vehicle kinds, on the same data: " + "; ".join(
-                f"`{k}` {pct(m)} without, {pct(kk)} with" for k, m, kk in pairs) + "."
+        out[-1] += _kinds_effect(summary)
     return "\n\n".join(out)
+
+
+def _kinds_effect(summary: dict) -> str:
+    """What reading the vehicle kinds changes for the equivariant model of sets trained on the same data
+    (`-mixed` against `-kinds`): the presets where it helps most and least."""
+    improvement = lambda e, c: e.get(c, {}).get("improvement_pos_3d")  # noqa: E731
+    change = {p: (improvement(e, "deepsets_equivariant-mixed"), improvement(e, "deepsets_equivariant-kinds"))
+              for p, e in summary.items()}
+    change = {p: (m, k) for p, (m, k) in change.items() if m is not None and k is not None}
+    if not change:
+        return ""
+    most = max(change, key=lambda p: change[p][1] - change[p][0])
+    least = min(change, key=lambda p: change[p][1] - change[p][0])
+    say = lambda p: f"`{p}` ({pct(change[p][0])} without, {pct(change[p][1])} with)"  # noqa: E731
+    return (f" Reading the vehicle kinds, on the same data, helps the equivariant model of sets most on {say(most)};"
+            f" the preset where it does least is {say(least)}.")
 
 
 def _swarm_training(r: dict) -> str:
