@@ -513,6 +513,10 @@ def check_field(field: Any, pos: np.ndarray | None = None, vel: np.ndarray | Non
         pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9]], [[0.1, -0.2, 2.4], [0.25, 0.0, 1.7]]])
         vel = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0], [0.0, 0.5, -0.1]]])
         rot = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
+    from sim.field_memory import check_stateful_field, is_stateful  # (it builds on this module's neighbours)
+
+    if is_stateful(field):  # a field with memory: a few steps of its wake instead of one call
+        return check_stateful_field(field, pos, vel, rot, label, finite)
     if not callable(field):
         raise ConfigError(f"{label}: a field must be callable as field(p_a, v_a, R_a, p_b, v_b), got {type(field).__name__}")
     try:

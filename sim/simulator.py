@@ -22,23 +22,15 @@ any object with its call signature), how several wakes combine (`aggregation`,
 (`sim.predictor`).
 
 Ambient wind (`wind=DrydenWind(...)`; None or an `off` wind leave the loop and its
-logs bit for bit as without it). The air velocity is u_air = mean + gust, ONE gust
-state (3, 2) per world, shared by all its vehicles: the Dryden scale lengths (23 m
-longitudinal and lateral, 3 m vertical at this testbed's altitudes, clamped at 10 ft;
-50-200 m higher up) are far larger than the ~1 m between vehicles, so the gusts they
-feel are one and the same; independent gusts per vehicle would be unphysical. The
-state starts from the stationary distribution and advances on the autopilot grid by
-the exact sampled recursion (`sim.wind`), its time scales set by the airspeed of the
-world's mean vehicle velocity. The wind acts on every vehicle through the airframe
-drag law, `sim.wind.drag_acceleration` with `sim.wind.AIRFRAME` (added to the external
-force), and convects the wakes: the field is evaluated with velocities relative to
-the air, v - u_air, so a wake's axis and skew follow its leader's airspeed, not its
-ground speed. For a uniform wind this is exact Galilean invariance (the wake is a
-property of the air mass: a leader hovering in a wind w sheds the wake of a leader
-flying at -w through still air, and the follower's velocity relative to that air
-sets its response). The oracle predictor gets the same air-relative truth; learned
-predictors see the estimated ground velocities, what a lab measures. Logged rows
-then hold `wind` (the air velocity at each vehicle, m/s) and `wind_acc` (the drag).
+logs bit for bit as without it): u_air = mean + gust, ONE gust state (3, 2) per world,
+shared by its vehicles (the Dryden scale lengths, 3-23 m here, dwarf the ~1 m between
+them; `sim.wind`), advanced on the autopilot grid by the exact sampled recursion. It
+acts on every vehicle through the airframe drag (`sim.wind.drag_acceleration`) and
+convects the wakes: the field sees velocities relative to the air, v - u_air (exact
+Galilean invariance for a uniform wind), as does the oracle; learned predictors see the
+estimated ground velocities. Logged rows then hold `wind` (m/s) and `wind_acc` (the drag).
+A field with memory (`sim.field_memory`) is stepped on the autopilot grid, carried by the
+same air, on the readable path.
 
 Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled
 passes of one autopilot tick, shared by both paths), `sim.fused` (the fused tick: a whole
@@ -72,6 +64,7 @@ from downwash_core.state import VehicleStates
 from downwash_core.status import Status
 from sim import fork_join
 from sim.aggregation import wake_field
+from sim.field_memory import kept_memory, memory_oracle
 from sim.estimation import MocapKalmanFilter
 from sim.field import DownwashField, check_field
 from sim.fused import _FC, _STEP_CALLER, _TAB
@@ -286,6 +279,8 @@ class Simulator:
         self._ap_gain, self._max_thrust = self.vehicle_params.autopilot_tables(self.autopilot)  # (V, 14, 4), (V,) N
         self._scene_field = scene_field(self.field, self.vehicle_params)  # each pair with its kinds
         self._scene_predictor = scene_predictor(self.predictor, self.vehicle_params)
+        self._memory = kept_memory(self.__dict__.get("_memory"), self.field, self.W, self.V, r.autopilot_dt)
+        self._scene_predictor = memory_oracle(self._memory, self.predictor) or self._scene_predictor
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -375,6 +370,8 @@ class Simulator:
         self.turb[worlds] = 0.0
         self.f_hat[worlds] = 0.0
         self.next_prediction[worlds] = 0.0
+        if self._memory is not None:  # the worlds' wakes start empty
+            self._memory.reset(worlds)
         self._cursor_max = int(self._cursor.max())
 
     def _refill(self, w: int) -> None:
@@ -531,13 +528,15 @@ class Simulator:
                 _wind_sense_kernel(self.gust_state, *self._wind_sense_consts, vel, air, vel_air, wind_acc)
                 _wind_advance_kernel(self.gust_state, self._wind_noise, self._cursor, vel, *self._wind_advance_consts)
 
+            # downwash field, applied as an external force until the next autopilot tick (a wake with memory
+            # steps first, carried by the air); before the predictor, whose oracle may read it
+            mean = (wake_field(self._scene_field, pos, vel_air, rot, self.aggregation) if self._memory is None else
+                    self._memory.advance(pos, vel, rot, air.mean(axis=1) if wind else None, self.aggregation))
+
             # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
             if n_due:
                 pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot))
                 _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
-
-            # downwash field, applied as an external force until the next autopilot tick
-            mean = wake_field(self._scene_field, pos, vel_air, rot, self.aggregation)
 
             if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
