@@ -13,7 +13,9 @@ user runs), closed_loop_batched_world_steps_per_s (64 worlds on all cores) and
 batched_over_bare; the same with the oracle predictor under *_oracle; the same
 flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
 passes around Python calls, as before the fused tick) under *_readable, so that one
-run shows what the fused tick gains; the predictor's cost per call, the training
+run shows what the fused tick gains; the same flights in the wake with memory (`--field shed`,
+`sim.fields.shed`, whose state is stepped on the readable path) under *_shed, its cost in the
+loop; the predictor's cost per call, the training
 time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
 and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
 native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
@@ -144,6 +146,7 @@ def run(args: BenchmarkArgs) -> dict:
     from downwash.predictor import LearnedPredictor
     from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
     from sim.predictor import OraclePredictor
+    from sim.fields.registry import make_field
     from sim.presets import make_preset
     from sim.scene import build_scene
 
@@ -162,6 +165,7 @@ def run(args: BenchmarkArgs) -> dict:
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
     five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
+    shed = make_field("shed")  # the wake with memory: the same flights with its state stepped (readable path)
     sets = LearnedPredictor(deepsets_equivariant(), clamp=6.0)
     batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
     flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
@@ -173,6 +177,8 @@ def run(args: BenchmarkArgs) -> dict:
         "closed_loop_serial_steps_per_s_readable": (closed_loop_sim(1, field, learned, fast=False), seconds),
         "closed_loop_batched_world_steps_per_s_readable": (
             closed_loop_sim(worlds, field, learned, fast=False), batched_seconds),
+        "closed_loop_serial_steps_per_s_shed": (closed_loop_sim(1, shed, learned), seconds),
+        "closed_loop_batched_world_steps_per_s_shed": (closed_loop_sim(worlds, shed, learned), batched_seconds),
         "formation5_serial_world_steps_per_s": (closed_loop_sim(1, field, sets, preset=five), seconds),
         "formation5_batched_world_steps_per_s": (closed_loop_sim(worlds, field, sets, preset=five), batched_seconds),
         "formation5_serial_world_steps_per_s_summed": (closed_loop_sim(1, field, learned, preset=five), seconds),
@@ -202,7 +208,7 @@ def run(args: BenchmarkArgs) -> dict:
     for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
         r[key] /= per_env_step
     ratio = {key: float(np.median(v)) for key, v in ratios.items()}
-    for suffix in ("", "_oracle", "_readable"):
+    for suffix in ("", "_oracle", "_readable", "_shed"):
         r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
         r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
     for suffix in ("", "_oracle"):

@@ -47,7 +47,7 @@ A = TypeVar("A")
 CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant",
               "equivariant_general")  # downwash.conditions.CONDITIONS
 PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")  # downwash.models.PAIRWISE_KINDS
-FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum")  # sim.fields.registry.FIELDS
+FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS
 AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS

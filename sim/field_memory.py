@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from downwash_core.errors import ConfigError
+from downwash_core.vehicles import DEFAULT_VEHICLE
 from sim.aggregation import LinearSuperposition
 from sim.predictor import OraclePredictor
 
@@ -47,11 +48,17 @@ def _arrays(state: Any) -> dict[str, np.ndarray]:
 
 
 class FieldMemory:
-    """A stateful field's wake over W worlds of V vehicles, stepped every dt (s)."""
+    """A stateful field's wake over W worlds of V vehicles, stepped every dt (s).
 
-    def __init__(self, field: Any, W: int, V: int, dt: float):
-        self.field, self.W, self.V, self.dt = field, W, V, float(dt)
-        self.state = field.initial_state(W, V)
+    source: the field the simulator flies; kinds: each vehicle's kind name, given to a field with
+    ``for_vehicles(kinds)`` unless every vehicle is the paper quad (`field`: the field so bound)."""
+
+    def __init__(self, source: Any, W: int, V: int, dt: float, kinds: Any = ()):
+        bind = getattr(source, "for_vehicles", None)
+        mixed = any(k != DEFAULT_VEHICLE for k in kinds)
+        self.source, self.field = source, bind(list(kinds)) if mixed and callable(bind) else source
+        self.W, self.V, self.dt = W, V, float(dt)
+        self.state = self.field.initial_state(W, V)
         self.last = np.zeros((W, V, 3))  # m/s^2, the mean of the latest `advance` (what an oracle reads)
 
     def reset(self, worlds: np.ndarray) -> None:
@@ -62,13 +69,14 @@ class FieldMemory:
                 a[worlds] = fresh[name][worlds]
         self.last[worlds] = 0.0
 
-    def advance(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, wind: np.ndarray | None,
-                law: Any = None) -> np.ndarray:
-        """Step the wake by dt with the vehicles' true states (pos, vel (W, V, 3), rot (W, V, 3, 3)) and the
-        air velocity of each world (wind (W, 3) m/s or None), then the force on every vehicle (W, V, 3),
-        combined by `law` (None: linear superposition)."""
+    def advance(self, pos: np.ndarray, vel: np.ndarray, vel_air: np.ndarray, rot: np.ndarray,
+                wind: np.ndarray | None, law: Any = None) -> np.ndarray:
+        """Step the wake by dt with the vehicles' true states (pos, vel (W, V, 3) over the ground, rot
+        (W, V, 3, 3)) and each world's air velocity (wind (W, 3) m/s or None), then the force on every
+        vehicle (W, V, 3) from the wake, at its velocity relative to the air (vel_air), combined by
+        `law` (None: linear superposition)."""
         self.field.step(self.state, self.dt, pos, vel, rot, wind=wind)
-        forces = np.asarray(self.field.forces(self.state, pos, vel, rot))
+        forces = np.asarray(self.field.forces(self.state, pos, vel_air, rot))
         if law is None or isinstance(law, LinearSuperposition):
             out = forces.sum(axis=1)
         else:
@@ -87,15 +95,16 @@ class MemoryOracle:
         return self.memory.last.copy()
 
     def describe(self) -> dict[str, Any]:
-        return {"type": "oracle", "field": getattr(self.memory.field, "describe", lambda: {})()}
+        return {"type": "oracle", "field": getattr(self.memory.source, "describe", lambda: {})()}
 
 
-def kept_memory(memory: FieldMemory | None, field: Any, W: int, V: int, dt: float) -> FieldMemory | None:
+def kept_memory(memory: FieldMemory | None, field: Any, W: int, V: int, dt: float,
+                kinds: Any = ()) -> FieldMemory | None:
     """A simulator's memory for `field`: the one it has while the field is the same (the wake lives on
     when other components change), a fresh one for a new stateful field, None for a field without memory."""
-    if memory is not None and memory.field is field:
+    if memory is not None and memory.source is field:
         return memory
-    return FieldMemory(field, W, V, dt) if is_stateful(field) else None
+    return FieldMemory(field, W, V, dt, kinds) if is_stateful(field) else None
 
 
 def memory_oracle(memory: FieldMemory | None, predictor: Any) -> MemoryOracle | None:
@@ -103,7 +112,7 @@ def memory_oracle(memory: FieldMemory | None, predictor: Any) -> MemoryOracle | 
     ConfigError for the oracle of a field with memory that the simulator does not fly: no one steps its wake."""
     if type(predictor) is not OraclePredictor:
         return None
-    if memory is not None and predictor.field is memory.field:
+    if memory is not None and predictor.field is memory.source:
         return MemoryOracle(memory, predictor.aggregation)
     if is_stateful(predictor.field):
         raise ConfigError(f"predictor: an OraclePredictor of the field with memory {type(predictor.field).__name__} "
@@ -119,7 +128,7 @@ def check_stateful_field(field: Any, pos: np.ndarray, vel: np.ndarray, rot: np.n
     try:
         memory = FieldMemory(field, W, V, 0.01)
         for _ in range(5):
-            out = memory.advance(pos, vel, rot, None)
+            out = memory.advance(pos, vel, vel, rot, None)
         forces = np.asarray(field.forces(memory.state, pos, vel, rot))
     except (TypeError, ValueError, IndexError, AttributeError) as e:
         raise ConfigError(f"{label}: a field with memory must offer initial_state(W, V), step(state, dt, pos, vel, "

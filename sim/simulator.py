@@ -279,7 +279,8 @@ class Simulator:
         self._ap_gain, self._max_thrust = self.vehicle_params.autopilot_tables(self.autopilot)  # (V, 14, 4), (V,) N
         self._scene_field = scene_field(self.field, self.vehicle_params)  # each pair with its kinds
         self._scene_predictor = scene_predictor(self.predictor, self.vehicle_params)
-        self._memory = kept_memory(self.__dict__.get("_memory"), self.field, self.W, self.V, r.autopilot_dt)
+        self._memory = kept_memory(self.__dict__.get("_memory"), self.field, self.W, self.V, r.autopilot_dt,
+                                   self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self.predictor) or self._scene_predictor
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
@@ -531,7 +532,7 @@ class Simulator:
             # downwash field, applied as an external force until the next autopilot tick (a wake with memory
             # steps first, carried by the air); before the predictor, whose oracle may read it
             mean = (wake_field(self._scene_field, pos, vel_air, rot, self.aggregation) if self._memory is None else
-                    self._memory.advance(pos, vel, rot, air.mean(axis=1) if wind else None, self.aggregation))
+                    self._memory.advance(pos, vel, vel_air, rot, air.mean(axis=1) if wind else None, self.aggregation))
 
             # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
             if n_due:

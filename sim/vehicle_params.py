@@ -49,6 +49,7 @@ from downwash_core.vehicles import (VEHICLES, VehicleKind, airframe_area_scale, 
                                     momentum_wake_kwargs, size_scale, so2_pair_scale)
 from sim.field import DownwashField, _checked_states, _off_diagonal, _pair_forces_kernel, _pairwise_kernel
 from sim.fields.momentum import MomentumWake
+from sim.field_memory import is_stateful
 from sim.predictor import OraclePredictor, PerWorldPredictor
 from sim.wind import AIRFRAME
 
@@ -218,8 +219,10 @@ class KindPairs:
 
 
 def scene_field(field: Any, vehicles: VehicleParams) -> Any:
-    """`field` itself when every pair of the scene flies it as given (a scene of paper quads), else
-    its `KindPairs`."""
+    """`field` itself when every pair of the scene flies it as given (a scene of paper quads) or when it
+    has memory (it takes the kinds itself, `sim.field_memory`), else its `KindPairs`."""
+    if is_stateful(field):
+        return field
     quads = list(dict.fromkeys(vehicles.quads))  # the distinct kinds in scene order
     if all(pair_field(field, a, b) is field for a in quads for b in quads):
         return field

@@ -142,9 +142,46 @@ def test_the_memory_combines_by_the_aggregation_law():
     W, V = 1, 3
     pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9], [0.0, 0.0, 1.3]]])
     vel, rot = np.zeros((W, V, 3)), np.broadcast_to(np.eye(3), (W, V, 3, 3)).copy()
-    linear = FieldMemory(GrowingPush(), W, V, 0.01).advance(pos, vel, rot, None)
+    linear = FieldMemory(GrowingPush(), W, V, 0.01).advance(pos, vel, vel, rot, None)
     np.testing.assert_allclose(linear[..., 2], -2 * 0.5 * 0.01)  # two other vehicles, each 0.005
     law = make_aggregation("velocity")
-    combined = FieldMemory(GrowingPush(), W, V, 0.01).advance(pos, vel, rot, None, law)
+    combined = FieldMemory(GrowingPush(), W, V, 0.01).advance(pos, vel, vel, rot, None, law)
     forces = GrowingPush().forces(_Age(np.full(W, 0.01), np.ones(W, np.int64)), pos, vel, rot)
     np.testing.assert_array_equal(combined, law.combine(forces, pos, rot))
+
+
+# ----------------------------------------------------------------------------- the shed wake in the loop
+
+
+def _hover_pair(W: int, kinds=None):
+    scene = build_scene(kinds=kinds)
+    ref = stack([Hover(LEADER, n_worlds=W), Hover(LEADER - [0, 0, 0.6], n_worlds=W)])
+    return scene, ref
+
+
+def test_the_shed_wake_reaches_the_follower_late_then_pushes_as_the_momentum_jet():
+    from downwash_core.geometry import quat_to_mat
+    from sim.fields.momentum import MomentumWake
+    from sim.fields.registry import make_field
+
+    scene, ref = _hover_pair(2)
+    sim = Simulator(scene, ref, [0, 1], field=make_field("shed"))
+    rows = [sim.tick() for _ in range(60)]  # 1.2 s: past the wake's age at 0.6 m
+    first = rows[0]["field_mean"][:, 1, 2]
+    assert np.all(first == 0.0)  # at t = 0 nothing has been shed yet: the wake has memory
+    arrived = next(k for k, r in enumerate(rows) if np.all(r["field_mean"][:, 1, 2] < -1.0))
+    assert 1 <= arrived <= 6  # about 0.06 s to travel 0.6 m at half the jet's speed, ticks of 0.02 s
+    last = rows[-1]
+    pos, vel, rot = last["pos"], last["vel"], quat_to_mat(last["quat"])
+    steady = MomentumWake()(pos[:, 0], vel[:, 0], rot[:, 0], pos[:, 1], vel[:, 1])
+    np.testing.assert_allclose(last["field_mean"][:, 1], steady, rtol=0.05, atol=0.05)
+
+
+def test_the_shed_wake_takes_the_scenes_kinds():
+    scene, ref = _hover_pair(1, kinds=["x500", "paper_quad"])
+    from sim.fields.shed import ShedWake
+
+    field = ShedWake()
+    sim = Simulator(scene, ref, [0], field=field)
+    sim.tick()
+    assert sim._memory.source is field and sim._memory.field.vehicles == ("x500", "paper_quad")

@@ -291,21 +291,42 @@ class MomentumWake:
         r2 = _dot(r_vec, r_vec)
         T = self.leader_thrust(R_a) if thrust is None else np.asarray(thrust, dtype=np.float64)
         shape = np.broadcast_shapes(s.shape, v_b.shape[:-1], v_a.shape[:-1], np.shape(T))  # as DownwashField
-        out = np.zeros(shape + (3,))
+        ring_speed = air = None
         if self.rotors:
             # rotors on a ring of radius a about the follower: r_k^2 = r^2 + a^2 + 2 r a cos(phi_k)
             a = float(self.follower_arm)
             r = np.sqrt(r2)[..., None]
             rk2 = np.maximum(r * r + a * a + (2.0 * a) * r * self._ring_cos, 0.0)  # (..., K)
-            U_k, _ = self._velocity(s[..., None], rk2, np.asarray(T)[..., None])
+            ring_speed, _ = self._velocity(s[..., None], rk2, np.asarray(T)[..., None])
+        if self.drag:
+            axial, radial_over_r = self._velocity(s, r2, T)
+            air = radial_over_r[..., None] * r_vec - axial[..., None] * n
+        return np.zeros(shape + (3,)) + self.follower_response(n, v_b, ring_speed, air)
+
+    def follower_response(self, n: np.ndarray, v_b: np.ndarray, ring_speed: Any = None, air: Any = None) -> np.ndarray:
+        """The follower's rotors and airframe in a given air velocity: the wake's share (minus still air).
+
+        Args:
+            n: (..., 3) -, world frame, unit: the follower's thrust axis (along which its rotors push).
+            v_b: (..., 3) m/s, world frame: the follower's velocity relative to the ambient air.
+            ring_speed: (..., K) m/s, the air's speed down through each rotor of the ring of
+                `ring_points` rotors at `follower_arm`, along -n (needed when `rotors`).
+            air: (..., 3) m/s, world frame: the wake's air velocity at the follower's centre
+                (needed when `drag`).
+
+        Returns:
+            (..., 3) m/s^2, world frame: g (mean_k tau(c_k) - tau(c_0)) n, c_k = (ring_speed_k + v_b.n) / v_hf
+            (`rotor_thrust_ratio`), plus drag_acceleration(air, v_b) - drag_acceleration(0, v_b).
+        """
+        out = np.zeros(np.broadcast_shapes(np.shape(n), np.shape(v_b)))
+        if self.rotors:
             climb = _dot(v_b, n)  # m/s, the follower's own climb rate along n
             c0 = climb / self._vh_follower
-            c_k = (U_k + climb[..., None]) / self._vh_follower
+            c_k = (ring_speed + climb[..., None]) / self._vh_follower
             d_tau = rotor_thrust_ratio(c_k).mean(axis=-1) - rotor_thrust_ratio(c0)
             out = out + (GRAVITY * d_tau)[..., None] * n  # T_h / m = g
         if self.drag:
-            axial, radial_over_r = self._velocity(s, r2, T)
-            u = radial_over_r[..., None] * r_vec - axial[..., None] * n
             # the wake's share: the drag in the wake minus the drag in still air
-            out = out + (drag_acceleration(u, v_b, *self._drag_law) - drag_acceleration(_STILL_AIR, v_b, *self._drag_law))
+            in_wake = drag_acceleration(air, v_b, *self._drag_law)
+            out = out + (in_wake - drag_acceleration(_STILL_AIR, v_b, *self._drag_law))
         return out

@@ -37,6 +37,7 @@ from typing import Any, Callable, Mapping
 from downwash_core.errors import ConfigError
 from sim.field import DownwashField
 from sim.fields.momentum import MomentumWake
+from sim.fields.shed import ShedWake
 
 __all__ = ["FieldEntry", "FIELDS", "DEFAULT_FIELD", "register_field", "make_field", "parse_field_spec",
            "resolve_field_spec", "field_parameters"]
@@ -217,7 +218,21 @@ register_field(
     "so2 with the wake trailing a laterally moving leader, skew 0.35 s/m",
     "SO(2) about the leader axis only while the leader does not move sideways; translation",
     _SO2_PARAMS, {"skew": 0.35})
+_SHED_OWN = {"rate_hz": float, "max_age": float, "convection": float}
+
+
+def _shed_wake(**params: Any) -> ShedWake:
+    """`ShedWake` with its own constants, the others those of its momentum jet."""
+    own = {k: params.pop(k) for k in list(params) if k in _SHED_OWN}
+    return ShedWake(law=MomentumWake(**params), **own)
+
+
 register_field(
     "momentum", MomentumWake,
     "physics wake: momentum-theory jet (Pope/Hussein constants), acting on the follower's rotors and airframe",
     _SO2_SYMMETRY, field_parameters(MomentumWake))
+register_field(
+    "shed", _shed_wake,
+    "a wake with memory: the momentum jet shed by the rotors, carried down by its own speed and the wind",
+    "as momentum below a leader hovering in still air; none once its wake trails (it moves, tilts or the wind blows)",
+    {**field_parameters(MomentumWake), **_SHED_OWN})
