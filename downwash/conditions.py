@@ -7,7 +7,8 @@ the field being off).
     no_downwash   the field is off: the controller's own tracking error
     baseline      the LQR with no model (the paper's baseline)
     oracle        the LQR compensating with the true mean field (the best any model can do)
-    <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`)
+    <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`);
+                  <model kind>-<data>: the same kind trained on other data (`experiments.outdoor`)
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> 
         return ZeroPredictor()
     if condition == "oracle":
         return OraclePredictor(field)
-    return LearnedPredictor.from_checkpoint(checkpoints[condition], expect_kind=condition)
+    # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor)
+    return LearnedPredictor.from_checkpoint(checkpoints[condition], expect_kind=condition.partition("-")[0])
 
 
 def fly_conditions(

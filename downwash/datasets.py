@@ -85,13 +85,33 @@ def log_provenance(meta: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
-def merge_provenance(records: Sequence[dict | None], names: Sequence[str] = ()) -> dict | None:
+def _mixed_values(records: Sequence[dict | None], key: str) -> dict[str, list]:
+    """{"mixed": the distinct values of `key` over the records, in first-seen order} (a mixed entry's
+    values are taken as they are)."""
+    values: list = []
+    for r in records:
+        v = r.get(key) if isinstance(r, dict) else None
+        for item in (v["mixed"] if isinstance(v, dict) and set(v) == {"mixed"} else [v]):
+            if item not in values:
+                values.append(item)
+    return {"mixed": values}
+
+
+def merge_provenance(records: Sequence[dict | None], names: Sequence[str] = (), mixed: Sequence[str] = ()) -> dict | None:
     """The provenance of data sets joined together; DataError naming the differences.
 
     Records must be equal, except that an aggregation law of None (two-vehicle data) joins
-    any one law. names: where each record comes from, for the message.
+    any one law, and that the entries named in `mixed` (e.g. "wind": indoor and outdoor flights
+    trained on together, on purpose) may differ: the result lists their values as
+    ``{"mixed": [...]}``, and such an entry joins any other. names: where each record comes
+    from, for the message.
     """
     records = list(records)
+    mixed = set(mixed) | {k for r in records if isinstance(r, dict) for k, v in r.items()
+                          if isinstance(v, dict) and set(v) == {"mixed"}}
+    if mixed and all(isinstance(r, dict) for r in records):
+        merged = {k: _mixed_values(records, k) for k in mixed}
+        records = [{**r, **merged} for r in records]
     laws = [r.get("aggregation") for r in records if isinstance(r, dict)]
     law = next((a for a in laws if a is not None), None)
     strip = lambda r: {k: v for k, v in r.items() if k != "aggregation"} if isinstance(r, dict) else r  # noqa: E731
@@ -272,18 +292,19 @@ class Dataset:
         )  # fmt: skip
 
 
-def concatenate(datasets: Sequence[Dataset]) -> Dataset:
+def concatenate(datasets: Sequence[Dataset], mixed: Sequence[str] = ()) -> Dataset:
     """One data set from several of one neighbour set and provenance; flight ids stay distinct.
 
     DataError naming the differences when the neighbour sets or the provenance differ
-    (`merge_provenance`: two-vehicle data joins data of any one aggregation law).
+    (`merge_provenance`: two-vehicle data joins data of any one aggregation law; the provenance
+    entries named in `mixed`, e.g. "wind", may differ and are listed).
     """
     datasets = list(datasets)
     if not datasets:
         raise ValueError("concatenate: need at least one Dataset")
     first = datasets[0]
     names = [next((s for s in ds.sources if s), "") for ds in datasets]
-    provenance = merge_provenance([ds.provenance for ds in datasets], names)
+    provenance = merge_provenance([ds.provenance for ds in datasets], names, mixed)
     parts: dict[str, list[np.ndarray]] = {name: [] for name in _ARRAYS}
     sources: list[str] = []
     for ds, where in zip(datasets, names):

@@ -8,7 +8,10 @@ share a height. The pair's stages (`downwash.staged`) have one follower; the swa
 ``n_val`` validation flights; flight i flies the noise seed ``flight_seed + i`` and each
 follower's patterns from ``default_rng([*pattern_seed, i])``, so a flight never depends on
 which others share its batch and a collection resumes flight by flight (`fly_stage` flies
-only the missing logs). What a stage flies with, the deployed model and its clamp, is the
+only the missing logs). An outdoor stage (`leader_speeds`, `wind`) moves the leader instead:
+flight i flies a straight line (even i) or a horizontal circle (odd i) at a speed drawn from
+``default_rng([*pattern_seeds[0], 1_000_000 + i])`` in `leader_speeds`, through the stage's
+wind, and each follower flies its patterns relative to the moving leader (`Relative`). What a stage flies with, the deployed model and its clamp, is the
 predictor handed to `fly_stage`.
 
 As the stage's flights are done, `record_stage` writes every log's digests, rows, labelled
@@ -28,13 +31,16 @@ import numpy as np
 
 from downwash_core.errors import DataError
 from downwash_core.roles import VEHICLE_NAMES, Role
-from downwash.manifest import log_record
+from downwash.datasets import concatenate, load_dataset
+from downwash.manifest import check_logs, integrity_error, listed_logs, log_record, read_manifest
 from sim.flight import fly
-from sim.logs import save_log
+from sim.logs import load_log, save_log
+from sim.neighbours import NeighbourSet
 from sim.scene import build_scene
-from downwash_trajectories import Hover, StackedReference, collection_reference, stack
+from downwash_trajectories import (Circle, Hover, Line, Mixed, Relative, StackedReference, collection_reference,
+                                   stack)
 
-__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "fly_recorded", "ProgressFactory"]
+__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "fly_recorded", "CheckedLoader", "ProgressFactory"]
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +55,9 @@ class Stage:
     bands: (min, max) m below the leader, one per follower (top first);
     pattern_seeds: the seed of each follower's patterns; flight_seed: flight i's noise seed
     is flight_seed + i; meta: recorded in every log's metadata (with "index" and "role");
-    kinds: each vehicle's kind, leader first (`downwash_core.vehicles`; empty: paper quads).
+    kinds: each vehicle's kind, leader first (`downwash_core.vehicles`; empty: paper quads);
+    leader_speeds: (min, max) m/s of a moving leader (None: it hovers); wind: a
+    `sim.wind.DrydenWind` every flight of the stage flies through (None: still air).
     """
 
     name: str
@@ -59,6 +67,8 @@ class Stage:
     flight_seed: int
     meta: dict[str, Any] = field(default_factory=dict)
     kinds: tuple[str, ...] = ()
+    leader_speeds: tuple[float, float] | None = None
+    wind: Any = None
 
     def __post_init__(self) -> None:
         if not self.bands or len(self.bands) != len(self.pattern_seeds):
@@ -76,11 +86,26 @@ class Stage:
         return [sdir / ("train" if i < n_train else "val") / f"flight_{i:03d}.npz" for i in range(n_train + n_val)]
 
     def reference(self, flights: list[int], n_train: int, n_val: int, seconds: float) -> StackedReference:
-        """The leader's hover and each follower's patterns in its band, for these flights (the worlds of a batch)."""
+        """The leader's hover (or path) and each follower's patterns in its band, for these flights (the
+        worlds of a batch)."""
         leader = np.asarray(self.leader, dtype=float)
         followers = [collection_reference(seed, flights, n_train, n_val, leader, band, seconds).refs[1]
                      for seed, band in zip(self.pattern_seeds, self.bands)]
-        return stack([Hover(leader, n_worlds=len(flights)), *followers])
+        if self.leader_speeds is None:
+            return stack([Hover(leader, n_worlds=len(flights)), *followers])
+        path = Mixed([(self._leader_path(i, seconds), [w]) for w, i in enumerate(flights)])
+        return stack([path, *(Relative(path, f, leader) for f in followers)])
+
+    def _leader_path(self, i: int, seconds: float) -> Any:
+        """Flight i's leader: a line (even i) centred on `leader`, or a circle through it (odd i)."""
+        rng = np.random.default_rng([*self.pattern_seeds[0], 1_000_000 + i])
+        speed, heading = rng.uniform(*self.leader_speeds), rng.uniform(0.0, 2.0 * np.pi)
+        leader, direction = np.asarray(self.leader, dtype=float), np.array([np.cos(heading), np.sin(heading), 0.0])
+        if i % 2 == 0:
+            return Line(leader - 0.5 * speed * seconds * direction, speed * direction, duration=seconds, n_worlds=1)
+        radius = rng.uniform(1.5, 4.0)
+        return Circle(leader - radius * direction, radius=radius, speed=speed * rng.choice([-1.0, 1.0]),
+                      phase=heading, n_worlds=1)
 
     def scene(self):
         """A leader over the followers, top first, each of its kind."""
@@ -104,6 +129,7 @@ def fly_stage(stage: Stage, sdir: Path, n_train: int, n_val: int, seconds: float
         meta = [{**stage.meta, "index": i, "role": "train" if i < n_train else "val"} for i in batch]
         logs = fly(scene, stage.reference(batch, n_train, n_val, seconds), [stage.flight_seed + i for i in batch],
                    seconds, field=field, aggregation=aggregation, predictor=predictor, meta=meta, n_threads=threads,
+                   wind=stage.wind,
                    progress=progress(f"{stage.name}: flights {batch[0]}-{batch[-1]} of {len(paths)}"))
         for i, flown in zip(batch, logs):
             save_log(paths[i], flown)
@@ -158,3 +184,35 @@ def fly_recorded(stage: Stage, sdir: Path, entry: dict, n_train: int, n_val: int
         record_stage(sdir, entry, paths)
     save()
     return flown
+
+
+class CheckedLoader:
+    """Data sets per stage folder (<collection>/<stage>/<train|val>), each folder's logs checked against its
+    collection's manifest before they are read (DataError naming the file and `rerun`), loaded once.
+
+    neighbours, targets: as `downwash.datasets.load_dataset`; manifests: {collection folder: manifest}
+    already read (others are read when first needed); mixed: provenance entries that may differ
+    between the folders (`downwash.datasets.concatenate`). `skipped[folder]`: the flights left out
+    by ``skip_failed`` (those that ended early).
+    """
+
+    def __init__(self, neighbours: NeighbourSet, manifests: dict[Path, dict], rerun: str, targets: Any = None,
+                 mixed: tuple[str, ...] = ()):
+        self.neighbours, self.manifests, self.rerun, self.targets, self.mixed = neighbours, manifests, rerun, targets, mixed
+        self._cache: dict[tuple[Path, bool], Any] = {}
+        self.skipped: dict[Path, int] = {}
+
+    def __call__(self, dirs: list[Path], skip_failed: bool = False):
+        for d in dirs:
+            if (d, skip_failed) not in self._cache:
+                root = d.parent.parent
+                if root not in self.manifests:
+                    self.manifests[root] = read_manifest(root / "manifest.json")
+                problems = check_logs(root, self.manifests[root], [d])
+                if problems:
+                    raise integrity_error(root, problems, self.rerun)
+                files = [p for p in listed_logs(root, self.manifests[root]) if p.parent == d]
+                ok = [f for f in files if not skip_failed or load_log(f).meta.get("status", 0) == 0]
+                self.skipped[d] = len(files) - len(ok)
+                self._cache[d, skip_failed] = load_dataset(ok, self.neighbours, targets=self.targets)
+        return concatenate([self._cache[d, skip_failed] for d in dirs], self.mixed)

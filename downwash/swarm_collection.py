@@ -54,17 +54,15 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import describe, differences, fingerprint
-from downwash.manifest import check_logs, integrity_error, listed_logs, read_manifest
 from downwash.staged import STAGES, train_config
-from downwash.stages import ProgressFactory, Stage, fly_recorded
+from downwash.stages import CheckedLoader, ProgressFactory, Stage, fly_recorded
 from downwash.train import TrainConfig
-from downwash.datasets import concatenate, load_dataset
+from downwash.datasets import concatenate
 from sim.neighbours import NeighbourSet
 from downwash.checkpoint import load_checkpoint, wrap_pairwise
 from downwash.predictor import LearnedPredictor
 from downwash.registry import SET_KINDS
 from downwash.train import rmse, save_trained, train_model
-from sim.logs import load_log
 
 __all__ = ["SWARM_STAGES", "DEPTH_BANDS", "DATA_MIXES", "KIND_STAGES", "CRAZYFLIE_BANDS", "SwarmCollectionConfig", "swarm_train_config",
            "swarm_provenance", "pair_models_key", "collect_swarm", "swarm_model_path"]
@@ -219,8 +217,11 @@ def collect_swarm(
                      field=field, predictor=deployed, aggregation=law, batch_flights=cfg.batch_flights,
                      threads=cfg.threads, progress=progress)
 
-    load = _Loader(neighbours, {out: manifest},
-                   f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})")
+    # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they learn that a
+    # set of neighbours all below pushes nothing
+    load = CheckedLoader(neighbours, {out: manifest},
+                         f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})",
+                         targets="all")
     stages = []
     for n_vehicles in SWARM_STAGES:
         if n_vehicles == SWARM_STAGES[0]:
@@ -260,31 +261,6 @@ def collect_swarm(
             "pair_models_dir": str(pair_models_dir),
             "failed_flights_left_out": {str(d.relative_to(out)): n for d, n in load.skipped.items() if n and d.is_relative_to(out)},
             "wall_seconds": time.perf_counter() - t0}
-
-
-class _Loader:
-    """Data sets per folder of the two-vehicle collection and of the swarm stages, each folder's logs
-    checked against its collection's manifest before they are read, loaded once per run."""
-
-    def __init__(self, neighbours: NeighbourSet, manifests: dict[Path, dict], rerun: str):
-        self.neighbours, self.manifests, self.rerun, self._cache, self.skipped = neighbours, manifests, rerun, {}, {}
-
-    def __call__(self, dirs: list[Path], skip_failed: bool = False):
-        for d in dirs:
-            if (d, skip_failed) not in self._cache:
-                root = d.parent.parent  # <collection>/stage<k>/<train|val>
-                if root not in self.manifests:  # the two-vehicle collection's, read when first needed
-                    self.manifests[root] = read_manifest(root / "manifest.json")
-                problems = check_logs(root, self.manifests[root], [d])
-                if problems:
-                    raise integrity_error(root, problems, self.rerun)
-                files = [p for p in listed_logs(root, self.manifests[root]) if p.parent == d]
-                ok = [f for f in files if not skip_failed or load_log(f).meta.get("status", 0) == 0]
-                self.skipped[d] = len(files) - len(ok)
-                # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they
-                # learn that a set of neighbours all below pushes nothing
-                self._cache[d, skip_failed] = load_dataset(ok, self.neighbours, targets="all")
-        return concatenate([self._cache[d, skip_failed] for d in dirs])
 
 
 def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig, kinds: bool = False) -> None:

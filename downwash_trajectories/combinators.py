@@ -5,6 +5,7 @@
 - `TimeShifted`: a reference sampled at t + t0 (a per-world start phase).
 - `Cached`: returns its last sample again when asked for the same times.
 - `Offset`: a reference moved by a fixed offset (a follower flying beneath a moving leader).
+- `Relative`: a pattern flown relative to a moving reference (collection beneath a moving leader).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from numpy.typing import ArrayLike
 from downwash_core.errors import ConfigError
 from downwash_trajectories.base import RefSample, Reference, empty_sample, sample_times
 
-__all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached", "Offset"]
+__all__ = ["Mixed", "StackedReference", "stack", "TimeShifted", "Cached", "Offset", "Relative"]
 
 
 class Mixed:
@@ -184,3 +185,30 @@ class Offset:
     def __call__(self, t: Any) -> RefSample:
         s = self.ref(t)
         return RefSample(s.pos + self.offset, s.vel, s.acc, s.yaw, s.yaw_rate)
+
+
+class Relative:
+    """`pattern` flown relative to a moving `base`: the pattern's displacement from `origin` added to the
+    base, so a follower's collection patterns around a hovering leader's position become the same
+    patterns beneath a moving leader::
+
+        pos = base.pos + (pattern.pos - origin),  vel = base.vel + pattern.vel,  acc = base.acc + pattern.acc
+
+    with the pattern's yaw. base, pattern: references of the same n_worlds; origin (3,) or (W, 3) m,
+    the point the pattern was laid out around (the hovering leader's position). `duration` is the
+    pattern's.
+    """
+
+    def __init__(self, base: Reference, pattern: Reference, origin: ArrayLike):
+        if int(base.n_worlds) != int(pattern.n_worlds):
+            raise ConfigError(f"base, pattern: expected the same n_worlds, got {base.n_worlds} and {pattern.n_worlds}")
+        o = np.array(origin, dtype=float)
+        if o.shape not in ((3,), (int(base.n_worlds), 3)) or not np.all(np.isfinite(o)):
+            raise ConfigError(f"origin: expected 3 finite numbers or shape ({base.n_worlds}, 3) in m, got {origin!r}")
+        self.base, self.pattern, self.origin = base, pattern, o
+        self.n_worlds = int(base.n_worlds)
+        self.duration = pattern.duration
+
+    def __call__(self, t: Any) -> RefSample:
+        b, p = self.base(t), self.pattern(t)
+        return RefSample(b.pos + (p.pos - self.origin), b.vel + p.vel, b.acc + p.acc, p.yaw, p.yaw_rate)

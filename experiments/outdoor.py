@@ -8,9 +8,11 @@ the wake's flank where the radial force acts). The wind (`--wind`, a mean wind p
 Dryden gusts, see `sim.wind`) acts on both vehicles through their airframe drag and
 convects the wake: its axis follows the leader's airspeed, not its ground speed. Every
 condition flies the same seeds in one batch: the references, the oracle (the true mean
-wake at the true, air-relative state) and the models of the staged collection, which
-were trained indoors on a hovering leader in still air. So this measures how far
-they carry into a regime they never saw. Writes results.json (with the leader's
+wake at the true, air-relative state), the models of the staged collection, trained
+indoors on a hovering leader in still air (`<kind>`: how far they carry into a regime they
+never saw), and the same kinds trained on the indoor flights plus the outdoor stages of
+`downwash.outdoor_collection` (`<kind>-outdoor`: a moving leader in wind, collected and
+trained on the first run; `--trained` picks which). Writes results.json (with the leader's
 airspeed range), a table and a figure.
 """
 
@@ -32,6 +34,7 @@ from experiments.common import (CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, Pipel
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
 LEADERS = ("circle", "line")
+TRAINED = ("indoor", "outdoor")  # the data the learned conditions were trained on
 SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor, sustained-speed regime)
 
 
@@ -46,6 +49,9 @@ class OutdoorArgs(PipelineArgs):
     lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m", ge=0.0, le=1.0)
     wind: str = arg("light:mean=2,0,0", WIND_HELP)
     duration: float = arg(20.0, "flight length, s", gt=0.0, le=FLIGHT_SECONDS_MAX)
+    trained: str = arg("indoor,outdoor", "the models the learned conditions fly, comma list: indoor (the staged "
+                                         "collection's) and outdoor (also trained on the outdoor stages: <kind>-outdoor)")
+    outdoor_minutes: float = arg(1.0, "training flight minutes per wind setting of the outdoor stages", gt=0.0, le=60.0)
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
@@ -62,6 +68,9 @@ def _validate(args: OutdoorArgs) -> list[str]:
         (args.seeds >= 1, f"--seeds: expected >= 1, got {args.seeds}"),
         (args.duration > 0, f"--duration: expected > 0 s, got {args.duration}"),
     ]
+    trained = [t.strip() for t in args.trained.split(",") if t.strip()]
+    checks.append((bool(trained) and set(trained) <= set(TRAINED) and len(set(trained)) == len(trained),
+                   f"--trained: expected a comma list of {', '.join(TRAINED)}, got {args.trained!r}"))
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
@@ -88,9 +97,16 @@ def run(args: OutdoorArgs) -> dict:
     from sim.scene import build_scene
 
     conditions = _validate(args)
+    trained = [t.strip() for t in args.trained.split(",") if t.strip()]
     wind = load_wind(args.wind)
     p = resolve_pipeline(args, models=learned(conditions))
     checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, p.field, ProgressBar)
+    outdoor = None
+    if "outdoor" in trained and learned(conditions):
+        outdoor = _outdoor_models(args, p, learned(conditions))
+        checkpoints.update({f"{k}-outdoor": path for k, path in outdoor["checkpoints"].items()})
+    conditions = [c for c in conditions if c not in learned(conditions) or "indoor" in trained] + [
+        f"{k}-outdoor" for k in learned(conditions) if outdoor is not None]
     t_start = time.perf_counter()
     K = args.seeds
     W = len(conditions) * K
@@ -104,6 +120,9 @@ def run(args: OutdoorArgs) -> dict:
         "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
         "wind": None if wind is None else describe(wind), "leader_airspeed": _airspeed(per_condition),
         "conditions": aggregate_conditions(per_condition),
+        "trained": trained,
+        "outdoor_collection": None if outdoor is None else {
+            k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
     }
     results["wall_seconds"] = time.perf_counter() - t_start
     out = Path(args.out)
@@ -112,6 +131,19 @@ def run(args: OutdoorArgs) -> dict:
     print(_table(results, args.wind))
     print(f"\nwrote {path} and {out / 'errors_over_time.png'}")
     return results
+
+
+def _outdoor_models(args: OutdoorArgs, p: Any, kinds: list[str]) -> dict:
+    """The outdoor stages beside the pipeline's collection (keyed by their provenance) and the kinds
+    trained on indoor + outdoor flights, collected and trained when missing."""
+    from downwash.outdoor_collection import OutdoorCollectionConfig, collect_outdoor, outdoor_provenance
+    from downwash_core.provenance import fingerprint
+
+    cfg = OutdoorCollectionConfig(stage_minutes=args.outdoor_minutes, seed=args.seed, quick=args.quick,
+                                  threads=p.config.threads)
+    out = p.collection_dir.parent / f"outdoor-{fingerprint(outdoor_provenance(cfg, p.record))}"
+    made = collect_outdoor(cfg, out, p.collection_dir, p.record, p.field, kinds, ProgressBar)
+    return {**made, "dir": str(out)}
 
 
 def _airspeed(per_condition: dict) -> dict[str, float]:

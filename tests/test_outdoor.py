@@ -42,7 +42,39 @@ def test_without_wind_the_airspeed_is_the_ground_speed(tmp_path):
     np.testing.assert_allclose([r["leader_airspeed"]["mean"]], [2.5], rtol=0.05)
 
 
+def test_the_regime_models_fly_beside_the_indoor_ones_and_a_rerun_reuses_their_data(tmp_path):
+    """--quick: the outdoor stages (a moving leader, each wind setting) are flown once and recorded, the
+    kind is trained on indoor + outdoor flights, and flies as <kind>-outdoor beside the indoor model."""
+    from downwash.checkpoint import load_checkpoint
+    from downwash.outdoor_collection import OUTDOOR_WINDS
+    from sim.logs import load_log
+
+    args = ["--quick", "--conditions", "baseline,equivariant", "--collection-dir", "pc", "--models-dir", "pm"]
+    _run(args + ["--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    assert list(r["conditions"]) == ["baseline", "equivariant", "equivariant-outdoor"]
+    made = r["outdoor_collection"]
+    assert [s["name"] for s in made["stages"]] == [f"outdoor-{w[0]}" for w in OUTDOOR_WINDS]
+    out = tmp_path / made["dir"]
+    logs = sorted(out.glob("outdoor-light-120/train/*.npz"))
+    assert len(logs) >= 2
+    log = load_log(logs[0])
+    leader = log.arrays["pos"][:, log.meta["leader"]]
+    assert np.linalg.norm(leader[-1] - leader[0]) > 0.5  # the leader moves
+    assert log.meta["wind"]["mean"][0] == pytest.approx(2.0 * np.cos(np.radians(120.0)))
+    assert load_checkpoint(tmp_path / made["models"]["equivariant"]["path"]).record["model"]["kind"] == "equivariant"
+    winds = made["data_winds"]  # indoor (no wind) and every outdoor setting, joined on purpose
+    assert winds[0] is None and len(winds) == len(OUTDOOR_WINDS)  # still air: the indoor stages' and the first
+    mtimes = [p.stat().st_mtime_ns for p in logs]
+    _run(args + ["--out", "od2", "--trained", "outdoor"], tmp_path)
+    r2 = json.loads((tmp_path / "od2" / "results.json").read_text())
+    assert list(r2["conditions"]) == ["baseline", "equivariant-outdoor"]
+    assert [p.stat().st_mtime_ns for p in logs] == mtimes  # nothing flown again
+    assert r2["conditions"]["equivariant-outdoor"] == r["conditions"]["equivariant-outdoor"]
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--trained", "indoor,sky"], "--trained: expected a comma list of indoor, outdoor"),
     (["--speed", "5"], "--speed: expected a finite number in \\[0.5, 3\\], got 5.0"),
     (["--leader", "spiral"], "--leader: unknown 'spiral'; allowed: circle, line"),
     (["--wind", "gale"], "--wind: unknown 'gale'; allowed: off, calm, light"),

@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from downwash_core.errors import ConfigError
 from downwash_trajectories import (
     Cached,
     Circle,
     Line,
     Offset,
+    Relative,
     SPEED_RANGE,
     Hover,
     Lemniscate,
@@ -101,6 +103,9 @@ def _all_refs() -> dict[str, Reference]:
         "circle": Circle(centers, radius=rng.uniform(0.5, 4, w), speed=[0.5, -1.0, 2.0, -3.0, 1.2],
                          phase=rng.uniform(0, 6, w)),
         "offset_circle": Offset(Circle(LEADER, radius=2.0, speed=2.5, n_worlds=w), [0.0, 0.0, -0.6]),
+        # collection passes flown beneath a leader on a line: the derivatives of both add
+        "relative_passes": Relative(Line(centers, rng.uniform(-3, 3, size=(w, 3))),
+                                    random_passes(np.random.default_rng(3), w, LEADER, depth_range=(0.5, 0.7)), LEADER),
     }
 
 
@@ -627,3 +632,19 @@ def test_cached_reuses_a_sample_only_for_the_same_times():
     for a, b in zip(second, lem(t)):
         np.testing.assert_array_equal(a, b)
     assert cached(3.0) is not second and np.array_equal(cached(3.0).pos, lem(3.0).pos)
+
+
+def test_a_relative_pattern_is_the_pattern_moved_with_its_base():
+    w = 3
+    base = Line(LEADER, [1.5, 0.0, 0.0], n_worlds=w)
+    pattern = random_passes(np.random.default_rng(4), w, LEADER, depth_range=(0.5, 0.7))
+    ref = Relative(base, pattern, LEADER)
+    t = np.array([0.0, 2.5, 7.0])
+    got, b, p = ref(t), base(t), pattern(t)
+    np.testing.assert_array_equal(got.pos, b.pos + (p.pos - LEADER))
+    np.testing.assert_array_equal(got.vel, b.vel + p.vel)
+    np.testing.assert_array_equal(got.yaw, p.yaw)
+    with pytest.raises(ConfigError, match="origin"):
+        Relative(base, pattern, [0.0, 1.0])
+    with pytest.raises(ConfigError, match="the same n_worlds"):
+        Relative(Line(LEADER, [1.0, 0.0, 0.0], n_worlds=2), pattern, LEADER)

@@ -136,11 +136,16 @@ def render_outdoor(r: dict, label: str) -> str:
     else:
         air = (f"wind: mean ({', '.join(short(x) for x in wind['mean'])}) m/s plus Dryden gusts (W20 {fmt(wind['w20'])} m/s, sigma_u "
                f"{fmt(wind['sigma_u'])} m/s, L_u {fmt(wind['L_u'])} m)")
-    head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
-            f"the follower {short(r['separation'])} m beneath it; {air}. The models are those of the staged collection "
-            "(hovering leader, still air).")
     c = r["conditions"]
-    models = [k for k in ORDER if k in c and k not in ("no_downwash", "baseline", "oracle")]
+    regime = [k for k in c if k.endswith("-outdoor")]
+    made = r.get("outdoor_collection") or {}
+    trained = ("The models `<kind>` are those of the staged collection (hovering leader, still air)"
+               + (f"; `<kind>-outdoor` were trained on those flights plus {fmt(made.get('minutes'))} minutes of "
+                  f"outdoor stages ({len(made.get('stages', []))} wind settings from still air to moderate gusts, the "
+                  "leader on lines and circles at 0.5-3 m/s, flown with no model)." if regime else "."))
+    head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
+            f"the follower {short(r['separation'])} m beneath it; {air}. {trained}")
+    models = [k for k, _ in _ordered(c) if k not in ("no_downwash", "baseline", "oracle")]
     best = max(models, key=lambda k: c[k].get("improvement_pos_3d") or -math.inf) if models else None
     crashed = [f"`{k}` ({pct(c[k]['crash_rate'])})" for k in models if c[k].get("crash_rate")]
     verdict = []
@@ -148,7 +153,10 @@ def render_outdoor(r: dict, label: str) -> str:
         verdict.append(f"The oracle improves the 3D position error by {pct(c['oracle']['improvement_pos_3d'])} over the "
                        "baseline")
     if best is not None:
-        verdict.append(f"the best model, `{best}`, by {pct(c[best].get('improvement_pos_3d'))}")
+        oracle = (c.get("oracle") or {}).get("improvement_pos_3d")
+        got = c[best].get("improvement_pos_3d")
+        share = "" if not oracle or got is None else f", {pct(got / oracle)} of the oracle's improvement"
+        verdict.append(f"the best model, `{best}`, by {pct(got)}{share}")
     if crashed:
         verdict.append("crashes (counted with the crash penalty): " + ", ".join(crashed))
     return "\n\n".join([head, render_tracking(r, label), "; ".join(verdict) + "."])

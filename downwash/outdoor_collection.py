@@ -1,0 +1,181 @@
+"""Data from the outdoor regime (the paper's section 6): a moving leader in wind, after the indoor stages.
+
+The indoor staged collection (`downwash.staged`) hovers the leader in still air; its models
+meet a moving leader and wind only in flight. The outdoor stages come after it, one per
+wind setting (`OUTDOOR_WINDS`: still air, then light and moderate Dryden gusts with a mean
+wind from several directions). In every flight the leader moves: a straight line (even
+flights) or a horizontal circle (odd flights) at a speed drawn in `LEADER_SPEEDS` (the
+outdoor experiment's range), with a random heading; the follower flies the indoor
+collection patterns (passes through and beside the wake, lemniscates) relative to the
+moving leader, at the indoor stages' depths (`DEPTH_BAND`, all three stages' separations).
+See `downwash.stages` for how a flight's reference and noise follow from its seeds.
+
+What the stages fly with: no model. The indoor models make the follower climb into a
+moving leader (the outdoor experiment: 100 % of the indoor equivariant model's flights
+crash), and there is no guard yet that keeps a model from doing harm, so the outdoor stages
+fly the nominal controller, as the paper's first indoor stage does.
+
+Then every requested model kind is trained on the indoor and the outdoor training flights
+together ("outdoor": the regime's models), with the indoor schedule (`train_config`). The
+models see what an outdoor lab measures, the estimated states of both vehicles, never the
+wind: a label holds the whole force the follower's estimate cannot explain (the wake and the
+wind's drag and gusts on the follower). The logs of the two regimes differ in their wind
+provenance, joined on purpose (`downwash.datasets.concatenate(..., mixed=("wind",))`).
+
+Resumable and keyed by provenance as the indoor collection: a manifest records every log,
+checked before any training; a folder of other settings is refused with the differences.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.io import atomic_write_json
+from downwash_core.params import LEADER_POSITION
+from downwash_core.provenance import describe, differences, fingerprint
+from downwash.checkpoint import load_checkpoint
+from downwash.labels import PAIR
+from downwash.models import PAIRWISE_KINDS
+from downwash.staged import STAGES, train_config
+from downwash.stages import CheckedLoader, ProgressFactory, Stage, fly_recorded
+from downwash.train import rmse, save_trained, train_model
+from sim.wind import DrydenWind
+
+__all__ = ["OUTDOOR_WINDS", "LEADER_SPEEDS", "DEPTH_BAND", "OutdoorCollectionConfig", "outdoor_provenance",
+           "outdoor_stages", "collect_outdoor"]
+
+# (name, severity: calm or a MIL-F-8785C preset of sim.wind, mean wind speed m/s, its direction deg from +x)
+OUTDOOR_WINDS = (
+    ("still", "calm", 0.0, 0.0),
+    ("light-0", "light", 2.0, 0.0),
+    ("light-120", "light", 2.0, 120.0),
+    ("light-240", "light", 2.0, 240.0),
+    ("moderate-60", "moderate", 4.0, 60.0),
+    ("moderate-180", "moderate", 4.0, 180.0),
+    ("moderate-300", "moderate", 4.0, 300.0),
+)
+LEADER_SPEEDS = (0.5, 3.0)  # m/s, the leader's ground speed (the outdoor experiment's range)
+DEPTH_BAND = (min(s["separation"][0] for s in STAGES), max(s["separation"][1] for s in STAGES))  # m below the leader
+
+
+@dataclass(frozen=True)
+class OutdoorCollectionConfig:
+    """Size and settings of the outdoor stages (validated on construction)."""
+
+    stage_minutes: float = 1.0  # training flight minutes per wind setting
+    val_ratio: float = 0.5  # validation minutes per training minute
+    flight_seconds: float = 20.0
+    seed: int = 0
+    quick: bool = False  # 2 training and 1 validation flight of 4 s per setting, a few training steps
+    batch_flights: int = 16
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stage_minutes <= 60:
+            raise ConfigError(f"--outdoor-minutes: allowed (0, 60], got {self.stage_minutes}")
+        if not 0 < self.val_ratio <= 5:
+            raise ConfigError(f"val_ratio: allowed (0, 5], got {self.val_ratio}")
+        if not 2.0 <= self.flight_seconds <= 600:
+            raise ConfigError(f"flight_seconds: allowed 2-600 s, got {self.flight_seconds}")
+
+    @property
+    def seconds(self) -> float:
+        return 4.0 if self.quick else self.flight_seconds
+
+    @property
+    def n_train(self) -> int:
+        return max(2, math.ceil((0.1 if self.quick else self.stage_minutes) * 60 / self.seconds))
+
+    @property
+    def n_val(self) -> int:
+        return max(1, math.ceil(self.val_ratio * self.n_train))
+
+
+def _wind(severity: str, speed: float, direction_deg: float) -> DrydenWind | None:
+    rad = math.radians(direction_deg)
+    mean = (speed * math.cos(rad), speed * math.sin(rad), 0.0)
+    wind = DrydenWind(mean=mean) if severity == "calm" else DrydenWind.preset(severity, mean=mean)
+    return None if wind.off else wind
+
+
+def outdoor_stages(cfg: OutdoorCollectionConfig) -> list[Stage]:
+    """One stage per wind setting of `OUTDOOR_WINDS`, stage ids 20, 21, ... in the logs."""
+    return [Stage(f"outdoor-{name}", LEADER_POSITION, (DEPTH_BAND,), ((cfg.seed, 300 + i),),
+                  cfg.seed * 100_000 + 70_000 + 1_000 * i, {"stage": 20 + i}, (), LEADER_SPEEDS,
+                  _wind(severity, speed, direction))
+            for i, (name, severity, speed, direction) in enumerate(OUTDOOR_WINDS)]
+
+
+def outdoor_provenance(cfg: OutdoorCollectionConfig, pair_record: dict) -> dict:
+    """What defines an outdoor collection: the indoor collection's record and the outdoor settings."""
+    return {"pair": {k: v for k, v in pair_record.items() if k != "code"},
+            "outdoor": {"winds": [list(w) for w in OUTDOOR_WINDS], "leader_speeds": list(LEADER_SPEEDS),
+                        "depth_band": list(DEPTH_BAND), "seconds": cfg.seconds, "n_train": cfg.n_train,
+                        "n_val": cfg.n_val, "seed": cfg.seed, "deployed": None,
+                        "training": train_config(cfg.seed, cfg.quick).to_dict()}}
+
+
+def collect_outdoor(
+    cfg: OutdoorCollectionConfig,
+    out: str | Path,
+    pair_collection: str | Path,
+    pair_record: dict,
+    field: Any,
+    kinds: Sequence[str],
+    progress: ProgressFactory = lambda label: None,
+) -> dict:
+    """Fly the outdoor stages into `out` (resuming) and train each of `kinds` on indoor + outdoor data.
+
+    pair_collection: the complete indoor staged collection folder; pair_record: its provenance.
+    Returns {checkpoints: {kind: path}, models: {kind: {path, val_rmse}}, stages, provenance, key,
+    data_winds (the wind records of the training data, indoor None first)}.
+    """
+    unknown = [k for k in kinds if k not in PAIRWISE_KINDS]
+    if unknown:
+        raise ConfigError(f"kinds: unknown {unknown}; allowed: {', '.join(PAIRWISE_KINDS)}")
+    t0 = time.perf_counter()
+    out, pair_collection = Path(out), Path(pair_collection)
+    record = outdoor_provenance(cfg, pair_record)
+    manifest_path = out / "manifest.json"
+    manifest = {"provenance": record, "key": fingerprint(record), "stages": {}}
+    if manifest_path.is_file():
+        have = json.loads(manifest_path.read_text())
+        if have.get("key") != manifest["key"]:
+            raise DataError(f"{out}: this folder holds an outdoor collection made with other settings:\n  "
+                            + "\n  ".join(differences(have.get("provenance"), record))
+                            + "\nuse another folder or delete this one to start afresh")
+        manifest = have
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(manifest_path, manifest)
+    stages = outdoor_stages(cfg)
+    for stage in stages:
+        fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(stage.name, {}), cfg.n_train, cfg.n_val,
+                     cfg.seconds, collection=str(out), save=lambda: atomic_write_json(manifest_path, manifest),
+                     field=field, predictor=None, batch_flights=cfg.batch_flights, threads=cfg.threads,
+                     progress=progress)
+    load = CheckedLoader(PAIR, {out: manifest}, f"python -m experiments.outdoor (the outdoor stages of {out})",
+                         mixed=("wind",))
+    indoor = [pair_collection / f"stage{k}" / "train" for k in range(len(STAGES))]
+    data = load(indoor + [out / st.name / "train" for st in stages])
+    val = load([out / st.name / "val" for st in stages])  # judged on the regime's own validation flights
+    checkpoints, models = {}, {}
+    for kind in kinds:
+        path = out / "models" / f"{kind}.pt"
+        if not path.is_file():
+            model, history = train_model(kind, data, None, train_config(cfg.seed, cfg.quick))
+            save_trained(path, model, history, data)
+        checkpoints[kind] = path
+        models[kind] = {"path": str(path), "val_rmse": rmse(load_checkpoint(path, expect_kind=kind).model, val)[0]}
+    manifest["complete"] = True
+    atomic_write_json(manifest_path, manifest)
+    return {"checkpoints": checkpoints, "models": models, "key": manifest["key"], "provenance": record,
+            "data_winds": (data.provenance or {}).get("wind", {}).get("mixed"),  # every regime the models saw
+            "stages": [{"name": st.name, "wind": describe(st.wind) if st.wind else None,
+                        "flights": cfg.n_train + cfg.n_val} for st in stages],
+            "minutes": len(stages) * cfg.n_train * cfg.seconds / 60, "wall_seconds": time.perf_counter() - t0}
