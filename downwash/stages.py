@@ -11,8 +11,9 @@ which others share its batch and a collection resumes flight by flight (`fly_sta
 only the missing logs). An outdoor stage (`leader_speeds`, `wind`) moves the leader instead:
 flight i flies a straight line (even i) or a horizontal circle (odd i) at a speed drawn from
 ``default_rng([*pattern_seeds[0], 1_000_000 + i])`` in `leader_speeds`, through the stage's
-wind, and each follower flies its patterns relative to the moving leader (`Relative`). What a stage flies with, the deployed model and its clamp, is the
-predictor handed to `fly_stage`.
+wind, and each follower flies its patterns relative to the moving leader (`Relative`).
+What a stage flies with, the deployed model and its clamp, is the predictor handed to
+`fly_stage`.
 
 As the stage's flights are done, `record_stage` writes every log's digests, rows, labelled
 samples and status into the stage's manifest entry (`downwash.manifest`), against which
