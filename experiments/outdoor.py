@@ -12,12 +12,15 @@ wake at the true, air-relative state), the models of the staged collection, trai
 indoors on a hovering leader in still air (`<kind>`: how far they carry into a regime they
 never saw), and the same kinds trained on the indoor flights plus the outdoor stages of
 `downwash.outdoor_collection` (`<kind>-outdoor`: a moving leader in wind, collected and
-trained on the first run; `--trained` picks which). Writes results.json (with the leader's
-airspeed range), a table and a figure.
+trained on the first run; `--trained` picks which). `--sweep-speeds 0.5,1,2,3` flies every
+condition again at each speed (same seeds and wind) and plots its improvement against the
+leader's speed. Writes results.json (with the leader's airspeed range and the sweep), a
+table and the figures.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +55,8 @@ class OutdoorArgs(PipelineArgs):
     trained: str = arg("indoor,outdoor", "the models the learned conditions fly, comma list: indoor (the staged "
                                          "collection's) and outdoor (also trained on the outdoor stages: <kind>-outdoor)")
     outdoor_minutes: float = arg(1.0, "training flight minutes per wind setting of the outdoor stages", gt=0.0, le=60.0)
+    sweep_speeds: str = arg("", "also fly every condition at these leader speeds (comma list, m/s, in 0.5-3) and plot "
+                                "each one's improvement against the speed (improvement_vs_speed.png)")
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
@@ -69,12 +74,33 @@ def _validate(args: OutdoorArgs) -> list[str]:
         (args.duration > 0, f"--duration: expected > 0 s, got {args.duration}"),
     ]
     trained = [t.strip() for t in args.trained.split(",") if t.strip()]
+    try:
+        speeds = _sweep_speeds(args.sweep_speeds)
+    except ValueError:
+        speeds = None
+    checks.append((speeds is not None and all(SPEED_RANGE[0] <= v <= SPEED_RANGE[1] for v in speeds)
+                   and len(set(speeds)) == len(speeds),
+                   f"--sweep-speeds: expected a comma list of distinct speeds in {SPEED_RANGE[0]}-{SPEED_RANGE[1]} m/s, "
+                   f"got {args.sweep_speeds!r}"))
     checks.append((bool(trained) and set(trained) <= set(TRAINED) and len(set(trained)) == len(trained),
                    f"--trained: expected a comma list of {', '.join(TRAINED)}, got {args.trained!r}"))
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
     return conditions
+
+
+def _sweep_speeds(text: str) -> list[float]:
+    """The speeds of --sweep-speeds (ValueError for a non-number)."""
+    return [float(x) for x in text.split(",") if x.strip()]
+
+
+def _references(args: OutdoorArgs, W: int):
+    """The leader's path and the follower `--separation` beneath it, `--lateral` to its side."""
+    from downwash_trajectories import Offset, stack
+
+    leader = _leader_reference(args, W)
+    return stack([leader, Offset(leader, (0.0, args.lateral, -args.separation))])
 
 
 def _leader_reference(args: OutdoorArgs, W: int):
@@ -92,7 +118,6 @@ def run(args: OutdoorArgs) -> dict:
     from downwash.conditions import fly_conditions, learned
     from downwash.staged import ensure_models
     from downwash_core.provenance import describe
-    from downwash_trajectories import Offset, stack
     from sim.metrics import aggregate_conditions
     from sim.scene import build_scene
 
@@ -110,11 +135,13 @@ def run(args: OutdoorArgs) -> dict:
     t_start = time.perf_counter()
     K = args.seeds
     W = len(conditions) * K
-    leader = _leader_reference(args, W)
-    follower = Offset(leader, (0.0, args.lateral, -args.separation))
     seeds = list(range(args.seed, args.seed + K))
-    per_condition = fly_conditions(build_scene(), conditions, stack([leader, follower]), seeds, args.duration,
-                                   p.field, checkpoints, meta={"experiment": "outdoor"}, wind=wind)
+
+    def fly_at(a: OutdoorArgs) -> dict:
+        return fly_conditions(build_scene(), conditions, _references(a, W), seeds, a.duration, p.field, checkpoints,
+                              meta={"experiment": "outdoor"}, wind=wind)
+
+    per_condition = fly_at(args)
     results: dict[str, Any] = {
         "experiment": "outdoor", "leader": args.leader, "speed": args.speed, "separation": args.separation,
         "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
@@ -124,10 +151,18 @@ def run(args: OutdoorArgs) -> dict:
         "outdoor_collection": None if outdoor is None else {
             k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
     }
+    speeds = _sweep_speeds(args.sweep_speeds)
+    if speeds:  # the same conditions, seeds and wind at each speed
+        by_speed = {v: aggregate_conditions(fly_at(dataclasses.replace(args, speed=v))) for v in speeds}
+        results["sweep"] = {"speeds": speeds, "conditions": {
+            c: {k: [by_speed[v][c].get(k) for v in speeds] for k in ("improvement_pos_3d", "crash_rate")}
+            for c in conditions}}
     results["wall_seconds"] = time.perf_counter() - t_start
     out = Path(args.out)
     path = write_results(out, results, args, p.provenance() if checkpoints else None)
     _figure(out, per_condition, results)
+    if "sweep" in results:
+        _speed_figure(out, results)
     print(_table(results, args.wind))
     print(f"\nwrote {path} and {out / 'errors_over_time.png'}")
     return results
@@ -193,12 +228,35 @@ def _figure(out: Path, per_condition: dict, results: dict) -> None:
     plt.close(fig)
 
 
+def _speed_figure(out: Path, results: dict) -> None:
+    """Each condition's improvement over the baseline against the leader's speed (--sweep-speeds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sweep = results["sweep"]
+    fig, ax = plt.subplots(figsize=(7, 3.8))
+    for c, e in sweep["conditions"].items():
+        if c in ("no_downwash", "baseline"):
+            continue
+        ax.plot(sweep["speeds"], [100 * (x if x is not None else np.nan) for x in e["improvement_pos_3d"]], "o-",
+                label=c, lw=1.1)
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("leader speed (m/s)")
+    ax.set_ylabel("improvement of 3D error over baseline (%)")
+    ax.set_ylim(max(ax.get_ylim()[0], -150.0), 100.0)
+    ax.legend(ncol=3, fontsize=7)
+    ax.set_title(f"outdoor: leader on a {results['leader']}, {len(results['seeds'])} seeds per point")
+    fig.tight_layout()
+    fig.savefig(out / "improvement_vs_speed.png", dpi=110)
+    plt.close(fig)
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
     args = parse_args(OutdoorArgs, "outdoor", argv, __doc__)
     if args.quick:
-        import dataclasses
-
         args = dataclasses.replace(args, seeds=1, duration=min(args.duration, 2.0))
     return run(args)
 

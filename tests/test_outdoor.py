@@ -73,7 +73,20 @@ def test_the_regime_models_fly_beside_the_indoor_ones_and_a_rerun_reuses_their_d
     assert r2["conditions"]["equivariant-outdoor"] == r["conditions"]["equivariant-outdoor"]
 
 
+def test_a_speed_sweep_flies_every_condition_at_each_speed(tmp_path):
+    _run(["--seeds", "1", "--duration", "3", "--conditions", "baseline,oracle", "--wind", "off",
+          "--sweep-speeds", "0.5,3", "--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    sweep = r["sweep"]
+    assert sweep["speeds"] == [0.5, 3.0] and set(sweep["conditions"]) == {"baseline", "oracle"}
+    assert sweep["conditions"]["baseline"]["improvement_pos_3d"] == [None, None]  # the reference of improvements
+    assert all(x > 0 for x in sweep["conditions"]["oracle"]["improvement_pos_3d"])
+    assert (tmp_path / "od" / "improvement_vs_speed.png").is_file()
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--sweep-speeds", "1,9"], "--sweep-speeds: expected a comma list of distinct speeds in 0.5-3.0 m/s"),
+    (["--sweep-speeds", "1,fast"], "--sweep-speeds: expected a comma list"),
     (["--trained", "indoor,sky"], "--trained: expected a comma list of indoor, outdoor"),
     (["--speed", "5"], "--speed: expected a finite number in \\[0.5, 3\\], got 5.0"),
     (["--leader", "spiral"], "--leader: unknown 'spiral'; allowed: circle, line"),

@@ -159,7 +159,15 @@ def render_outdoor(r: dict, label: str) -> str:
         verdict.append(f"the best model, `{best}`, by {pct(got)}{share}")
     if crashed:
         verdict.append("crashes (counted with the crash penalty): " + ", ".join(crashed))
-    return "\n\n".join([head, render_tracking(r, label), "; ".join(verdict) + "."])
+    parts = [head, render_tracking(r, label), "; ".join(verdict) + "."]
+    sweep = r.get("sweep")
+    if sweep:  # --sweep-speeds: each condition's improvement at each leader speed
+        rows = [[f"`{c}`"] + [pct(x) + (f" ({pct(k)} crashed)" if k else "") for x, k in
+                              zip(e["improvement_pos_3d"], e["crash_rate"])]
+                for c, e in _ordered(sweep["conditions"]) if c not in ("no_downwash", "baseline")]
+        parts += ["Improvement of the 3D position error over the baseline against the leader's speed (the same seeds "
+                  "and wind at each speed):", _table(["condition"] + [f"{short(v)} m/s" for v in sweep["speeds"]], rows)]
+    return "\n\n".join(parts)
 
 
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
