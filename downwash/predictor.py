@@ -178,8 +178,9 @@ class LearnedPredictor:
         batch = (g["dp"].reshape(W * V, K, 3), g["v_a"].reshape(W * V, K, 3), g["v_b"].reshape(W * V, 3),
                  g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
         if self._kinds is not None:  # each slot's neighbour kind (0 in padding) and the target's
+            D = self._kinds.shape[1]
             kind_a = np.where(mask[..., None], self._kinds[np.maximum(index, 0)], 0.0)
-            batch += (kind_a.reshape(W * V, K, -1), np.broadcast_to(self._kinds, (W, V, self._kinds.shape[1])).reshape(W * V, -1))
+            batch += (kind_a.reshape(W * V, K, D), np.broadcast_to(self._kinds, (W, V, D)).reshape(W * V, D))
         if self._numpy is not None:
             out = self._numpy(*batch).reshape(W, V, 3)
         else:
