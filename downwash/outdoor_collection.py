@@ -28,22 +28,21 @@ checked before any training; a folder of other settings is refused with the diff
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-from downwash_core.errors import ConfigError, DataError
+from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
-from downwash_core.provenance import describe, differences, fingerprint
+from downwash_core.provenance import describe
 from downwash.checkpoint import load_checkpoint
 from downwash.labels import PAIR
 from downwash.models import PAIRWISE_KINDS
 from downwash.staged import STAGES, train_config
-from downwash.stages import CheckedLoader, ProgressFactory, Stage, fly_recorded
+from downwash.stages import CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, open_manifest
 from downwash.train import rmse, save_trained, train_model
 from sim.wind import DrydenWind
 
@@ -65,36 +64,11 @@ DEPTH_BAND = (min(s["separation"][0] for s in STAGES), max(s["separation"][1] fo
 
 
 @dataclass(frozen=True)
-class OutdoorCollectionConfig:
-    """Size and settings of the outdoor stages (validated on construction)."""
+class OutdoorCollectionConfig(StageBudget):
+    """Size and settings of the outdoor stages (`StageBudget`, validated on construction)."""
 
     stage_minutes: float = 1.0  # training flight minutes per wind setting
-    val_ratio: float = 0.5  # validation minutes per training minute
-    flight_seconds: float = 20.0
-    seed: int = 0
-    quick: bool = False  # 2 training and 1 validation flight of 4 s per setting, a few training steps
-    batch_flights: int = 16
-    threads: int = 0
-
-    def __post_init__(self) -> None:
-        if not 0 < self.stage_minutes <= 60:
-            raise ConfigError(f"--outdoor-minutes: allowed (0, 60], got {self.stage_minutes}")
-        if not 0 < self.val_ratio <= 5:
-            raise ConfigError(f"val_ratio: allowed (0, 5], got {self.val_ratio}")
-        if not 2.0 <= self.flight_seconds <= 600:
-            raise ConfigError(f"flight_seconds: allowed 2-600 s, got {self.flight_seconds}")
-
-    @property
-    def seconds(self) -> float:
-        return 4.0 if self.quick else self.flight_seconds
-
-    @property
-    def n_train(self) -> int:
-        return max(2, math.ceil((0.1 if self.quick else self.stage_minutes) * 60 / self.seconds))
-
-    @property
-    def n_val(self) -> int:
-        return max(1, math.ceil(self.val_ratio * self.n_train))
+    minutes_option = "--outdoor-minutes"
 
 
 def _wind(severity: str, speed: float, direction_deg: float) -> DrydenWind | None:
@@ -143,16 +117,7 @@ def collect_outdoor(
     out, pair_collection = Path(out), Path(pair_collection)
     record = outdoor_provenance(cfg, pair_record)
     manifest_path = out / "manifest.json"
-    manifest = {"provenance": record, "key": fingerprint(record), "stages": {}}
-    if manifest_path.is_file():
-        have = json.loads(manifest_path.read_text())
-        if have.get("key") != manifest["key"]:
-            raise DataError(f"{out}: this folder holds an outdoor collection made with other settings:\n  "
-                            + "\n  ".join(differences(have.get("provenance"), record))
-                            + "\nuse another folder or delete this one to start afresh")
-        manifest = have
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(manifest_path, manifest)
+    manifest = open_manifest(out, record, "an outdoor collection")
     stages = outdoor_stages(cfg)
     for stage in stages:
         fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(stage.name, {}), cfg.n_train, cfg.n_val,

@@ -23,14 +23,18 @@ are re-flown and kept only if they hold the recorded data (`accept_reflown`).
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from downwash_core.errors import DataError
+from downwash_core.errors import ConfigError, DataError
+from downwash_core.io import atomic_write_json
+from downwash_core.provenance import differences, fingerprint
 from downwash_core.roles import VEHICLE_NAMES, Role
 from downwash.datasets import concatenate, load_dataset
 from downwash.manifest import check_logs, integrity_error, listed_logs, log_record, read_manifest
@@ -41,7 +45,8 @@ from sim.scene import build_scene
 from downwash_trajectories import (Circle, Hover, Line, Mixed, Relative, StackedReference, collection_reference,
                                    stack)
 
-__all__ = ["Stage", "fly_stage", "record_stage", "accept_reflown", "fly_recorded", "CheckedLoader", "ProgressFactory"]
+__all__ = ["Stage", "StageBudget", "open_manifest", "fly_stage", "record_stage", "accept_reflown", "fly_recorded",
+           "CheckedLoader", "ProgressFactory"]
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +117,61 @@ class Stage:
         """A leader over the followers, top first, each of its kind."""
         return build_scene([(VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER)
                             for i in range(self.n_vehicles)], kinds=list(self.kinds) or None)
+
+
+@dataclass(frozen=True)
+class StageBudget:
+    """The size of the stages of a collection that follows the indoor one (the swarm's, the outdoor
+    one): training minutes per stage, validation flights per training flight, flight length, seed,
+    --quick, and how the flights are batched. Validated on construction; `minutes_option` names
+    the command-line option of `stage_minutes` in the messages."""
+
+    stage_minutes: float = 2.0  # training flight minutes per stage
+    val_ratio: float = 0.5  # validation minutes per training minute
+    flight_seconds: float = 20.0
+    seed: int = 0
+    quick: bool = False  # 0.1 min per stage of 4 s flights, a few training steps
+    batch_flights: int = 16
+    threads: int = 0
+    minutes_option = "stage_minutes"
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stage_minutes <= 60:
+            raise ConfigError(f"{self.minutes_option}: allowed (0, 60], got {self.stage_minutes}")
+        if not 0 < self.val_ratio <= 5:
+            raise ConfigError(f"val_ratio: allowed (0, 5], got {self.val_ratio}")
+        if not 2.0 <= self.flight_seconds <= 600:
+            raise ConfigError(f"flight_seconds: allowed 2-600 s, got {self.flight_seconds}")
+
+    @property
+    def seconds(self) -> float:
+        return 4.0 if self.quick else self.flight_seconds
+
+    @property
+    def n_train(self) -> int:
+        return max(2, math.ceil((0.1 if self.quick else self.stage_minutes) * 60 / self.seconds))
+
+    @property
+    def n_val(self) -> int:
+        return max(1, math.ceil(self.val_ratio * self.n_train))
+
+
+def open_manifest(out: Path, record: dict, what: str, **fields: Any) -> dict:
+    """The manifest of the collection in `out` made with `record` (its provenance): the one there, or a
+    new one ({provenance, key, stages, **fields}) written there; DataError with the differences when
+    the folder holds `what` made with other settings."""
+    manifest_path = out / "manifest.json"
+    manifest = {"provenance": record, "key": fingerprint(record), "stages": {}, **fields}
+    if manifest_path.is_file():
+        have = json.loads(manifest_path.read_text())
+        if have.get("key") != manifest["key"]:
+            raise DataError(f"{out}: this folder holds {what} made with other settings:\n  "
+                            + "\n  ".join(differences(have.get("provenance"), record))
+                            + "\nuse another folder or delete this one to start afresh")
+        manifest = have
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(manifest_path, manifest)
+    return manifest
 
 
 def fly_stage(stage: Stage, sdir: Path, n_train: int, n_val: int, seconds: float, *, field: Any, predictor: Any,

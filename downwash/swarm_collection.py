@@ -43,19 +43,17 @@ with the differences.
 
 from __future__ import annotations
 
-import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from downwash_core.errors import ConfigError, DataError
+from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
-from downwash_core.provenance import describe, differences, fingerprint
+from downwash_core.provenance import describe, fingerprint
 from downwash.staged import STAGES, train_config
-from downwash.stages import CheckedLoader, ProgressFactory, Stage, fly_recorded
+from downwash.stages import CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, open_manifest
 from downwash.train import TrainConfig
 from downwash.datasets import concatenate
 from sim.neighbours import NeighbourSet
@@ -82,40 +80,18 @@ TRAINABLE_SET_KINDS = tuple(k for k, cls in SET_KINDS.items() if cls.trainable) 
 
 
 @dataclass(frozen=True)
-class SwarmCollectionConfig:
-    """Size and settings of the swarm stages (validated on construction)."""
+class SwarmCollectionConfig(StageBudget):
+    """Size and settings of the swarm stages (validated on construction; `StageBudget` the sizes)."""
 
     stage_minutes: float = 2.0  # training flight minutes per swarm stage
-    val_ratio: float = 0.5  # validation minutes per training minute
-    flight_seconds: float = 20.0
     max_neighbours: int = 3  # the models' neighbour slots: every other vehicle of a 4-vehicle scene
     clamp: float = 6.0  # m/s^2, bound on the deployed model's prediction
-    seed: int = 0
-    quick: bool = False  # 0.1 min per stage of 4 s flights, a few training steps
-    batch_flights: int = 16
-    threads: int = 0
+    minutes_option = "--swarm-minutes"
 
     def __post_init__(self) -> None:
-        if not 0 < self.stage_minutes <= 60:
-            raise ConfigError(f"--swarm-minutes: allowed (0, 60], got {self.stage_minutes}")
-        if not 0 < self.val_ratio <= 5:
-            raise ConfigError(f"val_ratio: allowed (0, 5], got {self.val_ratio}")
-        if not 2.0 <= self.flight_seconds <= 600:
-            raise ConfigError(f"flight_seconds: allowed 2-600 s, got {self.flight_seconds}")
+        super().__post_init__()
         if not 1 <= self.max_neighbours <= 7:
             raise ConfigError(f"max_neighbours: allowed 1-7, got {self.max_neighbours}")
-
-    @property
-    def seconds(self) -> float:
-        return 4.0 if self.quick else self.flight_seconds
-
-    @property
-    def n_train(self) -> int:
-        return max(2, math.ceil((0.1 if self.quick else self.stage_minutes) * 60 / self.seconds))
-
-    @property
-    def n_val(self) -> int:
-        return max(1, math.ceil(self.val_ratio * self.n_train))
 
     @property
     def neighbours(self) -> NeighbourSet:
@@ -198,16 +174,7 @@ def collect_swarm(
     out, pair_collection = Path(out), Path(pair_collection)
     record = swarm_provenance(cfg, law, pair_record)
     manifest_path = out / "manifest.json"
-    manifest = {"provenance": record, "key": fingerprint(record), "stages": {}, "models": {}}
-    if manifest_path.is_file():
-        have = json.loads(manifest_path.read_text())
-        if have.get("key") != manifest["key"]:
-            raise DataError(f"{out}: this folder holds a swarm collection made with other settings:\n  "
-                            + "\n  ".join(differences(have.get("provenance"), record))
-                            + "\nuse another folder or delete this one to start afresh")
-        manifest = have
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(manifest_path, manifest)
+    manifest = open_manifest(out, record, "a swarm collection", models={})
     neighbours = cfg.neighbours
 
     def fly(stage: Stage, key: str, deployed: Any) -> None:

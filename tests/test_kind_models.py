@@ -22,19 +22,11 @@ from sim.flight import fly
 from sim.neighbours import NeighbourSet
 from sim.presets import make_preset
 from sim.simulator import Simulator
-from test_set_models import neighbour_batch, randomised  # tests/ is on sys.path under pytest
+from test_set_models import _one_torch_thread, neighbour_batch, randomised  # noqa: F401 (the fixture: one torch thread)
 
 D = len(KIND_FEATURES)
 SETS = ("deepsets_equivariant", "deepsets")
 MIXED = ("x500", "paper_quad", "crazyflie_2_1", "paper_quad")
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _kind_model(kind: str, seed: int = 0):
