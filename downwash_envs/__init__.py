@@ -37,9 +37,8 @@ The built-in LQR with and without the oracle (action 0 in residual mode; the
 oracle is the env option ``predictor="oracle"``)::
 
     from downwash_envs import evaluate_lqr
-    base = evaluate_lqr(oracle=False, seed=0)
-    oracle = evaluate_lqr(oracle=True, seed=0)
-    print(base["pos_err_3d_mean"], oracle["pos_err_3d_mean"])
+    base = evaluate_lqr(oracle=False, seed=0)["pos_err_3d_mean"]    # m, the follower's mean 3D error
+    oracle = evaluate_lqr(oracle=True, seed=0)["pos_err_3d_mean"]   # m, with the true mean field: lower
 
 Modules (one role each):
 

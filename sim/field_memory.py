@@ -14,8 +14,8 @@ with ``state`` a NamedTuple (or dataclass) of arrays whose leading axis is the w
 autopilot tick with the true states and the wind at the vehicles (the wake is convected by
 the air), combines the per-pair forces by the aggregation law, and resets a world's wake
 with the world. A flight with a stateful field flies the simulator's readable path (the fused
-tick has no pass for it yet); an `OraclePredictor` of the same field reads the mean the
-simulator has just computed, so it sees the same truth.
+tick has no pass for it yet); an `OraclePredictor` of the same field reads the per-pair forces
+the simulator has just computed, combined by its own law, so it sees the same truth.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class FieldMemory:
         self.source, self.field = source, bind(list(kinds)) if mixed and callable(bind) else source
         self.W, self.V, self.dt = W, V, float(dt)
         self.state = self.field.initial_state(W, V)
-        self.last = np.zeros((W, V, 3))  # m/s^2, the mean of the latest `advance` (what an oracle reads)
+        self.last = (np.zeros((W, V, V, 3)), None, None)  # the latest `advance`'s (forces, pos, rot): an oracle's
 
     def reset(self, worlds: np.ndarray) -> None:
         """Empty the wakes of these worlds (their rows of a fresh state)."""
@@ -67,7 +67,7 @@ class FieldMemory:
         for name, a in _arrays(self.state).items():
             if a.ndim and a.shape[0] == self.W:
                 a[worlds] = fresh[name][worlds]
-        self.last[worlds] = 0.0
+        self.last[0][worlds] = 0.0
 
     def advance(self, pos: np.ndarray, vel: np.ndarray, vel_air: np.ndarray, rot: np.ndarray,
                 wind: np.ndarray | None, law: Any = None) -> np.ndarray:
@@ -76,23 +76,25 @@ class FieldMemory:
         vehicle (W, V, 3) from the wake, at its velocity relative to the air (vel_air), combined by
         `law` (None: linear superposition)."""
         self.field.step(self.state, self.dt, pos, vel, rot, wind=wind)
-        forces = np.asarray(self.field.forces(self.state, pos, vel_air, rot))
-        if law is None or isinstance(law, LinearSuperposition):
-            out = forces.sum(axis=1)
-        else:
-            out = np.asarray(law.combine(forces, pos, rot))
-        self.last = out
-        return out
+        self.last = (np.asarray(self.field.forces(self.state, pos, vel_air, rot)), pos, rot)
+        return combined(self.last, law)
+
+
+def combined(last: tuple, law: Any = None) -> np.ndarray:
+    """(W, V, 3) m/s^2: per-pair forces (W, V, V, 3) at (pos, rot) combined by `law` (None: linear)."""
+    forces, pos, rot = last
+    return np.asarray((LinearSuperposition() if law is None else law).combine(forces, pos, rot))
 
 
 class MemoryOracle:
-    """The oracle of a stateful field: the mean force the simulator computed last (it knows the wake)."""
+    """The oracle of a stateful field: the per-pair forces the simulator computed last (it knows the wake),
+    combined by the oracle's own aggregation law, as an `OraclePredictor` combines its field's."""
 
     def __init__(self, memory: FieldMemory, aggregation: Any = None):
         self.memory, self.aggregation = memory, aggregation
 
     def __call__(self, estimated: Any, true: Any = None) -> np.ndarray:
-        return self.memory.last.copy()
+        return combined(self.memory.last, self.aggregation)
 
     def describe(self) -> dict[str, Any]:
         return {"type": "oracle", "field": getattr(self.memory.source, "describe", lambda: {})()}
@@ -129,7 +131,7 @@ def check_stateful_field(field: Any, pos: np.ndarray, vel: np.ndarray, rot: np.n
         memory = FieldMemory(field, W, V, 0.01)
         for _ in range(5):
             out = memory.advance(pos, vel, vel, rot, None)
-        forces = np.asarray(field.forces(memory.state, pos, vel, rot))
+        forces = memory.last[0]
     except (TypeError, ValueError, IndexError, AttributeError) as e:
         raise ConfigError(f"{label}: a field with memory must offer initial_state(W, V), step(state, dt, pos, vel, "
                           f"rot, thrust=None, wind=None) and forces(state, pos, vel, rot); using it failed: "

@@ -185,3 +185,19 @@ def test_the_shed_wake_takes_the_scenes_kinds():
     sim = Simulator(scene, ref, [0], field=field)
     sim.tick()
     assert sim._memory.source is field and sim._memory.field.vehicles == ("x500", "paper_quad")
+
+
+def test_the_oracle_combines_the_wake_by_its_own_law_not_the_simulators():
+    from sim.aggregation import make_aggregation
+    from sim.field_memory import MemoryOracle
+
+    W, V = 1, 3
+    pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9], [0.0, 0.0, 1.3]]])
+    vel, rot = np.zeros((W, V, 3)), np.broadcast_to(np.eye(3), (W, V, 3, 3)).copy()
+    memory = FieldMemory(GrowingPush(), W, V, 0.01)
+    law = make_aggregation("velocity")
+    flown = memory.advance(pos, vel, vel, rot, None, law)  # the simulator's law
+    linear = MemoryOracle(memory)(None)
+    np.testing.assert_allclose(linear[..., 2], -2 * 0.5 * 0.01)  # the oracle's law: the plain sum of the two wakes
+    np.testing.assert_array_equal(MemoryOracle(memory, law)(None), flown)
+    assert not np.allclose(linear, flown)
