@@ -73,7 +73,7 @@ def _validate(args: OutdoorArgs) -> list[str]:
         (args.seeds >= 1, f"--seeds: expected >= 1, got {args.seeds}"),
         (args.duration > 0, f"--duration: expected > 0 s, got {args.duration}"),
     ]
-    trained = [t.strip() for t in args.trained.split(",") if t.strip()]
+    trained = _trained(args)
     try:
         speeds = _sweep_speeds(args.sweep_speeds)
     except ValueError:
@@ -88,6 +88,11 @@ def _validate(args: OutdoorArgs) -> list[str]:
         if not ok:
             raise ConfigError(message)
     return conditions
+
+
+def _trained(args: OutdoorArgs) -> list[str]:
+    """The data mixes of --trained, in order."""
+    return [t.strip() for t in args.trained.split(",") if t.strip()]
 
 
 def _sweep_speeds(text: str) -> list[float]:
@@ -122,7 +127,7 @@ def run(args: OutdoorArgs) -> dict:
     from sim.scene import build_scene
 
     conditions = _validate(args)
-    trained = [t.strip() for t in args.trained.split(",") if t.strip()]
+    trained = _trained(args)
     wind = load_wind(args.wind)
     p = resolve_pipeline(args, models=learned(conditions))
     checkpoints = ensure_models(p.models_dir, learned(conditions), p.collection_dir, p.config, p.field, ProgressBar)

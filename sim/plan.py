@@ -88,7 +88,7 @@ def _make_plan(sim: Any) -> _Plan | None:
             return None
         code, oracle_packed = _PRED_ORACLE, packed
     else:
-        compiled = getattr(told_kinds(predictor, sim.vehicle_params), "compiled", lambda: None)()
+        compiled = getattr(sim._scene_predictor, "compiled", lambda: None)()  # told the scene's kinds (`_bind`)
         if compiled is None:
             return None
         code = _PRED_C
