@@ -98,7 +98,7 @@ from downwash_core.geometry import dot as _dot
 from downwash_core.jit import njit
 from downwash_core.params import GRAVITY
 from downwash_core.validate import count, number
-from downwash_core.vehicles import DEFAULT_VEHICLE, get_vehicle, momentum_drag_area_scale, momentum_wake_kwargs
+from downwash_core.vehicles import get_vehicle
 from sim.fields import momentum as _momentum
 from sim.fields import shed_kernels as _kernels
 from sim.fields.momentum import MomentumWake
@@ -247,12 +247,10 @@ class ShedWake:
         return np.zeros(V, np.int64) if kind_of is None else kind_of
 
     def _pair_law(self, source: str, target: str) -> MomentumWake:
-        """The law of an ordered pair of kinds, as `sim.vehicle_params.pair_field`: the law itself for two paper
-        quads, else the kinds' numbers and the scaled drag area."""
-        if source == target == DEFAULT_VEHICLE:
-            return self.law
-        return dataclasses.replace(self.law, **momentum_wake_kwargs(source, target),
-                                   drag_area=self.law.drag_area * momentum_drag_area_scale(source, target))
+        """The law of an ordered pair of kinds: `sim.vehicle_params.pair_field`'s, the one rule of every field."""
+        from sim.vehicle_params import pair_field  # (it builds on the fields, this module among them)
+
+        return pair_field(self.law, get_vehicle(source), get_vehicle(target))
 
     # ------------------------------------------------------------------ construction and provenance
     @property
