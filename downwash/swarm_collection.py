@@ -24,7 +24,8 @@ past its thrust margin, `sim.presets`).
 After the last stage, each trainable model of sets (`downwash.set_models`) is trained on
 the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisation question
 of the paper's section 6, and once more on all of it reading the vehicle kinds ("kinds",
-``kinds=True``), so that "mixed" against "kinds" isolates what knowing the kinds is worth. The "pair" models depend on no law, so they live in
+``kinds=True``), so that "mixed" against "kinds" isolates what knowing the kinds is worth.
+The "pair" models depend on no law, so they live in
 a folder of their own (`pair_models_dir`) that every law's collection shares. The
 models of sets train on a shorter schedule than the two-vehicle models
 (`swarm_train_config`: at least 600 steps, at most 20 epochs, against 1500 and 60), so
