@@ -72,6 +72,7 @@ __all__ = [
     "model_inputs",
     "KIND_FEATURES",
     "kind_descriptors",
+    "neighbour_kinds",
 ]
 
 R_EPS = 1e-3  # m, softening of the radial unit vector and of the cosine near the wake axis
@@ -282,3 +283,9 @@ def kind_descriptors(kinds: Any) -> np.ndarray:
         q = get_vehicle(kind)  # ConfigError naming the registered kinds
         out[v] = np.log(q.mass / PAPER_QUAD.mass), np.log(q.rotor_radius / PAPER_QUAD.rotor_radius)
     return out
+
+
+def neighbour_kinds(kinds: np.ndarray, index: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(..., K, D): the kinds (V, D) of each neighbour slot (index, mask (..., K) of
+    `sim.neighbours.select_neighbours`), 0 in padding."""
+    return np.where(mask[..., None], kinds[np.maximum(index, 0)], 0.0)

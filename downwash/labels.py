@@ -33,7 +33,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import quat_to_mat
 from downwash_core.vehicles import DEFAULT_VEHICLE
-from downwash.features import KIND_FEATURES, kind_descriptors
+from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
 from sim.logs import FlightLog, load_log
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 
@@ -249,7 +249,7 @@ def labels_from_log(
     index, mask = select_neighbours(pos, neighbours)  # (R, V, K)
     inputs = gather_neighbours(pos, vel, rot, index, mask)
     kinds = kind_descriptors(log_kinds(log))  # (V, D)
-    kind_a = np.where(mask[..., None], kinds[np.maximum(index, 0)], 0.0)  # (R, V, K, D)
+    kind_a = neighbour_kinds(kinds, index, mask)  # (R, V, K, D)
     parts = []
     for v in targets:  # one vehicle at a time: each target's filter runs over its own column
         acc = follower_acceleration(arr["t"][:end], arr["mocap_pos"][:end, v], window, polyorder)

@@ -30,7 +30,7 @@ from downwash_core.geometry import dot
 from downwash_core.state import VehicleStates
 from downwash_core.validate import count
 from downwash.checkpoint import Checkpoint, check_expectations, load_checkpoint, wrap_pairwise
-from downwash.features import kind_descriptors
+from downwash.features import kind_descriptors, neighbour_kinds
 from downwash.models import DownwashModel, _SpectralLinear
 from downwash.set_models import SetModel
 from downwash.set_fused import COMPILED_KINDS, pack_model
@@ -179,7 +179,7 @@ class LearnedPredictor:
                  g["R_a"].reshape(W * V, K, 3, 3), mask.reshape(W * V, K))
         if self._kinds is not None:  # each slot's neighbour kind (0 in padding) and the target's
             D = self._kinds.shape[1]
-            kind_a = np.where(mask[..., None], self._kinds[np.maximum(index, 0)], 0.0)
+            kind_a = neighbour_kinds(self._kinds, index, mask)
             batch += (kind_a.reshape(W * V, K, D), np.broadcast_to(self._kinds, (W, V, D)).reshape(W * V, D))
         if self._numpy is not None:
             out = self._numpy(*batch).reshape(W, V, 3)
