@@ -7,7 +7,8 @@ the field being off).
     no_downwash   the field is off: the controller's own tracking error
     baseline      the LQR with no model (the paper's baseline)
     oracle        the LQR compensating with the true mean field (the best any model can do)
-    <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`);
+    <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`;
+                  the experiments fly `STAGED_KINDS` unless asked, the models with memory on request);
                   <model kind>-<data>: the same kind trained on other data (`experiments.outdoor`)
 """
 
@@ -19,7 +20,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash.models import PAIRWISE_KINDS
+from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
@@ -27,10 +28,11 @@ from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPre
 from sim.scene import Scene
 from downwash_trajectories import Reference
 
-__all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
+__all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "DEFAULT_CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
-CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS)
+CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS)  # every condition a flight can name
+DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS  # what the experiments fly unless asked
 
 
 def parse_conditions(text: str) -> list[str]:

@@ -131,7 +131,7 @@ def merge_provenance(records: Sequence[dict | None], names: Sequence[str] = (), 
 class Pairs(NamedTuple):
     """Every real (target, neighbour) pair of a `Dataset` as flat arrays (`Dataset.pairs`), the
     call of the per-neighbour models: dp, v_a (P, 3), v_b (P, 3), R_a (P, 3, 3), y (P, 3) (the
-    target's label) and flight (P,)."""
+    target's label), flight (P,) and hist (P, H, 3) (the neighbour's history)."""
 
     dp: np.ndarray
     v_a: np.ndarray
@@ -139,12 +139,13 @@ class Pairs(NamedTuple):
     R_a: np.ndarray
     y: np.ndarray
     flight: np.ndarray
+    hist: np.ndarray
 
 
 # the arrays a Dataset holds: name -> trailing shape (K: the neighbour count)
 _ARRAYS: dict[str, tuple[str | int, ...]] = {
-    **{name: SAMPLE_SCHEMA[name][0] for name in ("dp", "v_a", "v_b", "R_a", "mask", "kind_a", "kind_b", "neighbour",
-                                                 "vehicle", "y")},
+    **{name: SAMPLE_SCHEMA[name][0] for name in ("dp", "v_a", "v_b", "R_a", "mask", "kind_a", "kind_b", "hist",
+                                                 "neighbour", "vehicle", "y")},
     "flight": (),
     "stage": (),
     "t": (),
@@ -159,7 +160,9 @@ class Dataset:
 
     dp (N, K, 3) m, v_a (N, K, 3) m/s, v_b (N, 3) m/s, R_a (N, K, 3, 3), mask (N, K) bool:
       model inputs (module doc); kind_a (N, K, D), kind_b (N, D): the neighbour's and target's
-      vehicle kinds (`downwash.features.KIND_FEATURES`; default 0: paper quads);
+      vehicle kinds (`downwash.features.KIND_FEATURES`; default 0: paper quads); hist (N, K, H, 3) m:
+      the neighbour's displacement over each lag of `downwash.features.HISTORY_LAGS` (default 0: it
+      did not move);
       neighbour (N, K), vehicle (N,): vehicle indices in the log;
     y (N, 3) m/s^2: labels; flight (N,), stage (N,): flight id (an index into ``sources``)
       and collection stage; t (N,) s; field_mean (N, 3) m/s^2: the true mean field;
@@ -183,6 +186,7 @@ class Dataset:
     field_mean: np.ndarray
     kind_a: np.ndarray | None = None
     kind_b: np.ndarray | None = None
+    hist: np.ndarray | None = None
     neighbours: NeighbourSet = PAIR
     sources: tuple[str, ...] = ()
     provenance: dict | None = None
@@ -194,7 +198,7 @@ class Dataset:
         n = np.shape(self.y)[0] if np.ndim(self.y) else -1
         for name, trail in _ARRAYS.items():
             a = getattr(self, name)
-            if a is None and name in ("kind_a", "kind_b"):  # not given: every vehicle a paper quad
+            if a is None and name in ("kind_a", "kind_b", "hist"):  # not given: paper quads that did not move
                 a = np.zeros((max(n, 0), *(K if d == "K" else d for d in trail)))
             a = np.asarray(a)
             if name == "mask":
@@ -257,23 +261,24 @@ class Dataset:
         every slot real) these are the samples in order.
         """
         s, k = np.nonzero(self.mask)
-        return Pairs(self.dp[s, k], self.v_a[s, k], self.v_b[s], self.R_a[s, k], self.y[s], self.flight[s])
+        return Pairs(self.dp[s, k], self.v_a[s, k], self.v_b[s], self.R_a[s, k], self.y[s], self.flight[s],
+                     self.hist[s, k])
 
     @staticmethod
     def from_pairs(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray, y: np.ndarray,
                    flight: np.ndarray, stage: np.ndarray | None = None, t: np.ndarray | None = None,
                    field_mean: np.ndarray | None = None, sources: Sequence[str] = (),
-                   provenance: dict | None = None) -> "Dataset":
+                   provenance: dict | None = None, hist: np.ndarray | None = None) -> "Dataset":
         """Two-vehicle samples (K = 1, `PAIR`) from flat arrays: dp, v_a, v_b (N, 3), R_a (N, 3, 3),
-        y (N, 3), flight (N,); stage 0, t 0 and field_mean NaN where not given. The target is
-        vehicle 1, its neighbour vehicle 0."""
+        y (N, 3), flight (N,), hist (N, H, 3); stage 0, t 0, field_mean NaN and hist 0 where not
+        given. The target is vehicle 1, its neighbour vehicle 0."""
         n = np.shape(y)[0]
         return Dataset(
             dp=np.asarray(dp)[:, None], v_a=np.asarray(v_a)[:, None], v_b=v_b, R_a=np.asarray(R_a)[:, None],
             mask=np.ones((n, 1), bool), neighbour=np.zeros((n, 1), np.int64), vehicle=np.ones(n, np.int64), y=y,
             flight=flight, stage=np.zeros(n, np.int64) if stage is None else stage,
             t=np.zeros(n) if t is None else t, field_mean=np.full((n, 3), np.nan) if field_mean is None else field_mean,
-            neighbours=PAIR, sources=tuple(sources), provenance=provenance,
+            hist=None if hist is None else np.asarray(hist)[:, None], neighbours=PAIR, sources=tuple(sources), provenance=provenance,
         )  # fmt: skip
 
     @staticmethod
@@ -285,7 +290,7 @@ class Dataset:
         sources[flight] = str(source)
         return Dataset(
             **{name: labels[name] for name in ("dp", "v_a", "v_b", "R_a", "mask", "neighbour", "vehicle", "y", "t")},
-            kind_a=labels.get("kind_a"), kind_b=labels.get("kind_b"),
+            kind_a=labels.get("kind_a"), kind_b=labels.get("kind_b"), hist=labels.get("hist"),
             flight=np.full(n, flight), stage=np.full(n, stage),
             field_mean=labels.get("field_mean", np.full((n, 3), np.nan)), neighbours=neighbours,
             sources=tuple(sources), provenance=provenance,

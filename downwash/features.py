@@ -34,6 +34,14 @@ model can represent swirl and wakes skewed by the leader's velocity. Its symmetr
 SO(2) about ``n`` acting on dp, v_b AND v_a (a rotation of the whole configuration),
 not reflections.
 
+Models with memory (feature sets "general_memory" and "raw_memory") also read the neighbour's
+recent past, ``hist (..., H, 3)``: its displacement over each lag of `HISTORY_LAGS`,
+``p_a(t) - p_a(t - lag)`` (estimates, world frame; `neighbour_history`). A wake met now was shed a
+moment earlier somewhere else, and these say where. The equivariant set reads each displacement's
+components along the output basis rows (radial, NED-down, tangential), which a rotation about ``n``
+of the whole configuration, history included, leaves unchanged; the raw set reads them in world
+axes.
+
 Equivariant output (paper eq. 5): ``F = f1 r_hat + f2 d`` with the basis rows
 ``r_hat = P dp / sqrt(|P dp|^2 + R_EPS^2)`` (the radial direction in the leader's
 rotor plane, smoothly 0 at r = 0) and ``d = -n`` (the leader's NED-down axis),
@@ -60,6 +68,9 @@ __all__ = [
     "EQUIVARIANT_FEATURE_SETS",
     "N_BASIS",
     "RAW_FEATURE_SETS",
+    "HISTORY_LAGS",
+    "MEMORY_FEATURE_SETS",
+    "neighbour_history",
     "leader_axis",
     "project_plane",
     "safe_norm",
@@ -91,9 +102,17 @@ FEATURE_SETS: dict[str, tuple[str, ...]] = {
     # non-equivariant baselines: [dp, v_b] in the world frame
     "raw": ("dp_x", "dp_y", "dp_z", "vb_x", "vb_y", "vb_z"),
 }
-EQUIVARIANT_FEATURE_SETS = ("5", "6", "general")
-N_BASIS = {"5": 2, "6": 2, "general": 3}  # output basis rows: r_hat, d (and t_hat = n x r_hat for "general")
-RAW_FEATURE_SETS = ("raw",)
+# The lags of the models with memory (s): every third prediction of the loop's 45 Hz, the last 0.27 s.
+HISTORY_LAGS = (3 / 45, 6 / 45, 9 / 45, 12 / 45)
+_LAG_NAMES = [f"{1000 * lag:.0f}ms" for lag in HISTORY_LAGS]
+FEATURE_SETS["general_memory"] = FEATURE_SETS["general"] + tuple(
+    f"moved_{axis}_{lag}" for lag in _LAG_NAMES for axis in ("radial", "down", "tangential"))
+FEATURE_SETS["raw_memory"] = FEATURE_SETS["raw"] + tuple(f"moved_{axis}_{lag}" for lag in _LAG_NAMES for axis in "xyz")
+MEMORY_FEATURE_SETS = ("general_memory", "raw_memory")  # they read the neighbour's history
+EQUIVARIANT_FEATURE_SETS = ("5", "6", "general", "general_memory")
+# output basis rows: r_hat, d (and t_hat = n x r_hat for "general")
+N_BASIS = {"5": 2, "6": 2, "general": 3, "general_memory": 3}
+RAW_FEATURE_SETS = ("raw", "raw_memory")
 
 
 def _namespace(*arrays: Any) -> tuple[ModuleType, list[Any]]:
@@ -174,7 +193,7 @@ def _equivariant_inputs(xp: ModuleType, dp, v_a, v_b, R_a, feature_set: str, wan
     r2 = dot(pdp, pdp, xp)
     r_soft = xp.sqrt(r2 + R_EPS**2)
     r_hat = pdp / r_soft[..., None]
-    rows = [r_hat, -n] if feature_set != "general" else [r_hat, -n, _cross(xp, n, r_hat)]
+    rows = [r_hat, -n] if N_BASIS[feature_set] == 2 else [r_hat, -n, _cross(xp, n, r_hat)]
     basis = _stack(xp, rows, -2)
     if not want_features:
         return None, basis
@@ -182,7 +201,7 @@ def _equivariant_inputs(xp: ModuleType, dp, v_a, v_b, R_a, feature_set: str, wan
     pvb = v_b - vb_n[..., None] * n
     q2 = dot(pvb, pvb, xp)
     c = dot(pdp, pvb, xp) / (r_soft * xp.sqrt(q2 + V_EPS**2))
-    if feature_set != "general":
+    if N_BASIS[feature_set] == 2:
         cols = [c, _sqrt0(xp, r2), _sqrt0(xp, q2), -dp_n, -vb_n]
         if feature_set == "6":
             pva = v_a - dot(v_a, n, xp)[..., None] * n
@@ -219,6 +238,8 @@ def invariant_features(dp, v_a, v_b, R_a, feature_set: str = "5"):
     finite values and gradients everywhere (also at r = 0 and v = 0).
     """
     _check_equivariant_set(feature_set)
+    if feature_set in MEMORY_FEATURE_SETS:
+        raise ValueError(f"feature_set {feature_set!r} also reads the neighbour's history: use model_inputs")
     xp, (dp, v_a, v_b, R_a) = _namespace(dp, v_a, v_b, R_a)
     return _equivariant_inputs(xp, dp, v_a, v_b, R_a, feature_set)[0]
 
@@ -253,18 +274,33 @@ def project_onto_basis(y, basis):
     return xp.einsum("...kj,...j->...k", basis, y)
 
 
-def model_inputs(feature_set: str, dp, v_a, v_b, R_a):
+def model_inputs(feature_set: str, dp, v_a, v_b, R_a, hist=None):
     """Network inputs for a feature set: ``(x (..., k), basis (..., 2, 3) or None)``.
 
-    Equivariant sets ("5", "6") give invariant features and the equivariant basis;
-    "raw" gives ``[dp, v_b]`` and no basis (the network outputs world axes).
+    Equivariant sets ("5", "6", "general") give invariant features and the equivariant basis;
+    "raw" gives ``[dp, v_b]`` and no basis (the network outputs world axes). The sets with
+    memory (`MEMORY_FEATURE_SETS`) append the neighbour's history ``hist (..., H, 3)`` (module
+    doc): along the basis rows for "general_memory", in world axes for "raw_memory". The other
+    sets ignore ``hist``.
     """
+    if feature_set not in FEATURE_SETS:
+        raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {feature_set!r}")
+    memory = feature_set in MEMORY_FEATURE_SETS
+    if memory and hist is None:
+        raise ValueError(f"feature set {feature_set!r} reads the neighbour's history: pass hist (..., "
+                         f"{len(HISTORY_LAGS)}, 3), its displacement over each of HISTORY_LAGS")
     if feature_set in EQUIVARIANT_FEATURE_SETS:
         xp, (dp, v_a, v_b, R_a) = _namespace(dp, v_a, v_b, R_a)
-        return _equivariant_inputs(xp, dp, v_a, v_b, R_a, feature_set)
-    if feature_set in RAW_FEATURE_SETS:
-        return raw_features(dp, v_b), None
-    raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {feature_set!r}")
+        x, basis = _equivariant_inputs(xp, dp, v_a, v_b, R_a, feature_set)
+    else:
+        x, basis = raw_features(dp, v_b), None
+    if not memory:
+        return x, basis
+    xp, (x, hist) = _namespace(x, hist)
+    if hist.shape[-2:] != (len(HISTORY_LAGS), 3):
+        raise ValueError(f"hist: expected shape (..., {len(HISTORY_LAGS)}, 3), got {tuple(hist.shape)}")
+    moved = hist if basis is None else xp.einsum("...hj,...kj->...hk", hist, basis)  # (..., H, 3)
+    return xp.concatenate([x, moved.reshape(*moved.shape[:-2], -1)], -1), basis
 
 
 # Vehicle kinds as model inputs (Neural-Swarm2's heterogeneous sets): each vehicle's kind as a few
@@ -283,6 +319,15 @@ def kind_descriptors(kinds: Any) -> np.ndarray:
         q = get_vehicle(kind)  # ConfigError naming the registered kinds
         out[v] = np.log(q.mass / PAPER_QUAD.mass), np.log(q.rotor_radius / PAPER_QUAD.rotor_radius)
     return out
+
+
+def neighbour_history(pos, past, index: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(W, V, K, H, 3): each neighbour slot's displacement over each lag, ``pos - past`` of the
+    neighbour (positions pos (W, V, 3) now and past (H, W, V, 3) at each of `HISTORY_LAGS` ago;
+    index, mask (W, V, K) of `sim.neighbours.select_neighbours`), 0 in padding."""
+    moved = np.moveaxis(np.asarray(pos)[None] - np.asarray(past), 0, -2)  # (W, V, H, 3)
+    gathered = moved[np.arange(index.shape[0])[:, None, None], np.maximum(index, 0)]  # (W, V, K, H, 3)
+    return np.where(mask[..., None, None], gathered, 0.0)
 
 
 def neighbour_kinds(kinds: np.ndarray, index: np.ndarray, mask: np.ndarray) -> np.ndarray:

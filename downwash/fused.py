@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from downwash_core.jit import njit
-from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, R_EPS, V_EPS
+from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, MEMORY_FEATURE_SETS, R_EPS, V_EPS
 
 __all__ = ["pack_layers", "feature_code", "pair_inputs", "mlp_inplace", "pair_force", "clamped"]
 
@@ -137,4 +137,5 @@ def clamped(fx, fy, fz, clamp):
     return fx * scale, fy * scale, fz * scale
 
 
-assert set(FEATURE_SETS) == {"raw", *EQUIVARIANT_FEATURE_SETS}, "a new feature set needs a kernel code"
+# (the sets with memory have no kernel: their predictors keep a history, which the fused tick cannot tell)
+assert set(FEATURE_SETS) == {"raw", *EQUIVARIANT_FEATURE_SETS, *MEMORY_FEATURE_SETS}, "a new feature set needs a kernel code"

@@ -33,7 +33,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import quat_to_mat
 from downwash_core.vehicles import DEFAULT_VEHICLE
-from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
+from downwash.features import HISTORY_LAGS, KIND_FEATURES, kind_descriptors, neighbour_history, neighbour_kinds
 from sim.logs import FlightLog, load_log
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 
@@ -50,6 +50,7 @@ __all__ = [
     "smooth_command",
     "log_targets",
     "log_kinds",
+    "past_positions",
     "labels_from_log",
     "label_noise_floor",
     "LABEL_ARRAYS",
@@ -82,6 +83,8 @@ SAMPLE_SCHEMA: dict[str, tuple[tuple[str | int, ...], str]] = {
     "mask": (("K",), "True for a real neighbour, False for padding"),
     "kind_a": (("K", len(KIND_FEATURES)), "the neighbour's vehicle kind (`downwash.features.KIND_FEATURES`); 0 in padding"),
     "kind_b": ((len(KIND_FEATURES),), "the target's vehicle kind (`downwash.features.KIND_FEATURES`)"),
+    "hist": (("K", len(HISTORY_LAGS), 3), "m, the neighbour's displacement over each lag of "
+                                          "`downwash.features.HISTORY_LAGS` (estimates); 0 in padding"),
     "neighbour": (("K",), "vehicle index of each neighbour in the log, -1 in padding"),
     "vehicle": ((), "vehicle index of the target in the log"),
     "y": ((3,), "m/s^2, label f = a - u on the target, world frame"),
@@ -192,6 +195,18 @@ def log_kinds(log: FlightLog) -> list[str]:
     return kinds
 
 
+def past_positions(t: np.ndarray, pos: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(H, R, V, 3): the positions pos (T, V, 3) at times t (T,) (uniform) each lag of
+    `downwash.features.HISTORY_LAGS` before the given rows, linear between samples, the first
+    sample before the flight's start: what the loop's history holds (`downwash.predictor`)."""
+    dt = sample_period(t)
+    at = np.maximum((t[rows][None, :] - t[0] - np.asarray(HISTORY_LAGS)[:, None]) / dt, 0.0)  # (H, R) in samples
+    i0 = np.minimum(np.floor(at).astype(np.int64), len(t) - 1)
+    i1 = np.minimum(i0 + 1, len(t) - 1)
+    frac = (at - i0)[..., None, None]
+    return (1.0 - frac) * pos[i0] + frac * pos[i1]
+
+
 def labels_from_log(
     log: FlightLog,
     neighbours: NeighbourSet = PAIR,
@@ -215,6 +230,7 @@ def labels_from_log(
       mask, neighbour (N, K), vehicle (N,)   real slots and vehicle indices in the log
       kind_a (N, K, D), kind_b (N, D)        the neighbour's and target's kinds (`log_kinds`,
                                              as `downwash.features.kind_descriptors`)
+      hist (N, K, H, 3)  the neighbour's displacement over each lag (`past_positions`)
       y (N, 3) m/s^2     label f = a - u on the target (module doc), world frame
       t, row (N,)        the tick time and row index in the log
       field_mean, field_applied (N, 3) m/s^2   the true field on the target
@@ -250,6 +266,7 @@ def labels_from_log(
     inputs = gather_neighbours(pos, vel, rot, index, mask)
     kinds = kind_descriptors(log_kinds(log))  # (V, D)
     kind_a = neighbour_kinds(kinds, index, mask)  # (R, V, K, D)
+    hist = neighbour_history(pos, past_positions(arr["t"], arr["pos_est"], rows), index, mask)  # (R, V, K, H, 3)
     parts = []
     for v in targets:  # one vehicle at a time: each target's filter runs over its own column
         acc = follower_acceleration(arr["t"][:end], arr["mocap_pos"][:end, v], window, polyorder)
@@ -258,6 +275,7 @@ def labels_from_log(
             "dp": inputs["dp"][:, v], "v_a": inputs["v_a"][:, v], "v_b": inputs["v_b"][:, v].astype(np.float64),
             "R_a": inputs["R_a"][:, v], "mask": mask[:, v], "neighbour": index[:, v],
             "kind_a": kind_a[:, v], "kind_b": np.broadcast_to(kinds[v], (rows.size, kinds.shape[1])),
+            "hist": hist[:, v],
             "vehicle": np.full(rows.size, v, dtype=np.int64), "y": acc[rows] - u[rows],
             "t": arr["t"][rows].astype(np.float64), "row": rows.astype(np.int64),
             "field_mean": arr["field_mean"][rows, v].astype(np.float64),

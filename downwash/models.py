@@ -1,9 +1,10 @@
 """The per-neighbour downwash models (paper sections 4 and 5.D): one equivariant, two baselines.
 
 A per-neighbour model maps one (neighbour, target) pair to the force the neighbour's wake
-puts on the target; `downwash.set_models.SummedPairwise` sums it over a neighbour set,
+puts on the target (the models with memory, `EquivariantMemoryModel` and `DeepMemoryModel`, also
+read the neighbour's recent past, ``hist (..., H, 3)``: `downwash.features.HISTORY_LAGS`); `downwash.set_models.SummedPairwise` sums it over a neighbour set,
 and `downwash.registry` lists these kinds beside the models of sets. All share one call,
-``model(dp, v_a, v_b, R_a) -> F``:
+``model(dp, v_a, v_b, R_a, hist=None) -> F``:
 
     dp  (..., 3)    m     follower minus leader position, world frame (z up)
     v_a (..., 3)    m/s   leader velocity, world frame
@@ -32,7 +33,8 @@ from torch.nn.utils.parametrizations import spectral_norm
 
 from downwash_core.errors import ConfigError
 
-from downwash.features import FEATURE_SETS, RAW_FEATURE_SETS, assemble, depth, model_inputs, project_onto_basis
+from downwash.features import (FEATURE_SETS, MEMORY_FEATURE_SETS, assemble, depth, model_inputs,
+                               project_onto_basis)
 from downwash_core.numerics import matmul_rows
 
 __all__ = [
@@ -42,7 +44,10 @@ __all__ = [
     "GeneralEquivariantModel",
     "ShallowMLP",
     "DeepSNMLP",
+    "EquivariantMemoryModel",
+    "DeepMemoryModel",
     "PAIRWISE_KINDS",
+    "STAGED_KINDS",
     "count_parameters",
     "settle_spectral_norm",
     "MAX_WIDTH",
@@ -104,24 +109,31 @@ class DownwashModel(nn.Module):
         self.register_buffer("out_mean", torch.zeros(self.n_outputs))
         self.register_buffer("out_std", torch.ones(self.n_outputs))
 
+    @property
+    def memory(self) -> bool:
+        """Whether the model reads the neighbour's history (``hist``, `downwash.features.HISTORY_LAGS`)."""
+        return self.feature_set in MEMORY_FEATURE_SETS
+
     # -- the pipeline: encode (features, parameter-free) -> decode (network) -----------
-    def encode(self, dp, v_a, v_b, R_a):
+    def encode(self, dp, v_a, v_b, R_a, hist=None):
         """Unnormalised features (..., k) and output basis (..., 2, 3) or None, model dtype.
 
-        Parameter-free: training computes it once for the whole data set.
+        Parameter-free: training computes it once for the whole data set. ``hist`` (..., H, 3):
+        the neighbour's history, read by a model with memory only.
         """
         dtype = self.in_mean.dtype
         dp, v_a, v_b, R_a = (_to_tensor(a, dtype) for a in (dp, v_a, v_b, R_a))
-        return model_inputs(self.feature_set, dp, v_a, v_b, R_a)
+        hist = _to_tensor(hist, dtype) if self.memory and hist is not None else None
+        return model_inputs(self.feature_set, dp, v_a, v_b, R_a, hist)
 
     def decode(self, x: torch.Tensor, basis: torch.Tensor | None) -> torch.Tensor:
         """World-frame acceleration (..., 3) m/s^2 from features x (..., k) and basis."""
         out = self.net((x - self.in_mean) / self.in_std) * self.out_std + self.out_mean
         return out if basis is None else assemble(out, basis)
 
-    def forward(self, dp, v_a, v_b, R_a) -> torch.Tensor:
+    def forward(self, dp, v_a, v_b, R_a, hist=None) -> torch.Tensor:
         """Predicted downwash on the follower (..., 3) m/s^2, world frame (see module doc)."""
-        x, basis = self.encode(dp, v_a, v_b, R_a)
+        x, basis = self.encode(dp, v_a, v_b, R_a, hist)
         return self.decode(x, basis)
 
     def output_targets(self, y: torch.Tensor, basis: torch.Tensor | None) -> torch.Tensor:
@@ -131,11 +143,11 @@ class DownwashModel(nn.Module):
     # -- the trainer's protocol (`downwash.train`): the same three steps for every kind -----------
     def encode_samples(self, data: Any) -> tuple[PairEncoded, torch.Tensor]:
         """(encoding, labels (P, 3)) of every real (target, neighbour) pair of a `Dataset`
-        (`Dataset.pairs`), or of an object of flat arrays dp, v_a, v_b, R_a and y (labels None
-        without y)."""
+        (`Dataset.pairs`), or of an object of flat arrays dp, v_a, v_b, R_a (hist for a model with
+        memory) and y (labels None without y)."""
         pairs = data.pairs() if hasattr(data, "pairs") else data
         with torch.no_grad():
-            x, basis = self.encode(pairs.dp, pairs.v_a, pairs.v_b, pairs.R_a)
+            x, basis = self.encode(pairs.dp, pairs.v_a, pairs.v_b, pairs.R_a, getattr(pairs, "hist", None))
         y = getattr(pairs, "y", None)
         return PairEncoded(x, basis), None if y is None else torch.as_tensor(np.asarray(y), dtype=x.dtype)
 
@@ -211,7 +223,7 @@ class DownwashModel(nn.Module):
         return [(w.numpy(), b.numpy()) for w, b in f64]
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        """The model as a float64 NumPy function of pairs ``f(dp, v_a, v_b, R_a) -> F (..., 3)``: the
+        """The model as a float64 NumPy function of pairs ``f(dp, v_a, v_b, R_a, hist=None) -> F (..., 3)``: the
         `folded_layers` as they are now (eval mode), copied; 0 where the target is not below the
         neighbour (depth ``-(dp . n) <= 0``: the models are trained on targets below only and have
         no business extrapolating above a wake). The readable reference of every predictor's law."""
@@ -225,8 +237,8 @@ class DownwashModel(nn.Module):
         names = FEATURE_SETS[feature_set]
         depth_col = names.index("depth") if "depth" in names else None
 
-        def forward(dp, v_a, v_b, R_a):
-            x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
+        def forward(dp, v_a, v_b, R_a, hist=None):
+            x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a, hist)
             h = x
             for w, b in layers[:-1]:
                 h = matmul_rows(h, w)
@@ -335,7 +347,7 @@ class ShallowMLP(_OneHiddenLayer):
     """Shallow non-equivariant baseline: ``[dp, v_b]`` 6-32-3 ReLU (323 parameters), world axes out."""
 
     kind = "shallow"
-    ALLOWED_FEATURE_SETS = RAW_FEATURE_SETS
+    ALLOWED_FEATURE_SETS = ("raw",)
     DEFAULT_FEATURE_SET = "raw"
     n_outputs = 3
     default_lr = 3e-2
@@ -378,7 +390,7 @@ class DeepSNMLP(DownwashModel):
     """
 
     kind = "deep"
-    ALLOWED_FEATURE_SETS = RAW_FEATURE_SETS
+    ALLOWED_FEATURE_SETS = ("raw",)
     DEFAULT_FEATURE_SET = "raw"
     n_outputs = 3
     default_lr = 5e-3
@@ -428,11 +440,42 @@ def settle_spectral_norm(model: nn.Module, max_iterations: int = 5000, rtol: flo
             param.train(old_mode)
 
 
-# The per-neighbour kinds (the paper's table order); `downwash.registry.MODEL_KINDS` lists them
-# with the models of sets, and experiments, conditions, checkpoints and training take names there.
+class EquivariantMemoryModel(_OneHiddenLayer):
+    """The generalised equivariant model with memory: ``F = f1 r_hat + f2 d + f3 t_hat`` from the
+    "general" invariants and the neighbour's displacement over each of `downwash.features.HISTORY_LAGS`
+    along the three basis rows (feature set "general_memory", 22 features; 22-32-3 ReLU, 835
+    parameters). The history rotates with the rest of the configuration, so the model stays
+    SO(2)-equivariant (tested). A wake met now was shed where the neighbour was a moment ago: this
+    model can see where that was, the memoryless ones cannot."""
+
+    kind = "equivariant_memory"
+    ALLOWED_FEATURE_SETS = ("general_memory",)
+    DEFAULT_FEATURE_SET = "general_memory"
+    n_outputs = 3
+    default_lr = 5e-2
+
+
+class DeepMemoryModel(DeepSNMLP):
+    """The deep baseline with memory: ``[dp, v_b]`` and the neighbour's displacement over each lag of
+    `downwash.features.HISTORY_LAGS`, all in world axes (feature set "raw_memory", 18 features), the
+    same spectrally normalised network as `DeepSNMLP`. Not equivariant."""
+
+    kind = "deep_memory"
+    ALLOWED_FEATURE_SETS = ("raw_memory",)
+    DEFAULT_FEATURE_SET = "raw_memory"
+
+
+# The per-neighbour kinds (the paper's table order, then the models with memory);
+# `downwash.registry.MODEL_KINDS` lists them with the models of sets, and experiments, conditions,
+# checkpoints and training take names there.
 PAIRWISE_KINDS: dict[str, type[DownwashModel]] = {
     "shallow": ShallowMLP,
     "deep": DeepSNMLP,
     "equivariant": EquivariantModel,
     "equivariant_general": GeneralEquivariantModel,
+    "equivariant_memory": EquivariantMemoryModel,
+    "deep_memory": DeepMemoryModel,
 }
+# The kinds the staged collection trains as its final models (the paper's and the generalised
+# model); it trains any other kind on the same data when one is asked for (`downwash.staged`).
+STAGED_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")

@@ -12,6 +12,13 @@ extrapolating above a wake. A model of sets (`downwash.set_models`) takes the pa
 A model that reads the vehicle kinds (``kinds=True``) is told each vehicle's kind: the simulator
 binds it to its scene (`LearnedPredictor.for_vehicles`, called by `sim.vehicle_params.scene_predictor`);
 unbound it reads every vehicle as the paper quad.
+
+A model with memory (`downwash.models.EquivariantMemoryModel`, `DeepMemoryModel`) reads each
+neighbour's displacement over the lags of `downwash.features.HISTORY_LAGS`. The predictor keeps
+the estimated positions of its last calls per world, as a lab's compensator would (a stateful
+predictor, `sim.predictor`): the simulator resets a world's history with the world and tells it
+which worlds each call is due for. Before a world has a full history its oldest position stands
+in for the older ones, as in the labels (`downwash.labels.past_positions`).
 """
 
 from __future__ import annotations
@@ -30,9 +37,10 @@ from downwash_core.geometry import dot
 from downwash_core.state import VehicleStates
 from downwash_core.validate import count
 from downwash.checkpoint import Checkpoint, check_expectations, load_checkpoint, wrap_pairwise
-from downwash.features import kind_descriptors, neighbour_kinds
+from downwash_core.params import RATES
+from downwash.features import HISTORY_LAGS, kind_descriptors, neighbour_history, neighbour_kinds
 from downwash.models import DownwashModel, _SpectralLinear
-from downwash.set_models import SetModel
+from downwash.set_models import SetModel, SummedPairwise
 from downwash.set_fused import COMPILED_KINDS, pack_model
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
 from sim.predictor import CompiledPredictor
@@ -79,6 +87,8 @@ class LearnedPredictor:
     dtype: the torch backend's precision (default float64: the model is copied and converted).
     num_threads: torch intra-op threads during a torch call (default 1: these small batches
       ran 15-25x slower with two threads on two busy cores; None leaves torch's setting).
+    predictor_hz: the rate it is called at per world (the loop's, `downwash_core.params.RATES`), for
+      a model with memory: every lag of `HISTORY_LAGS` must be a whole number of calls.
     """
 
     BACKENDS = ("compiled", "numpy", "torch")
@@ -86,7 +96,8 @@ class LearnedPredictor:
     def __init__(self, model: DownwashModel | Checkpoint | str | os.PathLike, clamp: float | None = None,
                  backend: str | None = None, *, neighbours: NeighbourSet | None = None,
                  expect_neighbours: NeighbourSet | None = None, expect_aggregation: Any = None,
-                 vehicle_kinds: Any = None, dtype: torch.dtype = torch.float64, num_threads: int | None = 1):
+                 vehicle_kinds: Any = None, dtype: torch.dtype = torch.float64, num_threads: int | None = 1,
+                 predictor_hz: float = RATES.predictor_hz):
         if isinstance(model, (str, os.PathLike)):
             model = load_checkpoint(model, expect_neighbours=expect_neighbours, expect_aggregation=expect_aggregation)
         if isinstance(model, DownwashModel) or (isinstance(model, Checkpoint) and isinstance(model.model, DownwashModel)):
@@ -98,13 +109,19 @@ class LearnedPredictor:
         check_expectations(f"{model.model.kind} model", model.neighbours, model.record, expect_neighbours,
                            expect_aggregation)
         kind = model.model.kind
+        memory = isinstance(model.model, SummedPairwise) and model.model.pairwise.memory
         if backend is None:
-            backend = "compiled" if kind in COMPILED_KINDS else "numpy"
+            backend = "compiled" if kind in COMPILED_KINDS and not memory else "numpy"
         if backend not in self.BACKENDS:
             raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
-        if backend == "compiled" and kind not in COMPILED_KINDS:
-            raise ConfigError(f"backend: {kind!r} has no compiled form (kinds with one: {sorted(COMPILED_KINDS)}); "
-                              "use 'numpy' or 'torch'")
+        if backend == "compiled" and (kind not in COMPILED_KINDS or memory):
+            what = f"a {model.model.pairwise.kind!r} model (it reads its history)" if memory else repr(kind)
+            raise ConfigError(f"backend: {what} has no compiled form (kinds with one: {sorted(COMPILED_KINDS)}, "
+                              "without memory); use 'numpy' or 'torch'")
+        self.predictor_hz = float(predictor_hz)
+        self._lags = _lags_in_calls(self.predictor_hz) if memory else None  # calls back, per lag
+        self._past: np.ndarray | None = None  # (max lag + 1, W, V, 3) the last calls' positions, newest first
+        self._calls: np.ndarray | None = None  # (W,) calls since each world's reset
         if clamp is not None and not (math.isfinite(clamp) and clamp > 0):
             raise ConfigError(f"clamp: expected None or a finite magnitude > 0 (m/s^2), got {clamp!r}")
         self.clamp = None if clamp is None else float(clamp)
@@ -145,7 +162,36 @@ class LearnedPredictor:
         if self._checkpoint is None or kinds == self.vehicle_kinds:
             return self
         return LearnedPredictor(self._checkpoint, self.clamp, self.backend, vehicle_kinds=kinds,
-                                dtype=next(self.model.parameters()).dtype, num_threads=self.num_threads)
+                                dtype=next(self.model.parameters()).dtype, num_threads=self.num_threads,
+                                predictor_hz=self.predictor_hz)
+
+    @property
+    def stateful(self) -> bool:
+        """Whether the model reads the neighbours' history, which this predictor keeps (module doc,
+        `sim.predictor.is_stateful`)."""
+        return self._lags is not None
+
+    def reset(self, worlds: Any = None) -> None:
+        """Forget the history of these worlds (indices; None: every world): each starts afresh at its
+        next call. Nothing to do for a model without memory."""
+        if self._calls is not None:
+            self._calls[slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)] = 0
+
+    def _remember(self, pos: np.ndarray, due: np.ndarray | None) -> np.ndarray:
+        """Push this call's positions (W, V, 3) into the due worlds' histories (all worlds when due
+        is None); returns the positions each lag ago (H, W, V, 3)."""
+        W = pos.shape[0]
+        if self._past is None or self._past.shape[1:] != pos.shape:  # first call, or other worlds
+            self._past = np.empty((max(self._lags) + 1, *pos.shape))
+            self._calls = np.zeros(W, dtype=np.int64)
+        due = np.ones(W, bool) if due is None else np.asarray(due, dtype=bool)
+        fresh = due & (self._calls == 0)
+        self._past[:, fresh] = pos[fresh]  # a world's first call stands in for its past
+        going = due & ~fresh
+        self._past[1:, going] = self._past[:-1, going]
+        self._past[0, going] = pos[going]
+        self._calls[due] += 1
+        return self._past[self._lags]
 
     def compiled(self) -> CompiledPredictor | None:
         """The compiled backend as a C function for the simulator's fused loop (`sim.predictor`): one
@@ -155,16 +201,22 @@ class LearnedPredictor:
     def describe(self) -> dict[str, Any]:
         out = {"kind": self.kind, "neighbours": self.neighbours.describe(),
                "aggregation": self.record.get("aggregation"), "backend": self.backend, "clamp": self.clamp}
+        if self.stateful:
+            out["history_lags"] = list(HISTORY_LAGS)
         return out if self.vehicle_kinds is None else {**out, "vehicle_kinds": list(self.vehicle_kinds)}
 
-    def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None) -> np.ndarray:
+    def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None,
+                 due: np.ndarray | None = None) -> np.ndarray:
         """Predicted force on every vehicle (W, V, 3) m/s^2 from ``estimated``; ``true`` is ignored
-        (a learned model only knows the estimates)."""
+        (a learned model only knows the estimates). due (W,) bool: the worlds whose prediction this
+        call is (a model with memory remembers only theirs; None: every world); the others' rows
+        are computed all the same, for the caller to ignore."""
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
         W, V = pos.shape[:2]
         if self._kinds is not None and len(self._kinds) != V:
             raise ConfigError(f"vehicle_kinds: the predictor was given {len(self._kinds)} vehicle kinds, the states "
                               f"hold {V} vehicles")
+        past = None if self._lags is None else self._remember(np.asarray(pos, dtype=np.float64), due)
         if V < 2:
             return np.zeros((W, V, 3))
         if self._abi is not None:  # selection, model and clamp in one pass
@@ -181,6 +233,10 @@ class LearnedPredictor:
             D = self._kinds.shape[1]
             kind_a = neighbour_kinds(self._kinds, index, mask)
             batch += (kind_a.reshape(W * V, K, D), np.broadcast_to(self._kinds, (W, V, D)).reshape(W * V, D))
+        elif past is not None:
+            batch += (None, None)
+        if past is not None:  # each neighbour's displacement over each lag
+            batch += (neighbour_history(pos, past, index, mask).reshape(W * V, K, len(HISTORY_LAGS), 3),)
         if self._numpy is not None:
             out = self._numpy(*batch).reshape(W, V, 3)
         else:
@@ -194,6 +250,17 @@ class LearnedPredictor:
                 if self.num_threads is not None:
                     torch.set_num_threads(old_threads)
         return out if self.clamp is None else clamp_magnitude(out, self.clamp)
+
+
+def _lags_in_calls(predictor_hz: float) -> list[int]:
+    """Each lag of `HISTORY_LAGS` in calls at predictor_hz; ConfigError unless each is a whole number."""
+    calls = [lag * predictor_hz for lag in HISTORY_LAGS]
+    if not (math.isfinite(predictor_hz) and predictor_hz > 0) or any(abs(c - round(c)) > 1e-6 or round(c) < 1
+                                                                    for c in calls):
+        raise ConfigError(f"predictor_hz: a model with memory reads lags {[round(lag, 4) for lag in HISTORY_LAGS]} s, "
+                          f"which must be whole numbers of calls; got {predictor_hz!r} Hz (45 Hz, the loop's rate, "
+                          "works)")
+    return [int(round(c)) for c in calls]
 
 
 def clamp_magnitude(f: np.ndarray, bound: float) -> np.ndarray:

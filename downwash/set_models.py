@@ -9,6 +9,8 @@ Every model takes a batch of padded neighbour sets (`downwash.datasets.Dataset`)
     mask (B, K)       bool  real neighbours (False: padding, ignored whatever it holds)
     kind_a (B, K, D)  -     the neighbours' vehicle kinds (`downwash.features.KIND_FEATURES`),
     kind_b (B, D)     -     and the target's; optional, default 0 (paper quads)
+    hist (B, K, H, 3) m     the neighbours' displacements over `downwash.features.HISTORY_LAGS`;
+                            optional, read by a summed per-neighbour model with memory only
     F    (B, 3)       m/s^2 predicted force on the target, world frame
 
 and is invariant to the order of the neighbours (sums over the set) and to padding;
@@ -61,7 +63,8 @@ from torch import nn
 
 from downwash_core.errors import ConfigError
 from downwash_core.validate import count, positive_float
-from downwash.features import EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEATURES, N_BASIS, depth, model_inputs
+from downwash.features import (EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEATURES, MEMORY_FEATURE_SETS, N_BASIS, depth,
+                               model_inputs)
 from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters,
                              settle_spectral_norm)
 
@@ -224,11 +227,11 @@ class SetModel(nn.Module):
         """The dtype of the inputs the model computes in (that of its normalisation buffers)."""
         return next(self.buffers()).dtype
 
-    def _features(self, dp: torch.Tensor, v_a: torch.Tensor, v_b: torch.Tensor, R_a: torch.Tensor):
-        """(x (B, K, k), basis or None) of tensors; v_b is broadcast to (B, K, 3)."""
+    def _features(self, dp: torch.Tensor, v_a: torch.Tensor, v_b: torch.Tensor, R_a: torch.Tensor, hist: Any):
+        """(x (B, K, k), basis or None) of tensors; v_b is broadcast to (B, K, 3); hist (B, K, H, 3) or None."""
         raise NotImplementedError
 
-    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> Encoded:
+    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None) -> Encoded:
         """Features, basis and mask of a batch (module doc for the shapes), in the model's dtype."""
         _check_shapes(dp, v_a, v_b, R_a, mask)
         dtype = self.dtype
@@ -236,7 +239,7 @@ class SetModel(nn.Module):
         columns = kind_columns(kind_a, kind_b, B, K) if self.kinds else None  # checked before any work
         dp, v_a, v_b, R_a = (_tensor(a, dtype) for a in (dp, v_a, v_b, R_a))
         mask = _tensor(mask, torch.bool)
-        x, basis = self._features(dp, v_a, v_b[:, None, :].expand_as(dp), R_a)
+        x, basis = self._features(dp, v_a, v_b[:, None, :].expand_as(dp), R_a, None if hist is None else _tensor(hist, dtype))
         if columns is not None:
             x = torch.cat([x, _tensor(columns, dtype)], -1)
         return Encoded(x, basis, mask)
@@ -245,9 +248,9 @@ class SetModel(nn.Module):
         """Force on each target (B, 3) m/s^2, world frame."""
         raise NotImplementedError
 
-    def forward(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> torch.Tensor:
+    def forward(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None) -> torch.Tensor:
         """Predicted force on each target (B, 3) m/s^2 (see the module doc)."""
-        return self.decode(self.encode(dp, v_a, v_b, R_a, mask, kind_a, kind_b))
+        return self.decode(self.encode(dp, v_a, v_b, R_a, mask, kind_a, kind_b, hist))
 
     def fit_normalization(self, enc: Encoded, y: torch.Tensor) -> None:
         """Set the normalisation buffers from training inputs and labels y (B, 3) m/s^2."""
@@ -264,8 +267,8 @@ class SetModel(nn.Module):
         return {"kind": self.kind, "architecture": self.architecture(), "n_parameters": count_parameters(self)}
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        """The model as a float64 NumPy function ``f(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None)
-        -> F (B, 3)`` (the inputs of `forward`): the weights as they are now (eval mode), copied. The predictor's
+        """The model as a float64 NumPy function ``f(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None,
+        hist=None) -> F (B, 3)`` (the inputs of `forward`): the weights as they are now (eval mode), copied. The predictor's
         default path: a few hundred microseconds less per call than torch's per-operation cost."""
         raise NotImplementedError
 
@@ -280,7 +283,8 @@ class SetModel(nn.Module):
     def encode_samples(self, data: Any) -> tuple[Encoded, torch.Tensor]:
         """(encoding, labels (B, 3)) of the padded neighbour sets of a `Dataset`."""
         with torch.no_grad():
-            enc = self.encode(data.dp, data.v_a, data.v_b, data.R_a, data.mask, data.kind_a, data.kind_b)
+            enc = self.encode(data.dp, data.v_a, data.v_b, data.R_a, data.mask, data.kind_a, data.kind_b,
+                              getattr(data, "hist", None))
         return enc, torch.as_tensor(np.asarray(data.y), dtype=enc.x.dtype)
 
     def fit_samples(self, enc: Encoded, y: torch.Tensor) -> None:
@@ -313,13 +317,13 @@ class SummedPairwise(SetModel):
             raise ConfigError(f"pairwise: expected a DownwashModel or its record, got {type(pairwise).__name__}")
         self.pairwise = pairwise
 
-    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None) -> Encoded:
-        enc = super().encode(dp, v_a, v_b, R_a, mask)  # a per-neighbour model reads no kinds
+    def encode(self, dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None) -> Encoded:
+        enc = super().encode(dp, v_a, v_b, R_a, mask, hist=hist)  # a per-neighbour model reads no kinds
         below = depth(_tensor(dp, self.dtype), _tensor(R_a, self.dtype)) > 0
         return Encoded(enc.x, enc.basis, enc.mask & below)
 
-    def _features(self, dp, v_a, v_b, R_a):
-        return model_inputs(self.pairwise.feature_set, dp, v_a, v_b, R_a)
+    def _features(self, dp, v_a, v_b, R_a, hist):
+        return model_inputs(self.pairwise.feature_set, dp, v_a, v_b, R_a, hist if self.pairwise.memory else None)
 
     def decode(self, enc: Encoded) -> torch.Tensor:
         f = self.pairwise.decode(enc.x, enc.basis)  # (B, K, 3)
@@ -328,12 +332,12 @@ class SummedPairwise(SetModel):
     def numpy_forward(self) -> Callable[..., np.ndarray]:
         pairs = self.pairwise.numpy_forward()  # its float64 pair law, depth gate included
 
-        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # the kinds: not read
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None):  # the kinds: not read
             _check_shapes(dp, v_a, v_b, R_a, mask)
             B, K = np.shape(mask)
             f = pairs(np.reshape(dp, (B * K, 3)), np.reshape(v_a, (B * K, 3)),
-                                    np.repeat(np.asarray(v_b, dtype=np.float64), K, axis=0),
-                                    np.reshape(R_a, (B * K, 3, 3)))
+                      np.repeat(np.asarray(v_b, dtype=np.float64), K, axis=0), np.reshape(R_a, (B * K, 3, 3)),
+                      None if hist is None else np.reshape(hist, (B * K, *np.shape(hist)[2:])))
             return np.where(np.asarray(mask)[..., None], f.reshape(B, K, 3), 0.0).sum(1)
 
         return forward
@@ -409,9 +413,9 @@ class DeepSetsEquivariant(_DeepSetsBase):
 
     def __init__(self, feature_set: str = "general", phi_hidden: Sequence[int] = (32, 32), latent: int = 16,
                  vectors: int = 4, rho_hidden: Sequence[int] = (32, 32), gamma: float = 2.0, kinds: bool = False):
-        if feature_set not in EQUIVARIANT_FEATURE_SETS:
-            raise ConfigError(f"feature_set: {self.kind!r} accepts {list(EQUIVARIANT_FEATURE_SETS)}, "
-                              f"got {feature_set!r}")
+        allowed = [f for f in EQUIVARIANT_FEATURE_SETS if f not in MEMORY_FEATURE_SETS]
+        if feature_set not in allowed:
+            raise ConfigError(f"feature_set: {self.kind!r} accepts {allowed}, got {feature_set!r}")
         super().__init__(len(FEATURE_SETS[feature_set]), kinds)
         self.feature_set = feature_set
         self.n_basis = N_BASIS[feature_set]
@@ -424,7 +428,7 @@ class DeepSetsEquivariant(_DeepSetsBase):
         self.register_buffer("out_scale", torch.ones(1))
         self.settle_spectral_norm()
 
-    def _features(self, dp, v_a, v_b, R_a):
+    def _features(self, dp, v_a, v_b, R_a, hist):  # the history: not read
         return model_inputs(self.feature_set, dp, v_a, v_b, R_a)
 
     def decode(self, enc: Encoded) -> torch.Tensor:
@@ -446,7 +450,7 @@ class DeepSetsEquivariant(_DeepSetsBase):
         scale, L, G, nb, feature_set = float(self.out_scale), self.latent, self.vectors, self.n_basis, self.feature_set
         kinds = self.kinds
 
-        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # decode, step for step
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None):  # decode, step for step
             dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
             B, K = mask.shape
             x, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
@@ -496,7 +500,7 @@ class DeepSets(_DeepSetsBase):
         self.register_buffer("out_std", torch.ones(3))
         self.settle_spectral_norm()
 
-    def _features(self, dp, v_a, v_b, R_a):
+    def _features(self, dp, v_a, v_b, R_a, hist):  # the history: not read
         return torch.cat([dp, v_a, v_b], -1), None
 
     def decode(self, enc: Encoded) -> torch.Tensor:
@@ -510,7 +514,7 @@ class DeepSets(_DeepSetsBase):
                                         for k in ("in_mean", "in_std", "out_mean", "out_std"))
         kinds = self.kinds
 
-        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None):  # decode, step for step
+        def forward(dp, v_a, v_b, R_a, mask, kind_a=None, kind_b=None, hist=None):  # decode, step for step
             dp, v_a, v_b, R_a, mask = _numpy_inputs(dp, v_a, v_b, R_a, mask)
             m = mask[..., None]
             x = _with_kinds(kinds, np.concatenate([dp, v_a, v_b], -1), kind_a, kind_b)

@@ -7,8 +7,10 @@ closer with the stage-0 equivariant model compensating; stage 2 flies at about
 wake, hovers at offsets, lemniscates), plus validation flights of the same kind from
 separate seeds. Labels are always the full downwash (f = a - u with u the command
 actually applied). After the last stage the final model of every kind in
-`PAIRWISE_KINDS` is trained on all training data into the models folder, one forked
-process per core at once (each model bit-identical to one trained alone).
+`STAGED_KINDS` is trained on all training data into the models folder, one forked
+process per core at once (each model bit-identical to one trained alone); any other
+per-neighbour kind asked for (`ensure_models`: the models with memory) is trained there
+on the same data when first asked for.
 
 Provenance. A collection is defined by its `provenance` record: the field, the
 scene, the simulator and its components, the collection settings, the training
@@ -65,7 +67,7 @@ from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.labels import label_noise_floor
 from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, read_manifest,
                                rerun_command, verify_collection)
-from downwash.models import PAIRWISE_KINDS
+from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.stages import ProgressFactory, Stage, fly_recorded
 from downwash.train import TrainConfig, rmse, train_model
@@ -317,8 +319,10 @@ def collect(
     progress: ProgressFactory = lambda label: None,
     *,
     refly_missing: bool = True,
+    kinds: Sequence[str] = STAGED_KINDS,
 ) -> dict:
-    """Collect all stages into `collection_dir` (resuming), train the final models into `models_dir`.
+    """Collect all stages into `collection_dir` (resuming), train the final models into `models_dir`:
+    `STAGED_KINDS`, and any other per-neighbour kinds in `kinds` (e.g. the models with memory).
 
     progress(label) may return a callback progress(done, total) for each batch of flights.
     Holds the lock of both folders (a second run waits, then reuses). Raises DataError
@@ -331,8 +335,12 @@ def collect(
     wall time and `collection_seconds`, the time the whole collection took (summed over
     the runs that worked on it; a killed run cannot record its part).
     """
+    unknown = [k for k in kinds if k not in PAIRWISE_KINDS]
+    if unknown:
+        raise ConfigError(f"kinds: unknown {unknown}; allowed: {', '.join(PAIRWISE_KINDS)}")
+    kinds = list(dict.fromkeys([*STAGED_KINDS, *kinds]))
     with _pipeline_lock(collection_dir, models_dir):
-        return _collect(cfg, Path(collection_dir), Path(models_dir), field, progress, refly_missing)
+        return _collect(cfg, Path(collection_dir), Path(models_dir), field, progress, refly_missing, kinds)
 
 
 @contextlib.contextmanager
@@ -343,7 +351,7 @@ def _pipeline_lock(collection_dir: str | Path, models_dir: str | Path) -> Iterat
 
 
 def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, progress: ProgressFactory,
-             refly_missing: bool) -> dict:
+             refly_missing: bool, kinds: Sequence[str]) -> dict:
     t_start = time.perf_counter()
     record = provenance(cfg, field)
     manifest_path = out / "manifest.json"
@@ -405,7 +413,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     val_dirs = [out / f"stage{k}" / "val" for k in range(len(STAGES))] if n_val else []
     finals = manifest.setdefault("final_models", {})
     models: dict[str, Any] = {}
-    missing = [kind for kind in PAIRWISE_KINDS if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
+    missing = [kind for kind in kinds if not finals.get(kind) or not (models_dir / f"{kind}.pt").is_file()]
     if missing:
         log.info("training the final models %s into %s", missing, models_dir)
         data = labelled(train_dirs)
@@ -419,7 +427,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             finals[kind] = entry
             run["models"].append(kind)
             atomic_write_json(manifest_path, manifest)
-    for kind in PAIRWISE_KINDS:
+    for kind in kinds:
         path = models_dir / f"{kind}.pt"
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
                         "train_seconds": finals[kind]["train_seconds"]}
@@ -493,7 +501,7 @@ def ensure_models(
             if todo:
                 log.info("models %s missing in %s: running the staged collection into %s first", todo, models_dir,
                          collection_dir)
-                collect(cfg, collection_dir, models_dir, field, progress, refly_missing=False)
+                collect(cfg, collection_dir, models_dir, field, progress, refly_missing=False, kinds=todo)
     return {k: models_dir / f"{k}.pt" for k in kinds}
 
 

@@ -36,7 +36,8 @@ from downwash_core.errors import ConfigError, TestbedError
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
     "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
-    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS", "PAIRWISE_KINDS",
+    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS",
+    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
@@ -45,8 +46,10 @@ A = TypeVar("A")
 # The names the options take, copied from their registries so that `--help` needs none of
 # the heavy imports behind them (tests/test_cli.py checks each against its source).
 CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant",
-              "equivariant_general")  # downwash.conditions.CONDITIONS
-PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general")  # downwash.models.PAIRWISE_KINDS
+              "equivariant_general", "equivariant_memory", "deep_memory")  # downwash.conditions.CONDITIONS
+DEFAULT_CONDITIONS = CONDITIONS[:7]  # downwash.conditions.DEFAULT_CONDITIONS
+PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equivariant_memory",
+                  "deep_memory")  # downwash.models.PAIRWISE_KINDS
 FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS

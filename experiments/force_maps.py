@@ -52,7 +52,7 @@ def run(args: ForceMapArgs) -> dict:
     import matplotlib
 
     from downwash.checkpoint import load_checkpoint
-    from downwash.models import PAIRWISE_KINDS
+    from downwash.models import STAGED_KINDS
     from downwash.staged import ensure_models
 
     matplotlib.use("Agg")
@@ -64,7 +64,7 @@ def run(args: ForceMapArgs) -> dict:
         raise ConfigError(f"--resolution: allowed 5-301, got {args.resolution}")
     p = resolve_pipeline(args)
     field = p.field
-    checkpoints = ensure_models(p.models_dir, tuple(PAIRWISE_KINDS), p.collection_dir, p.config, field, ProgressBar)
+    checkpoints = ensure_models(p.models_dir, STAGED_KINDS, p.collection_dir, p.config, field, ProgressBar)
     sources = {"truth": field}
     for kind, path in checkpoints.items():
         model, _ = load_checkpoint(path, expect_kind=kind)

@@ -25,7 +25,7 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
-from experiments.common import (CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
+from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
                                 load_wind, names_check, parse_args, resolve_pipeline, setup_logging, write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
@@ -63,7 +63,7 @@ TRACKS = {
 
 @dataclass(frozen=True)
 class TrackingArgs(PipelineArgs):
-    conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
+    conditions: str = arg(",".join(DEFAULT_CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
     seeds: int = arg(5, "number of seeds (flights per condition)", ge=1)
     separation: float = arg(0.6, "vertical separation below the leader, m", ge=SEPARATION_RANGE[0], le=SEPARATION_RANGE[1])
     duration: float = arg(0.0, "flight length, s (0: one period of the reference)", ge=0.0, le=FLIGHT_SECONDS_MAX)

@@ -13,7 +13,7 @@ when every component has a compiled form, else None. The fused path needs
   per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads);
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
-  `PerWorldPredictor` of those (`_per_world_tables`);
+  `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`);
 - the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
   sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
@@ -39,7 +39,7 @@ from sim.field import DownwashField
 from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _PRED_PER_WORLD, _PRED_ZERO,
                        _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, _TAB)
 from sim.physics import _SerialPhysics
-from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor
+from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor, is_stateful
 from sim.rows import _row_layout
 from sim.vehicle_params import told_kinds
 
@@ -60,8 +60,8 @@ def _make_plan(sim: Any) -> _Plan | None:
     field_packed = _packed_field(sim.field, sim.aggregation)
     if field_packed is None or not _compiled_controller(sim.controller):
         return None
-    if not isinstance(sim.autopilot, Autopilot):
-        return None
+    if not isinstance(sim.autopilot, Autopilot) or is_stateful(sim._scene_predictor):
+        return None  # (a predictor with state needs its resets and due worlds, which only the readable path tells)
     ph, n_threads = sim.physics, 1
     if isinstance(ph, _SerialPhysics):
         stepping, native = _STEP_SERIAL, ph.native_step()

@@ -10,6 +10,12 @@ exactly what `__call__` returns. The simulator's fused loop then calls it withou
 leaving compiled code (see `sim.simulator`); `__call__` stays the readable form, and
 the predictor's own tests compare the two. `ZeroPredictor` and `OraclePredictor` need
 no such function: the loop knows them.
+
+A predictor may keep state between calls (`is_stateful`: e.g. a learned model with memory, which
+remembers the estimates of its last calls). It then has ``reset(worlds)``, which the simulator
+calls when it resets those worlds, and its call takes ``due=`` (W,) bool: the worlds whose
+prediction is due now (the loop calls it when any world's is due; only the due worlds' rows are
+used, and only their state should advance). Such a predictor serves one simulator at a time.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ __all__ = [
     "PerWorldPredictor",
     "CompiledPredictor",
     "PREDICTOR_SIGNATURE",
+    "is_stateful",
 ]
 
 _F64P, _I64P = _nb.CPointer(_nb.float64), _nb.CPointer(_nb.int64)
@@ -69,6 +76,12 @@ class Predictor(Protocol):
     """
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates) -> np.ndarray: ...
+
+
+def is_stateful(predictor: Any) -> bool:
+    """Whether a predictor keeps state between calls: it has ``reset(worlds)`` and takes ``due=``
+    (module doc), unless its ``stateful`` attribute says it keeps none now."""
+    return callable(getattr(predictor, "reset", None)) and bool(getattr(predictor, "stateful", True))
 
 
 class ZeroPredictor:
@@ -112,11 +125,23 @@ class PerWorldPredictor:
         self.groups = [np.flatnonzero(assignment == i) for i in range(len(predictors))]
         self.n_worlds = assignment.size
 
-    def __call__(self, estimated: VehicleStates, true: VehicleStates) -> np.ndarray:
+    @property
+    def stateful(self) -> bool:
+        """Whether any of its predictors keeps state (`is_stateful`)."""
+        return any(is_stateful(p) for p in self.predictors)
+
+    def reset(self, worlds: np.ndarray | None = None) -> None:
+        """Reset the state of the stateful predictors (`is_stateful`) in these worlds (None: all)."""
+        for predictor, group in zip(self.predictors, self.groups):
+            if is_stateful(predictor):
+                predictor.reset(None if worlds is None else np.flatnonzero(np.isin(group, worlds)))
+
+    def __call__(self, estimated: VehicleStates, true: VehicleStates, due: np.ndarray | None = None) -> np.ndarray:
         if estimated.pos.shape[0] != self.n_worlds:
             raise ValueError(f"PerWorldPredictor built for {self.n_worlds} worlds, called with {estimated.pos.shape[0]}")
         out = np.zeros_like(estimated.pos)
         for predictor, worlds in zip(self.predictors, self.groups):
             if worlds.size and not isinstance(predictor, ZeroPredictor):
-                out[worlds] = predictor(estimated.select(worlds), true.select(worlds))
+                when = {"due": due[worlds]} if due is not None and is_stateful(predictor) else {}
+                out[worlds] = predictor(estimated.select(worlds), true.select(worlds), **when)
         return out

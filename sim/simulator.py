@@ -30,7 +30,8 @@ convects the wakes: the field sees velocities relative to the air, v - u_air (ex
 Galilean invariance for a uniform wind), as does the oracle; learned predictors see the
 estimated ground velocities. Logged rows then hold `wind` (m/s) and `wind_acc` (the drag).
 A field with memory (`sim.field_memory`) is stepped on the autopilot grid, carried by the
-same air, on the readable path.
+same air, and a predictor with state (`sim.predictor.is_stateful`) is reset with its worlds and
+told which are due: both on the readable path.
 
 Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled
 passes of one autopilot tick, shared by both paths), `sim.fused` (the fused tick: a whole
@@ -72,7 +73,7 @@ from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _Sensed, _
                         _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
 from sim.physics import check_world_memory, make_physics
 from sim.plan import _compiled_controller, _make_plan, _Plan
-from sim.predictor import Predictor, ZeroPredictor
+from sim.predictor import Predictor, ZeroPredictor, is_stateful
 from sim.rows import Row
 from sim.scene import Scene
 from sim.sensors import MocapConfig, check_sensor, draw_episode_offset
@@ -148,15 +149,10 @@ class Simulator:
     field_enabled: (W,) bool, False for worlds flown without downwash.
     fast: take the fused compiled path when every component has a compiled form (the
       result is the same bit for bit; False forces the readable path).
-    The fused path (`sim.plan._make_plan`; docs/extending.md) needs exactly a
-    `controllers.lqr.FeedbackLinearisedLQR` as the controller (any `LQRConfig`; a subclass
-    or another object with `command_setpoint` is called from Python), an `Autopilot`, a
-    `DownwashField` with scalar constants under linear aggregation, and a zero predictor,
-    an `OraclePredictor` of such a field, one whose `compiled()` gives a
-    `sim.predictor.CompiledPredictor`, or a `PerWorldPredictor` of those. Anything else flies
-    the readable path, the same loop with Python calls between the compiled passes (the
-    same bits where both apply), about 2x slower for one world. With fast=True a
-    controller without a compiled form is named in one logged warning per simulator.
+    The fused path flies when every component has a compiled form (`sim.plan` lists them;
+    docs/extending.md). Anything else flies the readable path, the same loop with Python calls
+    between the compiled passes (the same bits where both apply), about 2x slower for one
+    world. With fast=True a controller without a compiled form is named in one logged warning.
     Components may be replaced between ticks (attributes of the same names); arrays such
     as `field_enabled`, `t` or `active` are updated in place only.
     """
@@ -282,6 +278,7 @@ class Simulator:
         self._memory = kept_memory(self.__dict__.get("_memory"), self.field, self.W, self.V, r.autopilot_dt,
                                    self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self.predictor) or self._scene_predictor
+        self._predictor_state = is_stateful(self._scene_predictor)
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -373,6 +370,8 @@ class Simulator:
         self.next_prediction[worlds] = 0.0
         if self._memory is not None:  # the worlds' wakes start empty
             self._memory.reset(worlds)
+        if self._predictor_state:
+            self._scene_predictor.reset(worlds)
         self._cursor_max = int(self._cursor.max())
 
     def _refill(self, w: int) -> None:
@@ -536,7 +535,8 @@ class Simulator:
 
             # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
             if n_due:
-                pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot))
+                pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot),
+                                             **({"due": self._due} if self._predictor_state else {}))
                 _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
 
             if first:  # the LQR and feedback linearisation at 50 Hz

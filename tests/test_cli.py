@@ -67,7 +67,7 @@ def test_help_exits_0_lists_the_choices_and_imports_no_heavy_module(name):
 
 def test_static_choices_match_their_registries():
     """The names `--help` lists without importing the registries are the registries' own."""
-    from downwash.conditions import CONDITIONS
+    from downwash.conditions import CONDITIONS, DEFAULT_CONDITIONS
     from downwash.models import PAIRWISE_KINDS
     from downwash.sweep_cells import PAPER_MINUTES, PAPER_MODELS
     from sim.aggregation import AGGREGATIONS
@@ -75,7 +75,7 @@ def test_static_choices_match_their_registries():
     from sim.presets import PRESETS
     from sim.wind import PRESETS_KT
 
-    assert common.CONDITIONS == tuple(CONDITIONS)
+    assert common.CONDITIONS == tuple(CONDITIONS) and common.DEFAULT_CONDITIONS == tuple(DEFAULT_CONDITIONS)
     assert common.PAIRWISE_KINDS == tuple(PAIRWISE_KINDS)
     assert common.FIELD_NAMES == tuple(FIELDS) and common.DEFAULT_FIELD == DEFAULT_FIELD
     assert common.PRESETS == tuple(PRESETS)

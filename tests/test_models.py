@@ -6,6 +6,7 @@ import torch
 
 from downwash_core import geometry
 from downwash import features as F
+from downwash.features import HISTORY_LAGS
 from downwash.models import PAIRWISE_KINDS, DeepSNMLP, EquivariantModel, ShallowMLP, count_parameters
 from downwash.registry import make_model
 from downwash.predictor import LearnedPredictor
@@ -63,11 +64,13 @@ def test_parameter_counts():
 
 
 def test_registry_and_attributes():
-    assert list(PAIRWISE_KINDS) == ["shallow", "deep", "equivariant", "equivariant_general"]
+    assert list(PAIRWISE_KINDS) == ["shallow", "deep", "equivariant", "equivariant_general", "equivariant_memory",
+                                    "deep_memory"]
     for kind, cls in PAIRWISE_KINDS.items():
         m = make_model(kind)
         assert isinstance(m, cls) and m.kind == kind
-        assert m.feature_set == {"equivariant": "5", "equivariant_general": "general"}.get(kind, "raw")
+        assert m.feature_set == {"equivariant": "5", "equivariant_general": "general", "equivariant_memory":
+                                 "general_memory", "deep_memory": "raw_memory"}.get(kind, "raw")
         assert m.in_mean.dtype == torch.float32
         assert {"in_mean", "in_std", "out_mean", "out_std"} <= set(m.state_dict())
 
@@ -100,9 +103,11 @@ def test_float64_forward_and_shapes():
         model = make_model(kind).double()
         x = torch.zeros(4, 7, 3, dtype=torch.float64)
         R = torch.eye(3, dtype=torch.float64).expand(4, 7, 3, 3)
-        out = model(x, x, x, R)
+        hist = torch.zeros(4, 7, len(HISTORY_LAGS), 3, dtype=torch.float64) if model.memory else None
+        out = model(x, x, x, R, hist)
         assert out.shape == (4, 7, 3) and out.dtype == torch.float64
-        out32 = make_model(kind)(np.zeros((5, 3)), np.zeros((5, 3)), np.zeros((5, 3)), np.broadcast_to(np.eye(3), (5, 3, 3)))
+        out32 = make_model(kind)(np.zeros((5, 3)), np.zeros((5, 3)), np.zeros((5, 3)), np.broadcast_to(np.eye(3), (5, 3, 3)),
+                                 None if hist is None else np.zeros((5, len(HISTORY_LAGS), 3)))
         assert out32.shape == (5, 3) and out32.dtype == torch.float32
 
 
@@ -155,7 +160,7 @@ def test_deep_spectral_norm_settles_from_a_poor_estimate():
 
 
 def test_bad_kind_and_feature_set():
-    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'deepsets', 'deepsets_equivariant', 'equivariant', 'equivariant_general', 'shallow', 'summed_pairwise'\], got 'mlp'"):
+    with pytest.raises(ValueError, match=r"model kind: expected one of \['deep', 'deep_memory', 'deepsets', 'deepsets_equivariant', 'equivariant', 'equivariant_general', 'equivariant_memory', 'shallow', 'summed_pairwise'\], got 'mlp'"):
         make_model("mlp")
     with pytest.raises(ValueError, match=r"feature_set: model kind 'shallow' accepts \['raw'\], got '6'"):
         make_model("shallow", "6")
@@ -176,11 +181,12 @@ def test_folded_numpy_layers_match_the_torch_model():
     dp = rng.normal(size=(50, 3))
     va, vb = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
     R = random_rotations(rng, 50, 0.5)
+    hist = rng.normal(size=(50, len(HISTORY_LAGS), 3)) * 0.3
     for kind in PAIRWISE_KINDS:
         model = randomise(make_model(kind), 7)
         if isinstance(model, DeepSNMLP):
             model.settle_spectral_norm()
-        x, basis = F.model_inputs(model.feature_set, dp, va, vb, R)
+        x, basis = F.model_inputs(model.feature_set, dp, va, vb, R, hist)
         h = x
         layers = model.folded_layers()
         for w, b in layers[:-1]:
@@ -189,7 +195,7 @@ def test_folded_numpy_layers_match_the_torch_model():
         if basis is not None:
             out = F.assemble(out, basis)
         with torch.no_grad():
-            ref = model(dp, va, vb, R).numpy()
+            ref = model(dp, va, vb, R, hist).numpy()
         np.testing.assert_allclose(out, ref, rtol=1e-10, atol=1e-10)
 
 

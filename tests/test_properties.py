@@ -32,6 +32,8 @@ from downwash_core.status import Status
 from downwash.checkpoint import load_checkpoint, save_checkpoint
 from downwash.features import (
     FEATURE_SETS,
+    HISTORY_LAGS,
+    MEMORY_FEATURE_SETS,
     N_BASIS,
     equivariant_basis,
     invariant_features,
@@ -287,9 +289,19 @@ def feature_inputs(draw):
 @given(x=feature_inputs())
 def test_model_inputs_finite_and_consistent_numpy(feature_set, x):
     dp, v_a, v_b, R_a = x
-    feats, basis = model_inputs(feature_set, dp, v_a, v_b, R_a)
+    hist = np.stack([v_a * lag for lag in HISTORY_LAGS], -2)  # a neighbour that moved at v_a
+    feats, basis = model_inputs(feature_set, dp, v_a, v_b, R_a, hist)
     k = len(FEATURE_SETS[feature_set])
     assert feats.shape == dp.shape[:-1] + (k,) and np.isfinite(feats).all()
+    if feature_set in MEMORY_FEATURE_SETS:  # the memoryless set's columns, then each lag's displacement
+        base = feature_set.removesuffix("_memory")
+        np.testing.assert_array_equal(feats[..., :len(FEATURE_SETS[base])], model_inputs(base, dp, v_a, v_b, R_a)[0])
+        moved = hist if basis is None else np.einsum("...hj,...kj->...hk", hist, basis)
+        np.testing.assert_allclose(feats[..., len(FEATURE_SETS[base]):], moved.reshape(*dp.shape[:-1], -1),
+                                   rtol=1e-12, atol=1e-15)
+        with pytest.raises(ValueError, match="history"):
+            model_inputs(feature_set, dp, v_a, v_b, R_a)
+        feats, feature_set = feats[..., :len(FEATURE_SETS[base])], base
     if feature_set == "raw":
         assert basis is None
         np.testing.assert_array_equal(feats, np.concatenate([dp, v_b], -1))
@@ -621,7 +633,7 @@ def test_checkpoints_holding_code_are_refused_without_running_it(data):
 def test_round_trip_gives_identical_predictions(kind, seed, double, x):
     model = _trained_like(kind, seed, torch.float64 if double else torch.float32)
     p_a, v_a, R_a, p_b, v_b = x
-    inputs = (p_b - p_a, v_a, v_b, R_a)
+    inputs = (p_b - p_a, v_a, v_b, R_a, np.stack([v_a * lag for lag in HISTORY_LAGS], -2))  # a steadily moving leader
     with tempfile.TemporaryDirectory() as d:
         save_checkpoint(Path(d) / "model.pt", model, {"seed": seed})
         loaded, record = load_checkpoint(Path(d) / "model.pt", expect_kind=kind)
