@@ -37,7 +37,7 @@ from downwash.staged import ensure_collection
 from downwash.sweep_cells import Cell, CellCache, SweepGrid, _load_collection, batch_cells, plan_cells, run_cells
 from downwash.sweep_stats import PAPER_CLAIM, Claim, summarize_field
 
-__all__ = ["grid_from_text", "check_execution", "run_sweep"]
+__all__ = ["grid_from_text", "check_execution", "run_sweep", "map_on_ray"]
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,38 @@ def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str,
     return results
 
 
+def _init_ray(workers: int, address: str) -> bool:
+    """Connect to Ray: the one this process is connected to, else ``ray.init(address)``, else a local
+    Ray of ``workers`` CPUs (0: all cores). True when this call started it (the caller shuts it down)."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    if address:
+        ray.init(address=address, logging_level=logging.WARNING)
+    else:
+        # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
+        # they are the computation and the driver only waits
+        ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
+                 _system_config={"worker_niceness": 0})
+    return True
+
+
+def map_on_ray(fn: Callable[[Any], Any], items: list[Any], workers: int = 0, address: str = "") -> list[Any]:
+    """``[fn(x) for x in items]``, each call a Ray task of one CPU (Ray as `_init_ray`; one this call
+    started is shut down at the end). ``fn`` must be importable by name (a module's function)."""
+    import ray
+
+    check_execution(workers, 1)
+    owned = _init_ray(workers, address)
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(fn)
+        return ray.get([task.remote(x) for x in items])
+    finally:
+        if owned:
+            ray.shutdown()
+
+
 class _Ray:
     """The Ray the sweep computes on, started at the first task (a sweep whose missing cells other
     processes hold needs none): the one this process is connected to, else ``ray.init(address)``,
@@ -154,15 +186,7 @@ class _Ray:
     def _start(self) -> None:
         import ray
 
-        self.owned = not ray.is_initialized()
-        if self.owned:
-            if self.address:
-                ray.init(address=self.address, logging_level=logging.WARNING)
-            else:
-                # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
-                # they are the computation and the driver only waits
-                ray.init(num_cpus=self.workers or os.cpu_count() or 1, include_dashboard=False,
-                         logging_level=logging.WARNING, _system_config={"worker_niceness": 0})
+        self.owned = _init_ray(self.workers, self.address)
         self.started = True
         self.task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
         self.cpus = int(ray.cluster_resources().get("CPU", 0))

@@ -12,10 +12,15 @@ wake at the true, air-relative state), the models of the staged collection, trai
 indoors on a hovering leader in still air (`<kind>`: how far they carry into a regime they
 never saw), and the same kinds trained on the indoor flights plus the outdoor stages of
 `downwash.outdoor_collection` (`<kind>-outdoor`: a moving leader in wind, collected and
-trained on the first run; `--trained` picks which). `--sweep-speeds 0.5,1,2,3` flies every
-condition again at each speed (same seeds and wind) and plots its improvement against the
-leader's speed. Writes results.json (with the leader's airspeed range and the sweep), a
-table and the figures.
+trained on the first run; `--trained` picks which). The models with memory
+(`equivariant_memory`, `deep_memory`) also read where the leader was over the last 0.27 s.
+
+Sweeps. `--sweep-speeds 0.5,1,2,3` flies every condition again at each speed (same seeds and
+wind) and plots its improvement against the leader's speed; `--sweep-winds` flies them in each of
+several winds at `--speed`; `--sweep-fields "so2;momentum;shed"` runs the whole job (collection,
+training, flights and these sweeps) on each of those ground truths as well, one Ray task per
+truth (`--workers`, `--address`; `--workers 1` runs them one after the other, without Ray).
+Writes results.json (with the leader's airspeed range and the sweeps), a table and the figures.
 """
 
 from __future__ import annotations
@@ -30,9 +35,9 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
-                                load_wind, names_check, parse_args, resolve_pipeline, run_main, setup_logging,
-                                write_results, script)
+from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar,
+                                arg, format_table, load_field, load_wind, names_check, parse_args, resolve_pipeline,
+                                run_main, setup_logging, write_results, script)
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -57,6 +62,13 @@ class OutdoorArgs(PipelineArgs):
     outdoor_minutes: float = arg(1.0, "training flight minutes per wind setting of the outdoor stages", gt=0.0, le=60.0)
     sweep_speeds: str = arg("", "also fly every condition at these leader speeds (comma list, m/s, in 0.5-3) and plot "
                                 "each one's improvement against the speed (improvement_vs_speed.png)")
+    sweep_winds: str = arg("", "also fly every condition in each of these winds at --speed (';'-separated --wind specs, "
+                               "e.g. 'off;light:mean=2,0,0;moderate:mean=2,0,0')")
+    sweep_fields: str = arg("", "also run the whole job, sweeps included, on each of these ground truths (';'-separated "
+                                "--field specs, e.g. 'momentum;shed'), one Ray task each, into <out>/truths/")
+    workers: int = arg(0, "CPUs of the local Ray for --sweep-fields (0: all cores; 1: no Ray, one truth after the "
+                          "other); unused with --address", ge=0)
+    address: str = arg("", "address of a running Ray cluster for --sweep-fields (ray start --head)")
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
@@ -84,10 +96,27 @@ def _validate(args: OutdoorArgs) -> list[str]:
                    f"got {args.sweep_speeds!r}"))
     checks.append((bool(trained) and set(trained) <= set(TRAINED) and len(set(trained)) == len(trained),
                    f"--trained: expected a comma list of {', '.join(TRAINED)}, got {args.trained!r}"))
+    winds, fields = _items(args.sweep_winds), _items(args.sweep_fields)
+    checks.append((len(set(winds)) == len(winds), f"--sweep-winds: duplicate winds in {winds}"))
+    checks.append((len(set(fields)) == len(fields) and _main_field(args) not in fields,
+                   f"--sweep-fields: expected distinct truths other than --field ({_main_field(args)}), got {fields}"))
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
+    for spec in winds:
+        load_wind(spec)  # ConfigError naming what is allowed
+    for spec in fields:
+        load_field(spec)
     return conditions
+
+
+def _items(text: str) -> list[str]:
+    """The ';'-separated items of a sweep option (a wind or field spec may hold commas)."""
+    return [t.strip() for t in text.split(";") if t.strip()]
+
+
+def _main_field(args: OutdoorArgs) -> str:
+    return args.field or DEFAULT_FIELD
 
 
 def _trained(args: OutdoorArgs) -> list[str]:
@@ -142,9 +171,9 @@ def run(args: OutdoorArgs) -> dict:
     W = len(conditions) * K
     seeds = list(range(args.seed, args.seed + K))
 
-    def fly_at(a: OutdoorArgs) -> dict:
+    def fly_at(a: OutdoorArgs, air: Any = wind) -> dict:
         return fly_conditions(build_scene(), conditions, _references(a, W), seeds, a.duration, p.field, checkpoints,
-                              meta={"experiment": "outdoor"}, wind=wind)
+                              meta={"experiment": "outdoor"}, wind=air)
 
     per_condition = fly_at(args)
     results: dict[str, Any] = {
@@ -158,19 +187,68 @@ def run(args: OutdoorArgs) -> dict:
     }
     speeds = _sweep_speeds(args.sweep_speeds)
     if speeds:  # the same conditions, seeds and wind at each speed
-        by_speed = {v: aggregate_conditions(fly_at(dataclasses.replace(args, speed=v))) for v in speeds}
-        results["sweep"] = {"speeds": speeds, "conditions": {
-            c: {k: [by_speed[v][c].get(k) for v in speeds] for k in ("improvement_pos_3d", "crash_rate")}
-            for c in conditions}}
+        by_speed = [aggregate_conditions(fly_at(dataclasses.replace(args, speed=v))) for v in speeds]
+        results["sweep"] = {"speeds": speeds, "conditions": _per_point(by_speed, conditions)}
+    winds = _items(args.sweep_winds)
+    if winds:  # the same conditions, seeds and speed in each wind
+        by_wind = [aggregate_conditions(fly_at(args, load_wind(spec))) for spec in winds]
+        results["wind_sweep"] = {"winds": winds, "conditions": _per_point(by_wind, conditions)}
+    if _items(args.sweep_fields):
+        results["truths"] = {_main_field(args): _truth_summary(results, args.out), **_other_truths(args)}
     results["wall_seconds"] = time.perf_counter() - t_start
     out = Path(args.out)
     path = write_results(out, results, args, p.provenance() if checkpoints else None)
     _figure(out, per_condition, results)
-    if "sweep" in results:
-        _speed_figure(out, results)
+    if "sweep" in results or any(t.get("sweep") for t in results.get("truths", {}).values()):
+        _speed_figure(out, results, _main_field(args))
     print(_table(results, args.wind))
+    for spec, truth in results.get("truths", {}).items():
+        if truth.get("sweep"):
+            print(f"\n{spec}: improvement over the baseline at each leader speed (m/s)\n" + format_table(
+                [[c] + [_pct(x) for x in e["improvement_pos_3d"]] for c, e in truth["sweep"]["conditions"].items()],
+                ["condition"] + [str(v) for v in truth["sweep"]["speeds"]]))
     print(f"\nwrote {path} and {out / 'errors_over_time.png'}")
     return results
+
+
+def _per_point(points: list[dict], conditions: list[str]) -> dict:
+    """{condition: {improvement_pos_3d: [...], crash_rate: [...]}} over sweep points' aggregated conditions."""
+    return {c: {k: [point[c].get(k) for point in points] for k in ("improvement_pos_3d", "crash_rate")}
+            for c in conditions}
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f}%"
+
+
+def _truth_summary(results: dict, out: str) -> dict:
+    """What the truths' comparison keeps of one truth's results."""
+    keys = ("improvement_pos_3d", "crash_rate", "gap_to_oracle_pos_3d")
+    return {"dir": out, "wall_seconds": results.get("wall_seconds"), "sweep": results.get("sweep"),
+            "wind_sweep": results.get("wind_sweep"),
+            "conditions": {c: {k: e[k] for k in keys if k in e} for c, e in results["conditions"].items()}}
+
+
+def _other_truths(args: OutdoorArgs) -> dict:
+    """The whole job on each truth of --sweep-fields (one Ray task each, or in turn with --workers 1)."""
+    from downwash.sweep import map_on_ray
+
+    jobs = [dataclasses.replace(args, field=spec, out=str(Path(args.out) / "truths" / _slug(spec)), sweep_fields="")
+            for spec in _items(args.sweep_fields)]
+    done = [_truth_task(a) for a in jobs] if args.workers == 1 and not args.address else map_on_ray(
+        _truth_task, jobs, args.workers, args.address)
+    return {a.field: _truth_summary(r, a.out) for a, r in zip(jobs, done)}
+
+
+def _truth_task(args: OutdoorArgs) -> dict:
+    """One truth's whole job (a Ray task): its results."""
+    setup_logging()
+    return run(args)
+
+
+def _slug(spec: str) -> str:
+    """A folder name for a field spec."""
+    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in spec)
 
 
 def _outdoor_models(args: OutdoorArgs, p: Any, kinds: list[str]) -> dict:
@@ -233,26 +311,29 @@ def _figure(out: Path, per_condition: dict, results: dict) -> None:
     plt.close(fig)
 
 
-def _speed_figure(out: Path, results: dict) -> None:
-    """Each condition's improvement over the baseline against the leader's speed (--sweep-speeds)."""
+def _speed_figure(out: Path, results: dict, truth: str) -> None:
+    """Each condition's improvement over the baseline against the leader's speed (--sweep-speeds), one
+    panel per ground truth (--sweep-fields)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    sweep = results["sweep"]
-    fig, ax = plt.subplots(figsize=(7, 3.8))
-    for c, e in sweep["conditions"].items():
-        if c in ("no_downwash", "baseline"):
-            continue
-        ax.plot(sweep["speeds"], [100 * (x if x is not None else np.nan) for x in e["improvement_pos_3d"]], "o-",
-                label=c, lw=1.1)
-    ax.axhline(0.0, color="k", lw=0.6)
-    ax.set_xlabel("leader speed (m/s)")
-    ax.set_ylabel("improvement of 3D error over baseline (%)")
-    ax.set_ylim(max(ax.get_ylim()[0], -150.0), 100.0)
-    ax.legend(ncol=3, fontsize=7)
-    ax.set_title(f"outdoor: leader on a {results['leader']}, {len(results['seeds'])} seeds per point")
+    truths = {spec: t["sweep"] for spec, t in results.get("truths", {}).items() if t.get("sweep")}
+    panels = truths or {truth: results["sweep"]}
+    fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 3.8), squeeze=False)
+    for ax, (spec, sweep) in zip(axes[0], panels.items()):
+        for c, e in sweep["conditions"].items():
+            if c in ("no_downwash", "baseline"):
+                continue
+            ax.plot(sweep["speeds"], [100 * (x if x is not None else np.nan) for x in e["improvement_pos_3d"]], "o-",
+                    label=c, lw=1.1)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel("leader speed (m/s)")
+        ax.set_ylabel("improvement of 3D error over baseline (%)")
+        ax.set_ylim(max(ax.get_ylim()[0], -150.0), 100.0)
+        ax.set_title(f"truth {spec}: leader on a {results['leader']}, {len(results['seeds'])} seeds per point", fontsize=9)
+    axes[0][-1].legend(ncol=2, fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "improvement_vs_speed.png", dpi=110)
     plt.close(fig)

@@ -20,6 +20,8 @@ the simulator has just computed, combined by its own law, so it sees the same tr
 
 from __future__ import annotations
 
+import copy
+
 import dataclasses
 from typing import Any
 
@@ -28,7 +30,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.vehicles import DEFAULT_VEHICLE
 from sim.aggregation import LinearSuperposition
-from sim.predictor import OraclePredictor
+from sim.predictor import OraclePredictor, PerWorldPredictor
 
 __all__ = ["is_stateful", "FieldMemory", "MemoryOracle", "kept_memory", "memory_oracle", "check_stateful_field"]
 
@@ -88,13 +90,17 @@ def combined(last: tuple, law: Any = None) -> np.ndarray:
 
 class MemoryOracle:
     """The oracle of a stateful field: the per-pair forces the simulator computed last (it knows the wake),
-    combined by the oracle's own aggregation law, as an `OraclePredictor` combines its field's."""
+    combined by the oracle's own aggregation law, as an `OraclePredictor` combines its field's; of the
+    given worlds only (indices, None: all), for the worlds a `PerWorldPredictor` gives it."""
 
-    def __init__(self, memory: FieldMemory, aggregation: Any = None):
-        self.memory, self.aggregation = memory, aggregation
+    def __init__(self, memory: FieldMemory, aggregation: Any = None, worlds: np.ndarray | None = None):
+        self.memory, self.aggregation, self.worlds = memory, aggregation, worlds
 
     def __call__(self, estimated: Any, true: Any = None) -> np.ndarray:
-        return combined(self.memory.last, self.aggregation)
+        last = self.memory.last
+        if self.worlds is not None:
+            last = tuple(None if a is None else a[self.worlds] for a in last)
+        return combined(last, self.aggregation)
 
     def describe(self) -> dict[str, Any]:
         return {"type": "oracle", "field": getattr(self.memory.source, "describe", lambda: {})()}
@@ -109,13 +115,21 @@ def kept_memory(memory: FieldMemory | None, field: Any, W: int, V: int, dt: floa
     return FieldMemory(field, W, V, dt, kinds) if is_stateful(field) else None
 
 
-def memory_oracle(memory: FieldMemory | None, predictor: Any) -> MemoryOracle | None:
-    """The oracle that reads `memory` when `predictor` is an `OraclePredictor` of its field, else None.
+def memory_oracle(memory: FieldMemory | None, predictor: Any, worlds: np.ndarray | None = None) -> Any:
+    """The oracle that reads `memory` when `predictor` is an `OraclePredictor` of its field (or a
+    `PerWorldPredictor` with such oracles among its predictors: a copy with them replaced), else None.
     ConfigError for the oracle of a field with memory that the simulator does not fly: no one steps its wake."""
+    if type(predictor) is PerWorldPredictor:
+        inner = [memory_oracle(memory, p, group) for p, group in zip(predictor.predictors, predictor.groups)]
+        if all(p is None for p in inner):
+            return None
+        out = copy.copy(predictor)
+        out.predictors = [p if q is None else q for p, q in zip(predictor.predictors, inner)]
+        return out
     if type(predictor) is not OraclePredictor:
         return None
     if memory is not None and predictor.field is memory.source:
-        return MemoryOracle(memory, predictor.aggregation)
+        return MemoryOracle(memory, predictor.aggregation, worlds)
     if is_stateful(predictor.field):
         raise ConfigError(f"predictor: an OraclePredictor of the field with memory {type(predictor.field).__name__} "
                           "knows the wake only when the simulator flies that same field object (field=...)")

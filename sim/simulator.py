@@ -277,7 +277,7 @@ class Simulator:
         self._scene_predictor = scene_predictor(self.predictor, self.vehicle_params)
         self._memory = kept_memory(self.__dict__.get("_memory"), self.field, self.W, self.V, r.autopilot_dt,
                                    self.vehicle_params.names)
-        self._scene_predictor = memory_oracle(self._memory, self.predictor) or self._scene_predictor
+        self._scene_predictor = memory_oracle(self._memory, self._scene_predictor) or self._scene_predictor
         self._predictor_state = is_stateful(self._scene_predictor)
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:

@@ -11,7 +11,7 @@ from downwash_core.errors import ConfigError
 from downwash_trajectories import Hover, Lemniscate, stack
 from sim.field import check_field
 from sim.field_memory import FieldMemory, is_stateful
-from sim.predictor import OraclePredictor
+from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
 from sim.simulator import Simulator
 
@@ -115,6 +115,21 @@ def test_the_oracle_of_a_field_with_memory_reads_the_wake_the_vehicles_feel():
     assert np.all(row["f_hat"][:, :, 2] < 0)
     assert set(np.round(row["f_hat"][:, :, 2].ravel(), 12)) <= set(
         np.round(-0.5 * np.arange(1, 7) * sim.cfg.rates.autopilot_dt, 12))
+
+
+def test_the_oracle_among_other_predictors_reads_its_own_worlds_wake():
+    """An oracle of the wake in a PerWorldPredictor (the experiments' batches of conditions) reads the
+    wake of its own worlds: the same prediction as an oracle flying alone in those worlds."""
+    field = GrowingPush()
+    routed = PerWorldPredictor([ZeroPredictor(), OraclePredictor(field)], np.array([0, 1, 1]))
+    sim = _sim(3, field, predictor=routed, seeds=[0, 1, 2])
+    alone = _sim(2, field, predictor=OraclePredictor(field), seeds=[1, 2])
+    sim.reset(np.array([0]))  # world 0's wake starts afresh: the oracle's worlds keep theirs
+    for _ in range(4):
+        row, row_alone = sim.tick(), alone.tick()
+    np.testing.assert_array_equal(row["f_hat"][0], 0.0)
+    np.testing.assert_array_equal(row["f_hat"][1:], row_alone["f_hat"])
+    assert np.all(row["f_hat"][1:, :, 2] < 0)
 
 
 class _Broken(GrowingPush):

@@ -84,7 +84,41 @@ def test_a_speed_sweep_flies_every_condition_at_each_speed(tmp_path):
     assert (tmp_path / "od" / "improvement_vs_speed.png").is_file()
 
 
+def test_wind_and_truth_sweeps_fly_every_condition_in_each_wind_and_on_each_truth(tmp_path):
+    """--sweep-winds flies the conditions in each wind at --speed; --sweep-fields runs the whole job on
+    another truth into <out>/truths/ and the results compare the truths' speed sweeps."""
+    _run(["--seeds", "1", "--duration", "3", "--conditions", "baseline,oracle", "--wind", "off", "--sweep-speeds",
+          "0.5,3", "--sweep-winds", "off;calm:mean=3,0,0", "--sweep-fields", "momentum", "--workers", "1",
+          "--out", "od"], tmp_path)
+    r = json.loads((tmp_path / "od" / "results.json").read_text())
+    w = r["wind_sweep"]
+    assert w["winds"] == ["off", "calm:mean=3,0,0"]
+    assert all(x > 0 for x in w["conditions"]["oracle"]["improvement_pos_3d"])
+    # the still-air point is the run's own setting, flown again: the same numbers
+    assert w["conditions"]["oracle"]["improvement_pos_3d"][0] == r["conditions"]["oracle"]["improvement_pos_3d"]
+    assert set(r["truths"]) == {"so2", "momentum"}
+    other = r["truths"]["momentum"]
+    assert other["sweep"]["speeds"] == [0.5, 3.0] and all(x > 0 for x in other["sweep"]["conditions"]["oracle"]
+                                                          ["improvement_pos_3d"])
+    sub = json.loads((tmp_path / other["dir"] / "results.json").read_text())
+    assert sub["args"]["field"] == "momentum" and sub["conditions"]["oracle"] == {
+        **sub["conditions"]["oracle"], **other["conditions"]["oracle"]}
+    assert other["conditions"]["oracle"]["improvement_pos_3d"] != r["conditions"]["oracle"]["improvement_pos_3d"]
+    assert (tmp_path / "od" / "improvement_vs_speed.png").is_file()
+
+
+def test_map_on_ray_runs_each_item_as_a_task():
+    from downwash.sweep import map_on_ray
+    from experiments.outdoor import _slug
+
+    assert map_on_ray(_slug, ["so2:strength=3", "shed"], workers=1) == ["so2_strength_3", "shed"]
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--sweep-winds", "light;light"], "--sweep-winds: duplicate winds"),
+    (["--sweep-winds", "off;gale"], "--wind: unknown 'gale'"),
+    (["--sweep-fields", "so2"], "--sweep-fields: expected distinct truths other than --field \\(so2\\)"),
+    (["--sweep-fields", "vortex"], "vortex"),
     (["--sweep-speeds", "1,9"], "--sweep-speeds: expected a comma list of distinct speeds in 0.5-3.0 m/s"),
     (["--sweep-speeds", "1,fast"], "--sweep-speeds: expected a comma list"),
     (["--trained", "indoor,sky"], "--trained: expected a comma list of indoor, outdoor"),

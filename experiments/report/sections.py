@@ -162,12 +162,79 @@ def render_outdoor(r: dict, label: str) -> str:
     parts = [head, render_tracking(r, label), "; ".join(verdict) + "."]
     sweep = r.get("sweep")
     if sweep:  # --sweep-speeds: each condition's improvement at each leader speed
-        rows = [[f"`{c}`"] + [pct(x) + (f" ({pct(k)} crashed)" if k else "") for x, k in
-                              zip(e["improvement_pos_3d"], e["crash_rate"])]
-                for c, e in _ordered(sweep["conditions"]) if c not in ("no_downwash", "baseline")]
+        rows = _sweep_rows(sweep["conditions"])
         parts += ["Improvement of the 3D position error over the baseline against the leader's speed (the same seeds "
                   "and wind at each speed):", _table(["condition"] + [f"{short(v)} m/s" for v in sweep["speeds"]], rows)]
-    return "\n\n".join(parts)
+    if r.get("wind_sweep"):  # --sweep-winds: at the run's speed, in each wind
+        w = r["wind_sweep"]
+        parts += [f"Improvement over the baseline in each wind, the leader at {short(r['speed'])} m/s:",
+                  _table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"]))]
+    for truth, t in (r.get("truths") or {}).items():  # --sweep-fields: the whole job on each ground truth
+        if t.get("sweep"):
+            parts += [f"On the `{truth}` truth, improvement over the baseline against the leader's speed:",
+                      _table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
+                             _sweep_rows(t["sweep"]["conditions"]))]
+    verdicts = [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
+    return "\n\n".join(parts + verdicts)
+
+
+def _sweep_rows(conditions: dict) -> list[list[str]]:
+    return [[f"`{c}`"] + [pct(x) + (f" ({pct(k)} crashed)" if k else "") for x, k in
+                          zip(e["improvement_pos_3d"], e["crash_rate"])]
+            for c, e in _ordered(conditions) if c not in ("no_downwash", "baseline")]
+
+
+# each model with memory and the memoryless model it extends (the same features without the history)
+MEMORY_TWINS = {"equivariant_memory": "equivariant_general", "deep_memory": "deep"}
+FAST = 2.0  # m/s: the leader speeds at and above which the memory question is asked
+
+
+def _memory_verdict(r: dict) -> str | None:
+    """Whether memory helps on the shed-wake truth at FAST m/s and above: each model with memory against
+    its memoryless twin (both trained on the outdoor stages), mean improvement over those speeds."""
+    sweep = ((r.get("truths") or {}).get("shed") or {}).get("sweep")
+    if sweep is None and (r.get("provenance") or {}).get("field_spec") == "shed":
+        sweep = r.get("sweep")
+    if not sweep:
+        return None
+    fast = [i for i, v in enumerate(sweep["speeds"]) if v >= FAST]
+    c = sweep["conditions"]
+    lines = []
+    for memory, twin in MEMORY_TWINS.items():
+        a, b = c.get(f"{memory}-outdoor"), c.get(f"{twin}-outdoor")
+        if not fast or a is None or b is None or any(e["improvement_pos_3d"][i] is None for e in (a, b) for i in fast):
+            continue
+        mean = lambda e: sum(e["improvement_pos_3d"][i] for i in fast) / len(fast)  # noqa: E731
+        diff = mean(a) - mean(b)
+        lines.append(f"`{memory}-outdoor` {pct(mean(a))} against `{twin}-outdoor` {pct(mean(b))}: memory "
+                     + ("helps" if diff > 0.02 else "hurts" if diff < -0.02 else "makes no clear difference")
+                     + f" ({'+' if diff >= 0 else ''}{pct(diff)})")
+    if not lines:
+        return None
+    speeds = ", ".join(short(sweep["speeds"][i]) for i in fast)
+    return (f"**Does memory help on the shed-wake truth at {short(FAST)} m/s and above?** Mean improvement over the "
+            f"baseline at {speeds} m/s: " + "; ".join(lines) + ".")
+
+
+def _equivariance_verdict(r: dict) -> str | None:
+    """Whether equivariance still pays outdoors: the best equivariant against the best non-equivariant
+    model of the same training data, at the run's own setting."""
+    c = r["conditions"]
+    out = []
+    for suffix, data in (("", "indoor data"), ("-outdoor", "indoor and outdoor data")):
+        kinds = [k for k in c if k.endswith(suffix) and "-" not in k.removesuffix(suffix)
+                 and k not in ("no_downwash", "baseline", "oracle") and c[k].get("improvement_pos_3d") is not None]
+        eq = [k for k in kinds if k.startswith("equivariant")]
+        plain = [k for k in kinds if not k.startswith("equivariant")]
+        if not eq or not plain:
+            continue
+        best = lambda ks: max(ks, key=lambda k: c[k]["improvement_pos_3d"])  # noqa: E731
+        e, p = best(eq), best(plain)
+        pays = c[e]["improvement_pos_3d"] > c[p]["improvement_pos_3d"]
+        out.append(f"trained on {data}, the best equivariant model `{e}` {pct(c[e]['improvement_pos_3d'])} against "
+                   f"the best non-equivariant `{p}` {pct(c[p]['improvement_pos_3d'])}: it "
+                   + ("pays" if pays else "does not pay"))
+    return None if not out else "**Does equivariance still pay outdoors?** " + "; ".join(out) + "."
 
 
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
