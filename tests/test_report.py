@@ -361,3 +361,33 @@ def test_results_older_than_the_golden_records_are_stale(tmp_path):
     assert [s.split(":")[0] for s in stale] == ["lemniscate", "benchmark", "swarm"]
     assert "before" in stale[0] and "no code commit" in stale[1] and "not in this repository" in stale[2]
     assert report.stale_results({"transect": found["transect"]}, repo=tmp_path) == []
+
+
+def _outdoor_point(improvement, crash=0.0):
+    return {"improvement_pos_3d": improvement, "crash_rate": crash}
+
+
+def test_the_outdoor_verdicts_follow_the_numbers():
+    """Memory on the shed truth at 2 m/s and above (the mean over those speeds, memory against its
+    memoryless twin) and equivariance (best against best, per training data), read from the results."""
+    from experiments.report.sections import _equivariance_verdict, _memory_verdict
+
+    speeds = [0.5, 2.0, 3.0]
+    sweep = {"speeds": speeds, "conditions": {
+        "equivariant_memory-outdoor": {"improvement_pos_3d": [0.9, 0.5, 0.3], "crash_rate": [0, 0, 0]},
+        "equivariant_general-outdoor": {"improvement_pos_3d": [0.0, 0.2, 0.2], "crash_rate": [0, 0, 0]},
+        "deep_memory-outdoor": {"improvement_pos_3d": [0.0, 0.1, 0.1], "crash_rate": [0, 0, 0]},
+        "deep-outdoor": {"improvement_pos_3d": [0.9, 0.1, 0.11], "crash_rate": [0, 0, 0]}}}
+    r = {"conditions": {"baseline": {}, "oracle": _outdoor_point(0.7), "deep": _outdoor_point(0.1),
+                        "equivariant": _outdoor_point(-2.0, 1.0), "deep-outdoor": _outdoor_point(0.05),
+                        "equivariant-outdoor": _outdoor_point(0.4)},
+         "truths": {"shed": {"sweep": sweep}}}
+    memory = _memory_verdict(r)
+    assert "`equivariant_memory-outdoor` 40.0 % against `equivariant_general-outdoor` 20.0 %: memory helps" in memory
+    assert "`deep_memory-outdoor` 10.0 % against `deep-outdoor` 10.5 %: memory makes no clear difference" in memory
+    assert "at 2, 3 m/s" in memory  # the slow point is left out
+    verdict = _equivariance_verdict(r)
+    assert "indoor data, the best equivariant model `equivariant` -200.0 % against the best non-equivariant " \
+           "`deep` 10.0 %: it does not pay" in verdict
+    assert "`equivariant-outdoor` 40.0 % against the best non-equivariant `deep-outdoor` 5.0 %: it pays" in verdict
+    assert _memory_verdict({"conditions": {}}) is None  # no shed sweep: no statement
