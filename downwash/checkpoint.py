@@ -319,7 +319,7 @@ def wrap_pairwise(pairwise: DownwashModel | str | os.PathLike, neighbours: Neigh
         if not isinstance(pairwise, DownwashModel):
             raise CheckpointError(f"{path}: a {pairwise.kind!r} model of sets, not a per-neighbour model to wrap")
         record = {"pairwise_checkpoint": str(path), "pairwise_provenance": stored.get("provenance"),
-                  "field": _field_of(stored)}
+                  "field": _field_of(stored), "data": stored.get("data")}
     elif expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
         raise ConfigError(f"pairwise: model kind is {getattr(pairwise, 'kind', None)!r}, expected {expect_kind!r}")
     model = SummedPairwise(copy.deepcopy(pairwise)).eval()  # the caller's model stays as it is

@@ -10,6 +10,8 @@ the field being off).
     <model kind>  the LQR compensating with that trained model (`downwash.models.PAIRWISE_KINDS`;
                   the experiments fly `STAGED_KINDS` unless asked, the models with memory on request);
                   <model kind>-<data>: the same kind trained on other data (`experiments.outdoor`)
+    <learned>_guarded  the same model behind the guard (`downwash.guard.GuardedPredictor`): scaled
+                  toward no model where its inputs leave its training data's support
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
+from downwash.guard import GuardedPredictor
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
@@ -28,10 +31,13 @@ from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPre
 from sim.scene import Scene
 from downwash_trajectories import Reference
 
-__all__ = ["REFERENCE_CONDITIONS", "CONDITIONS", "DEFAULT_CONDITIONS", "parse_conditions", "learned", "make_predictor", "fly_conditions"]
+__all__ = ["REFERENCE_CONDITIONS", "GUARDED", "CONDITIONS", "DEFAULT_CONDITIONS", "parse_conditions", "learned",
+           "data_variant", "make_predictor", "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
-CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS)  # every condition a flight can name
+GUARDED = "_guarded"  # the suffix of a guarded learned condition
+# every condition a flight can name
+CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS) + tuple(k + GUARDED for k in PAIRWISE_KINDS)
 DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS  # what the experiments fly unless asked
 
 
@@ -48,19 +54,33 @@ def parse_conditions(text: str) -> list[str]:
     return names
 
 
+def _kind(condition: str) -> str:
+    """The model kind of a condition ("<kind>[-<data>][_guarded]")."""
+    return condition.removesuffix(GUARDED).partition("-")[0]
+
+
 def learned(conditions: Sequence[str]) -> list[str]:
-    """The conditions that fly a trained model."""
-    return [c for c in conditions if c in PAIRWISE_KINDS]
+    """The model kinds the conditions fly (each once, in order)."""
+    return list(dict.fromkeys(_kind(c) for c in conditions if _kind(c) in PAIRWISE_KINDS))
+
+
+def data_variant(condition: str, data: str) -> str:
+    """A learned condition's model trained on other data: "equivariant_guarded", "outdoor" ->
+    "equivariant-outdoor_guarded"."""
+    guarded = condition.endswith(GUARDED)
+    return f"{_kind(condition)}-{data}" + (GUARDED if guarded else "")
 
 
 def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> Predictor:
-    """The predictor a condition flies with; learned ones load from `checkpoints[condition]`."""
+    """The predictor a condition flies with; learned ones load from `checkpoints["<kind>[-<data>]"]`."""
     if condition in ("no_downwash", "baseline"):
         return ZeroPredictor()
     if condition == "oracle":
         return OraclePredictor(field)
-    # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor)
-    return LearnedPredictor.from_checkpoint(checkpoints[condition], expect_kind=condition.partition("-")[0])
+    # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
+    model = condition.removesuffix(GUARDED)
+    predictor = LearnedPredictor.from_checkpoint(checkpoints[model], expect_kind=_kind(condition))
+    return GuardedPredictor(predictor) if condition.endswith(GUARDED) else predictor
 
 
 def fly_conditions(

@@ -34,6 +34,7 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.params import RATES
 from downwash_core.provenance import describe, differences
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, PAIR, SAMPLE_SCHEMA, labels_from_log
+from downwash.guard import support_of
 from sim.aggregation import DEFAULT_AGGREGATION, make_aggregation
 from sim.logs import load_log
 from sim.neighbours import NeighbourSet
@@ -242,7 +243,8 @@ class Dataset:
 
     def summary(self) -> dict[str, Any]:
         """Sizes for metadata: samples, flights, minutes in all and per stage, the neighbour set and
-        how full it is."""
+        how full it is, and the support of its pairs (`downwash.guard.support_of`, what the guard
+        reads from a checkpoint)."""
         per_stage = {str(int(st)): float(np.sum(self.stage == st) * RATES.control_dt / 60.0) for st in self.stages}
         return {
             "n_samples": len(self),
@@ -252,6 +254,7 @@ class Dataset:
             "neighbours": self.neighbours.describe(),
             "neighbour_count_histogram": np.bincount(self.mask.sum(axis=1),
                                                      minlength=self.neighbours.max_neighbours + 1).tolist(),
+            "support": None if (s := support_of(*self.pairs()[:4])) is None else s.describe(),  # for the guard
         }
 
     def pairs(self) -> "Pairs":

@@ -45,11 +45,11 @@ A = TypeVar("A")
 
 # The names the options take, copied from their registries so that `--help` needs none of
 # the heavy imports behind them (tests/test_cli.py checks each against its source).
-CONDITIONS = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant",
-              "equivariant_general", "equivariant_memory", "deep_memory")  # downwash.conditions.CONDITIONS
-DEFAULT_CONDITIONS = CONDITIONS[:7]  # downwash.conditions.DEFAULT_CONDITIONS
 PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equivariant_memory",
                   "deep_memory")  # downwash.models.PAIRWISE_KINDS
+CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS,
+              *(k + "_guarded" for k in PAIRWISE_KINDS))  # downwash.conditions.CONDITIONS
+DEFAULT_CONDITIONS = CONDITIONS[:7]  # downwash.conditions.DEFAULT_CONDITIONS
 FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS

@@ -149,7 +149,7 @@ def _leader_reference(args: OutdoorArgs, W: int):
 
 def run(args: OutdoorArgs) -> dict:
     """Fly every condition x seed with the moving leader and the wind; write results, table and figure."""
-    from downwash.conditions import fly_conditions, learned
+    from downwash.conditions import data_variant, fly_conditions, learned
     from downwash.staged import ensure_models
     from downwash_core.provenance import describe
     from sim.metrics import aggregate_conditions
@@ -164,8 +164,9 @@ def run(args: OutdoorArgs) -> dict:
     if "outdoor" in trained and learned(conditions):
         outdoor = _outdoor_models(args, p, learned(conditions))
         checkpoints.update({f"{k}-outdoor": path for k, path in outdoor["checkpoints"].items()})
-    conditions = [c for c in conditions if c not in learned(conditions) or "indoor" in trained] + [
-        f"{k}-outdoor" for k in learned(conditions) if outdoor is not None]
+    models = [c for c in conditions if learned([c])]
+    conditions = [c for c in conditions if c not in models or "indoor" in trained] + [
+        data_variant(c, "outdoor") for c in models if outdoor is not None]
     t_start = time.perf_counter()
     K = args.seeds
     W = len(conditions) * K

@@ -12,7 +12,7 @@ from downwash_core.provenance import code_version, describe
 from downwash_core.status import Status
 from downwash_core.vehicles import DEFAULT_VEHICLE
 from sim.aggregation import LinearSuperposition
-from sim.logs import ARRAY_SPECS, FlightLog
+from sim.logs import ARRAY_SPECS, OPTIONAL_SPECS, FlightLog
 from sim.rows import Row
 from sim.scene import Scene
 from sim.simulator import SimConfig, Simulator
@@ -65,7 +65,7 @@ def fly(
         rows.append(sim.tick())
         if progress is not None:
             progress(k + 1, n_ticks)
-    names = list(ARRAY_SPECS) + [name for name in _WIND_ARRAYS if rows and name in rows[0]]
+    names = list(ARRAY_SPECS) + [name for name in OPTIONAL_SPECS if rows and name in rows[0]]
     stacked = _stack_rows(rows, names, W, sim.V)  # (W, T, ...)
 
     if isinstance(meta, dict) or meta is None:
@@ -108,7 +108,6 @@ def fly(
     return logs
 
 
-_WIND_ARRAYS = ("wind", "wind_acc")  # rows of a flight with wind: (V, 3) m/s and m/s^2
 
 
 def _stack_rows(rows: list, names: list[str], W: int, V: int) -> dict[str, np.ndarray]:
@@ -128,7 +127,7 @@ def _stack_rows(rows: list, names: list[str], W: int, V: int) -> dict[str, np.nd
 
 
 def _trailing(name: str, V: int) -> tuple[int, ...]:
-    trail = ARRAY_SPECS[name][0] if name in ARRAY_SPECS else ("V", 3)
+    trail = {**ARRAY_SPECS, **OPTIONAL_SPECS}[name][0]
     return tuple(V if d == "V" else d for d in trail)
 
 

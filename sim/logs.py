@@ -25,6 +25,7 @@ from downwash_core.status import Status
 __all__ = [
     "SCHEMA_VERSION",
     "ARRAY_SPECS",
+    "OPTIONAL_SPECS",
     "FlightLog",
     "LogError",
     "save_log",
@@ -51,6 +52,12 @@ ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "f_hat": (("V", 3), "m/s^2, downwash prediction in use (held 45 Hz output; 0 without a model)"),
     "field_mean": (("V", 3), "m/s^2, true mean downwash on the vehicle at the tick"),
     "field_applied": (("V", 3), "m/s^2, downwash actually applied at the tick (mean + turbulence)"),
+}
+# logged when their component is there: the wind (`sim.wind`) and a guard's applied fraction (`sim.predictor`)
+OPTIONAL_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
+    "wind": (("V", 3), "m/s, the air's velocity at the vehicle (mean + gust)"),
+    "wind_acc": (("V", 3), "m/s^2, the wind's drag on the vehicle"),
+    "applied": (("V",), "fraction of the model's prediction applied at its last call (a guard; NaN: no guard)"),
 }
 
 @dataclass

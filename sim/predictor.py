@@ -16,6 +16,8 @@ remembers the estimates of its last calls). It then has ``reset(worlds)``, which
 calls when it resets those worlds, and its call takes ``due=`` (W,) bool: the worlds whose
 prediction is due now (the loop calls it when any world's is due; only the due worlds' rows are
 used, and only their state should advance). Such a predictor serves one simulator at a time.
+A predictor that scales its model's output (a guard) may hold ``applied`` (W, V): the fraction of
+the prediction applied at its last call, which the simulator logs per tick and vehicle.
 """
 
 from __future__ import annotations
@@ -129,6 +131,18 @@ class PerWorldPredictor:
     def stateful(self) -> bool:
         """Whether any of its predictors keeps state (`is_stateful`)."""
         return any(is_stateful(p) for p in self.predictors)
+
+    @property
+    def applied(self) -> np.ndarray | None:
+        """(W, V) the fraction applied at the last call by the predictors that report one (module
+        doc), NaN in the other worlds; None when none reports one."""
+        parts = [(a, g) for p, g in zip(self.predictors, self.groups) if (a := getattr(p, "applied", None)) is not None]
+        if not parts:
+            return None
+        out = np.full((self.n_worlds, parts[0][0].shape[1]), np.nan)
+        for a, worlds in parts:
+            out[worlds] = a
+        return out
 
     def reset(self, worlds: np.ndarray | None = None) -> None:
         """Reset the state of the stateful predictors (`is_stateful`) in these worlds (None: all)."""

@@ -407,10 +407,9 @@ class Simulator:
 
         residual: (W, V, 3) m/s^2 added to the LQR command (e.g. an RL compensation action).
         override: (W, V, 3) m/s^2 replacing the LQR acceleration where finite (NaN keeps LQR).
-        The row (name -> (W, ...) array, the names of `sim.logs.ARRAY_SPECS`, plus "wind"
-        and "wind_acc" when the wind is on) describes the state at the start of the tick
-        and the command applied during it; its arrays are fresh each tick and never
-        written to afterwards. A dict on the readable path, a `Row` on the fused one.
+        The row (name -> (W, ...) array: `sim.logs.ARRAY_SPECS` and the components' `OPTIONAL_SPECS`):
+        the state at the tick's start and the command applied during it, fresh arrays never written
+        again. A dict on the readable path, a `Row` on the fused one.
         """
         W, V = self.W, self.V
         if residual is not None:
@@ -555,6 +554,8 @@ class Simulator:
                 }
                 if wind:
                     row["wind"], row["wind_acc"] = air, wind_acc
+                if (fraction := getattr(self._scene_predictor, "applied", None)) is not None:  # a guard's
+                    row["applied"] = np.array(fraction, dtype=np.float64)
 
             # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
             _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)

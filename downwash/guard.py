@@ -1,0 +1,177 @@
+"""A guard on learned compensation: use the model where it knows, fall back to no model where it does not.
+
+`GuardedPredictor` wraps a learned predictor (`downwash.predictor.LearnedPredictor`) in the
+predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
+
+- **Support.** Every (neighbour, target) pair that acts on a vehicle (the predictor's
+  neighbour set, targets below their neighbour) is described by the generalised invariants
+  (`downwash.features`, feature set ``GUARD_FEATURES``: lateral offset, depth, both
+  vehicles' speeds along and across the neighbour's axis, their angles). A model's training
+  data gives each feature's support, the range between its 0.1 % and 99.9 % quantiles
+  (`Support`, recorded in every checkpoint's data summary). A pair inside the support has
+  confidence 1; each feature outside it costs linearly, down to 0 a quarter of the
+  support's width beyond it (`Support.margin`); a pair's confidence is the product over its
+  features, and a vehicle's the lowest of its pairs'.
+- **Rate limit.** The applied fraction may drop at once but rises by at most
+  ``recovery`` per second (a model that left its support gets authority back over
+  1 / recovery seconds, not in one tick).
+- **Hard bound.** The applied prediction's magnitude is at most ``bound`` m/s^2.
+
+The applied prediction is ``fraction * prediction`` (then bounded), so the guard never
+increases a prediction's magnitude, passes in-support inputs through unchanged once the
+fraction has recovered, and applies nothing far outside the support (property tests).
+Why a support check rather than an ensemble's disagreement: it needs no extra training,
+serves every model kind and checkpoint as it is, is exact and cheap at 45 Hz, and an
+ensemble trained on indoor data can agree confidently on a regime it never saw (a moving
+leader): the support names that regime by its leader speed.
+
+The guard keeps state (the applied fraction per world and vehicle), so it is a stateful
+predictor (`sim.predictor.is_stateful`): the simulator resets it with its worlds and tells
+it which are due, on the readable path. ``applied`` holds the fraction of the last call,
+which the simulator logs per tick and vehicle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from downwash_core.errors import ConfigError
+from downwash_core.params import RATES
+from downwash_core.state import VehicleStates
+from downwash.features import FEATURE_SETS, model_inputs
+from sim.neighbours import gather_neighbours, select_neighbours
+from sim.predictor import is_stateful
+
+__all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS"]
+
+GUARD_FEATURES = "general"  # the pair description the support is kept in (every model kind alike)
+SUPPORT_QUANTILE = 0.001  # each feature's support: its [0.1 %, 99.9 %] quantile range in the training pairs
+MARGIN = 0.25  # confidence falls to 0 this fraction of the support's width beyond it
+_MARGIN_FLOOR = 1e-3  # (a constant feature gets a margin all the same)
+_DEPTH = FEATURE_SETS[GUARD_FEATURES].index("depth")
+GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0}  # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound
+
+
+@dataclass(frozen=True)
+class Support:
+    """Each feature's support (lo, hi) and margin (k,) over ``GUARD_FEATURES`` (module doc)."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    margin: np.ndarray
+
+    def __post_init__(self) -> None:
+        k = len(FEATURE_SETS[GUARD_FEATURES])
+        for name in ("lo", "hi", "margin"):
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+            if a.shape != (k,) or not np.all(np.isfinite(a)):
+                raise ConfigError(f"support {name}: expected {k} finite numbers (features {list(FEATURE_SETS[GUARD_FEATURES])}), "
+                                  f"got {getattr(self, name)!r}")
+            object.__setattr__(self, name, a)
+        if not (np.all(self.hi >= self.lo) and np.all(self.margin > 0)):
+            raise ConfigError("support: expected hi >= lo and margin > 0 for every feature")
+
+    def confidence(self, x: np.ndarray) -> np.ndarray:
+        """(...,) in [0, 1]: 1 inside the support, the product over features of a linear fall to 0
+        one margin beyond it, for features x (..., k)."""
+        beyond = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0) / self.margin
+        return np.prod(np.clip(1.0 - beyond, 0.0, 1.0), axis=-1)
+
+    def describe(self) -> dict[str, Any]:
+        return {"features": list(FEATURE_SETS[GUARD_FEATURES]), "quantile": SUPPORT_QUANTILE,
+                "lo": self.lo.tolist(), "hi": self.hi.tolist(), "margin": self.margin.tolist()}
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Support":
+        if not isinstance(record, dict) or record.get("features") != list(FEATURE_SETS[GUARD_FEATURES]):
+            raise ConfigError(f"support: expected a record of the features {list(FEATURE_SETS[GUARD_FEATURES])}, "
+                              f"got {record!r:.200}")
+        return cls(record["lo"], record["hi"], record["margin"])
+
+
+def support_of(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray) -> Support | None:
+    """The support of training pairs (dp, v_a, v_b (P, 3), R_a (P, 3, 3)): the pairs with their target
+    below the neighbour (those a model acts on); None without any."""
+    x = model_inputs(GUARD_FEATURES, dp, v_a, v_b, R_a)[0]
+    x = x[x[:, _DEPTH] > 0]
+    if len(x) < 2:
+        return None
+    lo, hi = np.quantile(x, [SUPPORT_QUANTILE, 1.0 - SUPPORT_QUANTILE], axis=0)
+    return Support(lo, hi, np.maximum(MARGIN * (hi - lo), _MARGIN_FLOOR))
+
+
+class GuardedPredictor:
+    """A learned predictor behind the guard (module doc): (W, V, 3) m/s^2, never more than it predicts.
+
+    predictor: a `downwash.predictor.LearnedPredictor` (its neighbour set chooses the pairs);
+    support: a `Support`, by default the one its checkpoint's training data recorded;
+    recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound.
+    """
+
+    stateful = True
+
+    def __init__(self, predictor: Any, support: Support | None = None, recovery: float = GUARD_DEFAULTS["recovery"],
+                 bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz):
+        if support is None:
+            record = ((getattr(predictor, "record", None) or {}).get("data") or {}).get("support")
+            if record is None:
+                raise ConfigError("guard: the model's checkpoint records no support of its training data (made by "
+                                  "older code); retrain it, or pass support=downwash.guard.support_of(...)")
+            support = Support.from_record(record)
+        for name, value in (("recovery", recovery), ("bound", bound), ("predictor_hz", predictor_hz)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name}: expected a finite number > 0, got {value!r}")
+        self.predictor, self.support, self.predictor_hz = predictor, support, float(predictor_hz)
+        self.recovery, self.bound = float(recovery), float(bound)
+        self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
+        self.applied: np.ndarray | None = None  # (W, V) the fraction applied at the last call
+        self._fraction: np.ndarray | None = None  # (W, V) per world, carried between calls
+
+    def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
+        """This guard around the predictor told the scene's kinds (`LearnedPredictor.for_vehicles`)."""
+        inner = self.predictor.for_vehicles(kinds)
+        if inner is self.predictor:
+            return self
+        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz)
+
+    def reset(self, worlds: Any = None) -> None:
+        """These worlds (None: all) start afresh: no compensation, rising at the recovery rate."""
+        if self._fraction is not None:
+            self._fraction[slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)] = 0.0
+        if is_stateful(self.predictor):
+            self.predictor.reset(worlds)
+
+    def confidence(self, estimated: VehicleStates) -> np.ndarray:
+        """(W, V) in [0, 1]: each vehicle's lowest confidence over the pairs acting on it (1 with none)."""
+        pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
+        index, mask = select_neighbours(pos, self.predictor.neighbours)
+        g = gather_neighbours(pos, vel, rot, index, mask)
+        x, _ = model_inputs(GUARD_FEATURES, g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape),
+                            g["R_a"])
+        acting = mask & (x[..., _DEPTH] > 0)
+        return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
+
+    def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None,
+                 due: np.ndarray | None = None) -> np.ndarray:
+        when = {"due": due} if is_stateful(self.predictor) else {}
+        raw = np.asarray(self.predictor(estimated, true, **when), dtype=np.float64)
+        W, V = raw.shape[:2]
+        if self._fraction is None or self._fraction.shape != (W, V):
+            self._fraction = np.zeros((W, V))
+        due = np.ones(W, bool) if due is None else np.asarray(due, dtype=bool)
+        fraction = np.minimum(self.confidence(estimated), self._fraction + self.step)
+        self._fraction[due] = fraction[due]
+        out = raw * fraction[..., None]
+        norm = np.sqrt(np.sum(out * out, axis=-1))
+        out *= np.minimum(1.0, self.bound / np.maximum(norm, 1e-300))[..., None]
+        raw_norm = np.sqrt(np.sum(raw * raw, axis=-1))
+        self.applied = np.where(raw_norm > 0, np.sqrt(np.sum(out * out, axis=-1)) / np.maximum(raw_norm, 1e-300), 1.0)
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        inner = getattr(self.predictor, "describe", lambda: {})()
+        return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound}}

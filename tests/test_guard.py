@@ -1,0 +1,177 @@
+"""The guard on learned compensation (downwash.guard): support, scaling, rate limit, bound, the loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from downwash.checkpoint import Checkpoint
+from downwash.conditions import GUARDED, data_variant, learned, make_predictor, parse_conditions
+from downwash.datasets import Dataset
+from downwash.features import FEATURE_SETS
+from downwash.guard import GUARD_FEATURES, GuardedPredictor, Support, support_of
+from downwash.predictor import LearnedPredictor
+from downwash.registry import make_model
+from downwash.set_models import SummedPairwise
+from downwash_core.errors import ConfigError
+from downwash_core.state import VehicleStates
+from sim.predictor import PerWorldPredictor, ZeroPredictor, is_stateful
+from test_set_models import _one_torch_thread, randomised  # noqa: F401 (the fixture: one torch thread)
+
+K = len(FEATURE_SETS[GUARD_FEATURES])
+
+
+def _pairs(rng, n, leader_speed=0.05):
+    """Training-like pairs: the target 0.4-1.2 m below a level, nearly hovering neighbour."""
+    dp = np.column_stack([rng.uniform(-0.5, 0.5, (n, 2)), -rng.uniform(0.4, 1.2, n)])
+    v_a = rng.normal(size=(n, 3)) * leader_speed
+    v_b = rng.normal(size=(n, 3)) * 0.4
+    return dp, v_a, v_b, np.broadcast_to(np.eye(3), (n, 3, 3))
+
+
+@pytest.fixture(scope="module")
+def support():
+    return support_of(*_pairs(np.random.default_rng(0), 20000))
+
+
+def _guard(support, seed=0, **options):
+    torch.manual_seed(seed)
+    model = randomised(make_model("equivariant_general").double(), seed).eval()
+    return GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})), support, **options)
+
+
+def _states(rng, W, leader_speed=0.05, scale=1.0):
+    """W worlds of a leader and a follower 0.5-1 m below it (inside the support unless leader_speed
+    or scale say otherwise)."""
+    pos = np.zeros((W, 2, 3))
+    pos[:, 0] = [0.0, 0.0, 2.0]
+    pos[:, 1] = pos[:, 0] + np.column_stack([rng.uniform(-0.3, 0.3, (W, 2)) * scale, -rng.uniform(0.5, 1.0, W)])
+    vel = np.zeros((W, 2, 3))
+    vel[:, 0] = rng.normal(size=(W, 3)) * leader_speed
+    vel[:, 1] = rng.normal(size=(W, 3)) * 0.2
+    return VehicleStates(pos, vel, np.broadcast_to(np.eye(3), (W, 2, 3, 3)).copy())
+
+
+def test_the_support_holds_the_training_pairs_and_round_trips(support):
+    dp, v_a, v_b, R = _pairs(np.random.default_rng(1), 5000)
+    from downwash.features import model_inputs
+
+    x = model_inputs(GUARD_FEATURES, dp, v_a, v_b, R)[0]
+    confidence = support.confidence(x)  # new pairs of the same kind: nearly all inside, the rest near it
+    assert np.mean(confidence == 1.0) > 0.97 and np.mean(confidence) > 0.995
+    again = Support.from_record(support.describe())
+    assert all(np.array_equal(getattr(again, k), getattr(support, k)) for k in ("lo", "hi", "margin"))
+    far = x.copy()
+    far[:, FEATURE_SETS[GUARD_FEATURES].index("va_lateral")] = 5.0  # a leader moving at 5 m/s
+    assert np.all(support.confidence(far) == 0.0)
+    with pytest.raises(ConfigError, match="support lo"):
+        Support(np.zeros(3), np.ones(K), np.ones(K))
+    with pytest.raises(ConfigError, match="hi >= lo"):
+        Support(np.ones(K), np.zeros(K), np.ones(K))
+
+
+def test_the_guard_never_increases_a_prediction_and_bounds_it(support):
+    rng = np.random.default_rng(2)
+    guard = _guard(support, bound=0.5)
+    raw_predictor = guard.predictor
+    for k in range(30):  # inside, outside and between
+        states = _states(rng, 16, leader_speed=rng.choice([0.05, 0.5, 3.0]), scale=rng.choice([1.0, 4.0]))
+        raw = raw_predictor(states)
+        out = guard(states)
+        assert np.all(np.linalg.norm(out, axis=-1) <= np.linalg.norm(raw, axis=-1) + 1e-12)
+        assert np.all(np.linalg.norm(out, axis=-1) <= 0.5 + 1e-12)
+        np.testing.assert_allclose(np.cross(out, raw), 0.0, atol=1e-12)  # scaled, never turned
+        assert np.all((guard.applied >= 0) & (guard.applied <= 1))
+
+
+def test_inside_the_support_the_prediction_passes_unchanged_once_recovered(support):
+    rng = np.random.default_rng(3)
+    guard = _guard(support, bound=1e6)
+    states = _states(rng, 32)
+    assert np.all(guard.confidence(states) == 1.0)
+    fractions = []
+    for _ in range(10):  # the fraction rises by recovery / 45 Hz = 0.111 per call
+        out = guard(states)
+        fractions.append(guard.applied.copy())
+    np.testing.assert_allclose(np.array(fractions)[:, :, 1].mean(1), np.minimum(np.arange(1, 11) * 5.0 / 45.0, 1.0))
+    np.testing.assert_array_equal(out, guard.predictor(states))  # recovered: exactly the model's
+
+
+def test_far_outside_the_support_nothing_is_applied_and_recovery_is_rate_limited(support):
+    rng = np.random.default_rng(4)
+    guard = _guard(support)
+    inside, moving = _states(rng, 8), _states(rng, 8, leader_speed=4.0)
+    for _ in range(12):
+        guard(inside)
+    assert np.all(guard.applied[:, 1] > 0.95)
+    np.testing.assert_array_equal(guard(moving), 0.0)  # drops at once
+    assert np.all(guard.applied[:, 1] == 0.0)  # (the leader, with nothing above it, has nothing to scale: 1)
+    previous = guard.applied.copy()
+    for _ in range(12):  # back inside: the fraction rises by at most recovery / 45 Hz per call
+        guard(inside)
+        assert np.all(guard.applied - previous <= 5.0 / 45.0 + 1e-12)
+        previous = guard.applied.copy()
+
+
+def test_due_worlds_and_resets(support):
+    rng = np.random.default_rng(5)
+    guard = _guard(support)
+    states = _states(rng, 3)
+    assert is_stateful(guard)
+    for _ in range(3):
+        guard(states, due=np.array([True, True, False]))
+    applied = guard.applied.copy()
+    guard.reset([0])
+    guard(states, due=np.array([True, True, True]))
+    np.testing.assert_allclose(guard.applied[:, 1], [5 / 45, applied[1, 1] + 5 / 45, 5 / 45])
+
+
+def test_the_guard_needs_a_support():
+    model = make_model("equivariant").double().eval()
+    with pytest.raises(ConfigError, match="records no support"):
+        GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})))
+    with pytest.raises(ConfigError, match="recovery"):
+        GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})), support_of(
+            *_pairs(np.random.default_rng(0), 100)), recovery=0.0)
+
+
+def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarded(tmp_path):
+    from downwash.train import TrainConfig, save_trained, train_model
+
+    rng = np.random.default_rng(6)
+    dp, v_a, v_b, R = _pairs(rng, 600)
+    ds = Dataset.from_pairs(dp, v_a, v_b, R, rng.normal(size=(600, 3)) * 0.1, np.arange(600) * 3 // 600)
+    model, history = train_model("equivariant", ds, None, TrainConfig(max_epochs=1, min_steps=0, batch_size=128))
+    save_trained(tmp_path / "equivariant.pt", model, history, ds)
+    guarded = make_predictor("equivariant" + GUARDED, None, {"equivariant": tmp_path / "equivariant.pt"})
+    assert isinstance(guarded, GuardedPredictor)
+    np.testing.assert_allclose(guarded.support.hi, support_of(dp, v_a, v_b, R).hi)
+    assert parse_conditions("baseline,deep_guarded") == ["baseline", "deep_guarded"]
+    assert learned(["oracle", "deep_guarded", "deep", "equivariant-outdoor_guarded"]) == ["deep", "equivariant"]
+    assert data_variant("equivariant_guarded", "outdoor") == "equivariant-outdoor_guarded"
+    assert data_variant("deep", "outdoor") == "deep-outdoor"
+
+
+def test_the_loop_logs_the_applied_fraction(support):
+    """The simulator logs the guard's applied fraction per tick and vehicle (NaN in worlds without a
+    guard), and the held prediction is the guard's."""
+    from downwash_core.params import LEADER_POSITION
+    from downwash_trajectories import Hover, Line, Offset, stack
+    from sim.flight import fly
+    from sim.scene import build_scene
+
+    guard = _guard(support, 7)
+    routed = PerWorldPredictor([guard, ZeroPredictor()], np.array([0, 0, 1]))
+    top = np.array(LEADER_POSITION)
+    leader = Line(top - [1.5, 0, 0], (3.0, 0.0, 0.0), duration=1.0, n_worlds=3)  # fast: out of the support
+    still = Hover(top, n_worlds=3)
+    for ref, full in ((stack([still, Offset(still, (0.0, 0.1, -0.6))]), True),
+                      (stack([leader, Offset(leader, (0.0, 0.1, -0.6))]), False)):
+        logs = fly(build_scene(), ref, [1, 2, 3], 1.0, predictor=routed)
+        a = logs[0]["applied"]
+        assert a.shape == (len(logs[0]), 2) and np.all(np.isnan(logs[2]["applied"]))
+        if full:
+            assert a[-1, 1] == 1.0 and a[0, 1] < 0.2  # recovered from the reset's zero
+        else:
+            assert np.all(a[:, 1] == 0.0) and np.all(logs[0]["f_hat"] == 0.0)
