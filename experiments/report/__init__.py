@@ -27,9 +27,9 @@ from downwash_core.io import atomic_write_bytes
 from experiments.common import CommonArgs, arg, parse_args, script
 from experiments.report.formatting import _ordered, _table, fmt, pct, short
 from experiments.report.results import EXPERIMENTS, copy_results, load_results, machine, stale_results
-from experiments.report.sections import (PAPER_RMSE, _render_one, render_benchmark, render_efficiency,
-                                         render_force_maps, render_machine, render_provenance, render_staged,
-                                         render_tracking)
+from experiments.report.sections import (PAPER_RMSE, _equivariance_verdict, _memory_verdict, _render_one,
+                                         render_benchmark, render_efficiency, render_force_maps, render_machine,
+                                         render_provenance, render_staged, render_tracking)
 
 # The command and its two pages live here; the results files are `experiments.report.results`, each
 # experiment's section `experiments.report.sections`, the rendering helpers `experiments.report.formatting`.
@@ -116,6 +116,11 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
             parts.append(_swarm_headline(found["swarm"], link))
         except (KeyError, TypeError, IndexError, ValueError, StopIteration) as e:
             raise ConfigError(f"{results_dir}: cannot render the headline swarm table ({type(e).__name__}: {e})") from e
+    if "outdoor" in found:
+        try:
+            parts.append(_outdoor_headline(found["outdoor"], link))
+        except (KeyError, TypeError, IndexError, ValueError) as e:
+            raise ConfigError(f"{results_dir}: cannot render the headline outdoor lines ({type(e).__name__}: {e})") from e
     lines = []
     if "staged_collection" in found:
         r = found["staged_collection"]
@@ -131,6 +136,31 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
     if lines:
         parts.append(" ".join(lines))
     return "\n\n".join(parts) + "\n"
+
+
+def _outdoor_headline(r: dict, link: str) -> str:
+    """The outdoor regime in a few generated sentences: the oracle and the best model, what the indoor
+    models do there unguarded and guarded, and the verdicts on memory and on equivariance."""
+    c = r["conditions"]
+    imp = lambda k: c[k].get("improvement_pos_3d")  # noqa: E731
+    models = [k for k, _ in _ordered(c) if k not in ("no_downwash", "baseline", "oracle") and imp(k) is not None]
+    best = max(models, key=imp)
+    oracle = imp("oracle")
+    out = [f"Outdoors (the leader on a {r['leader']} at {short(r['speed'])} m/s in wind, "
+           f"[results page]({link}#outdoor-a-moving-leader-in-wind)): the oracle improves the follower's 3D error by "
+           f"{pct(oracle)}; the best model, `{best}`, by {pct(imp(best))} ({pct(imp(best) / oracle)} of the oracle's), "
+           f"{pct(c[best]['crash_rate'])} of its flights crashed."]
+    guarded = [k for k in models if k.endswith("_guarded") and k.removesuffix("_guarded") in c]
+    if guarded:
+        worst = min((k.removesuffix("_guarded") for k in guarded), key=imp)
+        twin = f"{worst}_guarded"
+        out.append(f"The worst unguarded model, `{worst}`, changes the error by {pct(imp(worst))} with "
+                   f"{pct(c[worst]['crash_rate'])} of flights crashed; behind the guard (`{twin}`) by {pct(imp(twin))} "
+                   f"with {pct(c[twin]['crash_rate'])} crashed. Guarded models that crash: "
+                   + (", ".join(f"`{k}` ({pct(c[k]['crash_rate'])})" for k in guarded if c[k]["crash_rate"]) or "none")
+                   + ".")
+    out += [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
+    return " ".join(out)
 
 
 # The many-vehicle conditions the headline shows: the equivariant models first, then Neural-Swarm2's plain deep sets.

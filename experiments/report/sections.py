@@ -222,7 +222,7 @@ def _equivariance_verdict(r: dict) -> str | None:
     c = r["conditions"]
     out = []
     for suffix, data in (("", "indoor data"), ("-outdoor", "indoor and outdoor data")):
-        kinds = [k for k in c if k.endswith(suffix) and "-" not in k.removesuffix(suffix)
+        kinds = [k for k in c if k.endswith(suffix) and "-" not in k.removesuffix(suffix) and not k.endswith("_guarded")
                  and k not in ("no_downwash", "baseline", "oracle") and c[k].get("improvement_pos_3d") is not None]
         eq = [k for k in kinds if k.startswith("equivariant")]
         plain = [k for k in kinds if not k.startswith("equivariant")]
