@@ -21,7 +21,7 @@ from sim.logs import FlightLog
 
 __all__ = [
     "TRACKING_METRICS", "IMPROVEMENT_METRICS", "CRASH_PENALTY", "tracking_errors", "planned_ticks",
-    "tracking_metrics", "follower_metrics", "improvement",
+    "tracking_metrics", "follower_metrics", "improvement", "compensation_shares",
     "aggregate_conditions",
 ]
 
@@ -89,6 +89,25 @@ def follower_metrics(log: FlightLog) -> dict[str, float]:
     return out
 
 
+def compensation_shares(logs: list[FlightLog]) -> dict[str, float] | None:
+    """How much of a guarded model's prediction was applied (the logs' ``applied``, `sim.predictor`):
+    the shares of (tick, follower) at full (>= 99.9 %), partial and no (<= 0.1 %) compensation over
+    the flights; None for logs without a guard."""
+    values = []
+    for L in logs:
+        if "applied" not in L.arrays:
+            continue
+        roles = L.meta.get("roles") or []
+        followers = [v for v, r in enumerate(roles) if r != "leader"] or [L.meta["follower"]]
+        a = L["applied"][:, followers].ravel()
+        values.append(a[np.isfinite(a)])
+    a = np.concatenate(values) if values else np.zeros(0)
+    if a.size == 0:
+        return None
+    full, none = float(np.mean(a >= 0.999)), float(np.mean(a <= 0.001))
+    return {"full": full, "partial": 1.0 - full - none, "none": none}
+
+
 def improvement(metrics: dict[str, float], baseline: dict[str, float]) -> dict[str, float]:
     """Fractions by which `metrics` improve on `baseline` (0.36: 36 % smaller error)."""
     return {name: 1.0 - metrics[m] / baseline[m] for name, m in IMPROVEMENT_METRICS.items()}
@@ -107,7 +126,8 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
     IMPROVEMENT_METRICS (per seed, then their mean); with an `oracle` too, every
     compensating condition gets `gap_to_oracle_pos_3d` (m): how much larger its mean 3D
     position error is than the oracle's. `metrics(log)` gives one flight's TRACKING_METRICS
-    (default `tracking_metrics`, the log's follower; `follower_metrics` for a swarm).
+    (default `tracking_metrics`, the log's follower; `follower_metrics` for a swarm). A guarded
+    condition also gets `compensation` (`compensation_shares`).
     """
     metrics = tracking_metrics if metrics is None else metrics
     out: dict[str, dict] = {}
@@ -118,6 +138,8 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
         entry["per_seed"]["crashed"] = [not L.ok for L in logs]
         entry["crash_rate"] = float(np.mean(entry["per_seed"]["crashed"]))
         entry["failed_flights"] = [L.meta["message"] for L in logs if not L.ok]
+        if (shares := compensation_shares(logs)) is not None:  # a guarded condition
+            entry["compensation"] = shares
         out[c] = entry
     if baseline not in out:
         return out

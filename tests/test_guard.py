@@ -175,3 +175,15 @@ def test_the_loop_logs_the_applied_fraction(support):
             assert a[-1, 1] == 1.0 and a[0, 1] < 0.2  # recovered from the reset's zero
         else:
             assert np.all(a[:, 1] == 0.0) and np.all(logs[0]["f_hat"] == 0.0)
+
+
+def test_the_metrics_count_ticks_at_full_partial_and_no_compensation():
+    from sim.logs import FlightLog
+    from sim.metrics import compensation_shares
+
+    applied = np.array([[1.0, 1.0], [1.0, 0.5], [1.0, 0.0], [1.0, 1.0]])  # vehicle 0 leads: not counted
+    log = FlightLog({"applied": applied}, {"roles": ["leader", "follower"], "follower": 1})
+    assert compensation_shares([log]) == {"full": 0.5, "partial": 0.25, "none": 0.25}
+    assert compensation_shares([FlightLog({}, {"follower": 1})]) is None
+    nan = FlightLog({"applied": np.full((3, 2), np.nan)}, {"follower": 1})  # worlds of another predictor
+    assert compensation_shares([nan]) is None

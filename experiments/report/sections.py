@@ -119,14 +119,21 @@ def _claim(c: dict) -> str:
 
 def render_tracking(r: dict, label: str) -> str:
     rows = []
+    guarded = any("compensation" in e for e in r["conditions"].values())
     for c, e in _ordered(r["conditions"]):
         gap = e.get("gap_to_oracle_pos_3d")
         rows.append([c] + [fmt(e[k]) for k in TRACKED] + [pct(e.get(f"improvement_pos_{k}")) for k in ("3d", "z")]
-                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)), pct(e["crash_rate"])])
+                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)), pct(e["crash_rate"])]
+                    + ([_shares(e.get("compensation"))] if guarded else []))
     header = ["condition", "pos 3D (m)", "pos xy", "pos z", "peak 3D", "vel 3D (m/s)", "improvement 3D",
-              "improvement z", "gap to oracle (m)", "crash rate"]
+              "improvement z", "gap to oracle (m)", "crash rate"] + (["applied: full / partial / none"] if guarded else [])
     return "\n\n".join([f"{len(r['seeds'])} seeds, {short(r['separation'])} m below the leader, "
                         f"{short(r['duration'])} s (`{label}`):", _table(header, rows)])
+
+
+def _shares(c: dict | None) -> str:
+    """A guarded condition's shares of ticks at full, partial and no compensation."""
+    return "-" if c is None else f"{pct(c['full'])} / {pct(c['partial'])} / {pct(c['none'])}"
 
 
 def render_outdoor(r: dict, label: str) -> str:
