@@ -38,7 +38,8 @@ REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
 GUARDED = "_guarded"  # the suffix of a guarded learned condition
 # every condition a flight can name
 CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS) + tuple(k + GUARDED for k in PAIRWISE_KINDS)
-DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS  # what the experiments fly unless asked
+# what the experiments fly unless asked: each staged model, also behind the guard
+DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS + tuple(k + GUARDED for k in STAGED_KINDS)
 
 
 def parse_conditions(text: str) -> list[str]:

@@ -14,7 +14,8 @@ vehicles combine) this experiment
 3. flies every preset (`sim.presets`) with the conditions on the same seeds, in one
    batch per preset and law: baseline (no model), oracle (the true mean wake, combined
    by the law), summed_pairwise (the paper's two-vehicle equivariant model summed over
-   neighbours), and deepsets_equivariant / deepsets from each data mix.
+   neighbours), and deepsets_equivariant / deepsets from each data mix; then each learned
+   condition behind the guard (`<condition>_guarded`, `downwash.guard`).
 Metrics are taken over every follower of a flight (`sim.metrics.follower_metrics`). The
 presets of other vehicle kinds (`heavy_over_light`, `crazyflie_stack`, `mixed_formation`)
 ask whether the models carry over to other forces, and what knowing the kinds is worth;
@@ -45,10 +46,12 @@ DEFAULT_PRESETS = "stack3,stack4,swap,formation5,heavy_over_light,crazyflie_stac
 
 
 def conditions() -> list[str]:
-    """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix."""
+    """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix; then each
+    learned one behind the guard (`downwash.guard`, "<condition>_guarded")."""
     from downwash.swarm_collection import DATA_MIXES, TRAINABLE_SET_KINDS
 
-    return ["baseline", "oracle", "summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SET_KINDS for m in DATA_MIXES]
+    models = ["summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SET_KINDS for m in DATA_MIXES]
+    return ["baseline", "oracle"] + models + [f"{c}_guarded" for c in models]
 
 
 @dataclass(frozen=True)
@@ -99,22 +102,26 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
                 neighbours) -> list:
     from downwash.swarm_collection import swarm_model_path
     from downwash.checkpoint import wrap_pairwise
+    from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
     from sim.predictor import OraclePredictor, ZeroPredictor
 
     out = []
     for c in names:
+        model = c.removesuffix("_guarded")
         if c == "baseline":
             out.append(ZeroPredictor())
         elif c == "oracle":
             out.append(OraclePredictor(field, aggregation=law))
-        elif c == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
+        elif model == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
             out.append(LearnedPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
         else:
-            kind, mix = c.rsplit("-", 1)
+            kind, mix = model.rsplit("-", 1)
             out.append(LearnedPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
                                         expect_neighbours=neighbours,
                                         expect_aggregation=None if mix == "pair" else law))
+        if c.endswith("_guarded"):
+            out[-1] = GuardedPredictor(out[-1])
     return out
 
 
@@ -205,7 +212,8 @@ def _summary(results: dict) -> dict:
         for law, entry in by_law.items():
             out.setdefault(law, {})[preset] = {
                 c: {"improvement_pos_3d": e.get("improvement_pos_3d"), "gap_to_oracle_pos_3d": e.get("gap_to_oracle_pos_3d"),
-                    "pos_err_3d_mean": e["pos_err_3d_mean"], "crash_rate": e["crash_rate"]}
+                    "pos_err_3d_mean": e["pos_err_3d_mean"], "crash_rate": e["crash_rate"],
+                    **({"compensation": e["compensation"]} if "compensation" in e else {})}
                 for c, e in entry["conditions"].items()}
     return out
 

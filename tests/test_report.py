@@ -391,3 +391,30 @@ def test_the_outdoor_verdicts_follow_the_numbers():
            "`deep` 10.0 %: it does not pay" in verdict
     assert "`equivariant-outdoor` 40.0 % against the best non-equivariant `deep-outdoor` 5.0 %: it pays" in verdict
     assert _memory_verdict({"conditions": {}}) is None  # no shed sweep: no statement
+
+
+def test_the_worst_case_table_takes_each_models_worst_setting():
+    """Over the tracking runs, the outdoor sweeps and truths, the field table and the swarm, unguarded and
+    guarded apart; the references are not models."""
+    from experiments.report.sections import render_worst_cases, worst_cases
+
+    found = {
+        "lemniscate": {"conditions": {"baseline": {}, "oracle": _outdoor_point(0.8),
+                                      "deep": _outdoor_point(0.6), "deep_guarded": _outdoor_point(0.59)}},
+        "outdoor": {"conditions": {"deep": _outdoor_point(-0.1), "deep_guarded": _outdoor_point(0.0)},
+                    "sweep": {"speeds": [1.0, 3.0], "conditions": {
+                        "deep": {"improvement_pos_3d": [0.1, -2.5], "crash_rate": [0.0, 0.8]},
+                        "deep_guarded": {"improvement_pos_3d": [0.1, -0.01], "crash_rate": [0.0, 0.0]}}},
+                    "truths": {"shed": {"sweep": {"speeds": [2.0], "conditions": {
+                        "deep_guarded": {"improvement_pos_3d": [-0.02], "crash_rate": [0.0]}}}}}},
+        "swarm": {"summary": {"linear": {"stack3": {"deepsets-pair": _outdoor_point(-0.3),
+                                                    "deepsets-pair_guarded": _outdoor_point(0.05)}}}},
+    }
+    worst = worst_cases(found)
+    assert set(worst) == {"deep", "deepsets-pair"}
+    assert worst["deep"]["unguarded"] == (-2.5, "outdoor, 3 m/s", 0.8)
+    assert worst["deep"]["guarded"] == (-0.02, "outdoor on shed, 2 m/s", 0.0)
+    assert worst["deepsets-pair"]["guarded"] == (0.05, "swarm stack3, linear", 0.0)
+    table = render_worst_cases(found)
+    assert "| `deep` | -250.0 % (outdoor, 3 m/s, 80.0 % crashed) | -2.0 % (outdoor on shed, 2 m/s) |" in table
+    assert render_worst_cases({"lemniscate": found["lemniscate"] | {"conditions": {"deep": _outdoor_point(0.5)}}}) is None

@@ -31,8 +31,9 @@ def swarm_run(tmp_path_factory):
 
 def test_every_preset_law_and_condition_is_reported(swarm_run):
     r = json.loads((swarm_run / "sw" / "results.json").read_text())
-    names = ["baseline", "oracle", "summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed",
-             "deepsets_equivariant-kinds", "deepsets-pair", "deepsets-mixed", "deepsets-kinds"]
+    models = ["summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed",
+              "deepsets_equivariant-kinds", "deepsets-pair", "deepsets-mixed", "deepsets-kinds"]
+    names = ["baseline", "oracle", *models, *(f"{m}_guarded" for m in models)]  # each model also behind the guard
     assert r["conditions"] == names
     assert set(r["summary"]) == {"linear", "velocity"}
     for law in ("linear", "velocity"):
@@ -41,6 +42,8 @@ def test_every_preset_law_and_condition_is_reported(swarm_run):
             assert set(entry) == set(names)
             # the oracle knows the wake and how the wakes combine: it beats no model
             assert entry["oracle"]["improvement_pos_3d"] > 0.2, (law, preset)
+            shares = entry["summed_pairwise_guarded"]["compensation"]  # how much of it the guard applied
+            assert sum(shares.values()) == pytest.approx(1.0) and "compensation" not in entry["summed_pairwise"]
     for preset in ("stack3", "swap"):  # a results.json and a figure per preset
         per = json.loads((swarm_run / "sw" / preset / "results.json").read_text())
         assert per["preset"] == preset and set(per["laws"]) == {"linear", "velocity"}

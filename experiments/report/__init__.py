@@ -29,7 +29,7 @@ from experiments.report.formatting import _ordered, _table, fmt, pct, short
 from experiments.report.results import EXPERIMENTS, copy_results, load_results, machine, stale_results
 from experiments.report.sections import (PAPER_RMSE, _equivariance_verdict, _memory_verdict, _render_one,
                                          render_benchmark, render_efficiency, render_force_maps, render_machine,
-                                         render_provenance, render_staged, render_tracking)
+                                         render_provenance, render_staged, render_tracking, render_worst_cases)
 
 # The command and its two pages live here; the results files are `experiments.report.results`, each
 # experiment's section `experiments.report.sections`, the rendering helpers `experiments.report.formatting`.
@@ -121,6 +121,12 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
             parts.append(_outdoor_headline(found["outdoor"], link))
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise ConfigError(f"{results_dir}: cannot render the headline outdoor lines ({type(e).__name__}: {e})") from e
+    try:
+        worst = render_worst_cases(found)
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        raise ConfigError(f"{results_dir}: cannot render the worst-case table ({type(e).__name__}: {e})") from e
+    if worst:
+        parts.append(worst)
     lines = []
     if "staged_collection" in found:
         r = found["staged_collection"]

@@ -17,6 +17,7 @@ from experiments.report.formatting import ORDER, _ordered, _table, fmt, pct, sho
 __all__ = [
     "TRACKED", "PAPER_RMSE", "RENDERERS", "render_machine", "render_provenance", "render_staged", "render_efficiency",
     "render_tracking", "render_outdoor", "render_swarm", "render_force_maps", "render_benchmark", "render_field_table",
+    "worst_cases", "render_worst_cases",
 ]
 
 TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
@@ -244,6 +245,60 @@ def _equivariance_verdict(r: dict) -> str | None:
     return None if not out else "**Does equivariance still pay outdoors?** " + "; ".join(out) + "."
 
 
+def worst_cases(found: dict[str, dict]) -> dict[str, dict[str, tuple]]:
+    """model -> {"unguarded" | "guarded": (worst improvement over the baseline, where, crash rate there)}
+    over every setting of every experiment's results: the tracking runs, the outdoor run with its
+    sweeps and truths, the field table's fields and the swarm's presets and laws."""
+    points: list[tuple[str, str, dict]] = []  # (where, condition, {improvement_pos_3d, crash_rate})
+    for name in ("lemniscate", "transect"):
+        for c, e in (found.get(name) or {}).get("conditions", {}).items():
+            points.append((name, c, e))
+    outdoor = found.get("outdoor") or {}
+    for c, e in outdoor.get("conditions", {}).items():
+        points.append(("outdoor", c, e))
+    sweeps = [("outdoor", outdoor.get("sweep"), "speeds", " m/s"), ("outdoor", outdoor.get("wind_sweep"), "winds", "")]
+    sweeps += [(f"outdoor on {t}", truth.get(k), key, unit) for t, truth in (outdoor.get("truths") or {}).items()
+               for k, key, unit in (("sweep", "speeds", " m/s"), ("wind_sweep", "winds", ""))]
+    for where, sweep, key, unit in sweeps:
+        for c, e in ((sweep or {}).get("conditions") or {}).items():
+            for i, at in enumerate(sweep[key]):
+                points.append((f"{where}, {short(at) if key == 'speeds' else at}{unit}", c,
+                               {"improvement_pos_3d": e["improvement_pos_3d"][i], "crash_rate": e["crash_rate"][i]}))
+    for field, entry in ((found.get("field_table") or {}).get("table") or {}).items():
+        for c, e in entry["conditions"].items():
+            points.append((f"lemniscate on {field}", c, e))
+    for law, by_preset in ((found.get("swarm") or {}).get("summary") or {}).items():
+        for preset, entry in by_preset.items():
+            for c, e in entry.items():
+                points.append((f"swarm {preset}, {law}", c, e))
+    out: dict[str, dict[str, tuple]] = {}
+    for where, c, e in points:
+        imp = e.get("improvement_pos_3d")
+        if imp is None or c in ("no_downwash", "baseline", "oracle"):
+            continue
+        model, side = (c.removesuffix("_guarded"), "guarded") if c.endswith("_guarded") else (c, "unguarded")
+        have = out.setdefault(model, {}).get(side)
+        if have is None or imp < have[0]:
+            out[model][side] = (imp, where, e.get("crash_rate") or 0.0)
+    return out
+
+
+def render_worst_cases(found: dict[str, dict]) -> str | None:
+    """The worst-case table: each model's worst improvement over the baseline, unguarded and guarded."""
+    worst = worst_cases(found)
+    if not any("guarded" in w for w in worst.values()):
+        return None
+
+    def cell(w: tuple | None) -> str:
+        return "-" if w is None else f"{pct(w[0])} ({w[1]}" + (f", {pct(w[2])} crashed" if w[2] else "") + ")"
+
+    rows = [[f"`{m}`", cell(w.get("unguarded")), cell(w.get("guarded"))] for m, w in _ordered(worst)]
+    return ("Worst case: each model's worst improvement of the 3D position error over the baseline, over every "
+            "setting of every experiment in `results/` (the tracking runs, the outdoor run with its sweeps and ground "
+            "truths, the field table, the swarm's presets and laws), unguarded and behind the guard:\n\n"
+            + _table(["model", "worst unguarded", "worst guarded"], rows))
+
+
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
     """A condition's improvement over the baseline as a share of the oracle's (1: as good as the truth)."""
     oracle, got = entry["oracle"].get("improvement_pos_3d"), entry.get(condition, {}).get("improvement_pos_3d")
@@ -251,7 +306,8 @@ def _share_of_oracle(entry: dict, condition: str) -> float | None:
 
 
 def render_swarm(r: dict, label: str) -> str:
-    shown = r["conditions"][1:]  # all but the baseline
+    shown = [c for c in r["conditions"][1:] if not c.endswith("_guarded")]  # all but the baseline; guarded apart
+    guarded = [c for c in r["conditions"][1:] if c.endswith("_guarded")]
     parts = [f"{len(r['seeds'])} seeds per preset and law; metrics over every follower of a flight. Each cell: the "
              "improvement of the followers' mean 3D position error over the baseline, and in brackets the gap to "
              "the oracle (m). `summed_pairwise` is the paper's two-vehicle equivariant model summed over neighbours; "
@@ -260,14 +316,18 @@ def render_swarm(r: dict, label: str) -> str:
                                               "reading each vehicle's kind" if any(c.endswith("-kinds") for c in shown)
                                               else "") + f" (`{label}`):"]
     verdicts = []
+    def cell(e: dict) -> str:
+        return (pct(e.get("improvement_pos_3d")) + ("" if e.get("gap_to_oracle_pos_3d") is None else
+                                                    f" ({e['gap_to_oracle_pos_3d']:+.3f})")
+                + (f", {pct(e['crash_rate'])} crashed" if e.get("crash_rate") else ""))
+
     for law, by_preset in r["summary"].items():
-        rows = []
-        for preset, entry in by_preset.items():
-            rows.append([f"`{preset}`"] + [pct(entry[c].get("improvement_pos_3d")) + (
-                "" if entry[c].get("gap_to_oracle_pos_3d") is None else f" ({entry[c]['gap_to_oracle_pos_3d']:+.3f})")
-                + (f", {pct(entry[c]['crash_rate'])} crashed" if entry[c].get("crash_rate") else "") for c in shown])
+        rows = [[f"`{preset}`"] + [cell(entry[c]) for c in shown] for preset, entry in by_preset.items()]
         parts += [f"**{law} aggregation** ({r['laws'][law]['law'].get('name', law)}):",
                   _table(["preset"] + shown, rows)]
+        if guarded:
+            rows = [[f"`{preset}`"] + [cell(entry[c]) for c in guarded] for preset, entry in by_preset.items()]
+            parts += [f"The same models behind the guard, {law} aggregation:", _table(["preset"] + guarded, rows)]
         shares = {c: [x for e in by_preset.values() if (x := _share_of_oracle(e, c)) is not None] for c in shown[1:]}
         mean = {c: sum(v) / len(v) for c, v in shares.items() if v}
         best = max(mean, key=mean.get) if mean else None
