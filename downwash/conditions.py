@@ -23,7 +23,7 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
-from downwash.guard import GuardedPredictor
+from downwash.guard import GuardedPredictor, guard_settings
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
@@ -32,7 +32,7 @@ from sim.scene import Scene
 from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "GUARDED", "CONDITIONS", "DEFAULT_CONDITIONS", "parse_conditions", "learned",
-           "data_variant", "make_predictor", "fly_conditions"]
+           "data_variant", "guard_record", "make_predictor", "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
 GUARDED = "_guarded"  # the suffix of a guarded learned condition
@@ -70,6 +70,11 @@ def data_variant(condition: str, data: str) -> str:
     "equivariant-outdoor_guarded"."""
     guarded = condition.endswith(GUARDED)
     return f"{_kind(condition)}-{data}" + (GUARDED if guarded else "")
+
+
+def guard_record(conditions: Sequence[str]) -> dict | None:
+    """The guard's settings (`downwash.guard.guard_settings`) when a condition flies guarded, else None."""
+    return guard_settings() if any(c.endswith(GUARDED) for c in conditions) else None
 
 
 def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> Predictor:

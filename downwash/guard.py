@@ -46,7 +46,8 @@ from downwash.features import FEATURE_SETS, model_inputs
 from sim.neighbours import gather_neighbours, select_neighbours
 from sim.predictor import is_stateful
 
-__all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS"]
+__all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS",
+           "guard_settings"]
 
 GUARD_FEATURES = "general"  # the pair description the support is kept in (every model kind alike)
 SUPPORT_QUANTILE = 0.001  # each feature's support: its [0.1 %, 99.9 %] quantile range in the training pairs
@@ -54,6 +55,11 @@ MARGIN = 0.25  # confidence falls to 0 this fraction of the support's width beyo
 _MARGIN_FLOOR = 1e-3  # (a constant feature gets a margin all the same)
 _DEPTH = FEATURE_SETS[GUARD_FEATURES].index("depth")
 GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0}  # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound
+
+
+def guard_settings() -> dict[str, Any]:
+    """The guard's settings as the experiments record them beside a guarded condition's results."""
+    return {"features": GUARD_FEATURES, "support_quantile": SUPPORT_QUANTILE, "margin": MARGIN, **GUARD_DEFAULTS}
 
 
 @dataclass(frozen=True)

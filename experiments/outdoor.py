@@ -149,7 +149,7 @@ def _leader_reference(args: OutdoorArgs, W: int):
 
 def run(args: OutdoorArgs) -> dict:
     """Fly every condition x seed with the moving leader and the wind; write results, table and figure."""
-    from downwash.conditions import data_variant, fly_conditions, learned
+    from downwash.conditions import data_variant, fly_conditions, guard_record, learned
     from downwash.staged import ensure_models
     from downwash_core.provenance import describe
     from sim.metrics import aggregate_conditions
@@ -181,7 +181,7 @@ def run(args: OutdoorArgs) -> dict:
         "experiment": "outdoor", "leader": args.leader, "speed": args.speed, "separation": args.separation,
         "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
         "wind": None if wind is None else describe(wind), "leader_airspeed": _airspeed(per_condition),
-        "conditions": aggregate_conditions(per_condition),
+        "conditions": aggregate_conditions(per_condition), "guard": guard_record(conditions),
         "trained": trained,
         "outdoor_collection": None if outdoor is None else {
             k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},

@@ -126,6 +126,7 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
 
 
 def run(args: SwarmArgs) -> dict:
+    from downwash.conditions import guard_record
     from downwash.staged import ensure_models
     from downwash.swarm_collection import SwarmCollectionConfig, collect_swarm, pair_models_key, swarm_provenance
     from downwash_core.provenance import describe, fingerprint
@@ -147,7 +148,8 @@ def run(args: SwarmArgs) -> dict:
     K = args.seeds
     seeds = list(range(args.seed, args.seed + K))
     out = Path(args.out)
-    results: dict[str, Any] = {"experiment": "swarm", "seeds": seeds, "conditions": names, "laws": {}, "presets": {}}
+    results: dict[str, Any] = {"experiment": "swarm", "seeds": seeds, "conditions": names, "laws": {}, "presets": {},
+                               "guard": guard_record(names)}
     first_logs = None
     pair_models_dir = p.collection_dir.parent / f"swarm-pair-{pair_models_key(cfg, p.record)}"  # shared by every law
     for law_name, law in laws:

@@ -96,7 +96,7 @@ def _validate(args: TrackingArgs) -> list[str]:
 
 def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
-    from downwash.conditions import fly_conditions, learned
+    from downwash.conditions import fly_conditions, guard_record, learned
     from downwash.staged import ensure_models
     from downwash_trajectories import Hover, make_reference, stack
     from sim.metrics import aggregate_conditions
@@ -127,7 +127,8 @@ def run(track: str, args: Any) -> dict:
     flight_seconds = time.perf_counter() - t_start
 
     results: dict[str, Any] = {"experiment": track, "separation": args.separation, "duration": duration,
-                               "seeds": seeds, "conditions": aggregate_conditions(per_condition)}
+                               "seeds": seeds, "conditions": aggregate_conditions(per_condition),
+                               "guard": guard_record(conditions)}
     results["wall_seconds"] = time.perf_counter() - t_start
     results["flight_wall_seconds"] = flight_seconds
     out = Path(args.out)

@@ -151,6 +151,11 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     assert learned(["oracle", "deep_guarded", "deep", "equivariant-outdoor_guarded"]) == ["deep", "equivariant"]
     assert data_variant("equivariant_guarded", "outdoor") == "equivariant-outdoor_guarded"
     assert data_variant("deep", "outdoor") == "deep-outdoor"
+    from downwash.conditions import guard_record
+
+    assert guard_record(["baseline", "deep"]) is None
+    assert guard_record(["deep_guarded"]) == {"features": "general", "support_quantile": 0.001, "margin": 0.25,
+                                              "recovery": 5.0, "bound": 6.0}
 
 
 def test_the_loop_logs_the_applied_fraction(support):
