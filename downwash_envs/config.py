@@ -8,6 +8,7 @@ option and its allowed range, before anything is built.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import inspect
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash_core.validate import choice, count, number, pair
 from sim.field import DownwashField, check_field
+from sim.predictor import ZeroPredictor
 from sim.fields.registry import FIELDS, resolve_field_spec
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
@@ -105,8 +107,11 @@ class FollowerConfig:
             of the period (False: at t = 0, the tip / the far end).
         control_hz: controller (= env step) rate, Hz: one of 10, 20, 25, 50, 100 (it
             must divide the 100 Hz autopilot grid). Default 50 (10 physics steps).
-        predictor: "none" or "oracle" (the LQR subtracts the true mean field,
-            evaluated at 45 Hz; residual mode only).
+        predictor: "none", "oracle" (the LQR subtracts the true mean field,
+            evaluated at 45 Hz; residual mode only), or a predictor object
+            (`sim.predictor.Predictor`, e.g. a learned model behind the guard:
+            ``GuardedPredictor(LearnedPredictor.from_checkpoint(path))`` of
+            `downwash.guard` and `downwash.predictor`), copied into each env.
     Downwash field
         c4_amplitude, swirl, skew: the field's misspecification knobs (see
             `sim.field.DownwashField`); all 0 by default.
@@ -153,7 +158,7 @@ class FollowerConfig:
     leader_position: tuple[float, float, float] = LEADER_POSITION
     random_phase: bool = True
     control_hz: int = 50
-    predictor: str = "none"
+    predictor: Any = "none"
     c4_amplitude: float = 0.0
     swirl: float = 0.0
     skew: float = 0.0
@@ -264,8 +269,12 @@ def _validate(c: FollowerConfig) -> None:
             f"control_hz: got {c.control_hz!r}; allowed: {', '.join(map(str, allowed_hz))} Hz "
             f"(the controller runs on the {1.0 / rates.autopilot_dt:g} Hz autopilot grid)"
         )
-    choice("predictor", c.predictor, PREDICTORS)
-    if c.predictor != "none" and c.action_mode != "residual":
+    if isinstance(c.predictor, str):
+        choice("predictor", c.predictor, PREDICTORS)
+    elif not callable(c.predictor):
+        raise ConfigError(f"predictor: expected one of {list(PREDICTORS)} or a predictor object (sim.predictor.Predictor, "
+                          f"e.g. downwash.guard.GuardedPredictor(...)), got {type(c.predictor).__name__}")
+    if not (isinstance(c.predictor, str) and c.predictor == "none") and c.action_mode != "residual":
         raise ConfigError(
             f"predictor: {c.predictor!r} only acts on the LQR command, which action_mode='acceleration' "
             "replaces; use action_mode='residual' or predictor='none'"
@@ -400,3 +409,15 @@ def _reference_probe(c: FollowerConfig) -> None:
             f"leader, {speed:.3g} m/s, {acc:.3g} m/s^2; allowed up to {lim['extent']} m, "
             f"{lim['speed']} m/s, {lim['acc']} m/s^2"
         )
+
+
+def predictor_of(spec: Any, oracle: Any, owner: Any) -> Any:
+    """The predictor an env's ``predictor`` option names: no model for "none", ``oracle()`` for
+    "oracle", else the owner's own deep copy of the given predictor object (made once: a predictor
+    with state, such as a guard, serves one simulator)."""
+    if isinstance(spec, str):
+        return oracle() if spec == "oracle" else ZeroPredictor()
+    own = getattr(owner, "_own_predictor", None)
+    if own is None:
+        own = owner._own_predictor = copy.deepcopy(spec)
+    return own

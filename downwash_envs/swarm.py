@@ -93,7 +93,7 @@ docs/fields.md) or object; `aggregation`: a `sim.aggregation` law spec ("linear"
 `max_neighbours`: K in 1-7 (None: V - 1); `duration`: s; `random_phase`: start each
 episode at a drawn time of the preset's period (a custom `Preset` must then keep its
 vehicles apart over the whole period, as the built-in ones do); and these `downwash_envs.config.FollowerConfig`
-options, validated there: action_bound, control_hz, predictor ("none" | "oracle"),
+options, validated there: action_bound, control_hz, predictor ("none" | "oracle" | a predictor object),
 max_tracking_error, the reward weights, sim_config, lqr, turbulence, render_width,
 render_height, randomize (every agent's mass, inertia and motor lag drawn per episode,
 each agent its own factors; the leader keeps its nominal vehicle). Unknown names raise

@@ -29,13 +29,13 @@ from downwash_core.jit import njit
 from downwash_core.provenance import describe
 from downwash_core.roles import MAX_VEHICLES, Role
 from downwash_core.validate import count, number
-from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config
+from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config, predictor_of
 from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
 from downwash_envs.observation import OBSERVATION, ObsEntry, format_table, layout_bounds, layout_slices, table_row
 from downwash_envs.reward import REWARD_TERMS
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
 from sim.neighbours import NeighbourSet, select_into, select_neighbours
-from sim.predictor import OraclePredictor, ZeroPredictor
+from sim.predictor import OraclePredictor
 from sim.presets import Preset, make_preset
 from sim.scene import Scene, build_scene
 from sim.simulator import Simulator
@@ -390,7 +390,7 @@ class SwarmWorlds(TaskWorlds):
         self._base_ref = preset.reference(n_worlds, sim.collision_radius_xy, sim.collision_radius_z)
         # linear superposition is the simulator's (and the oracle's) own sum; another law goes into their slot
         extra = {} if isinstance(cfg.law, LinearSuperposition) else {"aggregation": cfg.law}
-        predictor = OraclePredictor(cfg.field, **extra) if task.predictor == "oracle" else ZeroPredictor()
+        predictor = predictor_of(task.predictor, lambda: OraclePredictor(cfg.field, **extra), self)
         super().__init__(task, scene, agent_index, [SwarmEpisode(0, 0.0)] * int(n_worlds), n_threads,
                          field=cfg.field, predictor=predictor, **extra)
         self.obs_shape = (agent_index.size, obs_dim(self.K))

@@ -578,3 +578,52 @@ def test_actions_are_clipped_as_numpy_clips_and_bad_ones_refused_before_stepping
         with pytest.raises(ValueError, match="must be finite"):
             env.step(np.array(bad, np.float32))
     assert np.array_equal(env.simulator.t, t)  # nothing stepped
+
+
+class _Push:
+    """A predictor object with state: a constant push, counting the calls and resets it is told of."""
+
+    stateful = True
+
+    def __init__(self):
+        self.calls, self.resets = 0, []
+
+    def reset(self, worlds=None):
+        self.resets.append(None if worlds is None else list(np.asarray(worlds)))
+
+    def __call__(self, estimated, true, due=None):
+        self.calls += 1
+        out = np.zeros_like(estimated.pos)
+        out[..., 2] = -0.5
+        return out
+
+
+def test_a_predictor_object_flies_as_each_envs_own_copy():
+    """predictor=<object>: each env flies its own copy (a predictor with state serves one simulator), reset
+    with the env's worlds; the LQR subtracts what it predicts. A guarded learned model runs the same way."""
+    given = _Push()
+    env = DownwashFollowerEnv(reference="hover", separation=0.6, predictor=given)
+    env.reset(seed=0)
+    env.step(np.zeros(3))
+    own = env._worlds.sim.predictor
+    assert isinstance(own, _Push) and own is not given and given.calls == 0 and own.calls >= 1
+    assert own.resets and env._worlds.sim.f_hat[0, 1, 2] == -0.5
+    from downwash.checkpoint import wrap_pairwise
+    from downwash.guard import GuardedPredictor, support_of
+    from downwash.predictor import LearnedPredictor
+    from downwash.registry import make_model
+
+    rng = np.random.default_rng(0)
+    dp = np.column_stack([rng.uniform(-0.3, 0.3, (500, 2)), -rng.uniform(0.4, 0.9, 500)])
+    support = support_of(dp, rng.normal(size=(500, 3)) * 0.05, rng.normal(size=(500, 3)) * 0.3,
+                         np.broadcast_to(np.eye(3), (500, 3, 3)))  # a hovering leader, its estimate noisy
+    guard = GuardedPredictor(LearnedPredictor(wrap_pairwise(make_model("equivariant").double().eval())), support)
+    env = DownwashFollowerEnv(reference="hover", separation=0.6, predictor=guard)
+    env.reset(seed=1)
+    for _ in range(20):
+        env.step(np.zeros(3))
+    assert env._worlds.sim.predictor.applied[0, 1] > 0.9 and guard.applied is None  # its copy flew, inside the support
+    with pytest.raises(Exception, match="predictor"):
+        DownwashFollowerEnv(predictor=object())
+    with pytest.raises(Exception, match="predictor"):
+        DownwashFollowerEnv(predictor=_Push(), action_mode="acceleration")
