@@ -97,14 +97,19 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
     parts = [GENERATED]
     if tracks:
         try:
-            conds = {c: None for n in tracks for c, _ in _ordered(found[n]["conditions"])}
+            conds = {c: None for n in tracks for c, _ in _ordered(found[n]["conditions"]) if not c.endswith("_guarded")}
+            guarded = any(c.endswith("_guarded") for n in tracks for c in found[n]["conditions"])
             rows = [[f"`{c}`" + (f" ({HEADLINE_CONDITIONS[c]})" if c in HEADLINE_CONDITIONS else "")]
-                    + [_headline_cell(found[n]["conditions"].get(c)) for n in tracks] for c in conds]
+                    + [_headline_cell(found[n]["conditions"].get(c)) for n in tracks]
+                    + ([_headline_cell(found[n]["conditions"].get(f"{c}_guarded")) for n in tracks] if guarded else [])
+                    for c in conds]
             first = found[tracks[0]]
             parts += [f"Mean 3D position error of the follower flying {short(first['separation'])} m beneath a hovering "
-                      f"leader, in m over {len(first['seeds'])} seeds; in brackets the improvement over the baseline. "
+                      f"leader, in m over {len(first['seeds'])} seeds; in brackets the improvement over the baseline"
+                      + ("; each model also behind the guard (`<model>_guarded`)" if guarded else "") + ". "
                       f"Simulated flights: every result, with its machine and provenance, is on the "
-                      f"[results page]({link}).", _table(["condition"] + tracks, rows)]
+                      f"[results page]({link}).",
+                      _table(["condition"] + tracks + ([f"{n}, guarded" for n in tracks] if guarded else []), rows)]
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise ConfigError(f"{results_dir}: cannot render the headline tracking table ({type(e).__name__}: "
                               f"{e})") from e
