@@ -440,7 +440,7 @@ def settle_spectral_norm(model: nn.Module, max_iterations: int = 5000, rtol: flo
             param.train(old_mode)
 
 
-class EquivariantMemoryModel(_OneHiddenLayer):
+class EquivariantMemoryModel(GeneralEquivariantModel):
     """The generalised equivariant model with memory: ``F = f1 r_hat + f2 d + f3 t_hat`` from the
     "general" invariants and the neighbour's displacement over each of `downwash.features.HISTORY_LAGS`
     along the three basis rows (feature set "general_memory", 22 features; 22-32-3 ReLU, 835
@@ -451,8 +451,6 @@ class EquivariantMemoryModel(_OneHiddenLayer):
     kind = "equivariant_memory"
     ALLOWED_FEATURE_SETS = ("general_memory",)
     DEFAULT_FEATURE_SET = "general_memory"
-    n_outputs = 3
-    default_lr = 5e-2
 
 
 class DeepMemoryModel(DeepSNMLP):
