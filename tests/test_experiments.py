@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from downwash.models import PAIRWISE_KINDS
+from downwash.models import STAGED_KINDS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +44,8 @@ def test_staged_collection_results(collection):
     assert [s["stage"] for s in r["stages"]] == [0, 1, 2]
     assert r["stages"][0]["separation"] == [1.35, 1.75] and r["stages"][2]["separation"][0] < 0.6
     assert r["stages"][0]["deployed_val_rmse"] is None and r["stages"][1]["deployed_val_rmse"] > 0
-    for kind in PAIRWISE_KINDS:
+    assert set(r["models"]) == set(STAGED_KINDS)  # the models with memory are trained when asked for
+    for kind in STAGED_KINDS:
         assert r["models"][kind]["val_rmse"] > 0
         assert (collection / "models" / f"{kind}.pt").is_file()
     assert r["validation_minutes"] > 0 and r["wall_seconds"] > 0
@@ -56,11 +57,14 @@ def test_lemniscate_all_conditions(collection):
     _run(["experiments.lemniscate", "--quick", "--out", "lem", "--collection-dir", "staged", "--models-dir", "models"],
          collection)
     r = json.loads((collection / "lem" / "results.json").read_text())
-    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", *PAIRWISE_KINDS}
+    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", *STAGED_KINDS,
+                                    *(f"{k}_guarded" for k in STAGED_KINDS)}
     for name, c in r["conditions"].items():
         assert c["pos_err_3d_mean"] >= 0 and len(c["per_seed"]["pos_err_3d_mean"]) == 1
         assert c["crash_rate"] == 0.0 and c["per_seed"]["crashed"] == [False]
         assert ("improvement_pos_3d" in c) == (name not in ("baseline", "no_downwash"))
+        assert ("compensation" in c) == name.endswith("_guarded")  # the guard's shares of full, partial, none
+    assert r["guard"]["recovery"] > 0
     assert r["provenance"]["models_dir"] == "models" and r["provenance"]["code"]["version"]
     for fig in ("errors_over_time.png", "error_distributions.png", "paths.png"):
         assert (collection / "lem" / fig).stat().st_size > 1000
@@ -124,7 +128,7 @@ def test_train_sample_efficiency_force_maps(collection):
     _run(["experiments.force_maps", "--quick", "--collection-dir", "staged", "--models-dir", "models", "--out", "fm"],
          collection)
     assert (collection / "fm" / "force_maps_down.png").is_file()
-    assert set(json.loads((collection / "fm" / "results.json").read_text())["maps"]) == set(PAIRWISE_KINDS)
+    assert set(json.loads((collection / "fm" / "results.json").read_text())["maps"]) == set(STAGED_KINDS)
 
 
 def test_benchmark_quick(workdir):

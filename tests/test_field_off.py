@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from downwash.checkpoint import save_checkpoint
+from downwash.guard import support_of
 from downwash.conditions import CONDITIONS, fly_conditions, learned
 from downwash.registry import make_model
 from downwash_core.status import Status
@@ -35,6 +36,12 @@ class NaNAwayFromTheCheckPoints:
         return {"name": "nan_away_from_check_points"}
 
 
+_RNG = np.random.default_rng(0)  # pairs beneath a hovering leader: the support its guarded conditions read
+_SUPPORT = support_of(np.column_stack([_RNG.uniform(-0.5, 0.5, (400, 2)), -_RNG.uniform(0.3, 1.5, 400)]),
+                      _RNG.normal(size=(400, 3)) * 0.05, _RNG.normal(size=(400, 3)) * 0.5,
+                      np.broadcast_to(np.eye(3), (400, 3, 3)))
+
+
 def _checkpoints(tmp_path):
     paths = {}
     for kind in learned(CONDITIONS):
@@ -45,7 +52,7 @@ def _checkpoints(tmp_path):
         if hasattr(model, "settle_spectral_norm"):
             model.settle_spectral_norm()
         paths[kind] = tmp_path / f"{kind}.pt"
-        save_checkpoint(paths[kind], model.eval(), {})
+        save_checkpoint(paths[kind], model.eval(), {"data": {"support": _SUPPORT.describe()}})  # for the guarded
     return paths
 
 

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from downwash.conditions import CONDITIONS
+from downwash.conditions import DEFAULT_CONDITIONS
 from experiments.fields import TABLE_KEYS
 from experiments.report.sections import render_field_table
 
@@ -25,7 +25,7 @@ def test_run_tabulates_every_condition_of_the_chosen_field(tmp_path):
     assert list(result["table"]) == ["momentum"]
     entry = result["table"]["momentum"]
     assert entry["wall_seconds"] > 0 and entry["seeds"] >= 1
-    assert set(entry["conditions"]) == set(CONDITIONS)
+    assert set(entry["conditions"]) == set(DEFAULT_CONDITIONS)
     lemniscate = json.loads((tmp_path / "ft" / "momentum" / "results.json").read_text())
     for c, e in entry["conditions"].items():  # the table copies the run's numbers, nothing else
         assert e == {k: lemniscate["conditions"][c].get(k) for k in TABLE_KEYS}
