@@ -21,7 +21,6 @@ the simulator has just computed, combined by its own law, so it sees the same tr
 from __future__ import annotations
 
 import copy
-
 import dataclasses
 from typing import Any
 

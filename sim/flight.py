@@ -108,8 +108,6 @@ def fly(
     return logs
 
 
-
-
 def _stack_rows(rows: list, names: list[str], W: int, V: int) -> dict[str, np.ndarray]:
     """{name: (W, T, ...) float64} from T rows; the fused path's `Row`s (views of one flat array
     each, all with one layout) are stacked once and sliced, any other rows name by name."""

@@ -60,6 +60,7 @@ OPTIONAL_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "applied": (("V",), "fraction of the model's prediction applied at its last call (a guard; NaN: no guard)"),
 }
 
+
 @dataclass
 class FlightLog:
     """One flight of one world.
