@@ -303,24 +303,29 @@ def _field_of(record: dict[str, Any]) -> Any:
     return flights.get("field") if isinstance(flights, dict) else None
 
 
-def wrap_pairwise(pairwise: DownwashModel | str | os.PathLike, neighbours: NeighbourSet | None = None,
+def wrap_pairwise(pairwise: DownwashModel | Checkpoint | str | os.PathLike, neighbours: NeighbourSet | None = None,
                   expect_kind: str | None = None) -> Checkpoint:
-    """``summed_pairwise`` from a trained per-neighbour model or its checkpoint file.
+    """``summed_pairwise`` from a trained per-neighbour model, its `Checkpoint` or its checkpoint file.
 
     The aggregation law recorded is the linear sum (what summing pairs assumes); the field is
-    that of the pair model's data when its checkpoint says. neighbours: default `NeighbourSet()`
-    (every other vehicle).
+    that of the pair model's data when its checkpoint says, and the checkpoint's data summary
+    (its support, which the guard reads) is kept. neighbours: default `NeighbourSet()` (every
+    other vehicle).
     """
     neighbours = NeighbourSet() if neighbours is None else neighbours
     record: dict[str, Any] = {}
+    path = None
     if isinstance(pairwise, (str, os.PathLike)):
         path = pairwise
-        pairwise, stored = load_checkpoint(path, expect_kind=expect_kind)
+        pairwise = load_checkpoint(path, expect_kind=expect_kind)
+    if isinstance(pairwise, Checkpoint):
+        pairwise, stored = pairwise
         if not isinstance(pairwise, DownwashModel):
-            raise CheckpointError(f"{path}: a {pairwise.kind!r} model of sets, not a per-neighbour model to wrap")
-        record = {"pairwise_checkpoint": str(path), "pairwise_provenance": stored.get("provenance"),
-                  "field": _field_of(stored), "data": stored.get("data")}
-    elif expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
+            raise CheckpointError(f"{path or 'checkpoint'}: a {pairwise.kind!r} model of sets, not a per-neighbour "
+                                  "model to wrap")
+        record = {"pairwise_checkpoint": None if path is None else str(path), "pairwise_provenance":
+                  stored.get("provenance"), "field": _field_of(stored), "data": stored.get("data")}
+    if expect_kind is not None and getattr(pairwise, "kind", None) != expect_kind:
         raise ConfigError(f"pairwise: model kind is {getattr(pairwise, 'kind', None)!r}, expected {expect_kind!r}")
     model = SummedPairwise(copy.deepcopy(pairwise)).eval()  # the caller's model stays as it is
     record = {**record, "model": {**model.describe(), "dtype": str(model.dtype).replace("torch.", "")},

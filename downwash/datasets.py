@@ -34,7 +34,7 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.params import RATES
 from downwash_core.provenance import describe, differences
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, PAIR, SAMPLE_SCHEMA, labels_from_log
-from downwash.guard import support_of
+from downwash.support import support_of
 from sim.aggregation import DEFAULT_AGGREGATION, make_aggregation
 from sim.logs import load_log
 from sim.neighbours import NeighbourSet
@@ -243,7 +243,7 @@ class Dataset:
 
     def summary(self) -> dict[str, Any]:
         """Sizes for metadata: samples, flights, minutes in all and per stage, the neighbour set and
-        how full it is, and the support of its pairs (`downwash.guard.support_of`, what the guard
+        how full it is, and the support of its pairs (`downwash.support.support_of`, what the guard
         reads from a checkpoint)."""
         per_stage = {str(int(st)): float(np.sum(self.stage == st) * RATES.control_dt / 60.0) for st in self.stages}
         return {
@@ -281,7 +281,8 @@ class Dataset:
             mask=np.ones((n, 1), bool), neighbour=np.zeros((n, 1), np.int64), vehicle=np.ones(n, np.int64), y=y,
             flight=flight, stage=np.zeros(n, np.int64) if stage is None else stage,
             t=np.zeros(n) if t is None else t, field_mean=np.full((n, 3), np.nan) if field_mean is None else field_mean,
-            hist=None if hist is None else np.asarray(hist)[:, None], neighbours=PAIR, sources=tuple(sources), provenance=provenance,
+            hist=None if hist is None else np.asarray(hist)[:, None], neighbours=PAIR, sources=tuple(sources),
+            provenance=provenance,
         )  # fmt: skip
 
     @staticmethod

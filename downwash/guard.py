@@ -8,7 +8,7 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
   (`downwash.features`, feature set ``GUARD_FEATURES``: lateral offset, depth, both
   vehicles' speeds along and across the neighbour's axis, their angles). A model's training
   data gives each feature's support, the range between its 0.1 % and 99.9 % quantiles
-  (`Support`, recorded in every checkpoint's data summary). A pair inside the support has
+  (`downwash.support`, recorded in every checkpoint's data summary). A pair inside the support has
   confidence 1; each feature outside it costs linearly, down to 0 a quarter of the
   support's width beyond it (`Support.margin`); a pair's confidence is the product over its
   features, and a vehicle's the lowest of its pairs'.
@@ -34,80 +34,29 @@ which the simulator logs per tick and vehicle.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
+from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
-from downwash.features import FEATURE_SETS, model_inputs
+from downwash.features import model_inputs
+from downwash.predictor import clamp_magnitude
+from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_of
 from sim.neighbours import gather_neighbours, select_neighbours
 from sim.predictor import is_stateful
 
 __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS",
            "guard_settings"]
 
-GUARD_FEATURES = "general"  # the pair description the support is kept in (every model kind alike)
-SUPPORT_QUANTILE = 0.001  # each feature's support: its [0.1 %, 99.9 %] quantile range in the training pairs
-MARGIN = 0.25  # confidence falls to 0 this fraction of the support's width beyond it
-_MARGIN_FLOOR = 1e-3  # (a constant feature gets a margin all the same)
-_DEPTH = FEATURE_SETS[GUARD_FEATURES].index("depth")
 GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0}  # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound
 
 
 def guard_settings() -> dict[str, Any]:
     """The guard's settings as the experiments record them beside a guarded condition's results."""
     return {"features": GUARD_FEATURES, "support_quantile": SUPPORT_QUANTILE, "margin": MARGIN, **GUARD_DEFAULTS}
-
-
-@dataclass(frozen=True)
-class Support:
-    """Each feature's support (lo, hi) and margin (k,) over ``GUARD_FEATURES`` (module doc)."""
-
-    lo: np.ndarray
-    hi: np.ndarray
-    margin: np.ndarray
-
-    def __post_init__(self) -> None:
-        k = len(FEATURE_SETS[GUARD_FEATURES])
-        for name in ("lo", "hi", "margin"):
-            a = np.asarray(getattr(self, name), dtype=np.float64)
-            if a.shape != (k,) or not np.all(np.isfinite(a)):
-                raise ConfigError(f"support {name}: expected {k} finite numbers (features {list(FEATURE_SETS[GUARD_FEATURES])}), "
-                                  f"got {getattr(self, name)!r}")
-            object.__setattr__(self, name, a)
-        if not (np.all(self.hi >= self.lo) and np.all(self.margin > 0)):
-            raise ConfigError("support: expected hi >= lo and margin > 0 for every feature")
-
-    def confidence(self, x: np.ndarray) -> np.ndarray:
-        """(...,) in [0, 1]: 1 inside the support, the product over features of a linear fall to 0
-        one margin beyond it, for features x (..., k)."""
-        beyond = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0) / self.margin
-        return np.prod(np.clip(1.0 - beyond, 0.0, 1.0), axis=-1)
-
-    def describe(self) -> dict[str, Any]:
-        return {"features": list(FEATURE_SETS[GUARD_FEATURES]), "quantile": SUPPORT_QUANTILE,
-                "lo": self.lo.tolist(), "hi": self.hi.tolist(), "margin": self.margin.tolist()}
-
-    @classmethod
-    def from_record(cls, record: dict) -> "Support":
-        if not isinstance(record, dict) or record.get("features") != list(FEATURE_SETS[GUARD_FEATURES]):
-            raise ConfigError(f"support: expected a record of the features {list(FEATURE_SETS[GUARD_FEATURES])}, "
-                              f"got {record!r:.200}")
-        return cls(record["lo"], record["hi"], record["margin"])
-
-
-def support_of(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray) -> Support | None:
-    """The support of training pairs (dp, v_a, v_b (P, 3), R_a (P, 3, 3)): the pairs with their target
-    below the neighbour (those a model acts on); None without any."""
-    x = model_inputs(GUARD_FEATURES, dp, v_a, v_b, R_a)[0]
-    x = x[x[:, _DEPTH] > 0]
-    if len(x) < 2:
-        return None
-    lo, hi = np.quantile(x, [SUPPORT_QUANTILE, 1.0 - SUPPORT_QUANTILE], axis=0)
-    return Support(lo, hi, np.maximum(MARGIN * (hi - lo), _MARGIN_FLOOR))
 
 
 class GuardedPredictor:
@@ -158,7 +107,7 @@ class GuardedPredictor:
         g = gather_neighbours(pos, vel, rot, index, mask)
         x, _ = model_inputs(GUARD_FEATURES, g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape),
                             g["R_a"])
-        acting = mask & (x[..., _DEPTH] > 0)
+        acting = mask & (x[..., DEPTH_COLUMN] > 0)
         return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None,
@@ -171,11 +120,9 @@ class GuardedPredictor:
         due = np.ones(W, bool) if due is None else np.asarray(due, dtype=bool)
         fraction = np.minimum(self.confidence(estimated), self._fraction + self.step)
         self._fraction[due] = fraction[due]
-        out = raw * fraction[..., None]
-        norm = np.sqrt(np.sum(out * out, axis=-1))
-        out *= np.minimum(1.0, self.bound / np.maximum(norm, 1e-300))[..., None]
-        raw_norm = np.sqrt(np.sum(raw * raw, axis=-1))
-        self.applied = np.where(raw_norm > 0, np.sqrt(np.sum(out * out, axis=-1)) / np.maximum(raw_norm, 1e-300), 1.0)
+        out = clamp_magnitude(raw * fraction[..., None], self.bound)
+        raw_norm = np.sqrt(dot(raw, raw))
+        self.applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
         return out
 
     def describe(self) -> dict[str, Any]:

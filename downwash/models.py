@@ -2,8 +2,8 @@
 
 A per-neighbour model maps one (neighbour, target) pair to the force the neighbour's wake
 puts on the target (the models with memory, `EquivariantMemoryModel` and `DeepMemoryModel`, also
-read the neighbour's recent past, ``hist (..., H, 3)``: `downwash.features.HISTORY_LAGS`); `downwash.set_models.SummedPairwise` sums it over a neighbour set,
-and `downwash.registry` lists these kinds beside the models of sets. All share one call,
+read the neighbour's recent past, ``hist (..., H, 3)``: `downwash.features.HISTORY_LAGS`);
+`downwash.set_models.SummedPairwise` sums it over a neighbour set, and `downwash.registry` lists these kinds beside the models of sets. All share one call,
 ``model(dp, v_a, v_b, R_a, hist=None) -> F``:
 
     dp  (..., 3)    m     follower minus leader position, world frame (z up)

@@ -101,9 +101,7 @@ class LearnedPredictor:
         if isinstance(model, (str, os.PathLike)):
             model = load_checkpoint(model, expect_neighbours=expect_neighbours, expect_aggregation=expect_aggregation)
         if isinstance(model, DownwashModel) or (isinstance(model, Checkpoint) and isinstance(model.model, DownwashModel)):
-            data = model.record.get("data") if isinstance(model, Checkpoint) else None  # (the guard reads its support)
-            model = wrap_pairwise(model if isinstance(model, DownwashModel) else model.model, neighbours)
-            model.record["data"] = data
+            model = wrap_pairwise(model, neighbours)  # (a checkpoint's record travels: the guard reads its support)
         elif neighbours is not None:
             raise ConfigError("neighbours: a model of sets flies the neighbour set of its checkpoint")
         if not isinstance(model, Checkpoint) or not isinstance(model.model, SetModel):

@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field, parse_args,
-                                run_main, setup_logging, write_results, script)
+from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field,
+                                parse_args, run_main, setup_logging, write_results, script)
 
 __all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
 

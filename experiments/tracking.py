@@ -25,8 +25,9 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
-from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar, arg, format_table,
-                                load_wind, names_check, parse_args, resolve_pipeline, setup_logging, write_results)
+from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs,
+                                ProgressBar, arg, format_table, load_wind, names_check, parse_args, resolve_pipeline,
+                                setup_logging, write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 

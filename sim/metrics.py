@@ -78,12 +78,16 @@ def tracking_metrics(log: FlightLog, vehicle: int | None = None) -> dict[str, fl
     return {k: out[k] for k in TRACKING_METRICS}
 
 
+def _followers(log: FlightLog) -> list[int]:
+    """Every vehicle of the log that is not its leader (the pair's follower)."""
+    roles = log.meta.get("roles") or []
+    return [v for v, r in enumerate(roles) if r != "leader"] or [log.meta["follower"]]
+
+
 def follower_metrics(log: FlightLog) -> dict[str, float]:
     """TRACKING_METRICS averaged over every follower of the log (a swarm's metrics: each
     vehicle that flies in a wake counts once; the peak is the largest of theirs)."""
-    roles = log.meta.get("roles") or []
-    followers = [v for v, r in enumerate(roles) if r != "leader"] or [log.meta["follower"]]
-    each = [tracking_metrics(log, v) for v in followers]
+    each = [tracking_metrics(log, v) for v in _followers(log)]
     out = {m: float(np.mean([e[m] for e in each])) for m in TRACKING_METRICS}
     out["pos_err_3d_peak"] = max(e["pos_err_3d_peak"] for e in each)
     return out
@@ -97,9 +101,7 @@ def compensation_shares(logs: list[FlightLog]) -> dict[str, float] | None:
     for L in logs:
         if "applied" not in L.arrays:
             continue
-        roles = L.meta.get("roles") or []
-        followers = [v for v, r in enumerate(roles) if r != "leader"] or [L.meta["follower"]]
-        a = L["applied"][:, followers].ravel()
+        a = L["applied"][:, _followers(L)].ravel()
         values.append(a[np.isfinite(a)])
     a = np.concatenate(values) if values else np.zeros(0)
     if a.size == 0:
