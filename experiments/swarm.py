@@ -48,10 +48,11 @@ DEFAULT_PRESETS = "stack3,stack4,swap,formation5,heavy_over_light,crazyflie_stac
 def conditions() -> list[str]:
     """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix; then each
     learned one behind the guard (`downwash.guard`, "<condition>_guarded")."""
+    from downwash.conditions import GUARDED
     from downwash.swarm_collection import DATA_MIXES, TRAINABLE_SET_KINDS
 
     models = ["summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SET_KINDS for m in DATA_MIXES]
-    return ["baseline", "oracle"] + models + [f"{c}_guarded" for c in models]
+    return ["baseline", "oracle"] + models + [c + GUARDED for c in models]
 
 
 @dataclass(frozen=True)
@@ -102,13 +103,14 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
                 neighbours) -> list:
     from downwash.swarm_collection import swarm_model_path
     from downwash.checkpoint import wrap_pairwise
+    from downwash.conditions import GUARDED
     from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
     from sim.predictor import OraclePredictor, ZeroPredictor
 
     out = []
     for c in names:
-        model = c.removesuffix("_guarded")
+        model = c.removesuffix(GUARDED)
         if c == "baseline":
             out.append(ZeroPredictor())
         elif c == "oracle":
@@ -120,7 +122,7 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
             out.append(LearnedPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
                                         expect_neighbours=neighbours,
                                         expect_aggregation=None if mix == "pair" else law))
-        if c.endswith("_guarded"):
+        if c.endswith(GUARDED):
             out[-1] = GuardedPredictor(out[-1])
     return out
 
