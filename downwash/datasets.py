@@ -34,7 +34,7 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.params import RATES
 from downwash_core.provenance import describe, differences
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, PAIR, SAMPLE_SCHEMA, labels_from_log
-from downwash.support import support_of
+from downwash.support import Support, support_of
 from sim.aggregation import DEFAULT_AGGREGATION, make_aggregation
 from sim.logs import load_log
 from sim.neighbours import NeighbourSet
@@ -254,8 +254,14 @@ class Dataset:
             "neighbours": self.neighbours.describe(),
             "neighbour_count_histogram": np.bincount(self.mask.sum(axis=1),
                                                      minlength=self.neighbours.max_neighbours + 1).tolist(),
-            "support": None if (s := support_of(*self.pairs()[:4])) is None else s.describe(),  # for the guard
+            "support": None if (s := self.support()) is None else s.describe(),  # for the guard
         }
+
+    def support(self) -> Support | None:
+        """The support of its real (target, neighbour) pairs, kinds included (`downwash.support.support_of`)."""
+        s, k = np.nonzero(self.mask)
+        return support_of(self.dp[s, k], self.v_a[s, k], self.v_b[s], self.R_a[s, k], self.kind_a[s, k],
+                          self.kind_b[s])
 
     def pairs(self) -> "Pairs":
         """Every real (target, neighbour) pair as flat arrays: the samples of the per-neighbour models.

@@ -6,7 +6,8 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
 - **Support.** Every (neighbour, target) pair that acts on a vehicle (the predictor's
   neighbour set, targets below their neighbour) is described by the generalised invariants
   (`downwash.features`, feature set ``GUARD_FEATURES``: lateral offset, depth, both
-  vehicles' speeds along and across the neighbour's axis, their angles). A model's training
+  vehicles' speeds along and across the neighbour's axis, their angles) and both vehicles'
+  kinds (the scene's, told by ``for_vehicles``; paper quads until then). A model's training
   data gives each feature's support, the range between its 0.1 % and 99.9 % quantiles
   (`downwash.support`, recorded in every checkpoint's data summary). A pair inside the support has
   confidence 1; each feature outside it costs linearly, down to 0 a quarter of the
@@ -42,9 +43,10 @@ from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
-from downwash.features import model_inputs
+from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
 from downwash.predictor import clamp_magnitude
-from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_of
+from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
+                              support_of)
 from sim.neighbours import gather_neighbours, select_neighbours
 from sim.predictor import is_stateful
 
@@ -56,7 +58,8 @@ GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0}  # 1/s (0 to full in 0.2 s); m/
 
 def guard_settings() -> dict[str, Any]:
     """The guard's settings as the experiments record them beside a guarded condition's results."""
-    return {"features": GUARD_FEATURES, "support_quantile": SUPPORT_QUANTILE, "margin": MARGIN, **GUARD_DEFAULTS}
+    return {"features": GUARD_FEATURES, "kinds": list(KIND_FEATURES), "support_quantile": SUPPORT_QUANTILE,
+            "margin": MARGIN, **GUARD_DEFAULTS}
 
 
 class GuardedPredictor:
@@ -64,13 +67,16 @@ class GuardedPredictor:
 
     predictor: a `downwash.predictor.LearnedPredictor` (its neighbour set chooses the pairs);
     support: a `Support`, by default the one its checkpoint's training data recorded;
-    recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound.
+    recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound;
+    vehicle_kinds: the scene's V vehicle kinds (names or `VehicleKind`s; None: paper quads), as
+    ``for_vehicles`` tells them.
     """
 
     stateful = True
 
     def __init__(self, predictor: Any, support: Support | None = None, recovery: float = GUARD_DEFAULTS["recovery"],
-                 bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz):
+                 bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz,
+                 vehicle_kinds: Any = None):
         if support is None:
             record = ((getattr(predictor, "record", None) or {}).get("data") or {}).get("support")
             if record is None:
@@ -82,16 +88,21 @@ class GuardedPredictor:
                 raise ConfigError(f"{name}: expected a finite number > 0, got {value!r}")
         self.predictor, self.support, self.predictor_hz = predictor, support, float(predictor_hz)
         self.recovery, self.bound = float(recovery), float(bound)
+        self.vehicle_kinds = None if vehicle_kinds is None else tuple(getattr(k, "name", k) for k in vehicle_kinds)
+        self._kinds = None if vehicle_kinds is None else kind_descriptors(vehicle_kinds)  # (V, D)
         self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
         self.applied: np.ndarray | None = None  # (W, V) the fraction applied at the last call
         self._fraction: np.ndarray | None = None  # (W, V) per world, carried between calls
 
     def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
-        """This guard around the predictor told the scene's kinds (`LearnedPredictor.for_vehicles`)."""
+        """This guard for a scene of these vehicle kinds: its support check reads them, and its
+        predictor is told them (`LearnedPredictor.for_vehicles`)."""
         inner = self.predictor.for_vehicles(kinds)
-        if inner is self.predictor:
-            return self
-        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz)
+        told = kind_descriptors(kinds)
+        mine = np.zeros_like(told) if self._kinds is None else self._kinds  # (None: paper quads)
+        if inner is self.predictor and mine.shape == told.shape and np.array_equal(mine, told):
+            return self  # (the guard a scene of paper quads flies is the one it was given)
+        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds)
 
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate."""
@@ -105,8 +116,13 @@ class GuardedPredictor:
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
         index, mask = select_neighbours(pos, self.predictor.neighbours)
         g = gather_neighbours(pos, vel, rot, index, mask)
-        x, _ = model_inputs(GUARD_FEATURES, g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape),
-                            g["R_a"])
+        kind_a = kind_b = None
+        if self._kinds is not None:
+            if len(self._kinds) != pos.shape[1]:
+                raise ConfigError(f"guard: told {len(self._kinds)} vehicle kinds, flies {pos.shape[1]} vehicles")
+            kind_a, kind_b = neighbour_kinds(self._kinds, index, mask), self._kinds[:, None, :]
+        x = support_inputs(g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape), g["R_a"],
+                           kind_a, kind_b)
         acting = mask & (x[..., DEPTH_COLUMN] > 0)
         return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
 

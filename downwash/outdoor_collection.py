@@ -10,10 +10,12 @@ collection patterns (passes through and beside the wake, lemniscates) relative t
 moving leader, at the indoor stages' depths (`DEPTH_BAND`, all three stages' separations).
 See `downwash.stages` for how a flight's reference and noise follow from its seeds.
 
-What the stages fly with: no model. The indoor models make the follower climb into a
-moving leader (the outdoor experiment: 100 % of the indoor equivariant model's flights
-crash), and there is no guard yet that keeps a model from doing harm, so the outdoor stages
-fly the nominal controller, as the paper's first indoor stage does.
+What the stages fly with: the indoor collection's final equivariant model, as each indoor
+stage flies the model of the stage before, clamped as indoors and behind the guard
+(`downwash.staged.deployed_predictor`). Unguarded, that model makes the follower climb into
+a moving leader (the outdoor experiment: 100 % of its flights crash); the guard sees the
+leader's speed outside the indoor data and applies (next to) nothing, so the outdoor stages
+fly much as the nominal controller would, and the logs record what it applied.
 
 Then every requested model kind is trained on the indoor and the outdoor training flights
 together ("outdoor": the regime's models), with the indoor schedule (`train_config`). The
@@ -34,6 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
@@ -41,9 +45,11 @@ from downwash_core.provenance import describe
 from downwash.checkpoint import load_checkpoint
 from downwash.labels import PAIR
 from downwash.models import PAIRWISE_KINDS
-from downwash.staged import STAGES, train_config
+from downwash.guard import guard_settings
+from downwash.staged import DEPLOYED_KIND, STAGES, deployed_predictor, train_config
 from downwash.stages import CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, open_manifest
 from downwash.train import rmse, save_trained, train_model
+from sim.logs import load_log
 from sim.wind import DrydenWind
 
 __all__ = ["OUTDOOR_WINDS", "LEADER_SPEEDS", "DEPTH_BAND", "OutdoorCollectionConfig", "outdoor_provenance",
@@ -91,7 +97,9 @@ def outdoor_provenance(cfg: OutdoorCollectionConfig, pair_record: dict) -> dict:
     return {"pair": {k: v for k, v in pair_record.items() if k != "code"},
             "outdoor": {"winds": [list(w) for w in OUTDOOR_WINDS], "leader_speeds": list(LEADER_SPEEDS),
                         "depth_band": list(DEPTH_BAND), "seconds": cfg.seconds, "n_train": cfg.n_train,
-                        "n_val": cfg.n_val, "seed": cfg.seed, "deployed": None,
+                        "n_val": cfg.n_val, "seed": cfg.seed,
+                        "deployed": {"kind": DEPLOYED_KIND, "trained": "indoor",
+                                     "clamp": pair_record["collection"]["clamp"], "guard": guard_settings()},
                         "training": train_config(cfg.seed, cfg.quick).to_dict()}}
 
 
@@ -102,11 +110,13 @@ def collect_outdoor(
     pair_record: dict,
     field: Any,
     kinds: Sequence[str],
+    deployed: str | Path,
     progress: ProgressFactory = lambda label: None,
 ) -> dict:
     """Fly the outdoor stages into `out` (resuming) and train each of `kinds` on indoor + outdoor data.
 
-    pair_collection: the complete indoor staged collection folder; pair_record: its provenance.
+    pair_collection: the complete indoor staged collection folder; pair_record: its provenance;
+    deployed: the indoor collection's final `DEPLOYED_KIND` checkpoint, which the stages fly with.
     Returns {checkpoints: {kind: path}, models: {kind: {path, val_rmse}}, stages, provenance, key,
     data_winds (the wind records of the training data, indoor None first)}.
     """
@@ -122,8 +132,9 @@ def collect_outdoor(
     for stage in stages:
         fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(stage.name, {}), cfg.n_train, cfg.n_val,
                      cfg.seconds, collection=str(out), save=lambda: atomic_write_json(manifest_path, manifest),
-                     field=field, predictor=None, batch_flights=cfg.batch_flights, threads=cfg.threads,
-                     progress=progress)
+                     field=field, predictor=deployed_predictor(Path(deployed), pair_record["collection"]["clamp"],
+                                                               guard=True),
+                     batch_flights=cfg.batch_flights, threads=cfg.threads, progress=progress)
     load = CheckedLoader(PAIR, {out: manifest}, f"python -m experiments.outdoor (the outdoor stages of {out})",
                          mixed=("wind",))
     indoor = [pair_collection / f"stage{k}" / "train" for k in range(len(STAGES))]
@@ -142,5 +153,17 @@ def collect_outdoor(
     return {"checkpoints": checkpoints, "models": models, "key": manifest["key"], "provenance": record,
             "data_winds": (data.provenance or {}).get("wind", {}).get("mixed"),  # every regime the models saw
             "stages": [{"name": st.name, "wind": describe(st.wind) if st.wind else None,
-                        "flights": cfg.n_train + cfg.n_val} for st in stages],
+                        "flights": cfg.n_train + cfg.n_val, "deployed_applied": _mean_applied(out / st.name)}
+                       for st in stages],
             "minutes": len(stages) * cfg.n_train * cfg.seconds / 60, "wall_seconds": time.perf_counter() - t0}
+
+
+def _mean_applied(stage_dir: Path) -> float | None:
+    """The mean fraction of the deployed model's prediction the guard applied to the follower over a
+    stage's logs (their ``applied``; None in logs without it)."""
+    fractions = []
+    for path in sorted(stage_dir.glob("*/*.npz")):
+        log = load_log(path)
+        if "applied" in log.arrays:
+            fractions.append(log["applied"][:, log.meta["follower"]])
+    return float(np.mean(np.concatenate(fractions))) if fractions else None

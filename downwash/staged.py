@@ -2,7 +2,13 @@
 
 Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
-0.5 m with the stage-1 model. Each stage is ~5.7 minutes of varied flights
+0.5 m with the stage-1 model. Each deployed model is clamped (``clamp``) and, with
+``guard`` (``--guard-stages``), flies behind the guard (`downwash.guard`): a stage model
+applies nothing where the closer stage leaves its training data's support, so collecting
+closer is never riskier than flying without a model (the paper's worry). Off by default:
+the paper deploys its stage models clamped only, and the main job reproduces it.
+
+Each stage is ~5.7 minutes of varied flights
 (`downwash_trajectories.collection_reference`: randomised passes through and beside the
 wake, hovers at offsets, lemniscates), plus validation flights of the same kind from
 separate seeds. Labels are always the full downwash (f = a - u with u the command
@@ -64,6 +70,7 @@ from downwash_core.provenance import code_version, describe, differences, finger
 from downwash_core.status import Status
 from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
 from downwash.datasets import Dataset, concatenate, load_dataset
+from downwash.guard import GuardedPredictor, guard_settings
 from downwash.labels import label_noise_floor
 from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, read_manifest,
                                rerun_command, verify_collection)
@@ -81,7 +88,7 @@ from downwash_trajectories import LEMNISCATE_SHARE
 
 __all__ = [
     "STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "provenance", "pipeline_dirs", "collect",
-    "ensure_models", "ensure_collection", "check_checkpoint",
+    "ensure_models", "ensure_collection", "check_checkpoint", "deployed_predictor",
 ]  # fmt: skip
 
 log = logging.getLogger(__name__)
@@ -103,6 +110,7 @@ class CollectionConfig:
     val_ratio: float = 1.0  # validation minutes per training minute (paper: similar size)
     flight_seconds: float = 28.5  # length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)
     clamp: float = 6.0  # magnitude bound of the deployed model's prediction, m/s^2
+    guard: bool = False  # deploy each stage model behind the guard (downwash.guard)
     seed: int = 0  # base seed of flights, patterns and training
     quick: bool = False  # a tiny budget (0.1 min per stage of 4 s flights, a few training steps)
     threads: int = 0  # worker threads for batched flights (0: all cores); training uses one
@@ -162,6 +170,7 @@ def provenance(cfg: CollectionConfig, field: Any) -> dict[str, Any]:
             "flight_seconds": cfg.effective_flight_seconds, "n_train": cfg.n_train, "n_val": cfg.n_val,
             "clamp": cfg.clamp, "deployed_kind": DEPLOYED_KIND, "lemniscate_share": LEMNISCATE_SHARE,
             "log_schema": SCHEMA_VERSION, "training": train_config(cfg.seed, cfg.quick).to_dict(),
+            **({"guard": guard_settings()} if cfg.guard else {}),  # (absent when off: folders keep their key)
         },
         "seed": cfg.seed,
         "code": code_version(),
@@ -305,10 +314,13 @@ def _stage(k: int, cfg: CollectionConfig, deployed: Path | None) -> Stage:
                  cfg.seed * 100_000 + 1000 * k, {"stage": k, "deployed_model": str(deployed)})
 
 
-def _deployed(deployed: Path | None, cfg: CollectionConfig) -> Any:
-    """What a stage flies with: the previous stage's model, clamped (none in the first stage)."""
-    return (ZeroPredictor() if deployed is None
-            else LearnedPredictor.from_checkpoint(deployed, clamp=cfg.clamp, expect_kind=DEPLOYED_KIND))
+def deployed_predictor(checkpoint: Path | None, clamp: float, guard: bool) -> Any:
+    """What a stage flies with: a stage model (`DEPLOYED_KIND`), clamped and, with `guard`, behind the
+    guard (`downwash.guard.GuardedPredictor`); no model without a checkpoint (the first stage)."""
+    if checkpoint is None:
+        return ZeroPredictor()
+    model = LearnedPredictor.from_checkpoint(checkpoint, clamp=clamp, expect_kind=DEPLOYED_KIND)
+    return GuardedPredictor(model) if guard else model
 
 
 def collect(
@@ -387,7 +399,8 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             run["flights"] += fly_recorded(
                 _stage(k, cfg, deployed), sdir, entry, n_train, n_val, flight_seconds,
                 collection=f"{out} and {models_dir}", save=lambda: atomic_write_json(manifest_path, manifest),
-                field=field, predictor=_deployed(deployed, cfg), batch_flights=cfg.batch_flights, threads=cfg.threads,
+                field=field, predictor=deployed_predictor(deployed, cfg.clamp, cfg.guard),
+                batch_flights=cfg.batch_flights, threads=cfg.threads,
                 progress=progress)
         _check_stage(k, sdir, entry, cfg, deployed)
         train_dirs = [out / f"stage{j}" / "train" for j in range(k + 1)]

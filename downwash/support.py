@@ -3,9 +3,12 @@
 Every (neighbour, target) pair a model acts on (the target below the neighbour) is described by
 the generalised invariants (`downwash.features`, feature set ``GUARD_FEATURES``: lateral offset,
 depth, both vehicles' speeds along and across the neighbour's axis, their angles), whatever the
-model's own features. A data set's support (`support_of`) is each feature's range between its
-0.1 % and 99.9 % quantiles, with a margin of a quarter of that width beyond which a pair counts as
-far from the data (`Support.confidence`). Every checkpoint records it in its data summary
+model's own features, and by both vehicles' kinds (`downwash.features.KIND_FEATURES`, 0 for the
+paper quad): a model trained on paper quads alone has never seen a heavier wake or a lighter
+target, even at a familiar offset. A data set's support (`support_of`) is each feature's range
+between its 0.1 % and 99.9 % quantiles, with a margin of a quarter of that width beyond which a
+pair counts as far from the data (`Support.confidence`); a feature the data holds constant (the
+kinds of paper-quad data) gets a margin of 0.001 all the same. Every checkpoint records it in its data summary
 (`downwash.datasets.Dataset.summary`).
 """
 
@@ -17,32 +20,35 @@ from typing import Any
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash.features import FEATURE_SETS, model_inputs
+from downwash.features import FEATURE_SETS, KIND_FEATURES, model_inputs
 
-__all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "MARGIN", "DEPTH_COLUMN", "Support", "support_of"]
+__all__ = ["GUARD_FEATURES", "SUPPORT_FEATURES", "SUPPORT_QUANTILE", "MARGIN", "DEPTH_COLUMN", "Support", "support_of",
+           "support_inputs"]
 
 GUARD_FEATURES = "general"  # the pair description the support is kept in (every model kind alike)
 SUPPORT_QUANTILE = 0.001  # each feature's support: its [0.1 %, 99.9 %] quantile range in the training pairs
 MARGIN = 0.25  # confidence falls to 0 this fraction of the support's width beyond it
 _MARGIN_FLOOR = 1e-3  # (a constant feature gets a margin all the same)
 DEPTH_COLUMN = FEATURE_SETS[GUARD_FEATURES].index("depth")
+SUPPORT_FEATURES = (*FEATURE_SETS[GUARD_FEATURES], *(f"neighbour_{k}" for k in KIND_FEATURES),
+                    *(f"target_{k}" for k in KIND_FEATURES))  # what a pair is described by
 
 
 @dataclass(frozen=True)
 class Support:
-    """Each feature's support (lo, hi) and margin (k,) over ``GUARD_FEATURES`` (module doc)."""
+    """Each feature's support (lo, hi) and margin (k,) over ``SUPPORT_FEATURES`` (module doc)."""
 
     lo: np.ndarray
     hi: np.ndarray
     margin: np.ndarray
 
     def __post_init__(self) -> None:
-        k = len(FEATURE_SETS[GUARD_FEATURES])
+        k = len(SUPPORT_FEATURES)
         for name in ("lo", "hi", "margin"):
             a = np.asarray(getattr(self, name), dtype=np.float64)
             if a.shape != (k,) or not np.all(np.isfinite(a)):
                 raise ConfigError(f"support {name}: expected {k} finite numbers (features "
-                                  f"{list(FEATURE_SETS[GUARD_FEATURES])}), got {getattr(self, name)!r}")
+                                  f"{list(SUPPORT_FEATURES)}), got {getattr(self, name)!r}")
             object.__setattr__(self, name, a)
         if not (np.all(self.hi >= self.lo) and np.all(self.margin > 0)):
             raise ConfigError("support: expected hi >= lo and margin > 0 for every feature")
@@ -54,21 +60,34 @@ class Support:
         return np.prod(np.clip(1.0 - beyond, 0.0, 1.0), axis=-1)
 
     def describe(self) -> dict[str, Any]:
-        return {"features": list(FEATURE_SETS[GUARD_FEATURES]), "quantile": SUPPORT_QUANTILE,
+        return {"features": list(SUPPORT_FEATURES), "quantile": SUPPORT_QUANTILE,
                 "lo": self.lo.tolist(), "hi": self.hi.tolist(), "margin": self.margin.tolist()}
 
     @classmethod
     def from_record(cls, record: dict) -> "Support":
-        if not isinstance(record, dict) or record.get("features") != list(FEATURE_SETS[GUARD_FEATURES]):
-            raise ConfigError(f"support: expected a record of the features {list(FEATURE_SETS[GUARD_FEATURES])}, "
-                              f"got {record!r:.200}")
+        if not isinstance(record, dict) or record.get("features") != list(SUPPORT_FEATURES):
+            raise ConfigError(f"support: expected a record of the features {list(SUPPORT_FEATURES)}, got "
+                              f"{record!r:.200} (a checkpoint made by older code: retrain it)")
         return cls(record["lo"], record["hi"], record["margin"])
 
 
-def support_of(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray) -> Support | None:
-    """The support of training pairs (dp, v_a, v_b (P, 3), R_a (P, 3, 3)): the pairs with their target
-    below the neighbour (those a model acts on); None without any."""
+def support_inputs(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray, kind_a: np.ndarray | None = None,
+                   kind_b: np.ndarray | None = None) -> np.ndarray:
+    """(..., len(SUPPORT_FEATURES)): pairs (dp, v_a, v_b (..., 3), R_a (..., 3, 3)) and the
+    neighbour's and target's kinds (kind_a, kind_b (..., len(KIND_FEATURES)); None: paper quads)
+    as the support describes them."""
     x = model_inputs(GUARD_FEATURES, dp, v_a, v_b, R_a)[0]
+    shape = (*x.shape[:-1], len(KIND_FEATURES))
+    kinds = [np.zeros(shape) if k is None else np.broadcast_to(k, shape) for k in (kind_a, kind_b)]
+    return np.concatenate([x, *kinds], axis=-1)
+
+
+def support_of(dp: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, R_a: np.ndarray, kind_a: np.ndarray | None = None,
+               kind_b: np.ndarray | None = None) -> Support | None:
+    """The support of training pairs (dp, v_a, v_b (P, 3), R_a (P, 3, 3); the neighbour's and
+    target's kinds kind_a, kind_b (P, len(KIND_FEATURES)), None: paper quads): the pairs with their
+    target below the neighbour (those a model acts on); None without any."""
+    x = support_inputs(dp, v_a, v_b, R_a, kind_a, kind_b)
     x = x[x[:, DEPTH_COLUMN] > 0]
     if len(x) < 2:
         return None

@@ -15,7 +15,8 @@ flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
 passes around Python calls, as before the fused tick) under *_readable, so that one
 run shows what the fused tick gains; the same flights in the wake with memory (`--field shed`,
 `sim.fields.shed`, whose state is stepped on the readable path) under *_shed, its cost in the
-loop; the predictor's cost per call, the training
+loop; the same flights with the model behind the guard (`downwash.guard`, support from its
+training data; a stateful predictor, so on the readable path) under *_guarded; the predictor's cost per call, the training
 time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
 and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
 native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
@@ -53,6 +54,7 @@ from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_tabl
                                 setup_logging, write_results, script)
 
 if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
+    from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
     from sim.simulator import Simulator
 
@@ -143,6 +145,7 @@ def run(args: BenchmarkArgs) -> dict:
     Rates are medians over the rounds."""
     import mujoco
 
+    from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
     from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
     from sim.predictor import OraclePredictor
@@ -161,7 +164,7 @@ def run(args: BenchmarkArgs) -> dict:
     r: dict[str, Any] = {"cpu_count": os.cpu_count(), "mujoco": mujoco.__version__, "quick": args.quick}
     # The stack a user runs has a trained model in the loop: train the equivariant model first
     # (on the field's own samples) and fly it; the oracle's figures follow under *_oracle.
-    seconds_train, model = train_equivariant(0.5 if args.quick else 17.0, field)
+    seconds_train, model, support = train_equivariant(0.5 if args.quick else 17.0, field)
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
     five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
@@ -177,6 +180,10 @@ def run(args: BenchmarkArgs) -> dict:
         "closed_loop_serial_steps_per_s_readable": (closed_loop_sim(1, field, learned, fast=False), seconds),
         "closed_loop_batched_world_steps_per_s_readable": (
             closed_loop_sim(worlds, field, learned, fast=False), batched_seconds),
+        "closed_loop_serial_steps_per_s_guarded": (closed_loop_sim(1, field, GuardedPredictor(learned, support)),
+                                                   seconds),
+        "closed_loop_batched_world_steps_per_s_guarded": (
+            closed_loop_sim(worlds, field, GuardedPredictor(learned, support)), batched_seconds),
         "closed_loop_serial_steps_per_s_shed": (closed_loop_sim(1, shed, learned), seconds),
         "closed_loop_batched_world_steps_per_s_shed": (closed_loop_sim(worlds, shed, learned), batched_seconds),
         "formation5_serial_world_steps_per_s": (closed_loop_sim(1, field, sets, preset=five), seconds),
@@ -208,7 +215,7 @@ def run(args: BenchmarkArgs) -> dict:
     for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
         r[key] /= per_env_step
     ratio = {key: float(np.median(v)) for key, v in ratios.items()}
-    for suffix in ("", "_oracle", "_readable", "_shed"):
+    for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
         r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
         r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
     for suffix in ("", "_oracle"):
@@ -317,8 +324,9 @@ def deepsets_equivariant() -> Any:
     return Checkpoint(model, {"neighbours": NeighbourSet(4).describe(), "aggregation": aggregation_record("linear")})
 
 
-def train_equivariant(minutes: float, field: Any) -> tuple[float, Any]:
-    """(wall seconds, model): the equivariant model trained on `minutes` of 50 Hz samples of the true field.
+def train_equivariant(minutes: float, field: Any) -> tuple[float, Any, Any]:
+    """(wall seconds, model, the support of its data (`downwash.support`)): the equivariant model trained on
+    `minutes` of 50 Hz samples of the true field.
 
     The samples are drawn like flight data (positions below the leader, speeds up to 1 m/s)
     with labels = true field + 0.1 m/s^2 noise: training cost depends on the sample count,
@@ -337,7 +345,7 @@ def train_equivariant(minutes: float, field: Any) -> tuple[float, Any]:
     data = Dataset.from_pairs(dp, v_a, v_b, R_a, y, flight, t=(np.arange(n) % 1425) * RATES.control_dt, field_mean=y)
     t0 = time.perf_counter()
     model, _ = train_model("equivariant", data, None, TrainConfig(seed=0))
-    return time.perf_counter() - t0, model
+    return time.perf_counter() - t0, model, data.support()
 
 
 def main(argv=None) -> dict:

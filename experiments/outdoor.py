@@ -184,7 +184,8 @@ def run(args: OutdoorArgs) -> dict:
         "conditions": aggregate_conditions(per_condition), "guard": guard_record(conditions),
         "trained": trained,
         "outdoor_collection": None if outdoor is None else {
-            k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
+            **{k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
+            "deployed": outdoor["provenance"]["outdoor"]["deployed"]},  # what the outdoor stages flew with
     }
     speeds = _sweep_speeds(args.sweep_speeds)
     if speeds:  # the same conditions, seeds and wind at each speed
@@ -256,12 +257,14 @@ def _outdoor_models(args: OutdoorArgs, p: Any, kinds: list[str]) -> dict:
     """The outdoor stages beside the pipeline's collection (keyed by their provenance) and the kinds
     trained on indoor + outdoor flights, collected and trained when missing."""
     from downwash.outdoor_collection import OutdoorCollectionConfig, collect_outdoor, outdoor_provenance
+    from downwash.staged import DEPLOYED_KIND, ensure_models
     from downwash_core.provenance import fingerprint
 
     cfg = OutdoorCollectionConfig(stage_minutes=args.outdoor_minutes, seed=args.seed, quick=args.quick,
                                   threads=p.config.threads)
     out = p.collection_dir.parent / f"outdoor-{fingerprint(outdoor_provenance(cfg, p.record))}"
-    made = collect_outdoor(cfg, out, p.collection_dir, p.record, p.field, kinds, ProgressBar)
+    deployed = ensure_models(p.models_dir, [DEPLOYED_KIND], p.collection_dir, p.config, p.field, ProgressBar)
+    made = collect_outdoor(cfg, out, p.collection_dir, p.record, p.field, kinds, deployed[DEPLOYED_KIND], ProgressBar)
     return {**made, "dir": str(out)}
 
 

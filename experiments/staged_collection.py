@@ -4,7 +4,7 @@
 
 Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
-0.5 m with the stage-1 model. After the last stage the final shallow, deep and
+0.5 m with the stage-1 model (clamped; with --guard-stages also behind the guard). After the last stage the final shallow, deep and
 equivariant models are trained on all training data into --models-dir. A rerun
 skips finished work; an interrupted run loses at most the flights in progress. The
 manifest records every log's SHA-256: a rerun re-flies only missing logs and stops on an
@@ -42,6 +42,9 @@ class StagedArgs(PipelineArgs):
     flight_seconds: float = arg(28.5, "length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)", ge=2.0,
                                 le=600.0)
     clamp: float = arg(6.0, "magnitude bound of the deployed model's prediction, m/s^2", gt=0.0)
+    guard_stages: bool = arg(False, "deploy each stage model behind the guard (downwash.guard): it applies nothing "
+                                    "where the closer stage leaves its training data (default: clamped only, as the "
+                                    "paper)")
     threads: int = arg(0, "worker threads for batched flights (0: all cores); training uses one", ge=0,
                        check=_at_most_cores)
     batch_flights: int = arg(12, "flights flown as one batch, each log written when its batch lands (a kill loses at "
@@ -53,7 +56,7 @@ def run(args: StagedArgs) -> dict:
     from downwash.staged import collect
 
     p = resolve_pipeline(args, stage_minutes=args.stage_minutes, val_ratio=args.val_ratio,
-                         flight_seconds=args.flight_seconds, clamp=args.clamp, threads=args.threads,
+                         flight_seconds=args.flight_seconds, clamp=args.clamp, guard=args.guard_stages, threads=args.threads,
                          batch_flights=args.batch_flights)
     results = collect(p.config, p.collection_dir, p.models_dir, p.field, ProgressBar)
     path = write_results(args.out, results, args, p.provenance())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +13,7 @@ from downwash.conditions import GUARDED, data_variant, learned, make_predictor, 
 from downwash.datasets import Dataset
 from downwash.features import FEATURE_SETS
 from downwash.guard import GUARD_FEATURES, GuardedPredictor, Support, support_of
+from downwash.support import SUPPORT_FEATURES, support_inputs
 from downwash.predictor import LearnedPredictor
 from downwash.registry import make_model
 from downwash.set_models import SummedPairwise
@@ -19,7 +22,7 @@ from downwash_core.state import VehicleStates
 from sim.predictor import PerWorldPredictor, ZeroPredictor, is_stateful
 from test_set_models import _one_torch_thread, randomised  # noqa: F401 (the fixture: one torch thread)
 
-K = len(FEATURE_SETS[GUARD_FEATURES])
+K = len(SUPPORT_FEATURES)
 
 
 def _pairs(rng, n, leader_speed=0.05):
@@ -55,9 +58,7 @@ def _states(rng, W, leader_speed=0.05, scale=1.0):
 
 def test_the_support_holds_the_training_pairs_and_round_trips(support):
     dp, v_a, v_b, R = _pairs(np.random.default_rng(1), 5000)
-    from downwash.features import model_inputs
-
-    x = model_inputs(GUARD_FEATURES, dp, v_a, v_b, R)[0]
+    x = support_inputs(dp, v_a, v_b, R)
     confidence = support.confidence(x)  # new pairs of the same kind: nearly all inside, the rest near it
     assert np.mean(confidence == 1.0) > 0.97 and np.mean(confidence) > 0.995
     again = Support.from_record(support.describe())
@@ -114,6 +115,36 @@ def test_far_outside_the_support_nothing_is_applied_and_recovery_is_rate_limited
         previous = guard.applied.copy()
 
 
+def test_vehicle_kinds_the_data_never_held_are_outside_the_support(support):
+    """A model trained on paper quads has never met a heavier leader's wake or a lighter target, even at a
+    familiar offset: in such a scene its guard applies nothing. Data holding those kinds puts them back inside."""
+    from downwash.features import kind_descriptors
+
+    rng = np.random.default_rng(9)
+    states = _states(rng, 8)
+    paper = _guard(support)
+    assert paper.for_vehicles(["paper_quad", "paper_quad"]) is paper and np.all(paper.confidence(states) == 1.0)
+    for kinds in (["x500", "paper_quad"], ["paper_quad", "crazyflie_2_1"]):
+        guard = paper.for_vehicles(kinds)
+        assert guard.vehicle_kinds == tuple(kinds) and guard.support is paper.support
+        assert np.all(guard.confidence(states)[:, 1] == 0.0) and np.all(guard.confidence(states)[:, 0] == 1.0)
+        for _ in range(12):
+            np.testing.assert_array_equal(guard(states)[:, 1], 0.0)
+    dp, v_a, v_b, R = _pairs(np.random.default_rng(0), 20000)
+    heavy, paper_quad = kind_descriptors(["x500", "paper_quad"])
+    kind_a = np.where(np.arange(20000)[:, None] % 2 == 0, heavy, paper_quad)  # half the pairs under a heavy leader
+    mixed = support_of(dp, v_a, v_b, R, kind_a, np.zeros_like(kind_a))
+    data = dataclasses.replace(Dataset.from_pairs(dp, v_a, v_b, R, np.zeros((20000, 3)), np.arange(20000) // 100),
+                               kind_a=kind_a[:, None, :])  # what a checkpoint records: its data set's pairs' kinds
+    assert all(np.array_equal(getattr(data.support(), k), getattr(mixed, k)) for k in ("lo", "hi", "margin"))
+    assert data.summary()["support"] == mixed.describe()
+    guard = _guard(mixed).for_vehicles(["x500", "paper_quad"])
+    assert np.all(guard.confidence(states) == 1.0)
+    assert np.all(guard.for_vehicles(["paper_quad", "crazyflie_2_1"]).confidence(states)[:, 1] == 0.0)
+    with pytest.raises(ConfigError, match="told 3 vehicle kinds, flies 2"):
+        _guard(support).for_vehicles(["x500"] * 3).confidence(states)
+
+
 def test_due_worlds_and_resets(support):
     rng = np.random.default_rng(5)
     guard = _guard(support)
@@ -154,7 +185,8 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     from downwash.conditions import guard_record
 
     assert guard_record(["baseline", "deep"]) is None
-    assert guard_record(["deep_guarded"]) == {"features": "general", "support_quantile": 0.001, "margin": 0.25,
+    assert guard_record(["deep_guarded"]) == {"features": "general", "kinds": ["log_mass", "log_rotor_radius"],
+                                              "support_quantile": 0.001, "margin": 0.25,
                                               "recovery": 5.0, "bound": 6.0}
 
 
@@ -192,3 +224,29 @@ def test_the_metrics_count_ticks_at_full_partial_and_no_compensation():
     assert compensation_shares([FlightLog({}, {"follower": 1})]) is None
     nan = FlightLog({"applied": np.full((3, 2), np.nan)}, {"follower": 1})  # worlds of another predictor
     assert compensation_shares([nan]) is None
+
+
+def test_the_staged_collection_deploys_its_stage_models_guarded_on_request(tmp_path):
+    """--guard-stages: each stage model flies clamped and behind the guard; off (the paper's protocol), the
+    collection's provenance, and so its folders' key, is what it was."""
+    from downwash.staged import CollectionConfig, deployed_predictor, provenance
+    from downwash.train import TrainConfig, save_trained, train_model
+    from experiments.common import parse_args
+    from experiments.staged_collection import StagedArgs
+    from sim.field import DownwashField
+
+    rng = np.random.default_rng(8)
+    dp, v_a, v_b, R = _pairs(rng, 600)
+    ds = Dataset.from_pairs(dp, v_a, v_b, R, rng.normal(size=(600, 3)) * 0.1, np.arange(600) * 3 // 600)
+    model, history = train_model("equivariant", ds, None, TrainConfig(max_epochs=1, min_steps=0, batch_size=128))
+    save_trained(tmp_path / "equivariant.pt", model, history, ds)
+    assert isinstance(deployed_predictor(None, 6.0, True), ZeroPredictor)
+    plain = deployed_predictor(tmp_path / "equivariant.pt", 2.5, False)
+    guarded = deployed_predictor(tmp_path / "equivariant.pt", 2.5, True)
+    assert isinstance(plain, LearnedPredictor) and plain.clamp == 2.5
+    assert isinstance(guarded, GuardedPredictor) and guarded.predictor.clamp == 2.5
+    np.testing.assert_array_equal(guarded.support.hi, ds.support().hi)
+    field = DownwashField()
+    off, on = provenance(CollectionConfig(), field), provenance(CollectionConfig(guard=True), field)
+    assert "guard" not in off["collection"] and on["collection"]["guard"]["bound"] == 6.0
+    assert parse_args(StagedArgs, "staged_collection", ["--guard-stages"], "").guard_stages is True

@@ -62,6 +62,13 @@ def test_the_regime_models_fly_beside_the_indoor_ones_and_a_rerun_reuses_their_d
     leader = log.arrays["pos"][:, log.meta["leader"]]
     assert np.linalg.norm(leader[-1] - leader[0]) > 0.5  # the leader moves
     assert log.meta["wind"]["mean"][0] == pytest.approx(2.0 * np.cos(np.radians(120.0)))
+    # the stages fly the indoor equivariant model, clamped and guarded; the guard sees a leader moving
+    # faster than the indoor data held and applies (next to) nothing, and the results say how much
+    deployed = made["deployed"]
+    assert deployed["kind"] == "equivariant" and deployed["clamp"] == 6.0 and deployed["guard"]["bound"] == 6.0
+    applied = log.arrays["applied"][:, log.meta["follower"]]
+    assert np.all((applied >= 0) & (applied <= 1)) and np.mean(applied) < 0.2
+    assert all(0 <= s["deployed_applied"] < 0.2 for s in made["stages"])
     assert load_checkpoint(tmp_path / made["models"]["equivariant"]["path"]).record["model"]["kind"] == "equivariant"
     winds = made["data_winds"]  # indoor (no wind) and every outdoor setting, joined on purpose
     assert winds[0] is None and len(winds) == len(OUTDOOR_WINDS)  # still air: the indoor stages' and the first
