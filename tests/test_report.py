@@ -386,6 +386,16 @@ def test_the_outdoor_verdicts_follow_the_numbers():
     assert "`equivariant_memory-outdoor` 40.0 % against `equivariant_general-outdoor` 20.0 %: memory helps" in memory
     assert "`deep_memory-outdoor` 10.0 % against `deep-outdoor` 10.5 %: memory makes no clear difference" in memory
     assert "at 2, 3 m/s" in memory  # the slow point is left out
+    assert "memory helps (+20.0 points)" in memory and "the wake's memory" not in memory  # (no control truth)
+    # a truth without memory is the control: there the history's gain is not the wake's memory
+    control = {"speeds": speeds, "conditions": {
+        "equivariant_memory-outdoor": {"improvement_pos_3d": [0.0, 0.4, 0.4], "crash_rate": [0, 0, 0]},
+        "equivariant_general-outdoor": {"improvement_pos_3d": [0.0, 0.3, 0.25], "crash_rate": [0, 0, 0]}}}
+    memory = _memory_verdict({**r, "truths": {"shed": {"sweep": sweep}, "momentum": {"sweep": control}}})
+    assert ("memory helps (+20.0 points); on the `momentum` truth, which has no memory, the same models differ by "
+            "+12.5 points, so the wake's memory accounts for +7.5 points") in memory
+    assert "`deep_memory-outdoor` 10.0 % against `deep-outdoor` 10.5 %: memory makes no clear difference (-0.5 " \
+           "points)." in memory  # (the control lacks the deep pair: no control for it)
     verdict = _equivariance_verdict(r)
     assert "indoor data, the best equivariant model `equivariant` -200.0 % against the best non-equivariant " \
            "`deep` 10.0 %: it does not pay" in verdict

@@ -197,29 +197,54 @@ MEMORY_TWINS = {"equivariant_memory": "equivariant_general", "deep_memory": "dee
 FAST = 2.0  # m/s: the leader speeds at and above which the memory question is asked
 
 
-def _memory_verdict(r: dict) -> str | None:
-    """Whether memory helps on the shed-wake truth at FAST m/s and above: each model with memory against
-    its memoryless twin (both trained on the outdoor stages), mean improvement over those speeds."""
-    sweep = ((r.get("truths") or {}).get("shed") or {}).get("sweep")
-    if sweep is None and (r.get("provenance") or {}).get("field_spec") == "shed":
-        sweep = r.get("sweep")
+def _fast_means(sweep: dict | None, conditions: tuple[str, ...]) -> dict[str, float] | None:
+    """Each condition's mean improvement over the baseline at the sweep's speeds of FAST m/s and above
+    (None when the sweep lacks one of them or those speeds)."""
     if not sweep:
         return None
     fast = [i for i, v in enumerate(sweep["speeds"]) if v >= FAST]
-    c = sweep["conditions"]
+    got = [sweep["conditions"].get(c) for c in conditions]
+    if not fast or any(e is None or any(e["improvement_pos_3d"][i] is None for i in fast) for e in got):
+        return None
+    return {c: sum(e["improvement_pos_3d"][i] for i in fast) / len(fast) for c, e in zip(conditions, got)}
+
+
+def _signed(x: float) -> str:
+    """A difference of two improvements, in percentage points."""
+    return f"{100 * x:+.1f} points"
+
+
+def _memory_verdict(r: dict) -> str | None:
+    """Whether memory helps on the shed-wake truth at FAST m/s and above: each model with memory against
+    its memoryless twin (both trained on the outdoor stages), mean improvement over those speeds. Where
+    the run also swept a truth without memory (``momentum``, else the run's own when it is not the shed
+    wake), the same comparison there is the control: a history also tells how the leader moves, which
+    helps on any truth, so only the difference between the two gains is the wake's memory."""
+    truths = r.get("truths") or {}
+    own = (r.get("provenance") or {}).get("field_spec")
+    sweep = (truths.get("shed") or {}).get("sweep") or (r.get("sweep") if own == "shed" else None)
+    control_name = "momentum" if "momentum" in truths else ("so2" if own != "shed" and r.get("sweep") else None)
+    control = (truths.get(control_name) or {}).get("sweep") or (r.get("sweep") if control_name == "so2" else None)
+    if not sweep:
+        return None
     lines = []
     for memory, twin in MEMORY_TWINS.items():
-        a, b = c.get(f"{memory}-outdoor"), c.get(f"{twin}-outdoor")
-        if not fast or a is None or b is None or any(e["improvement_pos_3d"][i] is None for e in (a, b) for i in fast):
+        pair = (f"{memory}-outdoor", f"{twin}-outdoor")
+        shed, other = _fast_means(sweep, pair), _fast_means(control, pair)
+        if shed is None:
             continue
-        mean = lambda e: sum(e["improvement_pos_3d"][i] for i in fast) / len(fast)  # noqa: E731
-        diff = mean(a) - mean(b)
-        lines.append(f"`{memory}-outdoor` {pct(mean(a))} against `{twin}-outdoor` {pct(mean(b))}: memory "
-                     + ("helps" if diff > 0.02 else "hurts" if diff < -0.02 else "makes no clear difference")
-                     + f" ({'+' if diff >= 0 else ''}{pct(diff)})")
+        diff = shed[pair[0]] - shed[pair[1]]
+        line = (f"`{pair[0]}` {pct(shed[pair[0]])} against `{pair[1]}` {pct(shed[pair[1]])}: memory "
+                + ("helps" if diff > 0.02 else "hurts" if diff < -0.02 else "makes no clear difference")
+                + f" ({_signed(diff)})")
+        if other is not None:
+            gain = other[pair[0]] - other[pair[1]]
+            line += (f"; on the `{control_name}` truth, which has no memory, the same models differ by {_signed(gain)}, "
+                     f"so the wake's memory accounts for {_signed(diff - gain)}")
+        lines.append(line)
     if not lines:
         return None
-    speeds = ", ".join(short(sweep["speeds"][i]) for i in fast)
+    speeds = ", ".join(short(v) for v in sweep["speeds"] if v >= FAST)
     return (f"**Does memory help on the shed-wake truth at {short(FAST)} m/s and above?** Mean improvement over the "
             f"baseline at {speeds} m/s: " + "; ".join(lines) + ".")
 
