@@ -214,9 +214,10 @@ def run(args: OutdoorArgs) -> dict:
 
 
 def _per_point(points: list[dict], conditions: list[str]) -> dict:
-    """{condition: {improvement_pos_3d: [...], crash_rate: [...]}} over sweep points' aggregated conditions."""
-    return {c: {k: [point[c].get(k) for point in points] for k in ("improvement_pos_3d", "crash_rate")}
-            for c in conditions}
+    """{condition: {improvement_pos_3d, crash_rate, pos_err_3d_mean: [...]}} over sweep points' aggregated
+    conditions (the errors tell how much of the baseline's error the downwash causes at each point)."""
+    keys = ("improvement_pos_3d", "crash_rate", "pos_err_3d_mean")
+    return {c: {k: [point[c].get(k) for point in points] for k in keys} for c in conditions}
 
 
 def _pct(x: float | None) -> str:

@@ -88,6 +88,8 @@ def test_a_speed_sweep_flies_every_condition_at_each_speed(tmp_path):
     assert sweep["speeds"] == [0.5, 3.0] and set(sweep["conditions"]) == {"baseline", "oracle"}
     assert sweep["conditions"]["baseline"]["improvement_pos_3d"] == [None, None]  # the reference of improvements
     assert all(x > 0 for x in sweep["conditions"]["oracle"]["improvement_pos_3d"])
+    errors = [sweep["conditions"][c]["pos_err_3d_mean"] for c in ("baseline", "oracle")]  # what each point's error was
+    assert all(e > 0 for e in errors[0]) and all(o < b for o, b in zip(errors[1], errors[0]))
     assert (tmp_path / "od" / "improvement_vs_speed.png").is_file()
 
 

@@ -428,3 +428,27 @@ def test_the_worst_case_table_takes_each_models_worst_setting():
     table = render_worst_cases(found)
     assert "| `deep` | -250.0 % (outdoor, 3 m/s, 80.0 % crashed) | -2.0 % (outdoor on shed, 2 m/s) |" in table
     assert render_worst_cases({"lemniscate": found["lemniscate"] | {"conditions": {"deep": _outdoor_point(0.5)}}}) is None
+
+
+def test_the_outdoor_section_says_how_much_error_is_the_downwash_and_what_the_stages_flew_with():
+    """From the sweep's errors: the baseline against no downwash at all, at each speed; from the outdoor
+    collection: how much of the deployed model the guard applied."""
+    from experiments.report.sections import _own_error
+
+    sweep = {"speeds": [1.0, 3.0], "conditions": {
+        "baseline": {"improvement_pos_3d": [None, None], "crash_rate": [0, 0], "pos_err_3d_mean": [0.3, 0.35]},
+        "no_downwash": {"improvement_pos_3d": [None, None], "crash_rate": [0, 0], "pos_err_3d_mean": [0.07, 0.33]}}}
+    text = _own_error(sweep)
+    assert "0.300 / 0.0700 m at 1 m/s, 0.350 / 0.330 m at 3 m/s" in text and "the oracle included" in text
+    assert _own_error({"speeds": [1.0], "conditions": {"baseline": {"improvement_pos_3d": [None]}}}) is None
+    assert _own_error({"speeds": [1.0], "conditions": {  # (results written before the errors were kept)
+        "baseline": {"pos_err_3d_mean": [0.3]}, "no_downwash": {"pos_err_3d_mean": [None]}}}) is None
+    from experiments.report.sections import render_outdoor
+
+    outdoor = _fakes()["outdoor"][2]
+    regime = {**outdoor, "conditions": {**outdoor["conditions"], "deep-outdoor": outdoor["conditions"]["deep"]},
+              "outdoor_collection": {"minutes": 7.0, "stages": [{"deployed_applied": 0.0}, {"deployed_applied": 0.0123}]}}
+    assert ("flown with the indoor equivariant model behind the guard, which applied 0.0 %-1.2 % of its prediction "
+            "on average per stage") in render_outdoor(regime, "x")
+    regime["outdoor_collection"]["stages"] = [{"name": "outdoor-still"}]  # (results written before the guard flew)
+    assert "flown with no model" in render_outdoor(regime, "x")
