@@ -28,8 +28,11 @@ leader): the support names that regime by its leader speed.
 
 The guard keeps state (the applied fraction per world and vehicle), so it is a stateful
 predictor (`sim.predictor.is_stateful`): the simulator resets it with its worlds and tells
-it which are due, on the readable path. ``applied`` holds the fraction of the last call,
-which the simulator logs per tick and vehicle.
+it which are due. ``applied`` holds the fraction applied at each world's last due call,
+which the simulator logs per tick and vehicle. A call runs the compiled pass
+(`downwash.guard_fused`), tested bit for bit against its NumPy reference (``reference``,
+``confidence``); around a model with a compiled form and no state, the simulator's fused
+tick runs the same pass after the model (``compiled_guard``).
 """
 
 from __future__ import annotations
@@ -44,11 +47,12 @@ from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
 from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
+from downwash.guard_fused import GUARD_FN, guard_into, pack_guard
 from downwash.predictor import clamp_magnitude
 from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
                               support_of)
 from sim.neighbours import gather_neighbours, select_neighbours
-from sim.predictor import is_stateful
+from sim.predictor import CompiledGuard, CompiledPredictor, is_stateful
 
 __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS",
            "guard_settings"]
@@ -91,8 +95,9 @@ class GuardedPredictor:
         self.vehicle_kinds = None if vehicle_kinds is None else tuple(getattr(k, "name", k) for k in vehicle_kinds)
         self._kinds = None if vehicle_kinds is None else kind_descriptors(vehicle_kinds)  # (V, D)
         self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
-        self.applied: np.ndarray | None = None  # (W, V) the fraction applied at the last call
+        self.applied: np.ndarray | None = None  # (W, V) the fraction applied at each world's last due call
         self._fraction: np.ndarray | None = None  # (W, V) per world, carried between calls
+        self._pack = pack_guard(self.support, predictor.neighbours, self.step, self.bound, self._kinds)
 
     def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
         """This guard for a scene of these vehicle kinds: its support check reads them, and its
@@ -116,10 +121,9 @@ class GuardedPredictor:
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
         index, mask = select_neighbours(pos, self.predictor.neighbours)
         g = gather_neighbours(pos, vel, rot, index, mask)
+        self._check_kinds(pos.shape[1])
         kind_a = kind_b = None
         if self._kinds is not None:
-            if len(self._kinds) != pos.shape[1]:
-                raise ConfigError(f"guard: told {len(self._kinds)} vehicle kinds, flies {pos.shape[1]} vehicles")
             kind_a, kind_b = neighbour_kinds(self._kinds, index, mask), self._kinds[:, None, :]
         x = support_inputs(g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape), g["R_a"],
                            kind_a, kind_b)
@@ -129,17 +133,46 @@ class GuardedPredictor:
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None,
                  due: np.ndarray | None = None) -> np.ndarray:
         when = {"due": due} if is_stateful(self.predictor) else {}
-        raw = np.asarray(self.predictor(estimated, true, **when), dtype=np.float64)
-        W, V = raw.shape[:2]
+        out = np.array(self.predictor(estimated, true, **when), dtype=np.float64, order="C")  # scaled in place
+        W, V = out.shape[:2]
+        self._check_kinds(V)
+        fraction, applied = self._state(W, V)
+        due = np.ones(W, np.uint8) if due is None else np.ascontiguousarray(due, dtype=bool).view(np.uint8)
+        pos, vel, rot = (np.ascontiguousarray(a, dtype=np.float64)
+                         for a in (estimated.pos, estimated.vel, estimated.rot))
+        guard_into(pos, vel, rot, due, out, fraction, applied, *self._pack)
+        return out
+
+    def reference(self, estimated: VehicleStates, raw: np.ndarray, fraction: np.ndarray,
+                  due: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One call in NumPy, the readable reference of the compiled pass (`downwash.guard_fused`) that
+        ``__call__`` runs: (the applied prediction, the next fraction, the applied fraction (due
+        worlds')), for the model's prediction raw (W, V, 3), the fraction (W, V) and due (W,) bool."""
+        frac = np.minimum(self.confidence(estimated), fraction + self.step)
+        out = clamp_magnitude(raw * frac[..., None], self.bound)
+        raw_norm = np.sqrt(dot(raw, raw))
+        applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
+        return out, np.where(due[:, None], frac, fraction), applied
+
+    def compiled_guard(self, W: int, V: int) -> tuple[CompiledPredictor, CompiledGuard] | None:
+        """The fused loop's form (`sim.predictor`): the model's compiled predictor and this guard's
+        pass over its (W, V) state; None when the model has no compiled form or keeps state."""
+        inner = None if is_stateful(self.predictor) else getattr(self.predictor, "compiled", lambda: None)()
+        if inner is None or (self._kinds is not None and len(self._kinds) != V):
+            return None
+        fraction, applied = self._state(W, V)
+        return inner, CompiledGuard(GUARD_FN.address, *self._pack, fraction, applied)
+
+    def _state(self, W: int, V: int) -> tuple[np.ndarray, np.ndarray]:
+        """The fraction and applied (W, V) arrays the calls advance in place (fresh for another shape)."""
         if self._fraction is None or self._fraction.shape != (W, V):
             self._fraction = np.zeros((W, V))
-        due = np.ones(W, bool) if due is None else np.asarray(due, dtype=bool)
-        fraction = np.minimum(self.confidence(estimated), self._fraction + self.step)
-        self._fraction[due] = fraction[due]
-        out = clamp_magnitude(raw * fraction[..., None], self.bound)
-        raw_norm = np.sqrt(dot(raw, raw))
-        self.applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
-        return out
+            self.applied = np.zeros((W, V))  # (nothing applied before a world's first due call)
+        return self._fraction, self.applied
+
+    def _check_kinds(self, V: int) -> None:
+        if self._kinds is not None and len(self._kinds) != V:
+            raise ConfigError(f"guard: told {len(self._kinds)} vehicle kinds, flies {V} vehicles")
 
     def describe(self) -> dict[str, Any]:
         inner = getattr(self.predictor, "describe", lambda: {})()

@@ -16,8 +16,9 @@ passes around Python calls, as before the fused tick) under *_readable, so that 
 run shows what the fused tick gains; the same flights in the wake with memory (`--field shed`,
 `sim.fields.shed`, whose state is stepped on the readable path) under *_shed, its cost in the
 loop; the same flights with the model behind the guard (`downwash.guard`, support from its
-training data; a stateful predictor, so on the readable path) under *_guarded; the predictor's cost per call, the training
-time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
+training data, its pass in the fused tick) under *_guarded, and their ratios to the model alone
+(guarded_over_unguarded_serial, guarded_over_unguarded_batched); the predictor's cost per call, the
+training time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
 and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
 native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
 (`mujoco.batch.Batch.step` of 64 worlds alone, no control: the ceiling of the batched
@@ -74,7 +75,8 @@ class BenchmarkArgs(CommonArgs):
 # The project's targets for the ratios, written into results.json beside the measurements.
 TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "formation5_serial_over_bare": 0.5,
            "formation5_batched_over_bare": 1.5, "env_single_physics_over_bare": 0.3, "sb3_native_over_sync": 2.0,
-           "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4}
+           "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
+           "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9}
 
 
 def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
@@ -218,6 +220,8 @@ def run(args: BenchmarkArgs) -> dict:
     for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
         r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
         r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
+    for name in ("serial", "batched"):  # what the guard costs: within 10 % of the model alone
+        r[f"guarded_over_unguarded_{name}"] = r[f"{name}_over_bare_guarded"] / r[f"{name}_over_bare"]
     for suffix in ("", "_oracle"):
         r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
     r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]

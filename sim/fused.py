@@ -130,6 +130,7 @@ _TAB = (
     "mocap_offset", "max_thrust", "mass", "drag_gain", "field_scale", "radius_xy", "radius_z",
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
+    "guard", "guard_fn", "guard_params", "guard_iparams", "guard_fraction", "guard_applied", "row_guard",
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
@@ -141,7 +142,9 @@ _TAB = (
  _T_WIND_AXES, _T_AIR, _T_VEL_AIR, _T_WIND_ACC, _T_DIVERGED, _T_PW_CODE, _T_PW_FN, _T_PW_PARAMS, _T_PW_IPARAMS,
  _T_PW_ORACLE, _T_MOCAP_OFFSET, _T_MAX_THRUST, _T_MASS, _T_DRAG_GAIN, _T_FIELD_SCALE, _T_RADIUS_XY, _T_RADIUS_Z,
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
- _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC) = range(len(_TAB))
+ _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC,
+ _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_FRACTION, _T_GUARD_APPLIED,
+ _T_ROW_GUARD) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
 # (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
 # pairs' field_scale, radius_xy, radius_z (V, V): `sim.vehicle_params`.)
@@ -376,6 +379,12 @@ def _make_fused_kernel(with_wind: bool):
                                 pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, tab[_T_PRED_PARAMS], tab[_T_PRED_IPARAMS],
                                 pred.ctypes.data,
                             )
+                        if tab[_T_GUARD]:  # the guard's pass over the prediction (sim.predictor.CompiledGuard)
+                            _call_predictor(  # (a GUARD_SIGNATURE has the PREDICTOR_SIGNATURE's argument types)
+                                tab[_T_GUARD_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
+                                due.ctypes.data, pred.ctypes.data, tab[_T_GUARD_FRACTION] + 8 * V * w0,
+                                tab[_T_GUARD_APPLIED] + 8 * V * w0, tab[_T_GUARD_PARAMS], tab[_T_GUARD_IPARAMS],
+                            )
                         _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])
 
                     _copy_into(mean, _pairwise_kernel(pos, vel_air, rot, field_packed, field_scale))
@@ -388,6 +397,9 @@ def _make_fused_kernel(with_wind: bool):
                         limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
                         _command_setpoint_kernel(*state, residual_w, override_w, (actions & 1) != 0, (actions & 2) != 0, *limits)
                         _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
+                        if tab[_T_GUARD]:
+                            _copy_into(_row_view(row, tab[_T_ROW_GUARD], n_worlds, V, w0, w1).reshape((W, V, 1)),
+                                       carray(_f64p(tab[_T_GUARD_APPLIED]), (n_worlds, V, 1))[w0:w1])
 
                     _actuate_kernel(
                         field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], mass, xfrc_w, layout,

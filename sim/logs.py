@@ -57,7 +57,7 @@ ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
 OPTIONAL_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "wind": (("V", 3), "m/s, the air's velocity at the vehicle (mean + gust)"),
     "wind_acc": (("V", 3), "m/s^2, the wind's drag on the vehicle"),
-    "applied": (("V",), "fraction of the model's prediction applied at its last call (a guard; NaN: no guard)"),
+    "applied": (("V",), "fraction of the model's prediction applied at its last due call (a guard; NaN: no guard)"),
 }
 
 

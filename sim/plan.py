@@ -13,7 +13,8 @@ when every component has a compiled form, else None. The fused path needs
   per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads);
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
-  `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`);
+  `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`)
+  but a guard whose ``compiled_guard(W, V)`` gives its model's C function and its own pass;
 - the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
   sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
@@ -39,7 +40,8 @@ from sim.field import DownwashField
 from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _PRED_PER_WORLD, _PRED_ZERO,
                        _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, _TAB)
 from sim.physics import _SerialPhysics
-from sim.predictor import CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor, is_stateful
+from sim.predictor import (CompiledGuard, CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor,
+                           is_stateful)
 from sim.rows import _row_layout
 from sim.vehicle_params import told_kinds
 
@@ -60,8 +62,14 @@ def _make_plan(sim: Any) -> _Plan | None:
     field_packed = _packed_field(sim.field, sim.aggregation)
     if field_packed is None or not _compiled_controller(sim.controller):
         return None
-    if not isinstance(sim.autopilot, Autopilot) or is_stateful(sim._scene_predictor):
-        return None  # (a predictor with state needs its resets and due worlds, which only the readable path tells)
+    if not isinstance(sim.autopilot, Autopilot):
+        return None
+    guard = None
+    if is_stateful(sim._scene_predictor):  # its resets and due worlds: only a guard's pass has them compiled
+        parts = getattr(sim._scene_predictor, "compiled_guard", lambda W, V: None)(sim.W, sim.V)
+        if parts is None:
+            return None
+        guarded, guard = parts
     ph, n_threads = sim.physics, 1
     if isinstance(ph, _SerialPhysics):
         stepping, native = _STEP_SERIAL, ph.native_step()
@@ -75,7 +83,9 @@ def _make_plan(sim: Any) -> _Plan | None:
         if native is None:
             n_threads = 1
     predictor, compiled, oracle_packed, per_world = sim.predictor, None, np.zeros(16), None
-    if type(predictor) is ZeroPredictor:
+    if guard is not None:
+        code, compiled = _PRED_C, guarded
+    elif type(predictor) is ZeroPredictor:
         code = _PRED_ZERO
     elif type(predictor) is PerWorldPredictor:
         per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params)
@@ -93,7 +103,7 @@ def _make_plan(sim: Any) -> _Plan | None:
             return None
         code = _PRED_C
     try:
-        return _Plan(sim, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world)
+        return _Plan(sim, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world, guard)
     except _NoPlan:
         return None
 
@@ -110,13 +120,13 @@ class _Plan:
 
     def __init__(self, sim: Any, stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
                  oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None,
-                 n_threads: int, per_world: dict[str, Any] | None = None):
+                 n_threads: int, per_world: dict[str, Any] | None = None, guard: CompiledGuard | None = None):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
         self.revision = ph.revision
         self.stepping = stepping
         self.n_sub = r.autopilot_per_control
-        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on)
+        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on, guard is not None)
         wind_consts = sim.wind.kernel_constants() if sim._wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
         keep: dict[str, np.ndarray] = {
             "layout": sim._layout, "noise": sim._noise, "cursor": sim._cursor, "pos_est": sim.pos_est,
@@ -144,9 +154,13 @@ class _Plan:
         if compiled is not None:
             keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
+        if guard is not None:  # its state by address: the guard's own arrays, which its calls and resets share
+            keep.update(guard_params=guard.params, guard_iparams=guard.iparams, guard_fraction=guard.fraction,
+                        guard_applied=guard.applied)
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
-                   n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code)
+                   n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code,
+                   guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address))
         sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])
@@ -175,12 +189,13 @@ class _Plan:
                 raise _NoPlan(f"{name} is not a C-contiguous array of a kernel type")
         tab.update({name: a.ctypes.data for name, a in keep.items()})
         self.arrays = keep
-        self.compiled = compiled  # keeps the predictor's function referenced
+        self.compiled, self.guard = compiled, guard  # keep the predictor's and the guard's functions referenced
         if compiled is not None:
             tab["predictor_fn"] = int(compiled.address)
         storage = {"kin": "pos", "t": "t", "quat": "quat", "quat_est": "quat_est", "yaw": "yaw_est",
                    "applied": "field_applied", "ref_pos": "ref_pos", "ref_vel": "ref_vel", "ref_acc": "ref_acc",
-                   "u_cmd": "u_cmd", "f_hat": "f_hat", "mean": "field_mean", "wind": "wind", "wind_acc": "wind_acc"}
+                   "u_cmd": "u_cmd", "f_hat": "f_hat", "mean": "field_mean", "wind": "wind", "wind_acc": "wind_acc",
+                   "guard": "applied"}
         for slot, name in storage.items():
             if name in self.row_layout:
                 tab["row_" + slot] = self.row_layout[name][0]

@@ -17,7 +17,12 @@ calls when it resets those worlds, and its call takes ``due=`` (W,) bool: the wo
 prediction is due now (the loop calls it when any world's is due; only the due worlds' rows are
 used, and only their state should advance). Such a predictor serves one simulator at a time.
 A predictor that scales its model's output (a guard) may hold ``applied`` (W, V): the fraction of
-the prediction applied at its last call, which the simulator logs per tick and vehicle.
+the prediction applied at its last due call, which the simulator logs per tick and vehicle. Such a
+predictor flies the fused loop too when ``compiled_guard(W, V)`` returns its inner model's
+`CompiledPredictor` and a `CompiledGuard`: a C function of `GUARD_SIGNATURE` that scales the
+inner prediction in place, advancing its state (``fraction``, (W, V)) in the due worlds only and
+writing ``applied`` (W, V) there, exactly as ``__call__`` does; the loop holds both arrays by
+address, and ``reset`` clears ``fraction`` in place.
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ __all__ = [
     "PerWorldPredictor",
     "CompiledPredictor",
     "PREDICTOR_SIGNATURE",
+    "CompiledGuard",
+    "GUARD_SIGNATURE",
     "is_stateful",
 ]
 
@@ -48,6 +55,12 @@ _F64P, _I64P = _nb.CPointer(_nb.float64), _nb.CPointer(_nb.int64)
 # relative to the air, see `Predictor`), all C-contiguous float64; params / iparams the
 # predictor's own constants (float64 / int64); out (W, V, 3) m/s^2, written in full.
 PREDICTOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _I64P, _F64P)
+# void g(n_worlds, n_vehicles, pos, vel, rot, due, pred, fraction, applied, params, iparams): the
+# estimated states as above; due (W,) bool (one byte each); pred (W, V, 3) m/s^2 the inner prediction,
+# scaled in place; fraction and applied (W, V) the guard's state and its applied fraction, both
+# advanced in the due worlds only; params / iparams the guard's own constants.
+GUARD_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _nb.CPointer(_nb.uint8), _F64P, _F64P, _F64P,
+                           _F64P, _I64P)
 
 
 class CompiledPredictor(NamedTuple):
@@ -62,6 +75,18 @@ class CompiledPredictor(NamedTuple):
     address: int
     params: np.ndarray
     iparams: np.ndarray
+
+
+class CompiledGuard(NamedTuple):
+    """A guard's compiled pass for the fused loop (module doc): the address of a C function of
+    `GUARD_SIGNATURE`, its params (float64) and iparams (int64), and the (W, V) float64 arrays it
+    advances, ``fraction`` and ``applied``, C-contiguous and owned by the guard."""
+
+    address: int
+    params: np.ndarray
+    iparams: np.ndarray
+    fraction: np.ndarray
+    applied: np.ndarray
 
 
 @runtime_checkable

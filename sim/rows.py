@@ -25,15 +25,17 @@ _ROW_FIELDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("field_mean", ("V", 3)), ("field_applied", ("V", 3)),
 )
 _WIND_ROW_FIELDS = (("wind", ("V", 3)), ("wind_acc", ("V", 3)))
+_GUARD_ROW_FIELDS = (("applied", ("V",)),)  # a guard's applied fraction (`sim.predictor`)
 # Storage order in the flat row: the five (W, V, 3) kinematic arrays of `_Sensed.kin`
 # first and contiguous (the sense pass writes them as one (5, W, V, 3) block).
 _ROW_STORAGE = ("pos", "vel", "mocap_pos", "pos_est", "vel_est", "t", "quat", "quat_est", "yaw_est", "field_applied",
-                "ref_pos", "ref_vel", "ref_acc", "u_cmd", "f_hat", "field_mean", "wind", "wind_acc")
+                "ref_pos", "ref_vel", "ref_acc", "u_cmd", "f_hat", "field_mean", "wind", "wind_acc", "applied")
 
 
-def _row_layout(W: int, V: int, wind: bool) -> tuple[dict[str, tuple[int, tuple[int, ...]]], int]:
-    """({name: (offset, shape)}, size) of a flat row; shapes (W, ...) in the order of `_ROW_FIELDS`."""
-    fields = dict(_ROW_FIELDS + (_WIND_ROW_FIELDS if wind else ()))
+def _row_layout(W: int, V: int, wind: bool, guard: bool = False) -> tuple[dict[str, tuple[int, tuple[int, ...]]], int]:
+    """({name: (offset, shape)}, size) of a flat row; shapes (W, ...) in the order of `_ROW_FIELDS`, then
+    the wind's and the guard's fields when they are there."""
+    fields = dict(_ROW_FIELDS + (_WIND_ROW_FIELDS if wind else ()) + (_GUARD_ROW_FIELDS if guard else ()))
     shapes = {name: (W,) + tuple(V if d == "V" else d for d in trail) for name, trail in fields.items()}
     offsets, size = {}, 0
     for name in _ROW_STORAGE:

@@ -136,7 +136,7 @@ def test_benchmark_quick(workdir):
     r = json.loads((workdir / "bench" / "results.json").read_text())
     for key in ("bare_mj_step_per_s", "closed_loop_serial_steps_per_s", "real_time_factor_serial",
                 "closed_loop_batched_world_steps_per_s", "batched_over_bare", "serial_over_bare_guarded",
-                "batched_over_bare_guarded"):
+                "batched_over_bare_guarded", "guarded_over_unguarded_serial", "guarded_over_unguarded_batched"):
         assert r[key] > 0
 
 

@@ -1,5 +1,6 @@
 """The fused compiled tick equals the readable path bit for bit, and falls back where it must."""
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -170,6 +171,38 @@ def test_the_fused_path_rebinds_when_components_change(scene, models):
     sim.fast = False
     sim.tick()
     assert sim._plan is None
+
+
+@pytest.mark.parametrize("W", [1, 16])  # 16: chunks of worlds on two threads, offsets into the guard's state
+def test_fused_equals_readable_with_a_guard(scene, models, W):
+    """A guard around a compiled model flies the fused path, its pass after the model (`downwash.guard_fused`):
+    the same rows, its applied fraction included, the same state, partial fractions on the way; a world's
+    reset restarts its fraction on both paths."""
+    from downwash.guard import GuardedPredictor
+    from downwash.support import support_of
+
+    rng = np.random.default_rng(0)
+    n = 4000  # a support the lemniscate leaves and re-enters: the follower +-1 m, the support +-0.75 m
+    dp = np.column_stack([rng.uniform(-0.75, 0.75, (n, 2)), -rng.uniform(0.45, 0.75, n)])
+    support = support_of(dp, rng.normal(size=(n, 3)) * 0.1, rng.normal(size=(n, 3)) * 0.6,
+                         np.broadcast_to(np.eye(3), (n, 3, 3)))
+    guard = GuardedPredictor(LearnedPredictor(models["equivariant"], clamp=6.0), support)
+    fused, readable = (Simulator(scene, _lemniscate(W), list(range(10, 10 + W)), fast=fast,
+                                 field=DownwashField(swirl=0.2), predictor=copy.deepcopy(guard))
+                       for fast in (True, False))  # (a guard of its own for each simulator: it keeps state)
+    rows = [[dict(sim.tick()) for _ in range(60)] for sim in (fused, readable)]
+    _assert_same((rows[0], fused), (rows[1], readable))
+    applied = np.array([r["applied"][:, 1] for r in rows[0]])
+    assert np.mean((applied > 0) & (applied < 1)) > 0.2 and np.max(applied) == 1.0
+    assert fused._plan.guard is not None and readable._plan is None
+    assert np.shares_memory(fused._plan.arrays["guard_fraction"], fused._scene_predictor._fraction)
+    for sim in (fused, readable):
+        sim.reset(np.array([0]))
+    assert np.all(fused._scene_predictor._fraction[0] == 0.0)
+    rows = [[dict(sim.tick()) for _ in range(5)] for sim in (fused, readable)]
+    _assert_same((rows[0], fused), (rows[1], readable))
+    memory = GuardedPredictor(LearnedPredictor(trained_like("equivariant_memory", "general_memory")), support)
+    assert Simulator(scene, _lemniscate(W), list(range(W)), predictor=memory)._plan is None  # (a model with state)
 
 
 def test_components_without_a_compiled_form_take_the_readable_path(scene, models):

@@ -250,3 +250,43 @@ def test_the_staged_collection_deploys_its_stage_models_guarded_on_request(tmp_p
     off, on = provenance(CollectionConfig(), field), provenance(CollectionConfig(guard=True), field)
     assert "guard" not in off["collection"] and on["collection"]["guard"]["bound"] == 6.0
     assert parse_args(StagedArgs, "staged_collection", ["--guard-stages"], "").guard_stages is True
+
+
+@pytest.mark.parametrize("neighbours", [1, 3])
+def test_the_compiled_pass_is_its_numpy_reference_bit_for_bit(support, neighbours):
+    """`downwash.guard_fused.guard_into`, which every call runs, against `GuardedPredictor.reference`
+    (the NumPy support check, rate limit and bound): random stacks of vehicles of random kinds, inside,
+    near and far outside the support, random due worlds and fractions, predictions above the bound."""
+    from downwash.checkpoint import wrap_pairwise
+    from downwash.guard_fused import guard_into
+    from downwash.predictor import LearnedPredictor
+    from sim.neighbours import NeighbourSet
+
+    rng = np.random.default_rng(10 + neighbours)
+    model = randomised(make_model("equivariant_general").double(), 1).eval()
+    base = GuardedPredictor(LearnedPredictor(wrap_pairwise(model, NeighbourSet(neighbours))), support)
+    seen = []
+    for trial in range(8):
+        W, V = 60, 4
+        kinds = [["paper_quad", "x500", "crazyflie_2_1"][k] for k in rng.integers(0, 3, V)] if trial % 2 else None
+        guard = base if kinds is None else base.for_vehicles(kinds)
+        pos = np.zeros((W, V, 3))
+        pos[..., 2] = 2.0 + np.arange(V)[::-1] * rng.uniform(0.3, 1.3, (W, 1))  # a stack: vehicle 0 on top
+        pos[..., :2] = rng.normal(size=(W, V, 2)) * rng.choice([0.1, 0.4, 1.0], (W, 1, 1))
+        vel = rng.normal(size=(W, V, 3)) * rng.choice([0.05, 0.3, 2.0], (W, 1, 1))
+        tilt = rng.normal(size=(W, V, 3)) * 0.2
+        rot = np.array([[np.eye(3) + np.cross(np.eye(3), t) for t in w] for w in tilt])  # (not quite rotations)
+        states = VehicleStates(pos, vel, rot)
+        raw = rng.normal(size=(W, V, 3)) * rng.choice([0.5, 10.0], (W, 1, 1))
+        fraction = rng.uniform(0, 1, (W, V))
+        due = rng.uniform(size=W) < 0.7
+        want_out, want_fraction, want_applied = guard.reference(states, raw, fraction, due)
+        out, got_fraction, got_applied = raw.copy(), fraction.copy(), np.full((W, V), -1.0)
+        guard_into(pos, vel, rot, due.view(np.uint8), out, got_fraction, got_applied, *guard._pack)
+        np.testing.assert_array_equal(out, want_out)
+        np.testing.assert_array_equal(got_fraction, want_fraction)
+        np.testing.assert_array_equal(got_applied[due], want_applied[due])
+        assert np.all(got_applied[~due] == -1.0)  # only the due worlds' applied fraction is written
+        seen.append(guard.confidence(states).ravel())
+    seen = np.concatenate(seen)
+    assert np.mean(seen == 1.0) > 0.05 and np.mean(seen == 0.0) > 0.05 and np.mean((seen > 0) & (seen < 1)) > 0.01

@@ -4,8 +4,8 @@ its argument types must differ.
 A second signature of a kernel is a second compilation (seconds per fresh build, 15 s for the fused
 tick): an argument that is an int in one call and a float in another, or C-contiguous in one and
 strided in another, compiles the kernel again without any error. These tests fly the fused and the
-readable path, serial and batched, with and without wind, with the zero, oracle, learned and per-world
-predictors, actions and a batch stepped by the caller, and count the signatures each kernel of
+readable path, serial and batched, with and without wind, with the zero, oracle, learned, guarded and
+per-world predictors, actions and a batch stepped by the caller, and count the signatures each kernel of
 `sim.passes` and `sim.fused` holds afterwards.
 
 Each path flies in a process of its own, so that the counts do not depend on the order of the tests,
@@ -49,8 +49,10 @@ def fly_and_count(fast: bool) -> dict[str, int]:
     import numpy as np
     from numba.core.registry import CPUDispatcher
 
+    from downwash.guard import GuardedPredictor
     from downwash.registry import make_model
     from downwash.predictor import LearnedPredictor
+    from downwash.support import SUPPORT_FEATURES, Support
     from downwash_trajectories import Hover, Lemniscate, stack
     from sim import fused, passes
     from sim.field import DownwashField
@@ -63,11 +65,13 @@ def fly_and_count(fast: bool) -> dict[str, int]:
     leader = np.array([0.0, 0.0, 2.5])
     scene = build_scene()
     learned = LearnedPredictor(make_model("equivariant", "5"))
+    F = len(SUPPORT_FEATURES)
+    support = Support(np.full(F, -0.5), np.full(F, 0.5), np.full(F, 0.25))  # (partly inside: fractions in (0, 1))
     for wind in (None, DrydenWind(mean=(1.0, 0.0, 0.0), w20=4.0)):
         for W, n_threads in ((1, 1), (8, 2)):  # serial; batched on two threads (helpers on the fused path)
             predictors = [ZeroPredictor(), OraclePredictor(DownwashField()), learned,
                           PerWorldPredictor([ZeroPredictor(), OraclePredictor(DownwashField()), learned],
-                                            np.arange(W) % 3)]
+                                            np.arange(W) % 3), GuardedPredictor(learned, support)]
             for predictor in predictors:
                 ref = stack([Hover(leader, n_worlds=W), Lemniscate(leader - [0, 0, 0.6], n_worlds=W)])
                 sim = Simulator(scene, ref, list(range(W)), predictor=predictor, wind=wind, fast=fast,

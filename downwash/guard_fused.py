@@ -1,0 +1,127 @@
+"""The guard's compiled pass (`downwash.guard`): support check, rate limit and bound in one loop.
+
+`guard_into` does what `GuardedPredictor` does to its model's prediction, one world and
+vehicle at a time, with the same operations in the same order, so its bits are NumPy's:
+
+1. the vehicle's neighbour set as the model selects it (`sim.neighbours.select_into`);
+2. each pair acting on it (the vehicle below its neighbour) described as the support describes
+   it: the generalised invariants (`downwash.fused.pair_inputs`, feature set "general", as
+   `downwash.features.model_inputs`) and both vehicles' kinds;
+3. the pair's confidence, the product over features of ``clip(1 - beyond / margin, 0, 1)``
+   (`downwash.support.Support.confidence`), and the vehicle's, the lowest over its pairs (1 with none);
+4. the applied fraction ``min(confidence, fraction + step)``, kept in the due worlds only; the
+   prediction scaled by it and bounded (`downwash.fused.clamped`, the bits of
+   `downwash.predictor.clamp_magnitude`); the fraction of the prediction applied.
+
+`tests/test_guard.py` ties it to the NumPy reference (`GuardedPredictor.confidence` and the
+guard's NumPy path) bit for bit. The C function `GUARD_FN` of `sim.predictor.GUARD_SIGNATURE` runs it in
+the simulator's fused tick; its constants travel in ``(params, iparams)`` (`pack_guard`)::
+
+    params  = [step, bound, radius^2 (inf: none), lo (F), hi (F), margin (F), kinds (V_kinds, D)]
+    iparams = [K, F, D, V_kinds]
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import carray
+
+from downwash_core.jit import njit
+from downwash.features import KIND_FEATURES
+from downwash.fused import clamped, feature_code, pair_inputs
+from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, SUPPORT_FEATURES, Support
+from sim.neighbours import NeighbourSet, select_into
+from sim.predictor import GUARD_SIGNATURE
+
+__all__ = ["guard_into", "pack_guard", "GUARD_FN"]
+
+_GENERAL = feature_code(GUARD_FEATURES)
+_N_INVARIANTS = len(SUPPORT_FEATURES) - 2 * len(KIND_FEATURES)
+_P_STEP, _P_BOUND, _P_RADIUS2, _N_FHEADER = 0, 1, 2, 3
+_I_K, _I_F, _I_D, _I_VK = 0, 1, 2, 3
+
+
+@njit
+def _min(a, b):
+    """np.minimum of two floats: NaN if either is."""
+    if a != a or b != b:
+        return np.nan
+    return a if a < b else b
+
+
+@njit
+def _max(a, b):
+    """np.maximum of two floats: NaN if either is."""
+    if a != a or b != b:
+        return np.nan
+    return a if a > b else b
+
+
+@njit
+def guard_into(pos, vel, rot, due, pred, fraction, applied, params, iparams):
+    """The guard on pred (W, V, 3) m/s^2, in place (module doc), from estimated pos, vel (W, V, 3) and
+    rot (W, V, 3, 3); due (W,) bool; fraction, applied (W, V), advanced in the due worlds."""
+    W, V = pos.shape[0], pos.shape[1]
+    K, F, D, VK = iparams[_I_K], iparams[_I_F], iparams[_I_D], iparams[_I_VK]
+    step, bound, radius2 = params[_P_STEP], params[_P_BOUND], params[_P_RADIUS2]
+    o = _N_FHEADER
+    lo, hi, margin = params[o:o + F], params[o + F:o + 2 * F], params[o + 2 * F:o + 3 * F]
+    kinds = params[o + 3 * F:o + 3 * F + VK * D].reshape((VK, D))
+    x = np.empty(max(F, 10))
+    key, idx = np.empty(max(V - 1, 1)), np.empty(max(V - 1, 1), np.int64)
+    for w in range(W):
+        for j in range(V):  # target
+            n = select_into(pos, w, j, radius2, K, key, idx)
+            conf = 1.0
+            for s in range(n):
+                i = idx[s]  # neighbour
+                nx, ny, nz = rot[w, i, 0, 2], rot[w, i, 1, 2], rot[w, i, 2, 2]
+                dx, dy, dz = pos[w, j, 0] - pos[w, i, 0], pos[w, j, 1] - pos[w, i, 1], pos[w, j, 2] - pos[w, i, 2]
+                dp_n = dx * nx + dy * ny + dz * nz
+                pair_inputs(dx, dy, dz, nx, ny, nz, dp_n, vel[w, j, 0], vel[w, j, 1], vel[w, j, 2],
+                            vel[w, i, 0], vel[w, i, 1], vel[w, i, 2], _GENERAL, x)
+                if not x[DEPTH_COLUMN] > 0.0:  # not below its neighbour: the pair does not act
+                    continue
+                for q in range(D):  # the neighbour's kind, then the target's (none told: paper quads, 0)
+                    x[_N_INVARIANTS + q] = kinds[i, q] if VK > 0 else 0.0
+                    x[_N_INVARIANTS + D + q] = kinds[j, q] if VK > 0 else 0.0
+                c = 1.0  # (1 c_0 = c_0: the product's bits as np.prod's, which starts at c_0)
+                for f in range(F):
+                    beyond = _max(_max(lo[f] - x[f], x[f] - hi[f]), 0.0) / margin[f]
+                    c = c * _min(_max(1.0 - beyond, 0.0), 1.0)  # np.clip
+                conf = _min(conf, c)
+            frac = _min(conf, fraction[w, j] + step)
+            rx, ry, rz = pred[w, j, 0], pred[w, j, 1], pred[w, j, 2]
+            ox, oy, oz = clamped(rx * frac, ry * frac, rz * frac, bound)
+            if due[w]:
+                fraction[w, j] = frac
+                raw_norm = np.sqrt(rx * rx + ry * ry + rz * rz)
+                out_norm = np.sqrt(ox * ox + oy * oy + oz * oz)
+                applied[w, j] = out_norm / (raw_norm if raw_norm > 1e-300 else 1e-300) if raw_norm > 0.0 else 1.0
+            pred[w, j, 0], pred[w, j, 1], pred[w, j, 2] = ox, oy, oz
+
+
+@numba.cfunc(GUARD_SIGNATURE, cache=True, nopython=True)
+def _guard_c(n_worlds, n_veh, pos, vel, rot, due, pred, fraction, applied, params, iparams):
+    ints = carray(iparams, (4,))
+    n_params = _N_FHEADER + 3 * ints[_I_F] + ints[_I_VK] * ints[_I_D]
+    guard_into(carray(pos, (n_worlds, n_veh, 3)), carray(vel, (n_worlds, n_veh, 3)),
+               carray(rot, (n_worlds, n_veh, 3, 3)), carray(due, (n_worlds,)), carray(pred, (n_worlds, n_veh, 3)),
+               carray(fraction, (n_worlds, n_veh)), carray(applied, (n_worlds, n_veh)), carray(params, (n_params,)),
+               ints)
+
+
+GUARD_FN = _guard_c
+
+
+def pack_guard(support: Support, neighbours: NeighbourSet, step: float, bound: float,
+               kinds: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(params, iparams) of `guard_into` (module doc); kinds (V, D) of `downwash.features.kind_descriptors`
+    or None (paper quads)."""
+    D = len(KIND_FEATURES)
+    table = np.zeros((0, D)) if kinds is None else np.asarray(kinds, dtype=np.float64)
+    radius2 = np.inf if neighbours.radius is None else float(neighbours.radius) ** 2
+    params = np.concatenate([[step, bound, radius2], support.lo, support.hi, support.margin, table.ravel()])
+    iparams = np.array([neighbours.max_neighbours, len(SUPPORT_FEATURES), D, len(table)], dtype=np.int64)
+    return np.ascontiguousarray(params, dtype=np.float64), iparams
