@@ -15,8 +15,9 @@ flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
 passes around Python calls, as before the fused tick) under *_readable, so that one
 run shows what the fused tick gains; the same flights in the wake with memory (`--field shed`,
 `sim.fields.shed`, whose state is stepped on the readable path) under *_shed, its cost in the
-loop; the same flights with the model behind the guard (`downwash.guard`, support from its
-training data, its pass in the fused tick) under *_guarded, and their ratios to the model alone
+loop; the same flights with the model behind the guard (`downwash.guard`, its pass in the fused
+tick, a support that holds the flights, so that it passes the prediction through: the same flight
+plus the guard's work) under *_guarded, and their ratios to the model alone
 (guarded_over_unguarded_serial, guarded_over_unguarded_batched); the predictor's cost per call, the
 training time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
 and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
@@ -56,6 +57,7 @@ from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_tabl
 
 if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
     from downwash.guard import GuardedPredictor
+    from downwash.support import Support
     from downwash.predictor import LearnedPredictor
     from sim.simulator import Simulator
 
@@ -148,6 +150,7 @@ def run(args: BenchmarkArgs) -> dict:
     import mujoco
 
     from downwash.guard import GuardedPredictor
+    from downwash.support import Support
     from downwash.predictor import LearnedPredictor
     from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
     from sim.predictor import OraclePredictor
@@ -167,6 +170,7 @@ def run(args: BenchmarkArgs) -> dict:
     # The stack a user runs has a trained model in the loop: train the equivariant model first
     # (on the field's own samples) and fly it; the oracle's figures follow under *_oracle.
     seconds_train, model, support = train_equivariant(0.5 if args.quick else 17.0, field)
+    held = Support(support.lo - 10.0, support.hi + 10.0, support.margin)  # (its data's, widened to hold the flights)
     r["train_seconds_equivariant_full"] = seconds_train
     learned = LearnedPredictor(model, clamp=6.0)
     five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
@@ -182,10 +186,9 @@ def run(args: BenchmarkArgs) -> dict:
         "closed_loop_serial_steps_per_s_readable": (closed_loop_sim(1, field, learned, fast=False), seconds),
         "closed_loop_batched_world_steps_per_s_readable": (
             closed_loop_sim(worlds, field, learned, fast=False), batched_seconds),
-        "closed_loop_serial_steps_per_s_guarded": (closed_loop_sim(1, field, GuardedPredictor(learned, support)),
-                                                   seconds),
+        "closed_loop_serial_steps_per_s_guarded": (closed_loop_sim(1, field, GuardedPredictor(learned, held)), seconds),
         "closed_loop_batched_world_steps_per_s_guarded": (
-            closed_loop_sim(worlds, field, GuardedPredictor(learned, support)), batched_seconds),
+            closed_loop_sim(worlds, field, GuardedPredictor(learned, held)), batched_seconds),
         "closed_loop_serial_steps_per_s_shed": (closed_loop_sim(1, shed, learned), seconds),
         "closed_loop_batched_world_steps_per_s_shed": (closed_loop_sim(worlds, shed, learned), batched_seconds),
         "formation5_serial_world_steps_per_s": (closed_loop_sim(1, field, sets, preset=five), seconds),
