@@ -417,16 +417,20 @@ def test_the_worst_case_table_takes_each_models_worst_setting():
                         "deep_guarded": {"improvement_pos_3d": [0.1, -0.01], "crash_rate": [0.0, 0.0]}}},
                     "truths": {"shed": {"sweep": {"speeds": [2.0], "conditions": {
                         "deep_guarded": {"improvement_pos_3d": [-0.02], "crash_rate": [0.0]}}}}}},
-        "swarm": {"summary": {"linear": {"stack3": {"deepsets-pair": _outdoor_point(-0.3),
-                                                    "deepsets-pair_guarded": _outdoor_point(0.05)}}}},
+        "swarm": {"summary": {"linear": {"stack3": {"baseline": {"crash_rate": 0.5},
+                                                    "deepsets-pair": _outdoor_point(-0.3),
+                                                    "deepsets-pair_guarded": _outdoor_point(0.05, 1 / 3)}}}},
     }
     worst = worst_cases(found)
     assert set(worst) == {"deep", "deepsets-pair"}
     assert worst["deep"]["unguarded"] == (-2.5, "outdoor, 3 m/s", 0.8)
     assert worst["deep"]["guarded"] == (-0.02, "outdoor on shed, 2 m/s", 0.0)
-    assert worst["deepsets-pair"]["guarded"] == (0.05, "swarm stack3, linear", 0.0)
+    assert worst["deepsets-pair"]["guarded"] == (0.05, "swarm stack3, linear", 1 / 3)
+    assert worst["deepsets-pair"]["guarded_crashes"] == (1 / 3, "swarm stack3, linear", 0.5)  # and the baseline's
+    assert "guarded_crashes" not in worst["deep"]
     table = render_worst_cases(found)
-    assert "| `deep` | -250.0 % (outdoor, 3 m/s, 80.0 % crashed) | -2.0 % (outdoor on shed, 2 m/s) |" in table
+    assert "| `deep` | -250.0 % (outdoor, 3 m/s, 80.0 % crashed) | -2.0 % (outdoor on shed, 2 m/s) | none |" in table
+    assert "| 33.3 % (swarm stack3, linear; baseline 50.0 %) |" in table
     assert render_worst_cases({"lemniscate": found["lemniscate"] | {"conditions": {"deep": _outdoor_point(0.5)}}}) is None
 
 

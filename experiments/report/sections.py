@@ -293,9 +293,11 @@ def _equivariance_verdict(r: dict) -> str | None:
 
 
 def worst_cases(found: dict[str, dict]) -> dict[str, dict[str, tuple]]:
-    """model -> {"unguarded" | "guarded": (worst improvement over the baseline, where, crash rate there)}
+    """model -> {"unguarded" | "guarded": (worst improvement over the baseline, where, crash rate there),
+    "guarded_crashes": (the highest crash rate behind the guard, where, the baseline's there)}
     over every setting of every experiment's results: the tracking runs, the outdoor run with its
-    sweeps and truths, the field table's fields and the swarm's presets and laws."""
+    sweeps and truths, the field table's fields and the swarm's presets and laws (a setting without
+    crashes behind the guard is not a crash; none: no "guarded_crashes")."""
     points: list[tuple[str, str, dict]] = []  # (where, condition, {improvement_pos_3d, crash_rate})
     for name in ("lemniscate", "transect"):
         for c, e in (found.get(name) or {}).get("conditions", {}).items():
@@ -318,6 +320,7 @@ def worst_cases(found: dict[str, dict]) -> dict[str, dict[str, tuple]]:
         for preset, entry in by_preset.items():
             for c, e in entry.items():
                 points.append((f"swarm {preset}, {law}", c, e))
+    baseline = {where: e.get("crash_rate") or 0.0 for where, c, e in points if c == "baseline"}
     out: dict[str, dict[str, tuple]] = {}
     for where, c, e in points:
         imp = e.get("improvement_pos_3d")
@@ -327,6 +330,9 @@ def worst_cases(found: dict[str, dict]) -> dict[str, dict[str, tuple]]:
         have = out.setdefault(model, {}).get(side)
         if have is None or imp < have[0]:
             out[model][side] = (imp, where, e.get("crash_rate") or 0.0)
+        crashes = out[model].get("guarded_crashes")
+        if side == "guarded" and (e.get("crash_rate") or 0.0) > (0.0 if crashes is None else crashes[0]):
+            out[model]["guarded_crashes"] = (e["crash_rate"], where, baseline.get(where))
     return out
 
 
@@ -339,11 +345,16 @@ def render_worst_cases(found: dict[str, dict]) -> str | None:
     def cell(w: tuple | None) -> str:
         return "-" if w is None else f"{pct(w[0])} ({w[1]}" + (f", {pct(w[2])} crashed" if w[2] else "") + ")"
 
-    rows = [[f"`{m}`", cell(w.get("unguarded")), cell(w.get("guarded"))] for m, w in _ordered(worst)]
+    def crashes(w: tuple | None) -> str:
+        return "none" if w is None else f"{pct(w[0])} ({w[1]}" + ("" if w[2] is None else f"; baseline {pct(w[2])}") + ")"
+
+    rows = [[f"`{m}`", cell(w.get("unguarded")), cell(w.get("guarded")), crashes(w.get("guarded_crashes"))]
+            for m, w in _ordered(worst)]
     return ("Worst case: each model's worst improvement of the 3D position error over the baseline, over every "
             "setting of every experiment in `results/` (the tracking runs, the outdoor run with its sweeps and ground "
-            "truths, the field table, the swarm's presets and laws), unguarded and behind the guard:\n\n"
-            + _table(["model", "worst unguarded", "worst guarded"], rows))
+            "truths, the field table, the swarm's presets and laws), unguarded and behind the guard, and the most "
+            "flights that crashed behind the guard in any setting, with the baseline's crashes there:\n\n"
+            + _table(["model", "worst unguarded", "worst guarded", "most crashes guarded"], rows))
 
 
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
