@@ -131,6 +131,7 @@ _TAB = (
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
     "guard", "guard_fn", "guard_params", "guard_iparams", "guard_fraction", "guard_applied", "row_guard",
+    "pw_guard_fn", "pw_guard_params", "pw_guard_iparams", "pw_guard_fraction", "pw_guard_applied", "pw_guarded",
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
@@ -144,7 +145,8 @@ _TAB = (
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC,
  _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_FRACTION, _T_GUARD_APPLIED,
- _T_ROW_GUARD) = range(len(_TAB))
+ _T_ROW_GUARD, _T_PW_GUARD_FN, _T_PW_GUARD_PARAMS, _T_PW_GUARD_IPARAMS, _T_PW_GUARD_FRACTION, _T_PW_GUARD_APPLIED,
+ _T_PW_GUARDED) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
 # (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
 # pairs' field_scale, radius_xy, radius_z (V, V): `sim.vehicle_params`.)
@@ -359,6 +361,11 @@ def _make_fused_kernel(with_wind: bool):
                             pw_params = carray(_i64p(tab[_T_PW_PARAMS]), (n_worlds,))[w0:w1]
                             pw_iparams = carray(_i64p(tab[_T_PW_IPARAMS]), (n_worlds,))[w0:w1]
                             pw_oracle = carray(_f64p(tab[_T_PW_ORACLE]), (n_worlds, 16))[w0:w1]
+                            pw_guard_fn = carray(_i64p(tab[_T_PW_GUARD_FN]), (n_worlds,))[w0:w1]
+                            pw_guard_params = carray(_i64p(tab[_T_PW_GUARD_PARAMS]), (n_worlds,))[w0:w1]
+                            pw_guard_iparams = carray(_i64p(tab[_T_PW_GUARD_IPARAMS]), (n_worlds,))[w0:w1]
+                            pw_guard_fraction = carray(_i64p(tab[_T_PW_GUARD_FRACTION]), (n_worlds,))[w0:w1]
+                            pw_guard_applied = carray(_i64p(tab[_T_PW_GUARD_APPLIED]), (n_worlds,))[w0:w1]
                             for w in range(W):
                                 if pw_code[w] == _PRED_ORACLE:
                                     _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1],
@@ -369,6 +376,13 @@ def _make_fused_kernel(with_wind: bool):
                                         pos[w].ctypes.data, vel_air[w].ctypes.data, rot[w].ctypes.data, pw_params[w],
                                         pw_iparams[w], pred[w].ctypes.data,
                                     )
+                                    if pw_guard_fn[w] != 0:  # its guard's pass, on the world's rows of the guard's state
+                                        _call_predictor(
+                                            pw_guard_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data,
+                                            rot_est[w].ctypes.data, due.ctypes.data + w, pred[w].ctypes.data,
+                                            pw_guard_fraction[w], pw_guard_applied[w], pw_guard_params[w],
+                                            pw_guard_iparams[w],
+                                        )
                                 else:
                                     for i in range(V):
                                         for k in range(3):
@@ -400,6 +414,13 @@ def _make_fused_kernel(with_wind: bool):
                         if tab[_T_GUARD]:
                             _copy_into(_row_view(row, tab[_T_ROW_GUARD], n_worlds, V, w0, w1).reshape((W, V, 1)),
                                        carray(_f64p(tab[_T_GUARD_APPLIED]), (n_worlds, V, 1))[w0:w1])
+                        elif tab[_T_PW_GUARDED]:  # each guard's worlds its applied fraction, NaN in the others
+                            applied_row = _row_view(row, tab[_T_ROW_GUARD], n_worlds, V, w0, w1)
+                            pw_applied = carray(_i64p(tab[_T_PW_GUARD_APPLIED]), (n_worlds,))[w0:w1]
+                            for w in range(W):
+                                for i in range(V):
+                                    applied_row[w, i] = (carray(_f64p(pw_applied[w]), (V,))[i] if pw_applied[w] != 0
+                                                         else np.nan)
 
                     _actuate_kernel(
                         field_on, noise, cursor, turb, fc[_F_OU_A], fc[_F_OU_B], fc[_F_INTENSITY], mass, xfrc_w, layout,

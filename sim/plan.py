@@ -14,7 +14,8 @@ when every component has a compiled form, else None. The fused path needs
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
   `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`)
-  but a guard whose ``compiled_guard(W, V)`` gives its model's C function and its own pass;
+  but a guard whose ``compiled_guard(W, V)`` gives its model's C function and its own pass,
+  alone or among the predictors of a `PerWorldPredictor`;
 - the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
   sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
@@ -65,9 +66,9 @@ def _make_plan(sim: Any) -> _Plan | None:
     if not isinstance(sim.autopilot, Autopilot):
         return None
     guard = None
-    if is_stateful(sim._scene_predictor):  # its resets and due worlds: only a guard's pass has them compiled
+    if is_stateful(sim._scene_predictor) and type(sim._scene_predictor) is not PerWorldPredictor:
         parts = getattr(sim._scene_predictor, "compiled_guard", lambda W, V: None)(sim.W, sim.V)
-        if parts is None:
+        if parts is None:  # its resets and due worlds: only a guard's pass has them compiled
             return None
         guarded, guard = parts
     ph, n_threads = sim.physics, 1
@@ -87,8 +88,8 @@ def _make_plan(sim: Any) -> _Plan | None:
         code, compiled = _PRED_C, guarded
     elif type(predictor) is ZeroPredictor:
         code = _PRED_ZERO
-    elif type(predictor) is PerWorldPredictor:
-        per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params)
+    elif type(predictor) is PerWorldPredictor:  # (its members as the scene binds them: a guard keeps its state)
+        per_world = _per_world_tables(sim._scene_predictor, sim.W, sim.vehicle_params)
         if per_world is None:
             return None
         code = _PRED_PER_WORLD
@@ -126,7 +127,8 @@ class _Plan:
         self.revision = ph.revision
         self.stepping = stepping
         self.n_sub = r.autopilot_per_control
-        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on, guard is not None)
+        pw_guards = per_world is not None and bool(per_world["pw_guard_fn"].any())
+        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on, guard is not None or pw_guards)
         wind_consts = sim.wind.kernel_constants() if sim._wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
         keep: dict[str, np.ndarray] = {
             "layout": sim._layout, "noise": sim._noise, "cursor": sim._cursor, "pos_est": sim.pos_est,
@@ -160,7 +162,8 @@ class _Plan:
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
                    n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code,
-                   guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address))
+                   guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address),
+                   pw_guarded=int(pw_guards))
         sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])
@@ -239,25 +242,41 @@ def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
 
 def _per_world_tables(predictor: Any, W: int, vehicles: Any) -> dict[str, Any] | None:
     """The fused kernel's tables for a `PerWorldPredictor` (a `ZeroPredictor`: all worlds zero): per
-    world its predictor's code, C function, constants' addresses and oracle field (pw_*), and
-    the compiled forms (kept alive); None when one of its predictors has no compiled form."""
+    world its predictor's code, C function, constants' addresses and oracle field, and for a guard's
+    worlds the guard's pass, constants and the addresses of the world's rows of its state (pw_*; 0:
+    no guard); the compiled forms (kept alive); None when one of its predictors has no compiled form."""
     if isinstance(predictor, PerWorldPredictor) and predictor.n_worlds != W:
         return None  # the readable path names the mismatch
     groups = predictor.groups if isinstance(predictor, PerWorldPredictor) else [np.arange(W)]
     predictors = predictor.predictors if isinstance(predictor, PerWorldPredictor) else [predictor]
     out: dict[str, Any] = {"pw_code": np.zeros(W, np.int64), "pw_fn": np.zeros(W, np.int64),
                            "pw_params": np.zeros(W, np.int64), "pw_iparams": np.zeros(W, np.int64),
-                           "pw_oracle": np.zeros((W, 16)), "compiled": []}
+                           "pw_oracle": np.zeros((W, 16)), "compiled": [],
+                           **{f"pw_guard_{k}": np.zeros(W, np.int64) for k in ("fn", "params", "iparams", "fraction",
+                                                                              "applied")}}
     for p, worlds in zip(predictors, groups):
         if type(p) is ZeroPredictor:
             continue
+        if is_stateful(p):  # a guard (its group's state: row k of its arrays for the group's k-th world)
+            parts = getattr(p, "compiled_guard", lambda W, V: None)(len(worlds), vehicles.n_vehicles)
+            if parts is None:
+                return None
+            p, guard = parts  # (its model's compiled form, flown below)
+            out["compiled"].append(guard)
+            rows = np.arange(len(worlds)) * guard.fraction.strides[0]
+            out["pw_guard_fn"][worlds] = guard.address
+            out["pw_guard_fraction"][worlds] = guard.fraction.ctypes.data + rows
+            out["pw_guard_params"][worlds], out["pw_guard_iparams"][worlds] = (guard.params.ctypes.data,
+                                                                               guard.iparams.ctypes.data)
+            out["pw_guard_applied"][worlds] = guard.applied.ctypes.data + rows
         if type(p) is OraclePredictor:
             packed = _packed_field(p.field, p.aggregation)
             if packed is None:
                 return None
             out["pw_code"][worlds], out["pw_oracle"][worlds] = _PRED_ORACLE, packed
             continue
-        compiled = getattr(told_kinds(p, vehicles), "compiled", lambda: None)()
+        compiled = (p if isinstance(p, CompiledPredictor)  # (a guard's model, above)
+                    else getattr(told_kinds(p, vehicles), "compiled", lambda: None)())
         if compiled is None:
             return None
         params = np.ascontiguousarray(compiled.params, dtype=np.float64)

@@ -18,11 +18,11 @@ prediction is due now (the loop calls it when any world's is due; only the due w
 used, and only their state should advance). Such a predictor serves one simulator at a time.
 A predictor that scales its model's output (a guard) may hold ``applied`` (W, V): the fraction of
 the prediction applied at its last due call, which the simulator logs per tick and vehicle. Such a
-predictor flies the fused loop too when ``compiled_guard(W, V)`` returns its inner model's
-`CompiledPredictor` and a `CompiledGuard`: a C function of `GUARD_SIGNATURE` that scales the
-inner prediction in place, advancing its state (``fraction``, (W, V)) in the due worlds only and
-writing ``applied`` (W, V) there, exactly as ``__call__`` does; the loop holds both arrays by
-address, and ``reset`` clears ``fraction`` in place.
+predictor flies the fused loop too (alone or in a `PerWorldPredictor`) when ``compiled_guard(W, V)``
+returns its inner model's `CompiledPredictor` and a `CompiledGuard`: a C function of
+`GUARD_SIGNATURE` that scales the inner prediction in place, advancing its state (``fraction``,
+(W, V)) in the due worlds only and writing ``applied`` (W, V) there, exactly as ``__call__`` does;
+the loop holds both arrays by address, and ``reset`` clears ``fraction`` in place.
 """
 
 from __future__ import annotations

@@ -203,6 +203,25 @@ def test_fused_equals_readable_with_a_guard(scene, models, W):
     _assert_same((rows[0], fused), (rows[1], readable))
     memory = GuardedPredictor(LearnedPredictor(trained_like("equivariant_memory", "general_memory")), support)
     assert Simulator(scene, _lemniscate(W), list(range(W)), predictor=memory)._plan is None  # (a model with state)
+    # guards among the predictors of a PerWorldPredictor (the experiments' batches of conditions): each its worlds
+    other = GuardedPredictor(LearnedPredictor(models["general"]), support)
+    assignment = (np.arange(W) + 1) % 4  # (one world: the guard's)
+    pred = PerWorldPredictor([ZeroPredictor(), guard, LearnedPredictor(models["deep"]), other], assignment)
+    fused, readable = (Simulator(scene, _lemniscate(W), list(range(10, 10 + W)), fast=fast,
+                                 field=DownwashField(swirl=0.2), predictor=copy.deepcopy(pred))
+                       for fast in (True, False))
+    assert fused._plan is not None and readable._plan is None
+    rows = [[dict(sim.tick()) for _ in range(40)] for sim in (fused, readable)]
+    _assert_same((rows[0], fused), (rows[1], readable))
+    applied = rows[0][-1]["applied"]
+    guarded = np.isin(assignment, [1, 3])
+    assert np.all(np.isnan(applied[~guarded])) and np.all(np.isfinite(applied[guarded]))
+    for sim in (fused, readable):
+        sim.reset(np.arange(W)[::3])
+    rows = [[dict(sim.tick()) for _ in range(5)] for sim in (fused, readable)]
+    _assert_same((rows[0], fused), (rows[1], readable))
+    with_memory = PerWorldPredictor([guard, memory], np.arange(W) % 2)
+    assert Simulator(scene, _lemniscate(W), list(range(W)), predictor=with_memory)._plan is None
 
 
 def test_components_without_a_compiled_form_take_the_readable_path(scene, models):
