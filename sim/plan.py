@@ -88,8 +88,8 @@ def _make_plan(sim: Any) -> _Plan | None:
         code, compiled = _PRED_C, guarded
     elif type(predictor) is ZeroPredictor:
         code = _PRED_ZERO
-    elif type(predictor) is PerWorldPredictor:  # (its members as the scene binds them: a guard keeps its state)
-        per_world = _per_world_tables(sim._scene_predictor, sim.W, sim.vehicle_params)
+    elif type(predictor) is PerWorldPredictor:
+        per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params, sim._scene_predictor)
         if per_world is None:
             return None
         code = _PRED_PER_WORLD
@@ -240,11 +240,13 @@ def _chunk_sizes(n_worlds: int, n_threads: int, smallest: int) -> list[int]:
     return sizes
 
 
-def _per_world_tables(predictor: Any, W: int, vehicles: Any) -> dict[str, Any] | None:
+def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) -> dict[str, Any] | None:
     """The fused kernel's tables for a `PerWorldPredictor` (a `ZeroPredictor`: all worlds zero): per
     world its predictor's code, C function, constants' addresses and oracle field, and for a guard's
     worlds the guard's pass, constants and the addresses of the world's rows of its state (pw_*; 0:
-    no guard); the compiled forms (kept alive); None when one of its predictors has no compiled form."""
+    no guard); the compiled forms (kept alive); None when one of its predictors has no compiled form.
+    bound: the same predictor as the scene binds it (`sim.vehicle_params.scene_predictor`), whose
+    guards are those the simulator calls and resets on the readable path: their state is the one."""
     if isinstance(predictor, PerWorldPredictor) and predictor.n_worlds != W:
         return None  # the readable path names the mismatch
     groups = predictor.groups if isinstance(predictor, PerWorldPredictor) else [np.arange(W)]
@@ -254,11 +256,12 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any) -> dict[str, Any] |
                            "pw_oracle": np.zeros((W, 16)), "compiled": [],
                            **{f"pw_guard_{k}": np.zeros(W, np.int64) for k in ("fn", "params", "iparams", "fraction",
                                                                               "applied")}}
-    for p, worlds in zip(predictors, groups):
+    scene_bound = bound.predictors if isinstance(bound, PerWorldPredictor) else predictors
+    for p, own, worlds in zip(predictors, scene_bound, groups):
         if type(p) is ZeroPredictor:
             continue
-        if is_stateful(p):  # a guard (its group's state: row k of its arrays for the group's k-th world)
-            parts = getattr(p, "compiled_guard", lambda W, V: None)(len(worlds), vehicles.n_vehicles)
+        if is_stateful(own):  # a guard (its group's state: row k of its arrays for the group's k-th world)
+            parts = getattr(own, "compiled_guard", lambda W, V: None)(len(worlds), vehicles.n_vehicles)
             if parts is None:
                 return None
             p, guard = parts  # (its model's compiled form, flown below)

@@ -74,6 +74,32 @@ def test_mixed_scene_fused_equals_readable(mixed, W):
     np.testing.assert_allclose(rows[-1]["wind_acc"], want, rtol=1e-12, atol=1e-15)
 
 
+def test_a_guard_in_a_mixed_scene_flies_the_fused_path_with_its_state_where_the_scene_binds_it(mixed):
+    """A guard among the conditions of a batch, in a scene of vehicle kinds: the scene tells it the kinds
+    (a guard of its own), and the fused tick advances that guard's state, as the readable path does."""
+    import copy
+
+    from downwash.guard import GuardedPredictor
+    from downwash.predictor import LearnedPredictor
+    from downwash.registry import make_model
+    from downwash.support import SUPPORT_FEATURES, Support
+
+    F = len(SUPPORT_FEATURES)
+    support = Support(np.full(F, -8.0), np.full(F, 8.0), np.full(F, 0.5))  # (every kind inside it)
+    guard = GuardedPredictor(LearnedPredictor(make_model("equivariant_general")), support)
+    pred = PerWorldPredictor([ZeroPredictor(), guard], np.arange(4) % 2)
+    sims = [Simulator(mixed, _mixed_reference(4), [20, 21, 22, 23], fast=fast, predictor=copy.deepcopy(pred))
+            for fast in (True, False)]
+    rows = [[dict(sim.tick()) for _ in range(30)] for sim in sims]
+    for a, b in zip(*rows):
+        for name in a:
+            assert np.array_equal(a[name], b[name], equal_nan=True), name
+    bound = sims[0]._scene_predictor.predictors[1]
+    assert bound is not sims[0].predictor.predictors[1] and bound.vehicle_kinds == tuple(k.name for k in mixed.kinds)
+    assert sims[0]._plan is not None and np.all(bound._fraction > 0)  # its state advanced on the fused path
+    assert np.all(np.isnan(rows[0][-1]["applied"][::2])) and np.all(rows[0][-1]["applied"][1::2] > 0)
+
+
 def test_mixed_scene_fused_equals_readable_with_the_oracle_and_no_wind(mixed):
     _assert_same(*_fly_both(mixed, 1, 40, predictor=OraclePredictor(DownwashField(swirl=0.2)),
                             field=DownwashField(swirl=0.2)))
