@@ -68,7 +68,7 @@ def guard_into(pos, vel, rot, due, pred, fraction, applied, params, iparams):
     o = _N_FHEADER
     lo, hi, margin = params[o:o + F], params[o + F:o + 2 * F], params[o + 2 * F:o + 3 * F]
     kinds = params[o + 3 * F:o + 3 * F + VK * D].reshape((VK, D))
-    x = np.empty(max(F, 10))
+    x = np.empty(max(F, _N_INVARIANTS))  # (pair_inputs writes the invariants, then the kinds follow)
     key, idx = np.empty(max(V - 1, 1)), np.empty(max(V - 1, 1), np.int64)
     for w in range(W):
         for j in range(V):  # target
