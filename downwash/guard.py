@@ -13,23 +13,39 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
   confidence 1; each feature outside it costs linearly, down to 0 a quarter of the
   support's width beyond it (`Support.margin`); a pair's confidence is the product over its
   features, and a vehicle's the lowest of its pairs'.
+- **Monitor.** Inside its support a model can still be wrong (a kind of vehicle its data held,
+  flown in a new formation). After every tick the guard sees what the lab sees: the force each
+  vehicle felt, ``f = a - u`` (the estimated velocity's change over the tick, less the command
+  applied, compensation included: the label the model learned from, `downwash.labels`, here
+  causal and unsmoothed). Its ``gain`` is the least-squares scale of the model's prediction
+  ``r`` against those forces over the last ``monitor`` seconds (exponential weights),
+  ``(sum f . r + prior) / (sum |r|^2 + prior)`` clipped to [0, 1]: 1 for a model that is right,
+  1/3 for one that predicts three times the force, 0 for one that points the wrong way. The
+  motion-capture noise in ``f`` has zero mean and is independent of ``r``, so it leaves the
+  sums' expectations alone; ``prior`` (in (m/s^2)^2) is the evidence that a model is right
+  before any is seen, which the first second outweighs. Any scale in [0, 1] at most the
+  least-squares one leaves the error no larger than no model's (``|f - k r|^2 <= |f|^2`` for
+  ``0 <= k <= 2 f.r / |r|^2``), which is this guard's promise in expectation.
 - **Rate limit.** The applied fraction may drop at once but rises by at most
   ``recovery`` per second (a model that left its support gets authority back over
   1 / recovery seconds, not in one tick).
 - **Hard bound.** The applied prediction's magnitude is at most ``bound`` m/s^2.
 
-The applied prediction is ``fraction * prediction`` (then bounded), so the guard never
+The applied fraction is the lowest of the support's confidence, the monitor's gain and the
+rate limit. The applied prediction is ``fraction * prediction`` (then bounded), so the guard never
 increases a prediction's magnitude, passes in-support inputs through unchanged once the
-fraction has recovered, and applies nothing far outside the support (property tests).
+fraction has recovered (while the forces felt agree: their noise costs a right model a percent
+or two of its gain in flight), and applies nothing far outside the support (property tests).
 Why a support check rather than an ensemble's disagreement: it needs no extra training,
 serves every model kind and checkpoint as it is, is exact and cheap at 45 Hz, and an
 ensemble trained on indoor data can agree confidently on a regime it never saw (a moving
 leader): the support names that regime by its leader speed.
 
-The guard keeps state (the applied fraction per world and vehicle), so it is a stateful
-predictor (`sim.predictor.is_stateful`): the simulator resets it with its worlds and tells
-it which are due. ``applied`` holds the fraction applied at each world's last due call,
-which the simulator logs per tick and vehicle. A call runs the compiled pass
+The guard keeps state (per world and vehicle the applied fraction, the gain, the model's last
+prediction, and the monitor's sums), so it is a stateful predictor (`sim.predictor.is_stateful`):
+the simulator resets it with its worlds, tells it which are due, and calls ``observe`` after
+every tick. ``applied`` holds the fraction applied at each world's last due call, which the
+simulator logs per tick and vehicle. A call runs the compiled pass
 (`downwash.guard_fused`), tested bit for bit against its NumPy reference (``reference``,
 ``confidence``); around a model with a compiled form and no state, the simulator's fused
 tick runs the same pass after the model (``compiled_guard``).
@@ -47,17 +63,19 @@ from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
 from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
-from downwash.guard_fused import GUARD_FN, guard_into, pack_guard
+from downwash.guard_fused import (CMD, DEN, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_WIDTH, NEXT, NUM, RAW, VEL,
+                                  guard_into, monitor_into, pack_guard)
 from downwash.predictor import clamp_magnitude
 from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
                               support_of)
 from sim.neighbours import gather_neighbours, select_neighbours
-from sim.predictor import CompiledGuard, CompiledPredictor, is_stateful
+from sim.predictor import GUARD_STATE_WIDTH, CompiledGuard, CompiledPredictor, is_stateful
 
 __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "GuardedPredictor", "GUARD_DEFAULTS",
            "guard_settings"]
 
-GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0}  # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound
+# 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound; s, the monitor's memory; (m/s^2)^2, its prior
+GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0}
 
 
 def guard_settings() -> dict[str, Any]:
@@ -72,6 +90,8 @@ class GuardedPredictor:
     predictor: a `downwash.predictor.LearnedPredictor` (its neighbour set chooses the pairs);
     support: a `Support`, by default the one its checkpoint's training data recorded;
     recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound;
+    monitor: s, the time constant of the monitor's sums; prior: (m/s^2)^2, its prior evidence that
+    the model is right (module doc);
     vehicle_kinds: the scene's V vehicle kinds (names or `VehicleKind`s; None: paper quads), as
     ``for_vehicles`` tells them.
     """
@@ -80,23 +100,28 @@ class GuardedPredictor:
 
     def __init__(self, predictor: Any, support: Support | None = None, recovery: float = GUARD_DEFAULTS["recovery"],
                  bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz,
-                 vehicle_kinds: Any = None):
+                 vehicle_kinds: Any = None, monitor: float = GUARD_DEFAULTS["monitor"],
+                 prior: float = GUARD_DEFAULTS["prior"]):
         if support is None:
             record = ((getattr(predictor, "record", None) or {}).get("data") or {}).get("support")
             if record is None:
                 raise ConfigError("guard: the model's checkpoint records no support of its training data (made by "
                                   "older code); retrain it, or pass support=downwash.guard.support_of(...)")
             support = Support.from_record(record)
-        for name, value in (("recovery", recovery), ("bound", bound), ("predictor_hz", predictor_hz)):
+        for name, value in (("recovery", recovery), ("bound", bound), ("predictor_hz", predictor_hz),
+                            ("monitor", monitor), ("prior", prior)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name}: expected a finite number > 0, got {value!r}")
         self.predictor, self.support, self.predictor_hz = predictor, support, float(predictor_hz)
         self.recovery, self.bound = float(recovery), float(bound)
+        self.monitor, self.prior = float(monitor), float(prior)
         self.vehicle_kinds = None if vehicle_kinds is None else tuple(getattr(k, "name", k) for k in vehicle_kinds)
         self._kinds = None if vehicle_kinds is None else kind_descriptors(vehicle_kinds)  # (V, D)
         self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
         self.applied: np.ndarray | None = None  # (W, V) the fraction applied at each world's last due call
-        self._fraction: np.ndarray | None = None  # (W, V) per world, carried between calls
+        self._state: np.ndarray | None = None  # (W, V, GUARD_STATE_WIDTH) per world, carried between calls
+        self._seen: np.ndarray | None = None  # (W, V, MONITOR_WIDTH) the monitor's sums and last ticks (`observe`)
+        self._seen_t: np.ndarray | None = None  # (W,) the time of each world's last tick seen (NaN: none)
         self._pack = pack_guard(self.support, predictor.neighbours, self.step, self.bound, self._kinds)
 
     def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
@@ -107,14 +132,51 @@ class GuardedPredictor:
         mine = np.zeros_like(told) if self._kinds is None else self._kinds  # (None: paper quads)
         if inner is self.predictor and mine.shape == told.shape and np.array_equal(mine, told):
             return self  # (the guard a scene of paper quads flies is the one it was given)
-        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds)
+        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds,
+                                self.monitor, self.prior)
 
     def reset(self, worlds: Any = None) -> None:
-        """These worlds (None: all) start afresh: no compensation, rising at the recovery rate."""
-        if self._fraction is not None:
-            self._fraction[slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)] = 0.0
+        """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
+        a monitor that has seen nothing (gain 1)."""
+        rows = slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)
+        if self._state is not None:
+            self._state[rows] = 0.0
+            self._state[rows, :, GAIN] = 1.0
+        if self._seen is not None:
+            self._seen[rows] = 0.0
+            self._seen_t[rows] = np.nan  # (no tick seen: the next one starts the sums)
         if is_stateful(self.predictor):
             self.predictor.reset(worlds)
+
+    def observe(self, t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray) -> None:
+        """The monitor (module doc), after each tick, from the tick's row: t (W,) s, the estimated
+        velocities vel_est (W, V, 3) m/s at its start, and the commands u_cmd (W, V, 3) m/s^2
+        applied during it. The force of the tick before, (vel_est - its vel_est) / (t - its t) - its
+        u_cmd, is paired with the prediction the model made before that tick (the one held through
+        it), and the gain set from the decayed sums. A world whose last tick is unseen (reset,
+        ended, or not finite) adds nothing. Runs the compiled pass (`downwash.guard_fused.monitor_into`),
+        tied to ``monitor_reference``."""
+        state = self._state
+        if state is None or len(state) != len(t):
+            return  # (no call yet in these worlds: nothing predicted to judge)
+        monitor_into(t, vel_est, u_cmd, state, self._seen, self._seen_t, self.monitor, self.prior)  # (float64 arrays)
+
+    def monitor_reference(self, t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray, state: np.ndarray,
+                          seen: np.ndarray, seen_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``observe`` in NumPy, the readable reference of its compiled pass: (the next state, seen
+        (W, V, `MONITOR_WIDTH`), seen_t (W,)) after the tick, from the guard's arrays before it."""
+        dt = t - seen_t
+        force = (vel_est - seen[..., VEL:VEL + 3]) / np.where(dt > 0, dt, 1.0)[:, None, None] - seen[..., CMD:CMD + 3]
+        raw = seen[..., HELD:HELD + 3]
+        ok = (dt > 0)[:, None] & np.isfinite(force.sum(-1) + raw.sum(-1))
+        decay = np.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)
+        after, state = seen.copy(), state.copy()
+        after[..., NUM] = np.where(ok, decay * seen[..., NUM] + dot(force, raw), seen[..., NUM])
+        after[..., DEN] = np.where(ok, decay * seen[..., DEN] + dot(raw, raw), seen[..., DEN])
+        state[..., GAIN] = np.clip((after[..., NUM] + self.prior) / (after[..., DEN] + self.prior), 0.0, 1.0)
+        after[..., HELD:HELD + 3], after[..., NEXT:NEXT + 3] = seen[..., NEXT:NEXT + 3], state[..., RAW:RAW + 3]
+        after[..., VEL:VEL + 3], after[..., CMD:CMD + 3] = vel_est, u_cmd
+        return state, after, np.array(t, dtype=np.float64)
 
     def confidence(self, estimated: VehicleStates) -> np.ndarray:
         """(W, V) in [0, 1]: each vehicle's lowest confidence over the pairs acting on it (1 with none)."""
@@ -136,23 +198,26 @@ class GuardedPredictor:
         out = np.array(self.predictor(estimated, true, **when), dtype=np.float64, order="C")  # scaled in place
         W, V = out.shape[:2]
         self._check_kinds(V)
-        fraction, applied = self._state(W, V)
+        state, applied = self._arrays(W, V)
         due = np.ones(W, np.uint8) if due is None else np.ascontiguousarray(due, dtype=bool).view(np.uint8)
         pos, vel, rot = (np.ascontiguousarray(a, dtype=np.float64)
                          for a in (estimated.pos, estimated.vel, estimated.rot))
-        guard_into(pos, vel, rot, due, out, fraction, applied, *self._pack)
+        guard_into(pos, vel, rot, due, out, state, applied, *self._pack)
         return out
 
-    def reference(self, estimated: VehicleStates, raw: np.ndarray, fraction: np.ndarray,
+    def reference(self, estimated: VehicleStates, raw: np.ndarray, state: np.ndarray,
                   due: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One call in NumPy, the readable reference of the compiled pass (`downwash.guard_fused`) that
-        ``__call__`` runs: (the applied prediction, the next fraction, the applied fraction (due
-        worlds')), for the model's prediction raw (W, V, 3), the fraction (W, V) and due (W,) bool."""
-        frac = np.minimum(self.confidence(estimated), fraction + self.step)
+        ``__call__`` runs: (the applied prediction, the next state, the applied fraction (due
+        worlds')), for the model's prediction raw (W, V, 3), the state (W, V, GUARD_STATE_WIDTH) and
+        due (W,) bool."""
+        frac = np.minimum(np.minimum(self.confidence(estimated), state[..., GAIN]), state[..., FRACTION] + self.step)
         out = clamp_magnitude(raw * frac[..., None], self.bound)
         raw_norm = np.sqrt(dot(raw, raw))
         applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
-        return out, np.where(due[:, None], frac, fraction), applied
+        after = state.copy()
+        after[due, :, FRACTION], after[due, :, RAW:RAW + 3] = frac[due], raw[due]
+        return out, after, applied
 
     def compiled_guard(self, W: int, V: int) -> tuple[CompiledPredictor, CompiledGuard] | None:
         """The fused loop's form (`sim.predictor`): the model's compiled predictor and this guard's
@@ -160,15 +225,18 @@ class GuardedPredictor:
         inner = None if is_stateful(self.predictor) else getattr(self.predictor, "compiled", lambda: None)()
         if inner is None or (self._kinds is not None and len(self._kinds) != V):
             return None
-        fraction, applied = self._state(W, V)
-        return inner, CompiledGuard(GUARD_FN.address, *self._pack, fraction, applied)
+        state, applied = self._arrays(W, V)
+        return inner, CompiledGuard(GUARD_FN.address, *self._pack, state, applied)
 
-    def _state(self, W: int, V: int) -> tuple[np.ndarray, np.ndarray]:
-        """The fraction and applied (W, V) arrays the calls advance in place (fresh for another shape)."""
-        if self._fraction is None or self._fraction.shape != (W, V):
-            self._fraction = np.zeros((W, V))
+    def _arrays(self, W: int, V: int) -> tuple[np.ndarray, np.ndarray]:
+        """The state (W, V, GUARD_STATE_WIDTH) and applied (W, V) arrays the calls advance in place
+        (fresh for another shape, reset: nothing applied yet, a monitor that has seen nothing)."""
+        if self._state is None or self._state.shape[:2] != (W, V):
+            self._state = np.zeros((W, V, GUARD_STATE_WIDTH))
+            self._state[..., GAIN] = 1.0
             self.applied = np.zeros((W, V))  # (nothing applied before a world's first due call)
-        return self._fraction, self.applied
+            self._seen, self._seen_t = np.zeros((W, V, MONITOR_WIDTH)), np.full(W, np.nan)
+        return self._state, self.applied
 
     def _check_kinds(self, V: int) -> None:
         if self._kinds is not None and len(self._kinds) != V:
@@ -176,4 +244,5 @@ class GuardedPredictor:
 
     def describe(self) -> dict[str, Any]:
         inner = getattr(self.predictor, "describe", lambda: {})()
-        return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound}}
+        return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound,
+                                   "monitor": self.monitor, "prior": self.prior}}

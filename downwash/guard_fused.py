@@ -9,9 +9,13 @@ vehicle at a time, with the same operations in the same order, so its bits are N
    `downwash.features.model_inputs`) and both vehicles' kinds;
 3. the pair's confidence, the product over features of ``clip(1 - beyond / margin, 0, 1)``
    (`downwash.support.Support.confidence`), and the vehicle's, the lowest over its pairs (1 with none);
-4. the applied fraction ``min(confidence, fraction + step)``, kept in the due worlds only; the
-   prediction scaled by it and bounded (`downwash.fused.clamped`, the bits of
+4. the applied fraction ``min(confidence, gain, fraction + step)`` (``gain``: the monitor's, which
+   ``GuardedPredictor.observe`` sets between calls), kept in the due worlds only with the model's
+   prediction; the prediction scaled by it and bounded (`downwash.fused.clamped`, the bits of
    `downwash.predictor.clamp_magnitude`); the fraction of the prediction applied.
+
+The guard's state per world and vehicle (`sim.predictor.GUARD_STATE_WIDTH` float64):
+``[fraction, gain, raw prediction (3)]``.
 
 `tests/test_guard.py` ties it to the NumPy reference (`GuardedPredictor.confidence` and the
 guard's NumPy path) bit for bit. The C function `GUARD_FN` of `sim.predictor.GUARD_SIGNATURE` runs it in
@@ -32,14 +36,15 @@ from downwash.features import KIND_FEATURES
 from downwash.fused import clamped, feature_code, pair_inputs
 from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, SUPPORT_FEATURES, Support
 from sim.neighbours import NeighbourSet, select_into
-from sim.predictor import GUARD_SIGNATURE
+from sim.predictor import GUARD_SIGNATURE, GUARD_STATE_WIDTH
 
-__all__ = ["guard_into", "pack_guard", "GUARD_FN"]
+__all__ = ["guard_into", "monitor_into", "pack_guard", "GUARD_FN", "FRACTION", "GAIN", "RAW", "MONITOR_WIDTH"]
 
 _GENERAL = feature_code(GUARD_FEATURES)
 _N_INVARIANTS = len(SUPPORT_FEATURES) - 2 * len(KIND_FEATURES)
 _P_STEP, _P_BOUND, _P_RADIUS2, _N_FHEADER = 0, 1, 2, 3
 _I_K, _I_F, _I_D, _I_VK = 0, 1, 2, 3
+FRACTION, GAIN, RAW = 0, 1, 2  # the state's columns: the applied fraction, the monitor's gain, the raw prediction (3)
 
 
 @njit
@@ -59,9 +64,10 @@ def _max(a, b):
 
 
 @njit
-def guard_into(pos, vel, rot, due, pred, fraction, applied, params, iparams):
+def guard_into(pos, vel, rot, due, pred, state, applied, params, iparams):
     """The guard on pred (W, V, 3) m/s^2, in place (module doc), from estimated pos, vel (W, V, 3) and
-    rot (W, V, 3, 3); due (W,) bool; fraction, applied (W, V), advanced in the due worlds."""
+    rot (W, V, 3, 3); due (W,) bool; state (W, V, GUARD_STATE_WIDTH) and applied (W, V), advanced in
+    the due worlds."""
     W, V = pos.shape[0], pos.shape[1]
     K, F, D, VK = iparams[_I_K], iparams[_I_F], iparams[_I_D], iparams[_I_VK]
     step, bound, radius2 = params[_P_STEP], params[_P_BOUND], params[_P_RADIUS2]
@@ -91,11 +97,12 @@ def guard_into(pos, vel, rot, due, pred, fraction, applied, params, iparams):
                     beyond = _max(_max(lo[f] - x[f], x[f] - hi[f]), 0.0) / margin[f]
                     c = c * _min(_max(1.0 - beyond, 0.0), 1.0)  # np.clip
                 conf = _min(conf, c)
-            frac = _min(conf, fraction[w, j] + step)
+            frac = _min(_min(conf, state[w, j, GAIN]), state[w, j, FRACTION] + step)
             rx, ry, rz = pred[w, j, 0], pred[w, j, 1], pred[w, j, 2]
             ox, oy, oz = clamped(rx * frac, ry * frac, rz * frac, bound)
             if due[w]:
-                fraction[w, j] = frac
+                state[w, j, FRACTION] = frac
+                state[w, j, RAW], state[w, j, RAW + 1], state[w, j, RAW + 2] = rx, ry, rz
                 raw_norm = np.sqrt(rx * rx + ry * ry + rz * rz)
                 out_norm = np.sqrt(ox * ox + oy * oy + oz * oz)
                 applied[w, j] = out_norm / (raw_norm if raw_norm > 1e-300 else 1e-300) if raw_norm > 0.0 else 1.0
@@ -103,16 +110,48 @@ def guard_into(pos, vel, rot, due, pred, fraction, applied, params, iparams):
 
 
 @numba.cfunc(GUARD_SIGNATURE, cache=True, nopython=True)
-def _guard_c(n_worlds, n_veh, pos, vel, rot, due, pred, fraction, applied, params, iparams):
+def _guard_c(n_worlds, n_veh, pos, vel, rot, due, pred, state, applied, params, iparams):
     ints = carray(iparams, (4,))
     n_params = _N_FHEADER + 3 * ints[_I_F] + ints[_I_VK] * ints[_I_D]
     guard_into(carray(pos, (n_worlds, n_veh, 3)), carray(vel, (n_worlds, n_veh, 3)),
                carray(rot, (n_worlds, n_veh, 3, 3)), carray(due, (n_worlds,)), carray(pred, (n_worlds, n_veh, 3)),
-               carray(fraction, (n_worlds, n_veh)), carray(applied, (n_worlds, n_veh)), carray(params, (n_params,)),
-               ints)
+               carray(state, (n_worlds, n_veh, GUARD_STATE_WIDTH)), carray(applied, (n_worlds, n_veh)),
+               carray(params, (n_params,)), ints)
 
 
 GUARD_FN = _guard_c
+
+# the monitor's memory per world and vehicle (`monitor_into`): its two sums, the last tick's
+# estimated velocity and command, the prediction held through the last tick and the one after it
+NUM, DEN, VEL, CMD, HELD, NEXT = 0, 1, 2, 5, 8, 11
+MONITOR_WIDTH = 14
+
+
+@njit
+def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior):
+    """The monitor after a tick (`downwash.guard`, ``GuardedPredictor.observe``): from its row's t (W,),
+    vel_est and u_cmd (W, V, 3), the force of the tick before each vehicle felt, paired with the
+    prediction held through it; the sums (seen (W, V, MONITOR_WIDTH), decayed over `memory` s) and the
+    gain (state's GAIN column) advanced in place. seen_t (W,): the last tick's times (NaN: none)."""
+    W, V = state.shape[0], state.shape[1]
+    for w in range(W):
+        dt = t[w] - seen_t[w]
+        seen_t[w] = t[w]
+        for j in range(V):
+            m = seen[w, j]
+            if dt > 0.0:  # (False where the last tick is unseen: NaN)
+                fx = (vel_est[w, j, 0] - m[VEL]) / dt - m[CMD]
+                fy = (vel_est[w, j, 1] - m[VEL + 1]) / dt - m[CMD + 1]
+                fz = (vel_est[w, j, 2] - m[VEL + 2]) / dt - m[CMD + 2]
+                rx, ry, rz = m[HELD], m[HELD + 1], m[HELD + 2]
+                if np.isfinite(fx + fy + fz + rx + ry + rz):
+                    decay = np.exp(-dt / memory)
+                    m[NUM] = decay * m[NUM] + (fx * rx + fy * ry + fz * rz)
+                    m[DEN] = decay * m[DEN] + (rx * rx + ry * ry + rz * rz)
+            state[w, j, GAIN] = _min(_max((m[NUM] + prior) / (m[DEN] + prior), 0.0), 1.0)
+            for k in range(3):  # this tick's prediction was made before it: it is held through the next one
+                m[HELD + k], m[NEXT + k] = m[NEXT + k], state[w, j, RAW + k]
+                m[VEL + k], m[CMD + k] = vel_est[w, j, k], u_cmd[w, j, k]
 
 
 def pack_guard(support: Support, neighbours: NeighbourSet, step: float, bound: float,

@@ -45,6 +45,7 @@ from sim.field import _pairwise_kernel
 from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _status_kernel, _wind_advance_kernel,
                         _wind_force_kernel, _wind_sense_kernel)
 from sim.physics import _FATAL_0, _FATAL_1, _FATAL_2
+from sim.predictor import GUARD_STATE_WIDTH
 
 # Raw addresses into typed pointers, and calls of C functions by address, for the fused
 # kernel. Every address comes from an array or object that the `_Plan` keeps alive.
@@ -130,8 +131,8 @@ _TAB = (
     "mocap_offset", "max_thrust", "mass", "drag_gain", "field_scale", "radius_xy", "radius_z",
     "row_kin", "row_t", "row_quat", "row_quat_est", "row_yaw", "row_applied", "row_ref_pos", "row_ref_vel",
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
-    "guard", "guard_fn", "guard_params", "guard_iparams", "guard_fraction", "guard_applied", "row_guard",
-    "pw_guard_fn", "pw_guard_params", "pw_guard_iparams", "pw_guard_fraction", "pw_guard_applied", "pw_guarded",
+    "guard", "guard_fn", "guard_params", "guard_iparams", "guard_state", "guard_applied", "row_guard",
+    "pw_guard_fn", "pw_guard_params", "pw_guard_iparams", "pw_guard_state", "pw_guard_applied", "pw_guarded",
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
@@ -144,8 +145,8 @@ _TAB = (
  _T_PW_ORACLE, _T_MOCAP_OFFSET, _T_MAX_THRUST, _T_MASS, _T_DRAG_GAIN, _T_FIELD_SCALE, _T_RADIUS_XY, _T_RADIUS_Z,
  _T_ROW_KIN, _T_ROW_T, _T_ROW_QUAT, _T_ROW_QUAT_EST, _T_ROW_YAW, _T_ROW_APPLIED, _T_ROW_REF_POS, _T_ROW_REF_VEL,
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC,
- _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_FRACTION, _T_GUARD_APPLIED,
- _T_ROW_GUARD, _T_PW_GUARD_FN, _T_PW_GUARD_PARAMS, _T_PW_GUARD_IPARAMS, _T_PW_GUARD_FRACTION, _T_PW_GUARD_APPLIED,
+ _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_STATE, _T_GUARD_APPLIED,
+ _T_ROW_GUARD, _T_PW_GUARD_FN, _T_PW_GUARD_PARAMS, _T_PW_GUARD_IPARAMS, _T_PW_GUARD_STATE, _T_PW_GUARD_APPLIED,
  _T_PW_GUARDED) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
 # (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
@@ -364,7 +365,7 @@ def _make_fused_kernel(with_wind: bool):
                             pw_guard_fn = carray(_i64p(tab[_T_PW_GUARD_FN]), (n_worlds,))[w0:w1]
                             pw_guard_params = carray(_i64p(tab[_T_PW_GUARD_PARAMS]), (n_worlds,))[w0:w1]
                             pw_guard_iparams = carray(_i64p(tab[_T_PW_GUARD_IPARAMS]), (n_worlds,))[w0:w1]
-                            pw_guard_fraction = carray(_i64p(tab[_T_PW_GUARD_FRACTION]), (n_worlds,))[w0:w1]
+                            pw_guard_state = carray(_i64p(tab[_T_PW_GUARD_STATE]), (n_worlds,))[w0:w1]
                             pw_guard_applied = carray(_i64p(tab[_T_PW_GUARD_APPLIED]), (n_worlds,))[w0:w1]
                             for w in range(W):
                                 if pw_code[w] == _PRED_ORACLE:
@@ -380,7 +381,7 @@ def _make_fused_kernel(with_wind: bool):
                                         _call_predictor(
                                             pw_guard_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data,
                                             rot_est[w].ctypes.data, due.ctypes.data + w, pred[w].ctypes.data,
-                                            pw_guard_fraction[w], pw_guard_applied[w], pw_guard_params[w],
+                                            pw_guard_state[w], pw_guard_applied[w], pw_guard_params[w],
                                             pw_guard_iparams[w],
                                         )
                                 else:
@@ -396,7 +397,7 @@ def _make_fused_kernel(with_wind: bool):
                         if tab[_T_GUARD]:  # the guard's pass over the prediction (sim.predictor.CompiledGuard)
                             _call_predictor(  # (a GUARD_SIGNATURE has the PREDICTOR_SIGNATURE's argument types)
                                 tab[_T_GUARD_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, rot_est.ctypes.data,
-                                due.ctypes.data, pred.ctypes.data, tab[_T_GUARD_FRACTION] + 8 * V * w0,
+                                due.ctypes.data, pred.ctypes.data, tab[_T_GUARD_STATE] + 8 * V * GUARD_STATE_WIDTH * w0,
                                 tab[_T_GUARD_APPLIED] + 8 * V * w0, tab[_T_GUARD_PARAMS], tab[_T_GUARD_IPARAMS],
                             )
                         _hold_kernel(f_hat, pred, due, next_prediction, fc[_F_PRED_PERIOD])

@@ -157,7 +157,7 @@ class _Plan:
             keep["predictor_params"] = np.ascontiguousarray(compiled.params, dtype=np.float64)
             keep["predictor_iparams"] = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
         if guard is not None:  # its state by address: the guard's own arrays, which its calls and resets share
-            keep.update(guard_params=guard.params, guard_iparams=guard.iparams, guard_fraction=guard.fraction,
+            keep.update(guard_params=guard.params, guard_iparams=guard.iparams, guard_state=guard.state,
                         guard_applied=guard.applied)
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
@@ -254,7 +254,7 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) 
     out: dict[str, Any] = {"pw_code": np.zeros(W, np.int64), "pw_fn": np.zeros(W, np.int64),
                            "pw_params": np.zeros(W, np.int64), "pw_iparams": np.zeros(W, np.int64),
                            "pw_oracle": np.zeros((W, 16)), "compiled": [],
-                           **{f"pw_guard_{k}": np.zeros(W, np.int64) for k in ("fn", "params", "iparams", "fraction",
+                           **{f"pw_guard_{k}": np.zeros(W, np.int64) for k in ("fn", "params", "iparams", "state",
                                                                               "applied")}}
     scene_bound = bound.predictors if isinstance(bound, PerWorldPredictor) else predictors
     for p, own, worlds in zip(predictors, scene_bound, groups):
@@ -266,12 +266,12 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) 
                 return None
             p, guard = parts  # (its model's compiled form, flown below)
             out["compiled"].append(guard)
-            rows = np.arange(len(worlds)) * guard.fraction.strides[0]
+            rows = np.arange(len(worlds))
             out["pw_guard_fn"][worlds] = guard.address
-            out["pw_guard_fraction"][worlds] = guard.fraction.ctypes.data + rows
+            out["pw_guard_state"][worlds] = guard.state.ctypes.data + rows * guard.state.strides[0]
             out["pw_guard_params"][worlds], out["pw_guard_iparams"][worlds] = (guard.params.ctypes.data,
                                                                                guard.iparams.ctypes.data)
-            out["pw_guard_applied"][worlds] = guard.applied.ctypes.data + rows
+            out["pw_guard_applied"][worlds] = guard.applied.ctypes.data + rows * guard.applied.strides[0]
         if type(p) is OraclePredictor:
             packed = _packed_field(p.field, p.aggregation)
             if packed is None:

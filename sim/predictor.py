@@ -20,9 +20,14 @@ A predictor that scales its model's output (a guard) may hold ``applied`` (W, V)
 the prediction applied at its last due call, which the simulator logs per tick and vehicle. Such a
 predictor flies the fused loop too (alone or in a `PerWorldPredictor`) when ``compiled_guard(W, V)``
 returns its inner model's `CompiledPredictor` and a `CompiledGuard`: a C function of
-`GUARD_SIGNATURE` that scales the inner prediction in place, advancing its state (``fraction``,
-(W, V)) in the due worlds only and writing ``applied`` (W, V) there, exactly as ``__call__`` does;
-the loop holds both arrays by address, and ``reset`` clears ``fraction`` in place.
+`GUARD_SIGNATURE` that scales the inner prediction in place, advancing its state (``state``,
+(W, V, `GUARD_STATE_WIDTH`), laid out as the guard likes) in the due worlds only and writing
+``applied`` (W, V) there, exactly as ``__call__`` does; the loop holds both arrays by address, and
+``reset`` resets ``state`` in place.
+A predictor may also learn from the flight: ``observe(t, vel_est, u_cmd)``, when it has one (not
+None), is called after every tick with the tick's row's (W,) times, (W, V, 3) estimated velocities
+and (W, V, 3) applied commands (`sim.logs.ARRAY_SPECS`), from which it can tell the force each
+vehicle felt (a guard's monitor, `downwash.guard`).
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ __all__ = [
     "PREDICTOR_SIGNATURE",
     "CompiledGuard",
     "GUARD_SIGNATURE",
+    "GUARD_STATE_WIDTH",
     "is_stateful",
 ]
 
@@ -55,10 +61,11 @@ _F64P, _I64P = _nb.CPointer(_nb.float64), _nb.CPointer(_nb.int64)
 # relative to the air, see `Predictor`), all C-contiguous float64; params / iparams the
 # predictor's own constants (float64 / int64); out (W, V, 3) m/s^2, written in full.
 PREDICTOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _I64P, _F64P)
-# void g(n_worlds, n_vehicles, pos, vel, rot, due, pred, fraction, applied, params, iparams): the
+# void g(n_worlds, n_vehicles, pos, vel, rot, due, pred, state, applied, params, iparams): the
 # estimated states as above; due (W,) bool (one byte each); pred (W, V, 3) m/s^2 the inner prediction,
-# scaled in place; fraction and applied (W, V) the guard's state and its applied fraction, both
-# advanced in the due worlds only; params / iparams the guard's own constants.
+# scaled in place; state (W, V, GUARD_STATE_WIDTH) the guard's state and applied (W, V) its applied
+# fraction, both advanced in the due worlds only; params / iparams the guard's own constants.
+GUARD_STATE_WIDTH = 5  # float64 per world and vehicle of a guard's state (its layout is the guard's)
 GUARD_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _nb.CPointer(_nb.uint8), _F64P, _F64P, _F64P,
                            _F64P, _I64P)
 
@@ -79,13 +86,13 @@ class CompiledPredictor(NamedTuple):
 
 class CompiledGuard(NamedTuple):
     """A guard's compiled pass for the fused loop (module doc): the address of a C function of
-    `GUARD_SIGNATURE`, its params (float64) and iparams (int64), and the (W, V) float64 arrays it
-    advances, ``fraction`` and ``applied``, C-contiguous and owned by the guard."""
+    `GUARD_SIGNATURE`, its params (float64) and iparams (int64), and the float64 arrays it advances,
+    ``state`` (W, V, `GUARD_STATE_WIDTH`) and ``applied`` (W, V), C-contiguous and owned by the guard."""
 
     address: int
     params: np.ndarray
     iparams: np.ndarray
-    fraction: np.ndarray
+    state: np.ndarray
     applied: np.ndarray
 
 
@@ -168,6 +175,20 @@ class PerWorldPredictor:
         for a, worlds in parts:
             out[worlds] = a
         return out
+
+    @property
+    def observe(self) -> Any:
+        """Its predictors' ``observe`` (module doc), each given its worlds' rows; None when none has one."""
+        observers = [(p.observe, g) for p, g in zip(self.predictors, self.groups)
+                     if getattr(p, "observe", None) is not None and g.size]
+        if not observers:
+            return None
+
+        def observe(t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray) -> None:
+            for fn, worlds in observers:
+                fn(t[worlds], vel_est[worlds], u_cmd[worlds])
+
+        return observe
 
     def reset(self, worlds: np.ndarray | None = None) -> None:
         """Reset the state of the stateful predictors (`is_stateful`) in these worlds (None: all)."""

@@ -279,6 +279,7 @@ class Simulator:
                                    self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self._scene_predictor) or self._scene_predictor
         self._predictor_state = is_stateful(self._scene_predictor)
+        self._observe = getattr(self._scene_predictor, "observe", None)  # (sim.predictor: after each tick)
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -402,8 +403,7 @@ class Simulator:
     def tick(self, residual: np.ndarray | None = None, override: np.ndarray | None = None) -> Mapping[str, np.ndarray]:
         """Advance every active world by one controller period; returns the tick's log row.
 
-        One thread at a time: a call from a second thread while a tick or a reset is in
-        progress raises ConcurrentUseError (see `_one_thread`).
+        One thread at a time: a second thread's call meanwhile raises ConcurrentUseError (`_one_thread`).
 
         residual: (W, V, 3) m/s^2 added to the LQR command (e.g. an RL compensation action).
         override: (W, V, 3) m/s^2 replacing the LQR acceleration where finite (NaN keeps LQR).
@@ -424,10 +424,10 @@ class Simulator:
             if plan is not None and plan.revision != self.physics.revision:  # set_body_mass changed the worlds
                 self._bind()
                 plan = self._plan
-            if plan is not None:
-                row = self._tick_fused(plan, residual, override)
-            else:
-                row = self._tick_readable(residual, override)
+            row = self._tick_fused(plan, residual, override) if plan is not None else self._tick_readable(residual,
+                                                                                                         override)
+            if self._observe is not None:
+                self._observe(row["t"], row["vel_est"], row["u_cmd"])
             self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
         finally:
             lock.release()

@@ -617,12 +617,14 @@ def test_a_predictor_object_flies_as_each_envs_own_copy():
     dp = np.column_stack([rng.uniform(-0.3, 0.3, (500, 2)), -rng.uniform(0.4, 0.9, 500)])
     support = support_of(dp, rng.normal(size=(500, 3)) * 0.05, rng.normal(size=(500, 3)) * 0.3,
                          np.broadcast_to(np.eye(3), (500, 3, 3)))  # a hovering leader, its estimate noisy
-    guard = GuardedPredictor(LearnedPredictor(wrap_pairwise(make_model("equivariant").double().eval())), support)
+    guard = GuardedPredictor(LearnedPredictor(wrap_pairwise(make_model("equivariant").double().eval())), support,
+                             prior=1e12)  # (its monitor trusts the untrained model: the support alone acts)
     env = DownwashFollowerEnv(reference="hover", separation=0.6, predictor=guard)
     env.reset(seed=1)
     for _ in range(20):
         env.step(np.zeros(3))
     assert env._worlds.sim.predictor.applied[0, 1] > 0.9 and guard.applied is None  # its copy flew, inside the support
+    assert env._worlds.sim.predictor._seen_t[0] > 0 and guard._seen is None  # and its copy watched the flight
     with pytest.raises(Exception, match="predictor"):
         DownwashFollowerEnv(predictor=object())
     with pytest.raises(Exception, match="predictor"):

@@ -86,7 +86,8 @@ def test_a_guard_in_a_mixed_scene_flies_the_fused_path_with_its_state_where_the_
 
     F = len(SUPPORT_FEATURES)
     support = Support(np.full(F, -8.0), np.full(F, 8.0), np.full(F, 0.5))  # (every kind inside it)
-    guard = GuardedPredictor(LearnedPredictor(make_model("equivariant_general")), support)
+    guard = GuardedPredictor(LearnedPredictor(make_model("equivariant_general")), support,
+                             prior=1e12)  # (a monitor that trusts the untrained model: the support alone acts)
     pred = PerWorldPredictor([ZeroPredictor(), guard], np.arange(4) % 2)
     sims = [Simulator(mixed, _mixed_reference(4), [20, 21, 22, 23], fast=fast, predictor=copy.deepcopy(pred))
             for fast in (True, False)]
@@ -96,7 +97,8 @@ def test_a_guard_in_a_mixed_scene_flies_the_fused_path_with_its_state_where_the_
             assert np.array_equal(a[name], b[name], equal_nan=True), name
     bound = sims[0]._scene_predictor.predictors[1]
     assert bound is not sims[0].predictor.predictors[1] and bound.vehicle_kinds == tuple(k.name for k in mixed.kinds)
-    assert sims[0]._plan is not None and np.all(bound._fraction > 0)  # its state advanced on the fused path
+    assert sims[0]._plan is not None and np.all(bound._state[..., 0] > 0)  # its state advanced on the fused path
+    assert np.all(bound._seen_t > 0)  # and its monitor watched the flight
     assert np.all(np.isnan(rows[0][-1]["applied"][::2])) and np.all(rows[0][-1]["applied"][1::2] > 0)
 
 
