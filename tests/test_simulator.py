@@ -232,3 +232,24 @@ def test_oracle_sees_the_truth_and_per_world_routing_keeps_each_predictor_to_its
     assert np.array_equal(routed[[0, 2]], np.zeros((2, 2, 3))) and np.array_equal(routed[[1, 3]], np.ones((2, 2, 3)))
     (est_seen, true_seen), = seen
     assert np.array_equal(est_seen, estimated.pos[[1, 3]]) and np.array_equal(true_seen, true.pos[[1, 3]])
+
+
+def test_a_predictor_that_observes_sees_each_ticks_row_of_its_own_worlds(scene):
+    """``observe(t, vel_est, u_cmd)`` is called after every tick with the row's arrays (the rows the log
+    keeps); a PerWorldPredictor hands each observer only its own worlds' rows, and has no ``observe``
+    when none of its predictors has one."""
+    from sim.predictor import PerWorldPredictor, ZeroPredictor
+
+    seen = []
+
+    class Watching(ZeroPredictor):
+        def observe(self, t, vel_est, u_cmd):
+            seen.append((t.copy(), vel_est.copy(), u_cmd.copy()))
+
+    assert PerWorldPredictor([ZeroPredictor(), ZeroPredictor()], np.array([0, 1])).observe is None
+    routed = PerWorldPredictor([ZeroPredictor(), Watching()], np.array([0, 1, 0, 1]))
+    logs = fly(scene, _lemniscate(4), [0, 1, 2, 3], 0.2, predictor=routed)
+    assert len(seen) == len(logs[1]) == 10
+    for k, (t, vel_est, u_cmd) in enumerate(seen):
+        for name, got in (("t", t), ("vel_est", vel_est), ("u_cmd", u_cmd)):
+            np.testing.assert_array_equal(got, np.stack([logs[w][name][k] for w in (1, 3)]))
