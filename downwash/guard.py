@@ -138,15 +138,17 @@ class GuardedPredictor:
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
         a monitor that has seen nothing (gain 1)."""
-        rows = slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)
         if self._state is not None:
-            self._state[rows] = 0.0
-            self._state[rows, :, GAIN] = 1.0
-        if self._seen is not None:
-            self._seen[rows] = 0.0
-            self._seen_t[rows] = np.nan  # (no tick seen: the next one starts the sums)
+            self._start(slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64))
         if is_stateful(self.predictor):
             self.predictor.reset(worlds)
+
+    def _start(self, rows: Any) -> None:
+        """These rows of the guard's arrays as a fresh world's: nothing applied, gain 1, no tick seen."""
+        self._state[rows] = 0.0
+        self._state[rows, :, GAIN] = 1.0
+        self._seen[rows] = 0.0
+        self._seen_t[rows] = np.nan  # (no tick seen: the next one starts the sums)
 
     def observe(self, t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray) -> None:
         """The monitor (module doc), after each tick, from the tick's row: t (W,) s, the estimated
@@ -232,10 +234,10 @@ class GuardedPredictor:
         """The state (W, V, GUARD_STATE_WIDTH) and applied (W, V) arrays the calls advance in place
         (fresh for another shape, reset: nothing applied yet, a monitor that has seen nothing)."""
         if self._state is None or self._state.shape[:2] != (W, V):
-            self._state = np.zeros((W, V, GUARD_STATE_WIDTH))
-            self._state[..., GAIN] = 1.0
+            self._state, self._seen, self._seen_t = (np.empty((W, V, GUARD_STATE_WIDTH)),
+                                                     np.empty((W, V, MONITOR_WIDTH)), np.empty(W))
             self.applied = np.zeros((W, V))  # (nothing applied before a world's first due call)
-            self._seen, self._seen_t = np.zeros((W, V, MONITOR_WIDTH)), np.full(W, np.nan)
+            self._start(slice(None))
         return self._state, self.applied
 
     def _check_kinds(self, V: int) -> None:

@@ -45,6 +45,7 @@ _N_INVARIANTS = len(SUPPORT_FEATURES) - 2 * len(KIND_FEATURES)
 _P_STEP, _P_BOUND, _P_RADIUS2, _N_FHEADER = 0, 1, 2, 3
 _I_K, _I_F, _I_D, _I_VK = 0, 1, 2, 3
 FRACTION, GAIN, RAW = 0, 1, 2  # the state's columns: the applied fraction, the monitor's gain, the raw prediction (3)
+assert GUARD_STATE_WIDTH == RAW + 3, "sim.predictor.GUARD_STATE_WIDTH must hold the columns above"
 
 
 @njit
