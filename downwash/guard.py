@@ -13,6 +13,18 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
   confidence 1; each feature outside it costs linearly, down to 0 a quarter of the
   support's width beyond it (`Support.margin`); a pair's confidence is the product over its
   features, and a vehicle's the lowest of its pairs'.
+- **Evidence outside the support.** Away from its data a model may still carry (a pair model
+  among slowly moving neighbours, an indoor model whose wake the wind has weakened), and the
+  forces the vehicle feels can show it. Outside the support of the continuous features the
+  monitor's ``evidence``, ``sum f . r / (sum |r|^2 + skeptic)`` clipped to [0, 1], stands in
+  for the support's confidence: the model flies in shadow (nothing applied, its prediction
+  still compared with the forces felt) until the forces agree with it, then earns authority up
+  to the least-squares scale. A right model predicting 1 m/s^2 earns 0.9 within a second
+  (``skeptic`` 5 (m/s^2)^2); one that predicts the wrong force earns nothing. A vehicle kind the
+  data never held is a hard veto whatever the evidence: a kind is not a continuous quantity to
+  reach out along, and in a stack the forces felt in shadow are not those felt once the model
+  acts (the summed paper-quad model in the stack of Crazyflies crashed when evidence could
+  override the kinds).
 - **Monitor.** Inside its support a model can still be wrong (a kind of vehicle its data held,
   flown in a new formation). After every tick the guard sees what the lab sees: the force each
   vehicle felt, ``f = a - u`` (the estimated velocity's change over the tick, less the command
@@ -31,18 +43,20 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
   1 / recovery seconds, not in one tick).
 - **Hard bound.** The applied prediction's magnitude is at most ``bound`` m/s^2.
 
-The applied fraction is the lowest of the support's confidence, the monitor's gain and the
-rate limit. The applied prediction is ``fraction * prediction`` (then bounded), so the guard never
-increases a prediction's magnitude, passes in-support inputs through unchanged once the
-fraction has recovered (while the forces felt agree: their noise costs a right model a percent
-or two of its gain in flight), and applies nothing far outside the support (property tests).
+The applied fraction is the lowest of the kinds' confidence, the larger of the support's
+confidence and the evidence, the monitor's gain and the rate limit. The applied prediction is
+``fraction * prediction`` (then bounded), so the guard never increases a prediction's magnitude,
+passes in-support inputs through unchanged once the fraction has recovered (while the forces
+felt agree: their noise costs a right model a percent or two of its gain in flight), and applies
+nothing far outside the support until the forces felt there agree with the model, and nothing
+at all to a vehicle kind its data never held (property tests).
 Why a support check rather than an ensemble's disagreement: it needs no extra training,
 serves every model kind and checkpoint as it is, is exact and cheap at 45 Hz, and an
 ensemble trained on indoor data can agree confidently on a regime it never saw (a moving
 leader): the support names that regime by its leader speed.
 
-The guard keeps state (per world and vehicle the applied fraction, the gain, the model's last
-prediction, and the monitor's sums), so it is a stateful predictor (`sim.predictor.is_stateful`):
+The guard keeps state (per world and vehicle the applied fraction, the gain, the evidence, the
+model's last prediction, and the monitor's sums), so it is a stateful predictor (`sim.predictor.is_stateful`):
 the simulator resets it with its worlds, tells it which are due, and calls ``observe`` after
 every tick. ``applied`` holds the fraction applied at each world's last due call, which the
 simulator logs per tick and vehicle. A call runs the compiled pass
@@ -63,8 +77,8 @@ from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
 from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
-from downwash.guard_fused import (CMD, DEN, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_WIDTH, NEXT, NUM, RAW, VEL,
-                                  guard_into, monitor_into, pack_guard)
+from downwash.guard_fused import (CMD, DEN, EVIDENCE, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_WIDTH, NEXT, NUM, RAW,
+                                  VEL, guard_into, monitor_into, pack_guard)
 from downwash.predictor import clamp_magnitude
 from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
                               support_of)
@@ -75,7 +89,8 @@ __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "Guard
            "guard_settings"]
 
 # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound; s, the monitor's memory; (m/s^2)^2, its prior
-GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0}
+# and the skepticism of its evidence outside the support (module doc)
+GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0, "skeptic": 5.0}
 
 
 def guard_settings() -> dict[str, Any]:
@@ -91,7 +106,8 @@ class GuardedPredictor:
     support: a `Support`, by default the one its checkpoint's training data recorded;
     recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound;
     monitor: s, the time constant of the monitor's sums; prior: (m/s^2)^2, its prior evidence that
-    the model is right (module doc);
+    the model is right; skeptic: (m/s^2)^2, the evidence a model outside its support must first
+    outweigh (module doc; inf: the support alone decides there);
     vehicle_kinds: the scene's V vehicle kinds (names or `VehicleKind`s; None: paper quads), as
     ``for_vehicles`` tells them.
     """
@@ -101,7 +117,7 @@ class GuardedPredictor:
     def __init__(self, predictor: Any, support: Support | None = None, recovery: float = GUARD_DEFAULTS["recovery"],
                  bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz,
                  vehicle_kinds: Any = None, monitor: float = GUARD_DEFAULTS["monitor"],
-                 prior: float = GUARD_DEFAULTS["prior"]):
+                 prior: float = GUARD_DEFAULTS["prior"], skeptic: float = GUARD_DEFAULTS["skeptic"]):
         if support is None:
             record = ((getattr(predictor, "record", None) or {}).get("data") or {}).get("support")
             if record is None:
@@ -109,12 +125,14 @@ class GuardedPredictor:
                                   "older code); retrain it, or pass support=downwash.guard.support_of(...)")
             support = Support.from_record(record)
         for name, value in (("recovery", recovery), ("bound", bound), ("predictor_hz", predictor_hz),
-                            ("monitor", monitor), ("prior", prior)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"{name}: expected a finite number > 0, got {value!r}")
+                            ("monitor", monitor), ("prior", prior), ("skeptic", skeptic)):
+            if not (isinstance(value, (int, float)) and (math.isfinite(value) or name == "skeptic" and value == math.inf)
+                    and value > 0):
+                what = "a number > 0 (inf: no authority outside the support)" if name == "skeptic" else "a finite number > 0"
+                raise ConfigError(f"{name}: expected {what}, got {value!r}")
         self.predictor, self.support, self.predictor_hz = predictor, support, float(predictor_hz)
         self.recovery, self.bound = float(recovery), float(bound)
-        self.monitor, self.prior = float(monitor), float(prior)
+        self.monitor, self.prior, self.skeptic = float(monitor), float(prior), float(skeptic)
         self.vehicle_kinds = None if vehicle_kinds is None else tuple(getattr(k, "name", k) for k in vehicle_kinds)
         self._kinds = None if vehicle_kinds is None else kind_descriptors(vehicle_kinds)  # (V, D)
         self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
@@ -133,7 +151,7 @@ class GuardedPredictor:
         if inner is self.predictor and mine.shape == told.shape and np.array_equal(mine, told):
             return self  # (the guard a scene of paper quads flies is the one it was given)
         return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds,
-                                self.monitor, self.prior)
+                                self.monitor, self.prior, self.skeptic)
 
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
@@ -144,7 +162,7 @@ class GuardedPredictor:
             self.predictor.reset(worlds)
 
     def _start(self, rows: Any) -> None:
-        """These rows of the guard's arrays as a fresh world's: nothing applied, gain 1, no tick seen."""
+        """These rows of the guard's arrays as a fresh world's: nothing applied, gain 1, no evidence, no tick seen."""
         self._state[rows] = 0.0
         self._state[rows, :, GAIN] = 1.0
         self._seen[rows] = 0.0
@@ -155,13 +173,14 @@ class GuardedPredictor:
         velocities vel_est (W, V, 3) m/s at its start, and the commands u_cmd (W, V, 3) m/s^2
         applied during it. The force of the tick before, (vel_est - its vel_est) / (t - its t) - its
         u_cmd, is paired with the prediction the model made before that tick (the one held through
-        it), and the gain set from the decayed sums. A world whose last tick is unseen (reset,
+        it), and the gain and the evidence set from the decayed sums. A world whose last tick is unseen (reset,
         ended, or not finite) adds nothing. Runs the compiled pass (`downwash.guard_fused.monitor_into`),
         tied to ``monitor_reference``."""
         state = self._state
         if state is None or len(state) != len(t):
             return  # (no call yet in these worlds: nothing predicted to judge)
-        monitor_into(t, vel_est, u_cmd, state, self._seen, self._seen_t, self.monitor, self.prior)  # (float64 arrays)
+        monitor_into(t, vel_est, u_cmd, state, self._seen, self._seen_t, self.monitor, self.prior,
+                     self.skeptic)  # (float64 arrays)
 
     def monitor_reference(self, t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray, state: np.ndarray,
                           seen: np.ndarray, seen_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -176,12 +195,24 @@ class GuardedPredictor:
         after[..., NUM] = np.where(ok, decay * seen[..., NUM] + dot(force, raw), seen[..., NUM])
         after[..., DEN] = np.where(ok, decay * seen[..., DEN] + dot(raw, raw), seen[..., DEN])
         state[..., GAIN] = np.clip((after[..., NUM] + self.prior) / (after[..., DEN] + self.prior), 0.0, 1.0)
+        state[..., EVIDENCE] = np.clip(after[..., NUM] / (after[..., DEN] + self.skeptic), 0.0, 1.0)
         after[..., HELD:HELD + 3], after[..., NEXT:NEXT + 3] = seen[..., NEXT:NEXT + 3], state[..., RAW:RAW + 3]
         after[..., VEL:VEL + 3], after[..., CMD:CMD + 3] = vel_est, u_cmd
         return state, after, np.array(t, dtype=np.float64)
 
     def confidence(self, estimated: VehicleStates) -> np.ndarray:
         """(W, V) in [0, 1]: each vehicle's lowest confidence over the pairs acting on it (1 with none)."""
+        x, acting = self._pairs(estimated)
+        return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
+
+    def kind_confidence(self, estimated: VehicleStates) -> np.ndarray:
+        """(W, V) in [0, 1]: ``confidence`` over the vehicle kinds alone (`Support.kind_confidence`)."""
+        x, acting = self._pairs(estimated)
+        return np.where(acting, self.support.kind_confidence(x), 1.0).min(axis=-1, initial=1.0)
+
+    def _pairs(self, estimated: VehicleStates) -> tuple[np.ndarray, np.ndarray]:
+        """Every (vehicle, neighbour) pair as the support describes it (W, V, K, features), and whether
+        it acts (the vehicle below its neighbour) (W, V, K)."""
         pos, vel, rot = estimated.pos, estimated.vel, estimated.rot
         index, mask = select_neighbours(pos, self.predictor.neighbours)
         g = gather_neighbours(pos, vel, rot, index, mask)
@@ -191,8 +222,7 @@ class GuardedPredictor:
             kind_a, kind_b = neighbour_kinds(self._kinds, index, mask), self._kinds[:, None, :]
         x = support_inputs(g["dp"], g["v_a"], np.broadcast_to(g["v_b"][..., None, :], g["dp"].shape), g["R_a"],
                            kind_a, kind_b)
-        acting = mask & (x[..., DEPTH_COLUMN] > 0)
-        return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
+        return x, mask & (x[..., DEPTH_COLUMN] > 0)
 
     def __call__(self, estimated: VehicleStates, true: VehicleStates | None = None,
                  due: np.ndarray | None = None) -> np.ndarray:
@@ -213,7 +243,8 @@ class GuardedPredictor:
         ``__call__`` runs: (the applied prediction, the next state, the applied fraction (due
         worlds')), for the model's prediction raw (W, V, 3), the state (W, V, GUARD_STATE_WIDTH) and
         due (W,) bool."""
-        frac = np.minimum(np.minimum(self.confidence(estimated), state[..., GAIN]), state[..., FRACTION] + self.step)
+        conf = np.minimum(self.kind_confidence(estimated), np.maximum(self.confidence(estimated), state[..., EVIDENCE]))
+        frac = np.minimum(np.minimum(conf, state[..., GAIN]), state[..., FRACTION] + self.step)
         out = clamp_magnitude(raw * frac[..., None], self.bound)
         raw_norm = np.sqrt(dot(raw, raw))
         applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
@@ -247,4 +278,4 @@ class GuardedPredictor:
     def describe(self) -> dict[str, Any]:
         inner = getattr(self.predictor, "describe", lambda: {})()
         return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound,
-                                   "monitor": self.monitor, "prior": self.prior}}
+                                   "monitor": self.monitor, "prior": self.prior, "skeptic": self.skeptic}}

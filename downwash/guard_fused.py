@@ -8,14 +8,17 @@ vehicle at a time, with the same operations in the same order, so its bits are N
    it: the generalised invariants (`downwash.fused.pair_inputs`, feature set "general", as
    `downwash.features.model_inputs`) and both vehicles' kinds;
 3. the pair's confidence, the product over features of ``clip(1 - beyond / margin, 0, 1)``
-   (`downwash.support.Support.confidence`), and the vehicle's, the lowest over its pairs (1 with none);
-4. the applied fraction ``min(confidence, gain, fraction + step)`` (``gain``: the monitor's, which
-   ``GuardedPredictor.observe`` sets between calls), kept in the due worlds only with the model's
-   prediction; the prediction scaled by it and bounded (`downwash.fused.clamped`, the bits of
-   `downwash.predictor.clamp_magnitude`); the fraction of the prediction applied.
+   (`downwash.support.Support.confidence`), and that of its kind features alone
+   (`downwash.support.Support.kind_confidence`); the vehicle's, the lowest of each over its pairs
+   (1 with none);
+4. the applied fraction ``min(kind confidence, max(confidence, evidence), gain, fraction + step)``
+   (``gain`` and ``evidence``: the monitor's, which ``GuardedPredictor.observe`` sets between
+   calls), kept in the due worlds only with the model's prediction; the prediction scaled by it
+   and bounded (`downwash.fused.clamped`, the bits of `downwash.predictor.clamp_magnitude`); the
+   fraction of the prediction applied.
 
 The guard's state per world and vehicle (`sim.predictor.GUARD_STATE_WIDTH` float64):
-``[fraction, gain, raw prediction (3)]``.
+``[fraction, gain, raw prediction (3), evidence]``.
 
 `tests/test_guard.py` ties it to the NumPy reference (`GuardedPredictor.confidence` and the
 guard's NumPy path) bit for bit. The C function `GUARD_FN` of `sim.predictor.GUARD_SIGNATURE` runs it in
@@ -38,14 +41,16 @@ from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, SUPPORT_FEATURES, Sup
 from sim.neighbours import NeighbourSet, select_into
 from sim.predictor import GUARD_SIGNATURE, GUARD_STATE_WIDTH
 
-__all__ = ["guard_into", "monitor_into", "pack_guard", "GUARD_FN", "FRACTION", "GAIN", "RAW", "MONITOR_WIDTH"]
+__all__ = ["guard_into", "monitor_into", "pack_guard", "GUARD_FN", "FRACTION", "GAIN", "RAW", "EVIDENCE",
+           "MONITOR_WIDTH"]
 
 _GENERAL = feature_code(GUARD_FEATURES)
 _N_INVARIANTS = len(SUPPORT_FEATURES) - 2 * len(KIND_FEATURES)
 _P_STEP, _P_BOUND, _P_RADIUS2, _N_FHEADER = 0, 1, 2, 3
 _I_K, _I_F, _I_D, _I_VK = 0, 1, 2, 3
-FRACTION, GAIN, RAW = 0, 1, 2  # the state's columns: the applied fraction, the monitor's gain, the raw prediction (3)
-assert GUARD_STATE_WIDTH == RAW + 3, "sim.predictor.GUARD_STATE_WIDTH must hold the columns above"
+# the state's columns: the applied fraction, the monitor's gain, the raw prediction (3), the monitor's evidence
+FRACTION, GAIN, RAW, EVIDENCE = 0, 1, 2, 5
+assert GUARD_STATE_WIDTH == EVIDENCE + 1, "sim.predictor.GUARD_STATE_WIDTH must hold the columns above"
 
 
 @njit
@@ -80,7 +85,7 @@ def guard_into(pos, vel, rot, due, pred, state, applied, params, iparams):
     for w in range(W):
         for j in range(V):  # target
             n = select_into(pos, w, j, radius2, K, key, idx)
-            conf = 1.0
+            conf = kind_conf = 1.0
             for s in range(n):
                 i = idx[s]  # neighbour
                 nx, ny, nz = rot[w, i, 0, 2], rot[w, i, 1, 2], rot[w, i, 2, 2]
@@ -93,11 +98,16 @@ def guard_into(pos, vel, rot, due, pred, state, applied, params, iparams):
                 for q in range(D):  # the neighbour's kind, then the target's (none told: paper quads, 0)
                     x[_N_INVARIANTS + q] = kinds[i, q] if VK > 0 else 0.0
                     x[_N_INVARIANTS + D + q] = kinds[j, q] if VK > 0 else 0.0
-                c = 1.0  # (1 c_0 = c_0: the product's bits as np.prod's, which starts at c_0)
+                c = ck = 1.0  # (1 c_0 = c_0: the products' bits as np.prod's, which starts at c_0)
                 for f in range(F):
                     beyond = _max(_max(lo[f] - x[f], x[f] - hi[f]), 0.0) / margin[f]
-                    c = c * _min(_max(1.0 - beyond, 0.0), 1.0)  # np.clip
+                    term = _min(_max(1.0 - beyond, 0.0), 1.0)  # np.clip
+                    c = c * term
+                    if f >= _N_INVARIANTS:  # a kind feature
+                        ck = ck * term
                 conf = _min(conf, c)
+                kind_conf = _min(kind_conf, ck)
+            conf = _min(kind_conf, _max(conf, state[w, j, EVIDENCE]))
             frac = _min(_min(conf, state[w, j, GAIN]), state[w, j, FRACTION] + step)
             rx, ry, rz = pred[w, j, 0], pred[w, j, 1], pred[w, j, 2]
             ox, oy, oz = clamped(rx * frac, ry * frac, rz * frac, bound)
@@ -129,11 +139,12 @@ MONITOR_WIDTH = 14
 
 
 @njit
-def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior):
+def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic):
     """The monitor after a tick (`downwash.guard`, ``GuardedPredictor.observe``): from its row's t (W,),
     vel_est and u_cmd (W, V, 3), the force of the tick before each vehicle felt, paired with the
-    prediction held through it; the sums (seen (W, V, MONITOR_WIDTH), decayed over `memory` s) and the
-    gain (state's GAIN column) advanced in place. seen_t (W,): the last tick's times (NaN: none)."""
+    prediction held through it; the sums (seen (W, V, MONITOR_WIDTH), decayed over `memory` s), the
+    gain (state's GAIN column, with its `prior`) and the evidence (its EVIDENCE column, with its
+    `skeptic`) advanced in place. seen_t (W,): the last tick's times (NaN: none)."""
     W, V = state.shape[0], state.shape[1]
     for w in range(W):
         dt = t[w] - seen_t[w]
@@ -150,6 +161,7 @@ def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior):
                     m[NUM] = decay * m[NUM] + (fx * rx + fy * ry + fz * rz)
                     m[DEN] = decay * m[DEN] + (rx * rx + ry * ry + rz * rz)
             state[w, j, GAIN] = _min(_max((m[NUM] + prior) / (m[DEN] + prior), 0.0), 1.0)
+            state[w, j, EVIDENCE] = _min(_max(m[NUM] / (m[DEN] + skeptic), 0.0), 1.0)
             for k in range(3):  # this tick's prediction was made before it: it is held through the next one
                 m[HELD + k], m[NEXT + k] = m[NEXT + k], state[w, j, RAW + k]
                 m[VEL + k], m[CMD + k] = vel_est[w, j, k], u_cmd[w, j, k]

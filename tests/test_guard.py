@@ -20,6 +20,7 @@ from downwash.set_models import SummedPairwise
 from downwash_core.errors import ConfigError
 from downwash_core.state import VehicleStates
 from sim.predictor import GUARD_STATE_WIDTH, PerWorldPredictor, ZeroPredictor, is_stateful
+from downwash.guard_fused import EVIDENCE
 from test_set_models import _one_torch_thread, randomised  # noqa: F401 (the fixture: one torch thread)
 
 K = len(SUPPORT_FEATURES)
@@ -100,6 +101,7 @@ def test_inside_the_support_the_prediction_passes_unchanged_once_recovered(suppo
 
 
 def test_far_outside_the_support_nothing_is_applied_and_recovery_is_rate_limited(support):
+    """With no evidence from the forces felt (nothing observed), far outside the support nothing is applied."""
     rng = np.random.default_rng(4)
     guard = _guard(support)
     inside, moving = _states(rng, 8), _states(rng, 8, leader_speed=4.0)
@@ -165,6 +167,11 @@ def test_the_guard_needs_a_support():
     with pytest.raises(ConfigError, match="recovery"):
         GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})), support_of(
             *_pairs(np.random.default_rng(0), 100)), recovery=0.0)
+    small = support_of(*_pairs(np.random.default_rng(0), 100))
+    for bad in ({"skeptic": 0.0}, {"skeptic": np.nan}, {"prior": np.inf}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})), small, **bad)
+    assert GuardedPredictor(LearnedPredictor(Checkpoint(SummedPairwise(model), {})), small, skeptic=np.inf).skeptic == np.inf
 
 
 def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarded(tmp_path):
@@ -187,7 +194,8 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     assert guard_record(["baseline", "deep"]) is None
     assert guard_record(["deep_guarded"]) == {"features": "general", "kinds": ["log_mass", "log_rotor_radius"],
                                               "support_quantile": 0.001, "margin": 0.25,
-                                              "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0}
+                                              "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0,
+                                                  "skeptic": 5.0}
 
 
 def test_the_loop_logs_the_applied_fraction(support):
@@ -198,7 +206,8 @@ def test_the_loop_logs_the_applied_fraction(support):
     from sim.flight import fly
     from sim.scene import build_scene
 
-    guard = _guard(support, 7, prior=1e12)  # (a monitor that trusts the random model: the support alone acts)
+    guard = _guard(support, 7, prior=1e12, skeptic=np.inf)  # (a monitor that trusts the random model inside the
+    # support and gives it nothing outside: the support alone acts)
     routed = PerWorldPredictor([guard, ZeroPredictor()], np.array([0, 0, 1]))
     top = np.array(LEADER_POSITION)
     leader = Line(top - [1.5, 0, 0], (3.0, 0.0, 0.0), duration=1.0, n_worlds=3)  # fast: out of the support
@@ -265,7 +274,7 @@ def test_the_compiled_pass_is_its_numpy_reference_bit_for_bit(support, neighbour
     rng = np.random.default_rng(10 + neighbours)
     model = randomised(make_model("equivariant_general").double(), 1).eval()
     base = GuardedPredictor(LearnedPredictor(wrap_pairwise(model, NeighbourSet(neighbours))), support)
-    seen = []
+    seen, kinds_seen = [], []
     for trial in range(8):
         W, V = 60, 4
         kinds = [["paper_quad", "x500", "crazyflie_2_1"][k] for k in rng.integers(0, 3, V)] if trial % 2 else None
@@ -281,6 +290,7 @@ def test_the_compiled_pass_is_its_numpy_reference_bit_for_bit(support, neighbour
         state = rng.normal(size=(W, V, GUARD_STATE_WIDTH))  # (the raw prediction before: overwritten where due)
         state[..., 0] = rng.uniform(0, 1, (W, V))  # the fraction
         state[..., 1] = np.where(rng.uniform(size=(W, V)) < 0.5, 1.0, rng.uniform(0, 1, (W, V)))  # the gain
+        state[..., EVIDENCE] = np.where(rng.uniform(size=(W, V)) < 0.5, 0.0, rng.uniform(0, 1, (W, V)))
         due = rng.uniform(size=W) < 0.7
         want_out, want_state, want_applied = guard.reference(states, raw, state, due)
         out, got_state, got_applied = raw.copy(), state.copy(), np.full((W, V), -1.0)
@@ -291,8 +301,10 @@ def test_the_compiled_pass_is_its_numpy_reference_bit_for_bit(support, neighbour
         np.testing.assert_array_equal(got_applied[due], want_applied[due])
         assert np.all(got_applied[~due] == -1.0)  # only the due worlds' applied fraction is written
         seen.append(guard.confidence(states).ravel())
-    seen = np.concatenate(seen)
+        kinds_seen.append(guard.kind_confidence(states).ravel())
+    seen, kinds_seen = np.concatenate(seen), np.concatenate(kinds_seen)
     assert np.mean(seen == 1.0) > 0.05 and np.mean(seen == 0.0) > 0.05 and np.mean((seen > 0) & (seen < 1)) > 0.01
+    assert np.mean(kinds_seen == 0.0) > 0.05 and np.mean((kinds_seen == 1.0) & (seen < 1)) > 0.05
 
 
 def _observe_forces(guard, states, scale, rng, seconds=2.0, noise=1.0, dt=0.02):
@@ -350,6 +362,40 @@ def test_the_monitor_starts_afresh_and_skips_ticks_it_cannot_judge(support):
     guard.observe(stopped, vel, np.zeros((W, V, 3)))
     np.testing.assert_array_equal(guard._state[1:, :, 1], before[1:])
     assert guard._state[0, 1, 1] == 1.0  # world 0: its first force is judged at its next tick
+
+
+@pytest.mark.parametrize("scale", [-1.0, 0.0, 1.0])
+def test_outside_the_support_only_the_forces_felt_give_a_model_authority(support, scale):
+    """A leader moving at 4 m/s, far outside a hovering leader's support: nothing is applied until the
+    forces felt agree with the model. Then its authority is the monitor's evidence, sum f.r / (sum |r|^2 +
+    skeptic): a right model earns most of it within two seconds, one that points the wrong way or at
+    nothing earns none (to the noise's reach). A vehicle kind the data never held gets nothing, whatever
+    the evidence."""
+    rng = np.random.default_rng(14)
+    guard = _guard(support, 3, bound=1e6)
+    states = _states(rng, 16, leader_speed=4.0)
+    assert np.all(guard.confidence(states)[:, 1] == 0.0) and np.all(guard.kind_confidence(states) == 1.0)
+    np.testing.assert_array_equal(guard(states)[:, 1], 0.0)  # no evidence yet
+    _observe_forces(guard, states, scale, rng)
+    evidence = guard._state[:, 1, EVIDENCE]
+    sums = guard._seen[:, 1]
+    np.testing.assert_allclose(evidence, np.clip(sums[:, 0] / (sums[:, 1] + guard.skeptic), 0, 1), rtol=1e-12)
+    out = guard(states)
+    raw = guard.predictor(states)
+    strength = np.linalg.norm(raw[:, 1], axis=-1)
+    if scale == 1.0:
+        assert np.all(evidence[strength > 1.0] > 0.8) and np.all(evidence > 0.3), (evidence, strength)
+        np.testing.assert_allclose(guard.applied[:, 1], np.minimum(evidence, guard._state[:, 1, 1]), atol=1e-12)
+    elif scale == -1.0:
+        np.testing.assert_array_equal(out[:, 1], 0.0)
+    else:
+        # (the noise's reach: the evidence's spread is about 0.12 / |r|; 16 worlds)
+        assert np.all(guard.applied[:, 1] < 0.4 / np.maximum(strength, 0.5)), (guard.applied[:, 1], strength)
+    heavy = guard.for_vehicles(["x500", "paper_quad"])  # the same flight under a kind of leader the data never held
+    assert np.all(heavy.kind_confidence(states)[:, 1] == 0.0)
+    _observe_forces(heavy, _states(rng, 16), 1.0, rng)  # inside the continuous support, and right
+    assert np.all(heavy._state[:, 1, EVIDENCE] > 0.3)
+    np.testing.assert_array_equal(heavy(_states(rng, 16))[:, 1], 0.0)
 
 
 class _ScaledOracle:
@@ -422,5 +468,5 @@ def test_the_compiled_monitor_is_its_numpy_reference(support):
         np.testing.assert_allclose(guard._seen, want_seen, rtol=1e-13, atol=1e-300)
         np.testing.assert_array_equal(guard._seen_t, want_t)
         judged = (t - seen_t > 0)[:, None] & np.isfinite(vel).all(-1)
-        assert judged.mean() > 0.5 and (~judged).mean() > 0.1
+        assert judged.mean() > 0.4 and (~judged).mean() > 0.1  # (about 0.53 and 0.47)
         np.testing.assert_array_equal(guard._seen[~judged][:, :2], seen[~judged][:, :2])  # unjudged: sums unchanged
