@@ -4,8 +4,9 @@ Stage 0 flies far below the leader (1.35-1.75 m) with no model; stage 1 flies
 closer with the stage-0 equivariant model compensating; stage 2 flies at about
 0.5 m with the stage-1 model. Each deployed model is clamped (``clamp``) and, with
 ``guard`` (``--guard-stages``), flies behind the guard (`downwash.guard`): a stage model
-applies nothing where the closer stage leaves its training data's support, so collecting
-closer is never riskier than flying without a model (the paper's worry). Off by default:
+applies nothing where the closer stage leaves its training data's support until the forces
+felt there show it right, so collecting closer is no riskier than flying without a model
+(the paper's worry). Off by default:
 the paper deploys its stage models clamped only, and the main job reproduces it.
 
 Each stage is ~5.7 minutes of varied flights
