@@ -63,12 +63,14 @@ def test_the_regime_models_fly_beside_the_indoor_ones_and_a_rerun_reuses_their_d
     assert np.linalg.norm(leader[-1] - leader[0]) > 0.5  # the leader moves
     assert log.meta["wind"]["mean"][0] == pytest.approx(2.0 * np.cos(np.radians(120.0)))
     # the stages fly the indoor equivariant model, clamped and guarded; the guard sees a leader moving
-    # faster than the indoor data held and applies (next to) nothing, and the results say how much
+    # faster than the indoor data held: nothing is applied until the forces felt agree with the model
+    # (inside the support the first call would apply recovery / 45 Hz = 0.11), then never in full
+    # here, and the results say how much
     deployed = made["deployed"]
     assert deployed["kind"] == "equivariant" and deployed["clamp"] == 6.0 and deployed["guard"]["bound"] == 6.0
     applied = log.arrays["applied"][:, log.meta["follower"]]
-    assert np.all((applied >= 0) & (applied <= 1)) and np.mean(applied) < 0.2
-    assert all(0 <= s["deployed_applied"] < 0.2 for s in made["stages"])
+    assert np.all((applied >= 0) & (applied <= 1)) and applied[0] == 0.0 and np.mean(applied) < 0.75
+    assert all(0 <= s["deployed_applied"] < 0.75 for s in made["stages"])
     assert load_checkpoint(tmp_path / made["models"]["equivariant"]["path"]).record["model"]["kind"] == "equivariant"
     winds = made["data_winds"]  # indoor (no wind) and every outdoor setting, joined on purpose
     assert winds[0] is None and len(winds) == len(OUTDOOR_WINDS)  # still air: the indoor stages' and the first
