@@ -62,7 +62,7 @@ every tick. ``applied`` holds the fraction applied at each world's last due call
 simulator logs per tick and vehicle. A call runs the compiled pass
 (`downwash.guard_fused`), tested bit for bit against its NumPy reference (``reference``,
 ``confidence``); around a model with a compiled form and no state, the simulator's fused
-tick runs the same pass after the model (``compiled_guard``).
+tick runs the same pass after the model, and its monitor at the end of the tick (``compiled_guard``).
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
 from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
-from downwash.guard_fused import (CMD, DEN, EVIDENCE, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_WIDTH, NEXT, NUM, RAW,
-                                  VEL, guard_into, monitor_into, pack_guard)
+from downwash.guard_fused import (CMD, DEN, EVIDENCE, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_FN, MONITOR_WIDTH, NEXT,
+                                  NUM, RAW, VEL, guard_into, monitor_into, pack_guard)
 from downwash.predictor import clamp_magnitude
 from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
                               support_of)
@@ -141,6 +141,7 @@ class GuardedPredictor:
         self._seen: np.ndarray | None = None  # (W, V, MONITOR_WIDTH) the monitor's sums and last ticks (`observe`)
         self._seen_t: np.ndarray | None = None  # (W,) the time of each world's last tick seen (NaN: none)
         self._pack = pack_guard(self.support, predictor.neighbours, self.step, self.bound, self._kinds)
+        self._monitor_pack = (np.array([self.monitor, self.prior, self.skeptic]), np.array([MONITOR_WIDTH], np.int64))
 
     def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
         """This guard for a scene of these vehicle kinds: its support check reads them, and its
@@ -254,12 +255,14 @@ class GuardedPredictor:
 
     def compiled_guard(self, W: int, V: int) -> tuple[CompiledPredictor, CompiledGuard] | None:
         """The fused loop's form (`sim.predictor`): the model's compiled predictor and this guard's
-        pass over its (W, V) state; None when the model has no compiled form or keeps state."""
+        pass over its (W, V) state, with its monitor (``observe``) compiled; None when the model has
+        no compiled form or keeps state."""
         inner = None if is_stateful(self.predictor) else getattr(self.predictor, "compiled", lambda: None)()
         if inner is None or (self._kinds is not None and len(self._kinds) != V):
             return None
         state, applied = self._arrays(W, V)
-        return inner, CompiledGuard(GUARD_FN.address, *self._pack, state, applied)
+        return inner, CompiledGuard(GUARD_FN.address, *self._pack, state, applied, MONITOR_FN.address,
+                                    *self._monitor_pack, self._seen, self._seen_t)
 
     def _arrays(self, W: int, V: int) -> tuple[np.ndarray, np.ndarray]:
         """The state (W, V, GUARD_STATE_WIDTH) and applied (W, V) arrays the calls advance in place

@@ -39,9 +39,9 @@ from downwash.features import KIND_FEATURES
 from downwash.fused import clamped, feature_code, pair_inputs
 from downwash.support import DEPTH_COLUMN, GUARD_FEATURES, SUPPORT_FEATURES, Support
 from sim.neighbours import NeighbourSet, select_into
-from sim.predictor import GUARD_SIGNATURE, GUARD_STATE_WIDTH
+from sim.predictor import GUARD_SIGNATURE, GUARD_STATE_WIDTH, MONITOR_SIGNATURE
 
-__all__ = ["guard_into", "monitor_into", "pack_guard", "GUARD_FN", "FRACTION", "GAIN", "RAW", "EVIDENCE",
+__all__ = ["guard_into", "monitor_into", "pack_guard", "GUARD_FN", "MONITOR_FN", "FRACTION", "GAIN", "RAW", "EVIDENCE",
            "MONITOR_WIDTH"]
 
 _GENERAL = feature_code(GUARD_FEATURES)
@@ -165,6 +165,17 @@ def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic)
             for k in range(3):  # this tick's prediction was made before it: it is held through the next one
                 m[HELD + k], m[NEXT + k] = m[NEXT + k], state[w, j, RAW + k]
                 m[VEL + k], m[CMD + k] = vel_est[w, j, k], u_cmd[w, j, k]
+
+
+@numba.cfunc(MONITOR_SIGNATURE, cache=True, nopython=True)
+def _monitor_c(n_worlds, n_veh, t, vel_est, u_cmd, state, seen, seen_t, params, iparams):
+    p = carray(params, (3,))  # memory, prior, skeptic
+    monitor_into(carray(t, (n_worlds,)), carray(vel_est, (n_worlds, n_veh, 3)), carray(u_cmd, (n_worlds, n_veh, 3)),
+                 carray(state, (n_worlds, n_veh, GUARD_STATE_WIDTH)),
+                 carray(seen, (n_worlds, n_veh, carray(iparams, (1,))[0])), carray(seen_t, (n_worlds,)), p[0], p[1], p[2])
+
+
+MONITOR_FN = _monitor_c  # the monitor as the fused tick calls it (`sim.predictor.MONITOR_SIGNATURE`)
 
 
 def pack_guard(support: Support, neighbours: NeighbourSet, step: float, bound: float,

@@ -113,6 +113,21 @@ def _call_predictor(typingctx, fn, n_worlds, n_veh, pos, vel, rot, true_pos, tru
     return sig, codegen
 
 
+@intrinsic
+def _call_monitor(typingctx, fn, n_worlds, n_veh, t, vel, u, state, seen, seen_t, params, iparams):
+    """A `sim.predictor.MONITOR_SIGNATURE` function at address fn; the array arguments are addresses."""
+    sig = types.void(types.intp, types.int64, types.int64, *(types.intp,) * 8)
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        fnty = ir.FunctionType(ir.VoidType(), [i64, i64] + [_VOIDP] * 8)
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, [args[1], args[2]] + [builder.inttoptr(a, _VOIDP) for a in args[3:]])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 # How the fused kernel's physics steps: the caller steps it (a batch with models of its
 # own per world), mj_step on the single world's MjData, or each world's state row loaded
 # into a scratch MjData of its thread, stepped and saved (as mujoco.batch does).
@@ -133,6 +148,7 @@ _TAB = (
     "row_ref_acc", "row_u_cmd", "row_f_hat", "row_mean", "row_wind", "row_wind_acc",
     "guard", "guard_fn", "guard_params", "guard_iparams", "guard_state", "guard_applied", "row_guard",
     "pw_guard_fn", "pw_guard_params", "pw_guard_iparams", "pw_guard_state", "pw_guard_applied", "pw_guarded",
+    "monitor_fn", "monitor_params", "monitor_iparams", "seen", "seen_stride", "seen_t",
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
@@ -147,7 +163,7 @@ _TAB = (
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC,
  _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_STATE, _T_GUARD_APPLIED,
  _T_ROW_GUARD, _T_PW_GUARD_FN, _T_PW_GUARD_PARAMS, _T_PW_GUARD_IPARAMS, _T_PW_GUARD_STATE, _T_PW_GUARD_APPLIED,
- _T_PW_GUARDED) = range(len(_TAB))
+ _T_PW_GUARDED, _T_MONITOR_FN, _T_MONITOR_PARAMS, _T_MONITOR_IPARAMS, _T_SEEN, _T_SEEN_STRIDE, _T_SEEN_T) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
 # (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
 # pairs' field_scale, radius_xy, radius_z (V, V): `sim.vehicle_params`.)
@@ -456,6 +472,12 @@ def _make_fused_kernel(with_wind: bool):
                     carray(_f64p(tab[_T_RADIUS_Z]), (V, V)),
                     carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
                 )
+                if tab[_T_MONITOR_FN] != 0:  # the guard's monitor on the tick's row (its observe), these worlds'
+                    base, V3W = row.ctypes.data, 8 * V3 * w0
+                    _call_monitor(tab[_T_MONITOR_FN], W, V, base + 8 * (tab[_T_ROW_T] + w0),
+                                  base + 8 * (tab[_T_ROW_KIN] + 4 * n_worlds * V3) + V3W, base + 8 * tab[_T_ROW_U_CMD] + V3W,
+                                  tab[_T_GUARD_STATE] + 8 * V * GUARD_STATE_WIDTH * w0, tab[_T_SEEN] + tab[_T_SEEN_STRIDE] * w0,
+                                  tab[_T_SEEN_T] + 8 * w0, tab[_T_MONITOR_PARAMS], tab[_T_MONITOR_IPARAMS])
             if helper:
                 fork_join.report(ctl, role - fork_join.HELPER, total, n_taken)
                 total = 0

@@ -15,7 +15,8 @@ when every component has a compiled form, else None. The fused path needs
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
   `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`)
   but a guard whose ``compiled_guard(W, V)`` gives its model's C function and its own pass,
-  alone or among the predictors of a `PerWorldPredictor`;
+  alone or among the predictors of a `PerWorldPredictor` (alone, its monitor runs compiled at
+  the end of the kernel's tick too, in place of the simulator's call of ``observe``);
 - the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
   sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
@@ -159,11 +160,18 @@ class _Plan:
         if guard is not None:  # its state by address: the guard's own arrays, which its calls and resets share
             keep.update(guard_params=guard.params, guard_iparams=guard.iparams, guard_state=guard.state,
                         guard_applied=guard.applied)
+        # the guard's monitor runs at the end of the kernel's tick (not when the caller steps the physics:
+        # the kernel runs one autopilot tick per call then, and the simulator calls observe)
+        self.monitors = guard is not None and guard.monitor != 0 and stepping != _STEP_CALLER
+        if self.monitors:
+            keep.update(monitor_params=guard.monitor_params, monitor_iparams=guard.monitor_iparams, seen=guard.seen,
+                        seen_t=guard.seen_t)
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
                    n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code,
                    guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address),
-                   pw_guarded=int(pw_guards))
+                   pw_guarded=int(pw_guards), monitor_fn=int(guard.monitor) if self.monitors else 0,
+                   seen_stride=guard.seen.strides[0] if self.monitors else 0)
         sizes = _chunk_sizes(W, n_threads, _CHUNK_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])

@@ -52,6 +52,7 @@ __all__ = [
     "CompiledGuard",
     "GUARD_SIGNATURE",
     "GUARD_STATE_WIDTH",
+    "MONITOR_SIGNATURE",
     "is_stateful",
 ]
 
@@ -68,6 +69,11 @@ PREDICTOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P,
 GUARD_STATE_WIDTH = 6  # float64 per world and vehicle of a guard's state (its layout is the guard's)
 GUARD_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _nb.CPointer(_nb.uint8), _F64P, _F64P, _F64P,
                            _F64P, _I64P)
+# void m(n_worlds, n_vehicles, t, vel_est, u_cmd, state, seen, seen_t, params, iparams): a guard's
+# monitor after a tick (its ``observe``), from the tick's row: t (W,) s, vel_est (W, V, 3) m/s and
+# u_cmd (W, V, 3) m/s^2; it advances the guard's state (W, V, GUARD_STATE_WIDTH), its own memory
+# seen (W, V, iparams[0]) and seen_t (W,) in place; params / iparams its own constants.
+MONITOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _I64P)
 
 
 class CompiledPredictor(NamedTuple):
@@ -87,13 +93,21 @@ class CompiledPredictor(NamedTuple):
 class CompiledGuard(NamedTuple):
     """A guard's compiled pass for the fused loop (module doc): the address of a C function of
     `GUARD_SIGNATURE`, its params (float64) and iparams (int64), and the float64 arrays it advances,
-    ``state`` (W, V, `GUARD_STATE_WIDTH`) and ``applied`` (W, V), C-contiguous and owned by the guard."""
+    ``state`` (W, V, `GUARD_STATE_WIDTH`) and ``applied`` (W, V), C-contiguous and owned by the guard.
+    Optionally its ``observe`` compiled: the address of a C function of `MONITOR_SIGNATURE` (0: none,
+    the simulator calls ``observe``), its constants and its memory (``seen`` (W, V, n) and
+    ``seen_t`` (W,)), which the fused tick runs after each tick instead."""
 
     address: int
     params: np.ndarray
     iparams: np.ndarray
     state: np.ndarray
     applied: np.ndarray
+    monitor: int = 0
+    monitor_params: np.ndarray | None = None
+    monitor_iparams: np.ndarray | None = None
+    seen: np.ndarray | None = None
+    seen_t: np.ndarray | None = None
 
 
 @runtime_checkable

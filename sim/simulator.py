@@ -426,7 +426,7 @@ class Simulator:
                 plan = self._plan
             row = self._tick_fused(plan, residual, override) if plan is not None else self._tick_readable(residual,
                                                                                                          override)
-            if self._observe is not None:
+            if self._observe is not None and not (plan is not None and plan.monitors):  # (else the kernel did)
                 self._observe(row["t"], row["vel_est"], row["u_cmd"])
             self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
         finally:

@@ -195,9 +195,11 @@ def test_fused_equals_readable_with_a_guard(scene, models, W):
     applied = np.array([r["applied"][:, 1] for r in rows[0]])
     assert np.mean((applied > 0) & (applied < 1)) > 0.2 and np.max(applied) > 0.5
     assert np.min(fused._scene_predictor._state[:, 1, 1]) < 0.9  # the monitor's gain (random weights: the forces disagree)
-    assert fused._plan.guard is not None and readable._plan is None
+    assert fused._plan.guard is not None and fused._plan.monitors and readable._plan is None  # (its monitor in the kernel)
     assert np.shares_memory(fused._plan.arrays["guard_state"], fused._scene_predictor._state)
     np.testing.assert_array_equal(fused._scene_predictor._state, readable._scene_predictor._state)  # gains included
+    for name in ("_seen", "_seen_t"):  # the monitor's memory: observed once per tick on both paths, the same bits
+        np.testing.assert_array_equal(getattr(fused._scene_predictor, name), getattr(readable._scene_predictor, name))
     for sim in (fused, readable):
         sim.reset(np.array([0]))
     assert np.all(fused._scene_predictor._state[0, :, 0] == 0.0) and np.all(fused._scene_predictor._state[0, :, 1] == 1)
