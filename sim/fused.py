@@ -98,34 +98,29 @@ def _call_state(typingctx, fn, model, data, state, spec):
     return sig, codegen
 
 
-@intrinsic
-def _call_predictor(typingctx, fn, n_worlds, n_veh, pos, vel, rot, true_pos, true_vel, true_rot, params, iparams, out):
-    """A `sim.predictor.PREDICTOR_SIGNATURE` function at address fn; the array arguments are addresses."""
-    sig = types.void(types.intp, types.int64, types.int64, *(types.intp,) * 9)
+def _call_codegen(n_pointers: int):
+    """The code of a call of a C function at an address: (n_worlds, n_vehicles, n_pointers addresses)."""
 
     def codegen(context, builder, signature, args):
         i64 = ir.IntType(64)
-        fnty = ir.FunctionType(ir.VoidType(), [i64, i64] + [_VOIDP] * 9)
+        fnty = ir.FunctionType(ir.VoidType(), [i64, i64] + [_VOIDP] * n_pointers)
         f = builder.inttoptr(args[0], fnty.as_pointer())
         builder.call(f, [args[1], args[2]] + [builder.inttoptr(a, _VOIDP) for a in args[3:]])
         return context.get_dummy_value()
 
-    return sig, codegen
+    return codegen
+
+
+@intrinsic
+def _call_predictor(typingctx, fn, n_worlds, n_veh, pos, vel, rot, true_pos, true_vel, true_rot, params, iparams, out):
+    """A `sim.predictor.PREDICTOR_SIGNATURE` function at address fn; the array arguments are addresses."""
+    return types.void(types.intp, types.int64, types.int64, *(types.intp,) * 9), _call_codegen(9)
 
 
 @intrinsic
 def _call_monitor(typingctx, fn, n_worlds, n_veh, t, vel, u, state, seen, seen_t, params, iparams):
     """A `sim.predictor.MONITOR_SIGNATURE` function at address fn; the array arguments are addresses."""
-    sig = types.void(types.intp, types.int64, types.int64, *(types.intp,) * 8)
-
-    def codegen(context, builder, signature, args):
-        i64 = ir.IntType(64)
-        fnty = ir.FunctionType(ir.VoidType(), [i64, i64] + [_VOIDP] * 8)
-        f = builder.inttoptr(args[0], fnty.as_pointer())
-        builder.call(f, [args[1], args[2]] + [builder.inttoptr(a, _VOIDP) for a in args[3:]])
-        return context.get_dummy_value()
-
-    return sig, codegen
+    return types.void(types.intp, types.int64, types.int64, *(types.intp,) * 8), _call_codegen(8)
 
 
 # How the fused kernel's physics steps: the caller steps it (a batch with models of its
