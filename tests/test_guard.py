@@ -13,6 +13,7 @@ from downwash.conditions import GUARDED, data_variant, learned, make_predictor, 
 from downwash.datasets import Dataset
 from downwash.features import FEATURE_SETS
 from downwash.guard import GUARD_FEATURES, GuardedPredictor, Support, support_of
+from downwash.guard_fused import EVIDENCE
 from downwash.support import SUPPORT_FEATURES, support_inputs
 from downwash.predictor import LearnedPredictor
 from downwash.registry import make_model
@@ -20,7 +21,6 @@ from downwash.set_models import SummedPairwise
 from downwash_core.errors import ConfigError
 from downwash_core.state import VehicleStates
 from sim.predictor import GUARD_STATE_WIDTH, PerWorldPredictor, ZeroPredictor, is_stateful
-from downwash.guard_fused import EVIDENCE
 from test_set_models import _one_torch_thread, randomised  # noqa: F401 (the fixture: one torch thread)
 
 K = len(SUPPORT_FEATURES)
@@ -195,7 +195,7 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     assert guard_record(["deep_guarded"]) == {"features": "general", "kinds": ["log_mass", "log_rotor_radius"],
                                               "support_quantile": 0.001, "margin": 0.25,
                                               "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0,
-                                                  "skeptic": 5.0}
+                                              "skeptic": 5.0}
 
 
 def test_the_loop_logs_the_applied_fraction(support):
