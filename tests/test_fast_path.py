@@ -119,7 +119,7 @@ def test_threads_and_models_of_their_own(scene, models):
     plan = fused[1]._plan
     assert plan.stepping == _STEP_ROWS and plan.n_threads == 2  # chunks of worlds, large first, on two threads
     bounds = plan.chunks[1, :, :2]
-    assert np.array_equal(np.diff(bounds, axis=1)[:, 0], [8, 8, 4, 4, 4, 5]) and bounds[0, 0] == 0
+    assert np.array_equal(np.diff(bounds, axis=1)[:, 0], [8, 8, 4, 4, 2, 2, 2, 3]) and bounds[0, 0] == 0
     assert np.array_equal(bounds[1:, 0], bounds[:-1, 1]) and bounds[-1, 1] == 33
     _assert_same(fused, readable)
     out = []
