@@ -93,6 +93,12 @@ __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "Guard
 GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0, "skeptic": 5.0}
 
 
+def _lowest(x: np.ndarray, acting: np.ndarray, of: Any) -> np.ndarray:
+    """(W, V): each vehicle's lowest `of` (a `Support` confidence) over the pairs x (W, V, K, features)
+    acting on it (acting (W, V, K)); 1 with none."""
+    return np.where(acting, of(x), 1.0).min(axis=-1, initial=1.0)
+
+
 def guard_settings() -> dict[str, Any]:
     """The guard's settings as the experiments record them beside a guarded condition's results."""
     return {"features": GUARD_FEATURES, "kinds": list(KIND_FEATURES), "support_quantile": SUPPORT_QUANTILE,
@@ -203,13 +209,11 @@ class GuardedPredictor:
 
     def confidence(self, estimated: VehicleStates) -> np.ndarray:
         """(W, V) in [0, 1]: each vehicle's lowest confidence over the pairs acting on it (1 with none)."""
-        x, acting = self._pairs(estimated)
-        return np.where(acting, self.support.confidence(x), 1.0).min(axis=-1, initial=1.0)
+        return _lowest(*self._pairs(estimated), self.support.confidence)
 
     def kind_confidence(self, estimated: VehicleStates) -> np.ndarray:
         """(W, V) in [0, 1]: ``confidence`` over the vehicle kinds alone (`Support.kind_confidence`)."""
-        x, acting = self._pairs(estimated)
-        return np.where(acting, self.support.kind_confidence(x), 1.0).min(axis=-1, initial=1.0)
+        return _lowest(*self._pairs(estimated), self.support.kind_confidence)
 
     def _pairs(self, estimated: VehicleStates) -> tuple[np.ndarray, np.ndarray]:
         """Every (vehicle, neighbour) pair as the support describes it (W, V, K, features), and whether
@@ -244,7 +248,9 @@ class GuardedPredictor:
         ``__call__`` runs: (the applied prediction, the next state, the applied fraction (due
         worlds')), for the model's prediction raw (W, V, 3), the state (W, V, GUARD_STATE_WIDTH) and
         due (W,) bool."""
-        conf = np.minimum(self.kind_confidence(estimated), np.maximum(self.confidence(estimated), state[..., EVIDENCE]))
+        x, acting = self._pairs(estimated)
+        support, kinds = (_lowest(x, acting, of) for of in (self.support.confidence, self.support.kind_confidence))
+        conf = np.minimum(kinds, np.maximum(support, state[..., EVIDENCE]))
         frac = np.minimum(np.minimum(conf, state[..., GAIN]), state[..., FRACTION] + self.step)
         out = clamp_magnitude(raw * frac[..., None], self.bound)
         raw_norm = np.sqrt(dot(raw, raw))

@@ -56,15 +56,17 @@ class Support:
     def confidence(self, x: np.ndarray) -> np.ndarray:
         """(...,) in [0, 1]: 1 inside the support, the product over features of a linear fall to 0
         one margin beyond it, for features x (..., k)."""
-        beyond = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0) / self.margin
-        return np.prod(np.clip(1.0 - beyond, 0.0, 1.0), axis=-1)
+        return np.prod(self._terms(x), axis=-1)
 
     def kind_confidence(self, x: np.ndarray) -> np.ndarray:
         """(...,) in [0, 1]: ``confidence`` over the kind features alone (the last 2 x
         len(KIND_FEATURES) of ``SUPPORT_FEATURES``): whether the data held these vehicle kinds."""
-        k = 2 * len(KIND_FEATURES)
-        beyond = np.maximum(np.maximum(self.lo[-k:] - x[..., -k:], x[..., -k:] - self.hi[-k:]), 0.0) / self.margin[-k:]
-        return np.prod(np.clip(1.0 - beyond, 0.0, 1.0), axis=-1)
+        return np.prod(self._terms(x)[..., -2 * len(KIND_FEATURES):], axis=-1)
+
+    def _terms(self, x: np.ndarray) -> np.ndarray:
+        """(..., k): each feature's factor of the confidence, clip(1 - beyond / margin, 0, 1)."""
+        beyond = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0) / self.margin
+        return np.clip(1.0 - beyond, 0.0, 1.0)
 
     def describe(self) -> dict[str, Any]:
         return {"features": list(SUPPORT_FEATURES), "quantile": SUPPORT_QUANTILE,

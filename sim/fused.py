@@ -467,7 +467,8 @@ def _make_fused_kernel(with_wind: bool):
                     carray(_f64p(tab[_T_RADIUS_Z]), (V, V)),
                     carray(_i64p(tab[_T_STATUS_NEW]), (n_worlds,))[w0:w1],
                 )
-                if tab[_T_MONITOR_FN] != 0:  # the guard's monitor on the tick's row (its observe), these worlds'
+                if tab[_T_MONITOR_FN] != 0:  # the guard's monitor on these worlds' row (its observe): t, vel_est
+                    # (the row's kin block, (5, W, V, 3), slot 4) and u_cmd
                     base, V3W = row.ctypes.data, 8 * V3 * w0
                     _call_monitor(tab[_T_MONITOR_FN], W, V, base + 8 * (tab[_T_ROW_T] + w0),
                                   base + 8 * (tab[_T_ROW_KIN] + 4 * n_worlds * V3) + V3W, base + 8 * tab[_T_ROW_U_CMD] + V3W,

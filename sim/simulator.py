@@ -279,7 +279,6 @@ class Simulator:
                                    self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self._scene_predictor) or self._scene_predictor
         self._predictor_state = is_stateful(self._scene_predictor)
-        self._observe = getattr(self._scene_predictor, "observe", None)  # (sim.predictor: after each tick)
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -301,6 +300,7 @@ class Simulator:
             self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
         )
         self._plan = _make_plan(self) if self.fast else None
+        self._observe = None if getattr(self._plan, "monitors", False) else getattr(self._scene_predictor, "observe", None)
         if self.fast and not _compiled_controller(self.controller) and not self.__dict__.get("_warned_readable"):
             self.__dict__["_warned_readable"] = True  # once per simulator
             log.warning("Simulator: the controller %s has no compiled form (the fused tick runs exactly "
@@ -426,7 +426,7 @@ class Simulator:
                 plan = self._plan
             row = self._tick_fused(plan, residual, override) if plan is not None else self._tick_readable(residual,
                                                                                                          override)
-            if self._observe is not None and not (plan is not None and plan.monitors):  # (else the kernel did)
+            if self._observe is not None:  # (after each tick, sim.predictor; None where the plan's kernel runs it)
                 self._observe(row["t"], row["vel_est"], row["u_cmd"])
             self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
         finally:
