@@ -38,14 +38,24 @@ predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
   before any is seen, which the first second outweighs. Any scale in [0, 1] at most the
   least-squares one leaves the error no larger than no model's (``|f - k r|^2 <= |f|^2`` for
   ``0 <= k <= 2 f.r / |r|^2``), which is this guard's promise in expectation.
-- **Rate limit.** The applied fraction may drop at once but rises by at most
+  The monitor judges the prediction's lateral (x, y) and vertical (z) parts apart, with a gain
+  each (the promise holds for each part, and so for their sum): a model can be right about
+  the push down and wrong about the push sideways. Among a formation's moving neighbours the
+  pair-trained deep set's lateral predictions carry nothing (their least-squares scale about
+  0) while it under-predicts the vertical push (about 4); one gain over both applied the lateral
+  noise in full. The parts are those of the world's vertical axis, about which the models are
+  equivariant, so the guard is too. The evidence stays one sum over both parts: per part the
+  smaller lateral forces rarely outweigh the skepticism, and models outside their support lost
+  lateral help they had earned.
+- **Rate limit.** Each part's applied fraction may drop at once but rises by at most
   ``recovery`` per second (a model that left its support gets authority back over
   1 / recovery seconds, not in one tick).
 - **Hard bound.** The applied prediction's magnitude is at most ``bound`` m/s^2.
 
-The applied fraction is the lowest of the kinds' confidence, the larger of the support's
-confidence and the evidence, the monitor's gain and the rate limit. The applied prediction is
-``fraction * prediction`` (then bounded), so the guard never increases a prediction's magnitude,
+Each part's applied fraction is the lowest of the kinds' confidence, the larger of the support's
+confidence and the evidence, the monitor's gain of that part and the rate limit. The applied
+prediction is each part times its fraction (then bounded), so the guard never increases a
+prediction's magnitude,
 passes in-support inputs through unchanged once the fraction has recovered (while the forces
 felt agree: their noise costs a right model a percent or two of its gain in flight), and applies
 nothing far outside the support until the forces felt there agree with the model, and nothing
@@ -55,10 +65,11 @@ serves every model kind and checkpoint as it is, is exact and cheap at 45 Hz, an
 ensemble trained on indoor data can agree confidently on a regime it never saw (a moving
 leader): the support names that regime by its leader speed.
 
-The guard keeps state (per world and vehicle the applied fraction, the gain, the evidence, the
+The guard keeps state (per world and vehicle the applied fractions, the gains, the evidence, the
 model's last prediction, and the monitor's sums), so it is a stateful predictor (`sim.predictor.is_stateful`):
 the simulator resets it with its worlds, tells it which are due, and calls ``observe`` after
-every tick. ``applied`` holds the fraction applied at each world's last due call, which the
+every tick. ``applied`` holds the fraction of the prediction applied (|applied| / |prediction|)
+at each world's last due call, which the
 simulator logs per tick and vehicle. A call runs the compiled pass
 (`downwash.guard_fused`), tested bit for bit against its NumPy reference (``reference``,
 ``confidence``); around a model with a compiled form and no state, the simulator's fused
@@ -90,7 +101,13 @@ __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "Guard
 
 # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound; s, the monitor's memory; (m/s^2)^2, its prior
 # and the skepticism of its evidence outside the support (module doc)
+MONITOR_PARTS = ("lateral", "vertical")  # the parts of a prediction the monitor judges apart (module doc)
 GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0, "skeptic": 5.0}
+
+
+def _by_part(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(..., 2): the dot products of a and b (..., 3) over their lateral (x, y) and vertical (z) parts."""
+    return np.stack([a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1], a[..., 2] * b[..., 2]], axis=-1)
 
 
 def _lowest(x: np.ndarray, acting: np.ndarray, of: Any) -> np.ndarray:
@@ -102,7 +119,7 @@ def _lowest(x: np.ndarray, acting: np.ndarray, of: Any) -> np.ndarray:
 def guard_settings() -> dict[str, Any]:
     """The guard's settings as the experiments record them beside a guarded condition's results."""
     return {"features": GUARD_FEATURES, "kinds": list(KIND_FEATURES), "support_quantile": SUPPORT_QUANTILE,
-            "margin": MARGIN, **GUARD_DEFAULTS}
+            "margin": MARGIN, "monitor_parts": list(MONITOR_PARTS), **GUARD_DEFAULTS}
 
 
 class GuardedPredictor:
@@ -162,16 +179,16 @@ class GuardedPredictor:
 
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
-        a monitor that has seen nothing (gain 1)."""
+        a monitor that has seen nothing (gains 1)."""
         if self._state is not None:
             self._start(slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64))
         if is_stateful(self.predictor):
             self.predictor.reset(worlds)
 
     def _start(self, rows: Any) -> None:
-        """These rows of the guard's arrays as a fresh world's: nothing applied, gain 1, no evidence, no tick seen."""
+        """These rows of the guard's arrays as a fresh world's: nothing applied, gains 1, no evidence, no tick seen."""
         self._state[rows] = 0.0
-        self._state[rows, :, GAIN] = 1.0
+        self._state[rows, :, GAIN:GAIN + 2] = 1.0
         self._seen[rows] = 0.0
         self._seen_t[rows] = np.nan  # (no tick seen: the next one starts the sums)
 
@@ -180,7 +197,7 @@ class GuardedPredictor:
         velocities vel_est (W, V, 3) m/s at its start, and the commands u_cmd (W, V, 3) m/s^2
         applied during it. The force of the tick before, (vel_est - its vel_est) / (t - its t) - its
         u_cmd, is paired with the prediction the model made before that tick (the one held through
-        it), and the gain and the evidence set from the decayed sums. A world whose last tick is unseen (reset,
+        it), and the gains and the evidence set from the decayed sums. A world whose last tick is unseen (reset,
         ended, or not finite) adds nothing. Runs the compiled pass (`downwash.guard_fused.monitor_into`),
         tied to ``monitor_reference``."""
         state = self._state
@@ -197,12 +214,14 @@ class GuardedPredictor:
         force = (vel_est - seen[..., VEL:VEL + 3]) / np.where(dt > 0, dt, 1.0)[:, None, None] - seen[..., CMD:CMD + 3]
         raw = seen[..., HELD:HELD + 3]
         ok = (dt > 0)[:, None] & np.isfinite(force.sum(-1) + raw.sum(-1))
-        decay = np.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)
+        decay = np.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)[..., None]
         after, state = seen.copy(), state.copy()
-        after[..., NUM] = np.where(ok, decay * seen[..., NUM] + dot(force, raw), seen[..., NUM])
-        after[..., DEN] = np.where(ok, decay * seen[..., DEN] + dot(raw, raw), seen[..., DEN])
-        state[..., GAIN] = np.clip((after[..., NUM] + self.prior) / (after[..., DEN] + self.prior), 0.0, 1.0)
-        state[..., EVIDENCE] = np.clip(after[..., NUM] / (after[..., DEN] + self.skeptic), 0.0, 1.0)
+        num, den = seen[..., NUM:NUM + 2], seen[..., DEN:DEN + 2]
+        after[..., NUM:NUM + 2] = np.where(ok[..., None], decay * num + _by_part(force, raw), num)
+        after[..., DEN:DEN + 2] = np.where(ok[..., None], decay * den + _by_part(raw, raw), den)
+        num, den = after[..., NUM:NUM + 2], after[..., DEN:DEN + 2]
+        state[..., GAIN:GAIN + 2] = np.clip((num + self.prior) / (den + self.prior), 0.0, 1.0)
+        state[..., EVIDENCE] = np.clip((num[..., 0] + num[..., 1]) / (den[..., 0] + den[..., 1] + self.skeptic), 0.0, 1.0)
         after[..., HELD:HELD + 3], after[..., NEXT:NEXT + 3] = seen[..., NEXT:NEXT + 3], state[..., RAW:RAW + 3]
         after[..., VEL:VEL + 3], after[..., CMD:CMD + 3] = vel_est, u_cmd
         return state, after, np.array(t, dtype=np.float64)
@@ -245,18 +264,18 @@ class GuardedPredictor:
     def reference(self, estimated: VehicleStates, raw: np.ndarray, state: np.ndarray,
                   due: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One call in NumPy, the readable reference of the compiled pass (`downwash.guard_fused`) that
-        ``__call__`` runs: (the applied prediction, the next state, the applied fraction (due
-        worlds')), for the model's prediction raw (W, V, 3), the state (W, V, GUARD_STATE_WIDTH) and
+        ``__call__`` runs: (the applied prediction, the next state, the fraction applied, |applied| /
+        |prediction| (due worlds')), for the model's prediction raw (W, V, 3), the state (W, V, GUARD_STATE_WIDTH) and
         due (W,) bool."""
         x, acting = self._pairs(estimated)
         support, kinds = (_lowest(x, acting, of) for of in (self.support.confidence, self.support.kind_confidence))
-        conf = np.minimum(kinds, np.maximum(support, state[..., EVIDENCE]))
-        frac = np.minimum(np.minimum(conf, state[..., GAIN]), state[..., FRACTION] + self.step)
-        out = clamp_magnitude(raw * frac[..., None], self.bound)
+        conf = np.minimum(kinds, np.maximum(support, state[..., EVIDENCE]))[..., None]
+        frac = np.minimum(np.minimum(conf, state[..., GAIN:GAIN + 2]), state[..., FRACTION:FRACTION + 2] + self.step)
+        out = clamp_magnitude(raw * frac[..., [0, 0, 1]], self.bound)  # (lateral, lateral, vertical)
         raw_norm = np.sqrt(dot(raw, raw))
         applied = np.where(raw_norm > 0, np.sqrt(dot(out, out)) / np.maximum(raw_norm, 1e-300), 1.0)
         after = state.copy()
-        after[due, :, FRACTION], after[due, :, RAW:RAW + 3] = frac[due], raw[due]
+        after[due, :, FRACTION:FRACTION + 2], after[due, :, RAW:RAW + 3] = frac[due], raw[due]
         return out, after, applied
 
     def compiled_guard(self, W: int, V: int) -> tuple[CompiledPredictor, CompiledGuard] | None:

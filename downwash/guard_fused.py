@@ -11,14 +11,15 @@ vehicle at a time, with the same operations in the same order, so its bits are N
    (`downwash.support.Support.confidence`), and that of its kind features alone
    (`downwash.support.Support.kind_confidence`); the vehicle's, the lowest of each over its pairs
    (1 with none);
-4. the applied fraction ``min(kind confidence, max(confidence, evidence), gain, fraction + step)``
-   (``gain`` and ``evidence``: the monitor's, which ``GuardedPredictor.observe`` sets between
-   calls), kept in the due worlds only with the model's prediction; the prediction scaled by it
-   and bounded (`downwash.fused.clamped`, the bits of `downwash.predictor.clamp_magnitude`); the
-   fraction of the prediction applied.
+4. the applied fractions of the prediction's lateral (x, y) and vertical (z) parts, each
+   ``min(kind confidence, max(confidence, evidence), gain, fraction + step)`` with that part's gain
+   and last fraction (``gain`` and ``evidence``: the monitor's, which ``GuardedPredictor.observe``
+   sets between calls), kept in the due worlds only with the model's prediction; each part scaled
+   by its fraction, the whole bounded (`downwash.fused.clamped`, the bits of
+   `downwash.predictor.clamp_magnitude`); the fraction of the prediction applied, |applied| / |prediction|.
 
 The guard's state per world and vehicle (`sim.predictor.GUARD_STATE_WIDTH` float64):
-``[fraction, gain, raw prediction (3), evidence]``.
+``[fraction (lateral, vertical), gain (lateral, vertical), raw prediction (3), evidence]``.
 
 `tests/test_guard.py` ties it to the NumPy reference (`GuardedPredictor.confidence` and the
 guard's NumPy path) bit for bit. The C function `GUARD_FN` of `sim.predictor.GUARD_SIGNATURE` runs it in
@@ -48,8 +49,9 @@ _GENERAL = feature_code(GUARD_FEATURES)
 _N_INVARIANTS = len(SUPPORT_FEATURES) - 2 * len(KIND_FEATURES)
 _P_STEP, _P_BOUND, _P_RADIUS2, _N_FHEADER = 0, 1, 2, 3
 _I_K, _I_F, _I_D, _I_VK = 0, 1, 2, 3
-# the state's columns: the applied fraction, the monitor's gain, the raw prediction (3), the monitor's evidence
-FRACTION, GAIN, RAW, EVIDENCE = 0, 1, 2, 5
+# the state's columns: the applied fractions and the monitor's gains (each of the lateral, then the vertical
+# part), the raw prediction (3), the monitor's evidence
+FRACTION, GAIN, RAW, EVIDENCE = 0, 2, 4, 7
 assert GUARD_STATE_WIDTH == EVIDENCE + 1, "sim.predictor.GUARD_STATE_WIDTH must hold the columns above"
 
 
@@ -108,11 +110,12 @@ def guard_into(pos, vel, rot, due, pred, state, applied, params, iparams):
                 conf = _min(conf, c)
                 kind_conf = _min(kind_conf, ck)
             conf = _min(kind_conf, _max(conf, state[w, j, EVIDENCE]))
-            frac = _min(_min(conf, state[w, j, GAIN]), state[w, j, FRACTION] + step)
+            lateral = _min(_min(conf, state[w, j, GAIN]), state[w, j, FRACTION] + step)
+            vertical = _min(_min(conf, state[w, j, GAIN + 1]), state[w, j, FRACTION + 1] + step)
             rx, ry, rz = pred[w, j, 0], pred[w, j, 1], pred[w, j, 2]
-            ox, oy, oz = clamped(rx * frac, ry * frac, rz * frac, bound)
+            ox, oy, oz = clamped(rx * lateral, ry * lateral, rz * vertical, bound)
             if due[w]:
-                state[w, j, FRACTION] = frac
+                state[w, j, FRACTION], state[w, j, FRACTION + 1] = lateral, vertical
                 state[w, j, RAW], state[w, j, RAW + 1], state[w, j, RAW + 2] = rx, ry, rz
                 raw_norm = np.sqrt(rx * rx + ry * ry + rz * rz)
                 out_norm = np.sqrt(ox * ox + oy * oy + oz * oz)
@@ -132,19 +135,21 @@ def _guard_c(n_worlds, n_veh, pos, vel, rot, due, pred, state, applied, params, 
 
 GUARD_FN = _guard_c
 
-# the monitor's memory per world and vehicle (`monitor_into`): its two sums, the last tick's
-# estimated velocity and command, the prediction held through the last tick and the one after it
-NUM, DEN, VEL, CMD, HELD, NEXT = 0, 1, 2, 5, 8, 11
-MONITOR_WIDTH = 14
+# the monitor's memory per world and vehicle (`monitor_into`): its sums (each of the lateral, then the
+# vertical part), the last tick's estimated velocity and command, the prediction held through the last
+# tick and the one after it
+NUM, DEN, VEL, CMD, HELD, NEXT = 0, 2, 4, 7, 10, 13
+MONITOR_WIDTH = 16
 
 
 @njit
 def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic):
     """The monitor after a tick (`downwash.guard`, ``GuardedPredictor.observe``): from its row's t (W,),
     vel_est and u_cmd (W, V, 3), the force of the tick before each vehicle felt, paired with the
-    prediction held through it; the sums (seen (W, V, MONITOR_WIDTH), decayed over `memory` s), the
-    gain (state's GAIN column, with its `prior`) and the evidence (its EVIDENCE column, with its
-    `skeptic`) advanced in place. seen_t (W,): the last tick's times (NaN: none)."""
+    prediction held through it; the sums of the lateral and the vertical parts (seen (W, V,
+    MONITOR_WIDTH), decayed over `memory` s), their gains (state's GAIN columns, with its `prior`) and
+    the evidence of both parts together (its EVIDENCE column, with its `skeptic`) advanced in place.
+    seen_t (W,): the last tick's times (NaN: none)."""
     W, V = state.shape[0], state.shape[1]
     for w in range(W):
         dt = t[w] - seen_t[w]
@@ -158,10 +163,13 @@ def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic)
                 rx, ry, rz = m[HELD], m[HELD + 1], m[HELD + 2]
                 if np.isfinite(fx + fy + fz + rx + ry + rz):
                     decay = np.exp(-dt / memory)
-                    m[NUM] = decay * m[NUM] + (fx * rx + fy * ry + fz * rz)
-                    m[DEN] = decay * m[DEN] + (rx * rx + ry * ry + rz * rz)
-            state[w, j, GAIN] = _min(_max((m[NUM] + prior) / (m[DEN] + prior), 0.0), 1.0)
-            state[w, j, EVIDENCE] = _min(_max(m[NUM] / (m[DEN] + skeptic), 0.0), 1.0)
+                    m[NUM] = decay * m[NUM] + (fx * rx + fy * ry)
+                    m[NUM + 1] = decay * m[NUM + 1] + fz * rz
+                    m[DEN] = decay * m[DEN] + (rx * rx + ry * ry)
+                    m[DEN + 1] = decay * m[DEN + 1] + rz * rz
+            for p in range(2):  # the lateral part, the vertical part
+                state[w, j, GAIN + p] = _min(_max((m[NUM + p] + prior) / (m[DEN + p] + prior), 0.0), 1.0)
+            state[w, j, EVIDENCE] = _min(_max((m[NUM] + m[NUM + 1]) / (m[DEN] + m[DEN + 1] + skeptic), 0.0), 1.0)
             for k in range(3):  # this tick's prediction was made before it: it is held through the next one
                 m[HELD + k], m[NEXT + k] = m[NEXT + k], state[w, j, RAW + k]
                 m[VEL + k], m[CMD + k] = vel_est[w, j, k], u_cmd[w, j, k]

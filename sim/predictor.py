@@ -66,7 +66,7 @@ PREDICTOR_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _F64P,
 # estimated states as above; due (W,) bool (one byte each); pred (W, V, 3) m/s^2 the inner prediction,
 # scaled in place; state (W, V, GUARD_STATE_WIDTH) the guard's state and applied (W, V) its applied
 # fraction, both advanced in the due worlds only; params / iparams the guard's own constants.
-GUARD_STATE_WIDTH = 6  # float64 per world and vehicle of a guard's state (its layout is the guard's)
+GUARD_STATE_WIDTH = 8  # float64 per world and vehicle of a guard's state (its layout is the guard's)
 GUARD_SIGNATURE = _nb.void(_nb.int64, _nb.int64, _F64P, _F64P, _F64P, _nb.CPointer(_nb.uint8), _F64P, _F64P, _F64P,
                            _F64P, _I64P)
 # void m(n_worlds, n_vehicles, t, vel_est, u_cmd, state, seen, seen_t, params, iparams): a guard's

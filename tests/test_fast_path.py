@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from downwash_core.params import RATES
+from downwash.guard_fused import FRACTION, GAIN
 from downwash.predictor import LearnedPredictor
 from sim.aggregation import make_aggregation
 from sim.field import DownwashField
@@ -194,7 +195,7 @@ def test_fused_equals_readable_with_a_guard(scene, models, W):
     _assert_same((rows[0], fused), (rows[1], readable))
     applied = np.array([r["applied"][:, 1] for r in rows[0]])
     assert np.mean((applied > 0) & (applied < 1)) > 0.2 and np.max(applied) > 0.5
-    assert np.min(fused._scene_predictor._state[:, 1, 1]) < 0.9  # the monitor's gain (random weights: the forces disagree)
+    assert np.min(fused._scene_predictor._state[:, 1, GAIN:GAIN + 2]) < 0.9  # the monitor's gains (random weights: the forces disagree)
     assert fused._plan.guard is not None and fused._plan.monitors and readable._plan is None  # (its monitor in the kernel)
     assert np.shares_memory(fused._plan.arrays["guard_state"], fused._scene_predictor._state)
     np.testing.assert_array_equal(fused._scene_predictor._state, readable._scene_predictor._state)  # gains included
@@ -202,7 +203,8 @@ def test_fused_equals_readable_with_a_guard(scene, models, W):
         np.testing.assert_array_equal(getattr(fused._scene_predictor, name), getattr(readable._scene_predictor, name))
     for sim in (fused, readable):
         sim.reset(np.array([0]))
-    assert np.all(fused._scene_predictor._state[0, :, 0] == 0.0) and np.all(fused._scene_predictor._state[0, :, 1] == 1)
+    fresh = fused._scene_predictor._state[0]
+    assert np.all(fresh[:, FRACTION:FRACTION + 2] == 0.0) and np.all(fresh[:, GAIN:GAIN + 2] == 1)
     rows = [[dict(sim.tick()) for _ in range(5)] for sim in (fused, readable)]
     _assert_same((rows[0], fused), (rows[1], readable))
     memory = GuardedPredictor(LearnedPredictor(trained_like("equivariant_memory", "general_memory")), support)

@@ -13,7 +13,7 @@ from downwash.conditions import GUARDED, data_variant, learned, make_predictor, 
 from downwash.datasets import Dataset
 from downwash.features import FEATURE_SETS
 from downwash.guard import GUARD_FEATURES, GuardedPredictor, Support, support_of
-from downwash.guard_fused import EVIDENCE
+from downwash.guard_fused import DEN, EVIDENCE, FRACTION, GAIN, NUM
 from downwash.support import SUPPORT_FEATURES, support_inputs
 from downwash.predictor import LearnedPredictor
 from downwash.registry import make_model
@@ -74,17 +74,28 @@ def test_the_support_holds_the_training_pairs_and_round_trips(support):
 
 
 def test_the_guard_never_increases_a_prediction_and_bounds_it(support):
+    """Inside, outside and between, with the monitor fed random forces (so the lateral and vertical
+    gains differ): each part of the prediction is scaled by a fraction in [0, 1], never turned, and the
+    whole is bounded."""
     rng = np.random.default_rng(2)
     guard = _guard(support, bound=0.5)
     raw_predictor = guard.predictor
-    for k in range(30):  # inside, outside and between
-        states = _states(rng, 16, leader_speed=rng.choice([0.05, 0.5, 3.0]), scale=rng.choice([1.0, 4.0]))
+    W = 16
+    for k in range(30):
+        states = _states(rng, W, leader_speed=rng.choice([0.05, 0.5, 3.0]), scale=rng.choice([1.0, 4.0]))
         raw = raw_predictor(states)
         out = guard(states)
+        guard.observe(np.full(W, 0.02 * k), rng.normal(size=(W, 2, 3)) * 0.05, rng.normal(size=(W, 2, 3)))
         assert np.all(np.linalg.norm(out, axis=-1) <= np.linalg.norm(raw, axis=-1) + 1e-12)
         assert np.all(np.linalg.norm(out, axis=-1) <= 0.5 + 1e-12)
-        np.testing.assert_allclose(np.cross(out, raw), 0.0, atol=1e-12)  # scaled, never turned
+        lateral, vertical = out[..., :2], out[..., 2]
+        assert np.all(np.linalg.norm(lateral, axis=-1) <= np.linalg.norm(raw[..., :2], axis=-1) + 1e-12)
+        assert np.all(np.abs(vertical) <= np.abs(raw[..., 2]) + 1e-12) and np.all(vertical * raw[..., 2] >= 0)
+        turned = lateral[..., 0] * raw[..., 1] - lateral[..., 1] * raw[..., 0]  # (2D cross product)
+        np.testing.assert_allclose(turned, 0.0, atol=1e-12)  # scaled, never turned
         assert np.all((guard.applied >= 0) & (guard.applied <= 1))
+    gains = guard._state[:, 1, GAIN:GAIN + 2]
+    assert np.any(np.abs(gains[:, 0] - gains[:, 1]) > 0.1)  # (the parts were judged apart)
 
 
 def test_inside_the_support_the_prediction_passes_unchanged_once_recovered(support):
@@ -194,7 +205,7 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     assert guard_record(["baseline", "deep"]) is None
     assert guard_record(["deep_guarded"]) == {"features": "general", "kinds": ["log_mass", "log_rotor_radius"],
                                               "support_quantile": 0.001, "margin": 0.25,
-                                              "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0,
+                                              "monitor_parts": ["lateral", "vertical"], "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0,
                                               "skeptic": 5.0}
 
 
@@ -288,8 +299,8 @@ def test_the_compiled_pass_is_its_numpy_reference_bit_for_bit(support, neighbour
         states = VehicleStates(pos, vel, rot)
         raw = rng.normal(size=(W, V, 3)) * rng.choice([0.5, 10.0], (W, 1, 1))
         state = rng.normal(size=(W, V, GUARD_STATE_WIDTH))  # (the raw prediction before: overwritten where due)
-        state[..., 0] = rng.uniform(0, 1, (W, V))  # the fraction
-        state[..., 1] = np.where(rng.uniform(size=(W, V)) < 0.5, 1.0, rng.uniform(0, 1, (W, V)))  # the gain
+        state[..., FRACTION:FRACTION + 2] = rng.uniform(0, 1, (W, V, 2))  # the fractions
+        state[..., GAIN:GAIN + 2] = np.where(rng.uniform(size=(W, V, 2)) < 0.5, 1.0, rng.uniform(0, 1, (W, V, 2)))
         state[..., EVIDENCE] = np.where(rng.uniform(size=(W, V)) < 0.5, 0.0, rng.uniform(0, 1, (W, V)))
         due = rng.uniform(size=W) < 0.7
         want_out, want_state, want_applied = guard.reference(states, raw, state, due)
@@ -319,26 +330,30 @@ def _observe_forces(guard, states, scale, rng, seconds=2.0, noise=1.0, dt=0.02):
         vel = vel + (u + scale * raw + rng.normal(size=(W, V, 3)) * noise) * dt
 
 
-@pytest.mark.parametrize("scale", [-1.0, 0.0, 1 / 3, 0.5, 1.0, 2.0])
+@pytest.mark.parametrize("scale", [(-1.0, -1.0), (0.0, 0.0), (1 / 3, 1 / 3), (0.5, 0.5), (1.0, 1.0), (2.0, 2.0),
+                                   (0.0, 1.0), (1.0, -1.0), (1 / 3, 2.0)])
 def test_the_monitor_scales_a_model_to_the_forces_felt(support, scale):
     """Inside its support, a model that predicts 3x (2x) the force felt is applied at a third (half), one
-    that is right in full, one that points the wrong way or at nothing not at all: the monitor's gain is
-    the least-squares scale of the prediction against the forces felt, clipped to [0, 1], and the
+    that is right in full, one that points the wrong way or at nothing not at all: the monitor's gain of
+    each part of the prediction (lateral, vertical; the forces felt are `scale` (lateral, vertical) times
+    it) is the least-squares scale of that part against the forces felt, clipped to [0, 1], and the
     motion-capture noise in those forces (1 m/s^2 per axis) does not bias it."""
     rng = np.random.default_rng(11)
     guard = _guard(support, 3, bound=1e6)
     states = _states(rng, 16)
     assert np.all(guard.confidence(states) == 1.0)
-    _observe_forces(guard, states, scale, rng)
+    _observe_forces(guard, states, np.array(scale)[[0, 0, 1]], rng)
     raw = guard.predictor(states)
-    gain = guard._state[:, 1, 1]
-    want = min(max(scale, 0.0), 1.0)
-    strength = np.linalg.norm(raw[:, 1], axis=-1)
-    assert np.all(strength > 0.5)  # (the random model predicts forces worth judging)
-    assert np.all(np.abs(gain - want) < 0.08 + 0.2 / strength), (gain, want)
+    gain = guard._state[:, 1, GAIN:GAIN + 2]
+    want = np.clip(scale, 0.0, 1.0)
+    strength = np.column_stack([np.linalg.norm(raw[:, 1, :2], axis=-1), np.abs(raw[:, 1, 2])])
+    judged = strength > 0.5  # (the parts in which the random model predicts forces worth judging)
+    assert np.mean(judged) > 0.6
+    assert np.all((np.abs(gain - want) < 0.08 + 0.2 / strength)[judged]), (gain, want)
     out = guard(states)
-    np.testing.assert_allclose(guard.applied[:, 1], np.minimum(gain, 1.0), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(out[:, 1], raw[:, 1] * gain[:, None], atol=1e-12)
+    np.testing.assert_allclose(out[:, 1], raw[:, 1] * gain[:, [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(guard.applied[:, 1], np.linalg.norm(out[:, 1], axis=-1) / np.linalg.norm(raw[:, 1], axis=-1),
+                               rtol=1e-12)
 
 
 def test_the_monitor_starts_afresh_and_skips_ticks_it_cannot_judge(support):
@@ -348,20 +363,21 @@ def test_the_monitor_starts_afresh_and_skips_ticks_it_cannot_judge(support):
     guard = _guard(support, 3, bound=1e6)
     states = _states(rng, 4)
     _observe_forces(guard, states, 0.0, rng)
-    assert np.all(guard._state[:, 1, 1] < 0.2)
+    gains = guard._state[:, 1, GAIN:GAIN + 2]
+    assert np.all(gains.min(-1) < 0.2)
     guard.reset([0])
-    assert guard._state[0, 1, 1] == 1.0 and np.all(guard._state[1:, 1, 1] < 0.2)
+    assert np.all(guard._state[0, 1, GAIN:GAIN + 2] == 1.0) and np.all(guard._state[1:, 1, GAIN:GAIN + 2] == gains[1:])
     W, V = 4, 2
     guard(states)
     guard.observe(np.full(W, 5.0), np.zeros((W, V, 3)), np.zeros((W, V, 3)))  # the reset world's first tick
-    before = guard._state[:, :, 1].copy()
+    before = guard._state[:, :, GAIN:GAIN + 2].copy()
     guard(states)
     stopped = np.array([5.0, 5.0, np.nan, 5.02])  # world 1: its clock did not move; 2: a NaN row
     vel = np.full((W, V, 3), 3.0)  # (a huge felt force in every world)
     vel[3] = np.nan
     guard.observe(stopped, vel, np.zeros((W, V, 3)))
-    np.testing.assert_array_equal(guard._state[1:, :, 1], before[1:])
-    assert guard._state[0, 1, 1] == 1.0  # world 0: its first force is judged at its next tick
+    np.testing.assert_array_equal(guard._state[1:, :, GAIN:GAIN + 2], before[1:])
+    assert np.all(guard._state[0, 1, GAIN:GAIN + 2] == 1.0)  # world 0: its first force is judged at its next tick
 
 
 @pytest.mark.parametrize("scale", [-1.0, 0.0, 1.0])
@@ -379,13 +395,15 @@ def test_outside_the_support_only_the_forces_felt_give_a_model_authority(support
     _observe_forces(guard, states, scale, rng)
     evidence = guard._state[:, 1, EVIDENCE]
     sums = guard._seen[:, 1]
-    np.testing.assert_allclose(evidence, np.clip(sums[:, 0] / (sums[:, 1] + guard.skeptic), 0, 1), rtol=1e-12)
+    np.testing.assert_allclose(evidence, np.clip(sums[:, NUM:NUM + 2].sum(-1) / (sums[:, DEN:DEN + 2].sum(-1) + guard.skeptic),
+                                                 0, 1), rtol=1e-12)  # (one sum over both parts)
     out = guard(states)
     raw = guard.predictor(states)
     strength = np.linalg.norm(raw[:, 1], axis=-1)
     if scale == 1.0:
         assert np.all(evidence[strength > 1.0] > 0.8) and np.all(evidence > 0.3), (evidence, strength)
-        np.testing.assert_allclose(guard.applied[:, 1], np.minimum(evidence, guard._state[:, 1, 1]), atol=1e-12)
+        fraction = np.minimum(evidence[:, None], guard._state[:, 1, GAIN:GAIN + 2])
+        np.testing.assert_allclose(out[:, 1], raw[:, 1] * fraction[:, [0, 0, 1]], atol=1e-12)
     elif scale == -1.0:
         np.testing.assert_array_equal(out[:, 1], 0.0)
     else:
@@ -455,7 +473,7 @@ def test_the_compiled_monitor_is_its_numpy_reference(support):
     for trial in range(6):
         state = rng.normal(size=(W, V, GUARD_STATE_WIDTH))
         seen = rng.normal(size=(W, V, MONITOR_WIDTH)) * rng.choice([0.1, 10.0], (W, 1, 1))
-        seen[..., :2] = np.abs(seen[..., :2])  # (the sums: the second one is positive)
+        seen[..., DEN:DEN + 2] = np.abs(seen[..., DEN:DEN + 2])  # (the sums of |r|^2 are positive)
         seen_t = np.where(rng.uniform(size=W) < 0.2, np.nan, rng.uniform(0, 5, W))
         t = seen_t + rng.choice([0.02, 0.0, -1.0, 0.5], W, p=[0.7, 0.1, 0.1, 0.1])
         t[np.isnan(t)] = 1.0
