@@ -1,7 +1,8 @@
 """A guard on learned compensation: use the model where it knows, fall back to no model where it does not.
 
 `GuardedPredictor` wraps a learned predictor (`downwash.predictor.LearnedPredictor`) in the
-predictor slot and scales each vehicle's prediction by a confidence in [0, 1]:
+predictor slot and scales each vehicle's prediction (its lateral and vertical parts) by
+confidences in [0, 1]:
 
 - **Support.** Every (neighbour, target) pair that acts on a vehicle (the predictor's
   neighbour set, targets below their neighbour) is described by the generalised invariants
