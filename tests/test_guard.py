@@ -460,6 +460,48 @@ def test_in_flight_the_monitor_turns_a_wrong_model_down_and_a_right_one_on(suppo
     assert applied[1] > 0.95 and error[2] < 0.3 * error[0], (error, applied)
 
 
+class _SidewaysOracle(_ScaledOracle):
+    """A model inside its support that is right about the push down and wrong sideways: the true mean
+    field plus a steady 1.5 m/s^2 along x wherever the field acts."""
+
+    def __call__(self, estimated, true):
+        out = self.oracle(estimated, true)
+        out[..., 0] += 1.5 * (np.linalg.norm(out, axis=-1) > 0)
+        return out
+
+
+def test_in_flight_the_monitor_keeps_the_part_of_a_model_that_is_right(support):
+    """The closed loop of the test above with a model right vertically and wrong sideways: unguarded the
+    follower drifts sideways; behind the guard the lateral part is turned down (the forces felt sideways
+    do not follow it) while the vertical part stays on, so the follower flies its height as with the
+    true field and its lateral track as with no model."""
+    from downwash_core.params import LEADER_POSITION
+    from downwash_trajectories import Hover, Offset, stack
+    from sim.field import DownwashField
+    from sim.flight import fly
+    from sim.scene import build_scene
+
+    field = DownwashField()
+    conditions = [ZeroPredictor(), _ScaledOracle(field, 1.0), _SidewaysOracle(field, 1.0),
+                  GuardedPredictor(_SidewaysOracle(field, 1.0), support)]
+    K = 3
+    still = Hover(np.array(LEADER_POSITION), n_worlds=K * len(conditions))
+    logs = fly(build_scene(), stack([still, Offset(still, (0.0, 0.05, -0.6))]), list(range(K * len(conditions))), 6.0,
+               field=field, predictor=PerWorldPredictor(conditions, np.repeat(np.arange(len(conditions)), K)))
+    assert all(L.meta["status"] == 0 for L in logs)
+
+    def error(i, axes):
+        return np.mean([np.linalg.norm(L["pos"][150:, 1, axes] - L["ref_pos"][150:, 1, axes], axis=-1).mean()
+                        for L in logs[i * K:(i + 1) * K]])
+
+    baseline, truth, sideways, guarded = range(4)
+    lateral, vertical = slice(0, 2), slice(2, 3)
+    assert error(sideways, lateral) > 3 * error(baseline, lateral)  # (the lateral part misleads)
+    assert error(guarded, lateral) < 1.5 * error(baseline, lateral)
+    assert error(guarded, vertical) < 0.5 * error(baseline, vertical)
+    assert error(guarded, vertical) < error(truth, vertical) + 0.3 * (error(baseline, vertical) - error(truth, vertical))
+
+
 def test_the_compiled_monitor_is_its_numpy_reference(support):
     """`downwash.guard_fused.monitor_into`, which ``observe`` runs, against ``monitor_reference``: random
     rows and sums, worlds whose last tick is unseen (NaN), stopped clocks and non-finite rows. To float64
