@@ -78,7 +78,7 @@ def _make_plan(sim: Any) -> _Plan | None:
         if native is None:
             return None
     else:
-        # worlds in chunks of >= _CHUNK_WORLDS on the batch's threads, each thread with its MjData
+        # at least _CHUNK_WORLDS worlds per thread of the batch's, each thread with its MjData (chunks: `_chunk_sizes`)
         n_threads = max(1, min(ph.batch.nthread, sim.W // _CHUNK_WORLDS))
         native = ph.native_step(n_threads)
         stepping = _STEP_ROWS if native is not None else _STEP_CALLER
