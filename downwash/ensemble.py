@@ -91,7 +91,7 @@ from downwash.ensemble_settle import _settle_models
 from downwash.features import assemble
 from downwash.models import PAIRWISE_KINDS, DeepSNMLP, DownwashModel
 from downwash.registry import make_model
-from downwash.train import TrainConfig, _check
+from downwash.train import TrainConfig, _check, training_kernels
 
 __all__ = ["train_ensemble"]
 
@@ -232,6 +232,8 @@ def _member_configs(n: int, configs: Any, seeds: Sequence[int] | None) -> list[T
     threads = {c.num_threads for c in configs}
     if len(threads) > 1:
         raise ConfigError(f"configs: num_threads must be the same for all members (one process), got {sorted(threads, key=str)}")
+    if len({c.portable for c in configs}) > 1:
+        raise ConfigError("configs: portable must be the same for all members (one process's kernels), got both")
     return list(configs)
 
 
@@ -258,7 +260,7 @@ def train_ensemble(
     datasets: one training set per member (objects like `datasets.Dataset`, as for
       `train_model`; sizes may differ).
     configs: one `TrainConfig` for all members, or one per member (default
-      ``TrainConfig()``); ``num_threads`` must agree.
+      ``TrainConfig()``); ``num_threads`` and ``portable`` must agree.
     val: None (each member holds out a ``val_fraction`` of its own flights, split
       with its own seed), one validation set for all members, or one per member.
     seeds: one seed per member, replacing the configs' ``seed``.
@@ -281,12 +283,16 @@ def train_ensemble(
     configs = _member_configs(n, configs, seeds)
     vals = _member_vals(n, val)
 
+    kernels = training_kernels(configs[0])
     threads = configs[0].num_threads
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
     try:
-        return _train(kind, list(datasets), vals, configs, progress, feature_set)
+        out = _train(kind, list(datasets), vals, configs, progress, feature_set)
+        for _, history in out:
+            history["kernels"] = kernels
+        return out
     finally:
         if threads is not None:
             torch.set_num_threads(old_threads)

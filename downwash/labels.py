@@ -23,7 +23,9 @@ carried along for diagnostics.
 
 from __future__ import annotations
 
+import functools
 import os
+from fractions import Fraction
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -46,6 +48,7 @@ __all__ = [
     "PAIR",
     "sample_period",
     "follower_acceleration",
+    "second_derivative_coeffs",
     "command_kernel",
     "smooth_command",
     "log_targets",
@@ -126,7 +129,9 @@ def follower_acceleration(
     zero phase. The default window 19 / polyorder 4 (0.38 s at 50 Hz) amplifies
     0.5 mm position noise to 0.077 m/s^2 and under-reads the peak of a 0.1 s wide
     force pulse by 3 % (see the table in this module). The first and last
-    ``window // 2`` rows come from a one-sided fit and are less reliable.
+    ``window // 2`` rows come from a one-sided fit and are less reliable (and, made by
+    LAPACK, may differ in their last bits per CPU); the rows between, which the labels use,
+    convolve the positions with `second_derivative_coeffs`, the same bits on every CPU.
     """
     _check_filter(window, polyorder)
     mocap_pos = np.asarray(mocap_pos, dtype=np.float64)
@@ -135,7 +140,43 @@ def follower_acceleration(
     if mocap_pos.shape[0] < window:
         raise ConfigError(f"mocap_pos: {mocap_pos.shape[0]} samples is shorter than the filter window {window}")
     dt = sample_period(t)
-    return savgol_filter(mocap_pos, window, polyorder, deriv=2, delta=dt, axis=0, mode="interp")
+    acc = savgol_filter(mocap_pos, window, polyorder, deriv=2, delta=dt, axis=0, mode="interp")  # (the ends)
+    h, T = window // 2, mocap_pos.shape[0]
+    inner = convolve1d(mocap_pos, second_derivative_coeffs(window, polyorder), axis=0, mode="constant")
+    acc[h:T - h] = inner[h:T - h] / dt**2  # (the rows labels use: the same bits on every CPU)
+    return acc
+
+
+def second_derivative_coeffs(window: int = DEFAULT_WINDOW, polyorder: int = DEFAULT_POLYORDER) -> np.ndarray:
+    """The Savitzky-Golay second-derivative coefficients (window,) for dt = 1, in convolution order
+    (what ``scipy.signal.savgol_coeffs(deriv=2, use="conv")`` gives, to float64 round-off), solved
+    in exact rational arithmetic: scipy solves them with LAPACK, whose kernels differ per CPU in
+    their last bits, and these coefficients make every label, so the labels and what is trained
+    on them have the same bits on every CPU."""
+    _check_filter(window, polyorder)
+    return np.array(_exact_second_derivative(int(window), int(polyorder)))
+
+
+@functools.lru_cache(maxsize=None)
+def _exact_second_derivative(window: int, polyorder: int) -> tuple[float, ...]:
+    """The least-squares polynomial of degree `polyorder` through samples at -h..h (h = window // 2)
+    has second derivative at 0 ``sum_i c_i x_i`` with ``c_i = 2 sum_k (M^-1)[2, k] i^k``, M the normal
+    equations' matrix ``M[j][k] = sum_i i^(j + k)``; each c_i is rational, then rounded once to float64."""
+    h, n = window // 2, polyorder + 1
+    points = range(-h, h + 1)
+    # Gauss-Jordan on [M | I] in fractions: row 2 of M^-1 (M is symmetric positive definite: no pivoting needed)
+    rows = [[Fraction(sum(i ** (j + k) for i in points)) for k in range(n)] + [Fraction(int(j == k)) for k in range(n)]
+            for j in range(n)]
+    for j in range(n):
+        pivot = rows[j][j]
+        rows[j] = [x / pivot for x in rows[j]]
+        for r in range(n):
+            if r != j and rows[r][j] != 0:
+                factor = rows[r][j]
+                rows[r] = [a - factor * b for a, b in zip(rows[r], rows[j])]
+    inverse_row = rows[2][n:]
+    c = [2 * sum(inverse_row[k] * Fraction(i) ** k for k in range(n)) for i in points]
+    return tuple(float(x) for x in reversed(c))  # convolution order (symmetric for the second derivative)
 
 
 def command_kernel(window: int = DEFAULT_WINDOW, polyorder: int = DEFAULT_POLYORDER) -> np.ndarray:
@@ -144,8 +185,7 @@ def command_kernel(window: int = DEFAULT_WINDOW, polyorder: int = DEFAULT_POLYOR
     Savitzky-Golay second-derivative coefficients ``c`` (for dt = 1) factor as
     ``c = [1, -2, 1] * K`` (convolution); K is symmetric and sums to 1.
     """
-    _check_filter(window, polyorder)
-    c = savgol_coeffs(window, polyorder, deriv=2, delta=1.0, use="conv")
+    c = second_derivative_coeffs(window, polyorder)
     K, rem = np.polydiv(c, [1.0, -2.0, 1.0])
     if np.max(np.abs(rem)) > 1e-8 or abs(K.sum() - 1.0) > 1e-8:  # pragma: no cover - a property of savgol
         raise RuntimeError("Savitzky-Golay coefficients did not factor through the second difference")

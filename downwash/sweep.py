@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from downwash_core.errors import ConfigError
+from downwash_core.numerics import PORTABLE_TORCH
 from downwash_core.provenance import fingerprint
 from downwash.datasets import Dataset
 from downwash.staged import ensure_collection
@@ -146,8 +147,9 @@ def _init_ray(workers: int, address: str) -> bool:
 
     if ray.is_initialized():
         return False
-    if address:
-        ray.init(address=address, logging_level=logging.WARNING)
+    if address:  # (a local Ray's workers inherit this process's environment, the portable kernels' request included)
+        portable = {name: os.environ[name] for name in PORTABLE_TORCH if name in os.environ}
+        ray.init(address=address, logging_level=logging.WARNING, runtime_env={"env_vars": portable})
     else:
         # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
         # they are the computation and the driver only waits

@@ -14,14 +14,24 @@ such a bit to every later sample. So:
   value except with a probability of about 1e-8 per number; the gain itself moves by
   at most 3e-8 of its value, far below anything a flight can feel. Entries below
   1e-9 of the largest are the solve's round-off where the answer is zero (a
-  decoupled gain's off-diagonal blocks), different on every CPU: they become 0.
+  decoupled gain's off-diagonal blocks), different on every CPU: they become 0;
+- training asks torch for kernels that are the same on every CPU with AVX2
+  (`PORTABLE_TORCH`, `request_portable_torch`; `downwash.train` says why and what it
+  costs), and the labels' filter coefficients are exact rationals (`downwash.labels`).
 """
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-__all__ = ["ROUND_OFF", "cpu_independent", "matmul_rows", "matvec"]
+__all__ = ["ROUND_OFF", "PORTABLE_TORCH", "cpu_independent", "matmul_rows", "matvec", "request_portable_torch"]
+
+# torch's kernels that train the same bits on every x86-64 CPU with AVX2: ATen's AVX2 loops and
+# MKL's AVX2 path in its reproducible mode (Intel's Conditional Numerical Reproducibility);
+# see `downwash.train`
+PORTABLE_TORCH = {"ATEN_CPU_CAPABILITY": "avx2", "MKL_CBWR": "AVX2"}
 
 
 ROUND_OFF = 1e-9  # relative to the largest entry: smaller entries are a solve's round-off
@@ -57,3 +67,13 @@ def matvec(m: np.ndarray, x: np.ndarray) -> np.ndarray:
     for i in range(1, m.shape[-1]):
         acc = acc + m[..., :, i] * x[..., None, i]
     return acc
+
+
+def request_portable_torch() -> dict[str, str]:
+    """Ask torch for the kernels of `PORTABLE_TORCH`, through the environment (a value the user set is
+    kept). Torch reads these variables at its first operation in a process, so this must come first:
+    the experiments call it before any work, and `downwash.train` before training. Returns the
+    variables as they now are."""
+    for name, value in PORTABLE_TORCH.items():
+        os.environ.setdefault(name, value)
+    return {name: os.environ[name] for name in PORTABLE_TORCH}

@@ -132,7 +132,9 @@ def resolve_pipeline(args: PipelineArgs, *, models: Sequence[str] = PAIRWISE_KIN
     kinds the run needs) is missing, the run collects and trains: both folders are then checked
     for writing (ConfigError naming --collection-dir or --models-dir), before any work."""
     from downwash.staged import CollectionConfig, pipeline_dirs, provenance
+    from downwash_core.numerics import request_portable_torch
 
+    request_portable_torch()  # before torch's first operation: training then has the same bits on every CPU
     field = load_field(args.field)
     config = CollectionConfig(seed=args.seed, quick=args.quick, **settings)
     record = provenance(config, field)

@@ -138,6 +138,8 @@ def test_global_rng_untouched():
         (lambda d: train_ensemble("shallow", [d, d], val=[d]), "val: got 1 validation sets for 2 data sets"),
         (lambda d: train_ensemble("shallow", [d, d], [SMALL, dataclasses.replace(SMALL, num_threads=2)]),
          "num_threads must be the same"),
+        (lambda d: train_ensemble("shallow", [d, d], [SMALL, dataclasses.replace(SMALL, portable=False)]),
+         "portable must be the same"),
     ],
 )
 def test_bad_input_raises_config_error(call, message):

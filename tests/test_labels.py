@@ -13,6 +13,7 @@ from downwash.labels import (
     follower_acceleration,
     label_noise_floor,
     labels_from_log,
+    second_derivative_coeffs,
 )
 from sim.logs import ARRAY_SPECS, FlightLog, LogError, save_log
 from downwash_core.params import RATES
@@ -88,6 +89,20 @@ def label_error_bounds(window=DEFAULT_WINDOW, polyorder=DEFAULT_POLYORDER):
     for amp, hz in F_TERMS:
         bound += amp * abs(G0(2 * np.pi * hz) - 1)
     return MOCAP_NOISE * np.linalg.norm(c2), bound
+
+
+@pytest.mark.parametrize("window,polyorder", [(3, 2), (5, 2), (7, 3), (19, 4), (21, 6), (31, 5)])
+def test_filter_coefficients_are_scipys_solved_exactly(window, polyorder):
+    """The exact rationals, rounded once: scipy's LAPACK solve to its round-off, and the moments
+    of a second derivative (sum c_i i^k = 2 for k = 2, else 0, up to polyorder) to float64's."""
+    c = second_derivative_coeffs(window, polyorder)
+    np.testing.assert_allclose(c, savgol_coeffs(window, polyorder, deriv=2, use="conv"), rtol=0, atol=1e-12)
+    i = np.arange(window) - window // 2
+    for k in range(polyorder + 1):
+        scale = np.abs(c * i**k).sum()
+        assert abs((c * i**k).sum() - (2.0 if k == 2 else 0.0)) <= 1e-14 * scale, k
+    c[0] = 7.0  # a copy: the cached coefficients stay as they are
+    assert second_derivative_coeffs(window, polyorder)[0] != 7.0
 
 
 def test_savgol_differentiator_is_exact_on_polynomials():

@@ -2,6 +2,9 @@
 
 import dataclasses
 import multiprocessing
+import os
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,7 +14,8 @@ import torch
 from downwash.datasets import Dataset, split_by_flight
 from downwash_core.errors import DataError
 from downwash.models import EquivariantModel
-from downwash.train import TrainConfig, predict, rmse, train_model
+from downwash.train import TrainConfig, predict, rmse, torch_kernels, train_model
+from downwash_core.numerics import PORTABLE_TORCH
 from sim.field import DownwashField
 
 
@@ -183,3 +187,36 @@ def test_logs_flown_with_and_without_wind_never_mix(tmp_path):
     assert load_dataset(tmp_path / "windy").provenance["wind"] is not None
     with pytest.raises(DataError, match="wind"):
         load_dataset([tmp_path / "still" / "flight_000.npz", tmp_path / "windy" / "flight_000.npz"])
+
+
+def _cpu_runs_portable_kernels() -> bool:
+    with open("/proc/cpuinfo") as f:
+        flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    return {"avx2", "fma"} <= set(flags)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/cpuinfo"), reason="reads the CPU's flags from Linux's /proc/cpuinfo")
+def test_training_runs_and_records_the_portable_kernels():
+    """Asked for before torch ran here (tests/conftest.py, as the experiments do): a CPU with AVX2
+    trains with them, and each history says which kernels trained it."""
+    _, hist = train_model("shallow", field_dataset(600, np.random.default_rng(7), n_flights=3), None,
+                          dataclasses.replace(FAST, max_epochs=2))
+    assert hist["kernels"] == torch_kernels() and hist["config"]["portable"] is True
+    if _cpu_runs_portable_kernels():
+        assert hist["kernels"] == {"aten": "AVX2", "mkl_cbwr": "AVX2"}
+
+
+def test_training_warns_once_when_torch_runs_other_kernels():
+    """A process whose environment chose other kernels (kept: the user's) trains with them and says so, once."""
+    code = ("import logging, torch; logging.basicConfig(); torch.ones(4).sum()\n"
+            "from downwash.train import TrainConfig, training_kernels\n"
+            "print(training_kernels(TrainConfig())['aten'], training_kernels(TrainConfig())['aten'],"
+            " training_kernels(TrainConfig(portable=False))['aten'])")
+    env = {k: v for k, v in os.environ.items() if k not in PORTABLE_TORCH}
+    env["ATEN_CPU_CAPABILITY"] = "default"
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300, check=True)
+    assert proc.stdout.split() == ["DEFAULT"] * 3
+    assert proc.stderr.count("training with this CPU's torch kernels") == 1
+    assert "ATEN_CPU_CAPABILITY=avx2 MKL_CBWR=AVX2" in proc.stderr
+    with pytest.raises(ValueError, match=r"TrainConfig.portable: expected True or False, got 'yes'"):
+        TrainConfig(portable="yes")

@@ -44,6 +44,12 @@ def runnable_blas_kernels() -> list[str]:
     return [name for name, need in BLAS_KERNELS.items() if all(f in flags for f in need)]
 
 
+def runs_portable_torch() -> bool:
+    """Whether this CPU runs torch's portable training kernels (`downwash_core.numerics.PORTABLE_TORCH`:
+    AVX2 with FMA), and so trains the recorded bits."""
+    return platform.machine() in ("x86_64", "AMD64") and {"avx2", "fma"} <= cpu_flags()
+
+
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:

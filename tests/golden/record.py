@@ -15,11 +15,14 @@ What holds on which machine (`compare`, with the tolerances and why):
 - A flight with no learned model in its loop is bit-identical on every CPU: the
   flight stack calls no BLAS per step and rounds its set-up gains
   (`downwash_core.numerics`). Stage 0's logs must match their digests exactly.
-- Training is float32 torch, whose kernels (MKL, oneDNN, ATen's vectorised loops)
-  are picked per CPU, and the labels' Savitzky-Golay coefficients come from LAPACK.
-  So checkpoints, the flights they fly in, and the metrics computed from labels may
-  differ in their last bits on another CPU: each is compared by its digest first and,
-  when that differs, by its summary within the tolerances below.
+- Training is float32 torch, whose kernels are picked per CPU unless asked for: the
+  experiments ask for the portable ones (`downwash.train`: ATen's AVX2 loops, MKL's
+  AVX2 path in its reproducible mode), and the labels' Savitzky-Golay coefficients are
+  exact rationals. So on every x86-64 CPU with AVX2 the checkpoints, the flights they fly
+  in and every metric must match their digests too (`tests/test_golden.py` requires
+  it, and under another CPU's BLAS and NumPy kernels). A CPU without AVX2 trains
+  other bits: there each is compared by its digest first and, when that differs, by
+  its summary within the tolerances below.
 """
 
 from __future__ import annotations
@@ -49,15 +52,14 @@ LOG_ARRAYS = (
 EXACT_LOGS = "stage0/"  # flights with no learned model in the loop: the same bits on every CPU
 
 # Two tiers. When every checkpoint matches its digest, this CPU's torch trained the same
-# bits, and every flight must match too (the flight stack is CPU-independent); only the
-# RMSEs against labels may move, by LAPACK's round-off in the Savitzky-Golay
-# coefficients (measured 2e-14, relative). When a checkpoint differs, another CPU's
-# torch kernels trained it, and what the models fly is compared within tolerances
-# measured by emulating another CPU (torch's non-vectorised ATen kernels, SSE-only MKL
-# and OpenBLAS kernels; the cross-kernel test in tests/test_golden.py): the deep model
-# moved the most, its tensor norms by 1.8e-4, its lemniscate errors by 1.8e-4 m (0.16 %)
-# and its validation RMSE by 3e-5, relative; the logs' array means moved by 2e-6.
-# The bounds leave about ten times that.
+# bits, and every flight must match too (the flight stack is CPU-independent); the RMSEs
+# against labels are allowed LABEL_RTOL. When a checkpoint differs, torch ran other
+# kernels (a CPU without AVX2), and what the models fly is compared within tolerances
+# measured, before training asked for portable kernels, by emulating another CPU
+# (torch's non-vectorised ATen kernels, SSE-only MKL and OpenBLAS kernels): the deep
+# model moved the most, its tensor norms by 1.8e-4, its lemniscate errors by 1.8e-4 m
+# (0.16 %) and its validation RMSE by 3e-5, relative; the logs' array means moved by
+# 2e-6. The bounds leave about ten times that.
 LABEL_RTOL = 1e-9  # RMSEs against labels, same torch bits
 LOG_RTOL = 2e-5  # per-array means of a flight log with a learned model in its loop
 CHECKPOINT_RTOL = 2e-3  # per-tensor norms of a trained model
