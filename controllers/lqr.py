@@ -220,7 +220,7 @@ def attitude_setpoint(
     batch = yaw.shape
     thrust, rot = _attitude_setpoint_kernel(
         acc.reshape(-1, 3).astype(float, copy=False), yaw.reshape(-1).astype(float, copy=False),
-        np.tan(max_tilt), min_vertical,
+        math.tan(max_tilt), min_vertical,
     )
     return thrust.reshape(batch), rot.reshape(batch + (3, 3))
 

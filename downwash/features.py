@@ -52,6 +52,7 @@ theorem 1) for any network ``(f1, f2) = f(h)``.
 
 from __future__ import annotations
 
+import math
 from types import ModuleType
 from typing import Any
 
@@ -317,7 +318,7 @@ def kind_descriptors(kinds: Any) -> np.ndarray:
     out = np.zeros((len(kinds), len(KIND_FEATURES)))
     for v, kind in enumerate(kinds):
         q = get_vehicle(kind)  # ConfigError naming the registered kinds
-        out[v] = np.log(q.mass / PAPER_QUAD.mass), np.log(q.rotor_radius / PAPER_QUAD.rotor_radius)
+        out[v] = math.log(q.mass / PAPER_QUAD.mass), math.log(q.rotor_radius / PAPER_QUAD.rotor_radius)
     return out
 
 

@@ -84,6 +84,7 @@ from typing import Any
 
 import numpy as np
 
+from downwash_core import libm
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot
 from downwash_core.params import RATES
@@ -215,7 +216,7 @@ class GuardedPredictor:
         force = (vel_est - seen[..., VEL:VEL + 3]) / np.where(dt > 0, dt, 1.0)[:, None, None] - seen[..., CMD:CMD + 3]
         raw = seen[..., HELD:HELD + 3]
         ok = (dt > 0)[:, None] & np.isfinite(force.sum(-1) + raw.sum(-1))
-        decay = np.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)[..., None]
+        decay = libm.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)[..., None]
         after, state = seen.copy(), state.copy()
         num, den = seen[..., NUM:NUM + 2], seen[..., DEN:DEN + 2]
         after[..., NUM:NUM + 2] = np.where(ok[..., None], decay * num + _by_part(force, raw), num)

@@ -16,6 +16,7 @@ from types import ModuleType
 
 import numpy as np
 
+from downwash_core import libm
 from downwash_core.jit import njit
 
 __all__ = [
@@ -140,7 +141,7 @@ def rotation_about_axis(axis, angle, xp: ModuleType = np):
 
 def yaw_of(rot: np.ndarray) -> np.ndarray:
     """(..., 3, 3) body-to-world rotations -> (...,) heading (rad), Z-Y-X convention."""
-    return np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
+    return libm.arctan2(rot[..., 1, 0], rot[..., 0, 0])
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:

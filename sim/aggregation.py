@@ -53,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from downwash_core import libm
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
 from downwash_core.jit import njit
@@ -188,10 +189,10 @@ class VelocitySuperposition:
         m = _norm(f)  # (..., V, V) |f_i|
         nonzero = m > 0.0
         safe = np.where(nonzero, m, 1.0)
-        scale = np.where(nonzero, np.power(safe, 1.0 / p) / safe, 0.0)  # |f|^(1/p-1), 0 for f = 0
+        scale = np.where(nonzero, libm.power(safe, 1.0 / p) / safe, 0.0)  # |f|^(1/p-1), 0 for f = 0
         G = (scale[..., None] * f).sum(axis=-3)  # (..., V, 3), the velocity sum (times c^(1/p))
         M = _norm(G)
-        big = np.where(M > 0.0, np.power(np.where(M > 0.0, M, 1.0), p - 1.0), 0.0)  # 0^(p-1) is inf for p < 1
+        big = np.where(M > 0.0, libm.power(np.where(M > 0.0, M, 1.0), p - 1.0), 0.0)  # 0^(p-1) is inf for p < 1
         return big[..., None] * G
 
 

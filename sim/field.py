@@ -38,6 +38,7 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
+from downwash_core import libm
 from downwash_core.jit import njit
 from downwash_core.validate import check_trailing_shapes
 
@@ -230,11 +231,11 @@ class DownwashField:
         depth_s = self._depth - neg_s_pos
         # k A w G, with w = t^2 (3 - 2 t): exactly 0 for s <= fade_start.
         kawg = (
-            (self._kA_numerator * (t * t) * (_THREE - (t + t)) * np.exp(rho2 * _NEG_HALF))
+            (self._kA_numerator * (t * t) * (_THREE - (t + t)) * libm.exp(rho2 * _NEG_HALF))
             / ((depth_s * depth_s) * (self._speed2 + va2))
         )
 
-        down = kawg - kawg * (self._approach_gain * rho) * np.tanh(v_r * self._inv_approach_speed)
+        down = kawg - kawg * (self._approach_gain * rho) * libm.tanh(v_r * self._inv_approach_speed)
         if self._c4 is not None:
             # cos(4 theta) r^4 = x^4 - 6 x^2 y^2 + y^4 = (x^2 + y^2)^2 - 8 x^2 y^2, with
             # (x, y) the components of r_vec along the leader's body x and y axes;

@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 from scipy.special import gammainc
 
+from downwash_core import libm
 from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 from downwash_core.params import LEADER_POSITION
@@ -247,7 +248,7 @@ class DrydenWind:
         dt = number("dt", dt, "s", 0.0, 1.0, lo_open=True)
         sigma, T = self._sigma_T(airspeed)
         r = dt / T  # (..., 3)
-        a = np.exp(-r)
+        a = libm.exp(-r)
         P1, P2, P3 = (gammainc(n, 2.0 * r) for n in (1, 2, 3))
         second = np.array([0.0, 1.0, 1.0])  # the second state is driven and read on v, w only
         A = np.zeros(T.shape + (2, 2))

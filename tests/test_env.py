@@ -230,6 +230,19 @@ def test_env_digests_do_not_depend_on_the_blas_kernel(kernel):
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == GOLDEN_ENVS
 
 
+@pytest.mark.parametrize("masked", ["X86_V4 AVX512_ICL AVX512_SPR", "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"],
+                         ids=["numpy_avx2", "numpy_baseline"])
+def test_env_digests_do_not_depend_on_numpys_simd_loops(masked):
+    """With NumPy's AVX-512 (then also its AVX2) loops masked, as on an older CPU, the envs give the
+    recorded bits: no flight takes an elementary function from NumPy's own SIMD code
+    (`downwash_core.libm`). A feature this CPU lacks is ignored."""
+    env = dict(os.environ, NPY_DISABLE_CPU_FEATURES=masked)
+    proc = subprocess.run([sys.executable, str(golden_envs.__file__), "--print"], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == GOLDEN_ENVS
+
+
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
     env = gym.make("downwash/Follower-v1", action_mode=mode, reference="lemniscate", separation=0.4,

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from downwash_core import libm
 from downwash_core.geometry import dot
 from downwash_core.numerics import ROUND_OFF, cpu_independent, matmul_rows, matvec
 
@@ -89,3 +90,50 @@ def test_the_set_up_gains_do_not_depend_on_the_blas_kernel():
                              capture_output=True, text=True, timeout=300, check=True).stdout
         seen[kernel] = json.loads(out.strip().splitlines()[-1])
     assert len({tuple(v[:2]) for v in seen.values()}) == 1, seen
+
+
+_LIBM = {"exp": (np.exp, 1), "log": (np.log, 1), "power": (np.power, 2), "tanh": (np.tanh, 1), "sinh": (np.sinh, 1),
+         "arcsinh": (np.arcsinh, 1), "arccos": (np.arccos, 1), "arctan2": (np.arctan2, 2), "cbrt": (np.cbrt, 1)}
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(sorted(_LIBM)), data=st.data())
+def test_libm_ufuncs_are_numpys_to_a_few_ulps(name, data):
+    """The C library's functions (`downwash_core.libm`) against NumPy's own: within 4 ulps, NaN where
+    NumPy gives NaN (outside the domain), the shapes NumPy broadcasts to, a float for a float."""
+    fn, reference = getattr(libm, name), _LIBM[name][0]
+    finite = st.floats(-30.0, 30.0, allow_nan=False)
+    x = data.draw(arrays(np.float64, st.integers(0, 5), elements=finite))
+    args = (x,) if _LIBM[name][1] == 1 else (x, data.draw(arrays(np.float64, 1, elements=finite)))
+    if name == "power":
+        args = (np.abs(args[0]), args[1])
+    with np.errstate(all="ignore"):
+        want = reference(*args)
+    got = fn(*args)
+    assert got.shape == want.shape and got.dtype == np.float64
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = ~np.isnan(want)
+    with np.errstate(invalid="ignore"):  # (inf - inf where both are inf: equal, so the first test holds)
+        assert np.all((got[ok] == want[ok]) | (np.abs(got[ok] - want[ok]) <= 4 * np.spacing(np.abs(want[ok]))))
+    assert isinstance(fn(*(np.float64(a.flat[0]) if a.size else 0.5 for a in args)), float)
+
+
+def test_libm_ufuncs_do_not_depend_on_numpys_simd_loops():
+    """Their bits with NumPy's AVX-512 and AVX2 loops masked (as on older CPUs) are this CPU's; NumPy's
+    own exp differs on an AVX-512 CPU (measured), which is why the flights do not use it."""
+    code = textwrap.dedent("""
+        import json
+        import numpy as np
+        from downwash_core import libm
+        x = np.linspace(-20.0, 20.0, 4001)
+        out = [getattr(libm, n)(x).tobytes().hex() for n in ("exp", "tanh", "sinh", "arcsinh", "cbrt")]
+        out += [libm.log(np.abs(x)).tobytes().hex(), libm.arccos(x / 20.0).tobytes().hex(),
+                libm.power(np.abs(x), 1.37).tobytes().hex(), libm.arctan2(x, 3.0).tobytes().hex()]
+        print(json.dumps(out))
+    """)
+    seen = set()
+    for masked in ("", "X86_V4 AVX512_ICL AVX512_SPR", "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"):
+        out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, NPY_DISABLE_CPU_FEATURES=masked),
+                             capture_output=True, text=True, timeout=300, check=True).stdout
+        seen.add(out.strip().splitlines()[-1])
+    assert len(seen) == 1

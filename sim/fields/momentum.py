@@ -84,6 +84,7 @@ from typing import Any
 
 import numpy as np
 
+from downwash_core import libm
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
 from downwash_core.params import GRAVITY, QUAD
@@ -111,15 +112,15 @@ def rotor_thrust_ratio(c: Any) -> np.ndarray:
     c = np.asarray(c, dtype=np.float64)
     # c >= 0.5: tau = 2 sqrt(c/3) sinh(asinh((3 sqrt(3)/2) c^-1.5) / 3), ~1/c without cancellation
     cs = np.maximum(c, _C_SMALL)
-    big = 2.0 * np.sqrt(cs / 3.0) * np.sinh(np.arcsinh(1.5 * math.sqrt(3.0) * cs**-1.5) / 3.0)
+    big = 2.0 * np.sqrt(cs / 3.0) * libm.sinh(libm.arcsinh(1.5 * math.sqrt(3.0) * libm.power(cs, -1.5)) / 3.0)
     # c_* <= c < 0.5: Cardano, one real root
     cc = np.clip(c, _C_STAR, _C_SMALL)
-    u = np.cbrt(0.5 + np.sqrt(np.maximum(0.25 + cc**3 / 27.0, 0.0)))
+    u = libm.cbrt(0.5 + np.sqrt(np.maximum(0.25 + libm.power(cc, 3.0) / 27.0, 0.0)))
     mid = u - cc / (3.0 * u)
     # c < c_*: three real roots, the largest (the only positive one), trigonometric form
     m = np.maximum(-c, -_C_STAR)
-    arg = np.minimum(1.5 * math.sqrt(3.0) * m**-1.5, 1.0)
-    low = 2.0 * np.sqrt(m / 3.0) * np.cos(np.arccos(arg) / 3.0)
+    arg = np.minimum(1.5 * math.sqrt(3.0) * libm.power(m, -1.5), 1.0)
+    low = 2.0 * np.sqrt(m / 3.0) * np.cos(libm.arccos(arg) / 3.0)
     return np.where(c >= _C_SMALL, big, np.where(c >= _C_STAR, mid, low))
 
 
@@ -221,15 +222,16 @@ class MomentumWake:
         past = s > float(self.virtual_origin)
         g2 = np.maximum(s - float(self.virtual_origin), 0.0) * k2
         dg2 = np.where(past, k2, 0.0)
-        phi = (phi1**-p + g2**p) ** (-1.0 / p)  # U_c / v_h: smooth minimum of near and far
-        dphi = phi ** (p + 1.0) * (phi1 ** (-p - 1.0) * dphi1 - g2 ** (p - 1.0) * dg2)
+        pw = libm.power  # (the C library's pow, as the compiled twin: the same bits on every CPU)
+        phi = pw(pw(phi1, -p) + pw(g2, p), -1.0 / p)  # U_c / v_h: smooth minimum of near and far
+        dphi = pw(phi, p + 1.0) * (pw(phi1, -p - 1.0) * dphi1 - pw(g2, p - 1.0) * dg2)
         b1 = self._radius_eq / np.sqrt(phi1)  # slipstream radius by continuity
         db1 = -0.5 * b1 * dphi1 / phi1
         S = float(self.spreading_rate)
         b2 = S * np.maximum(s - float(self.virtual_origin), 0.0)
         db2 = np.where(past, S, 0.0)
-        b = (b1**p + b2**p) ** (1.0 / p)  # smooth maximum, >= b1 > 0
-        db = b ** (1.0 - p) * (b1 ** (p - 1.0) * db1 + b2 ** (p - 1.0) * db2)
+        b = pw(pw(b1, p) + pw(b2, p), 1.0 / p)  # smooth maximum, >= b1 > 0
+        db = pw(b, 1.0 - p) * (pw(b1, p - 1.0) * db1 + pw(b2, p - 1.0) * db2)
         return v_h * phi, b, v_h * dphi, db
 
     def wind(self, p_a: np.ndarray, R_a: np.ndarray, p: np.ndarray, thrust: Any = None) -> np.ndarray:
