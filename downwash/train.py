@@ -18,11 +18,11 @@ A cosine decay from a high peak learning rate reaches in 60 epochs what a
 constant 3e-3 reached in 300.
 
 The same bits on every CPU (``TrainConfig.portable``, the default): torch picks its kernels
-per CPU (ATen's loops vectorised for AVX2 or AVX-512, MKL's code path per instruction set),
-and kernels that sum in another order train other bits, which a staged collection carries
-into every later stage, model and result (the main job's equivariant model improved the
-lemniscate by 72 % when trained on one CPU and by 65 % on another). So training asks for
-the kernels of `downwash_core.numerics.PORTABLE_TORCH`: ATen's AVX2 loops and MKL's AVX2
+per CPU (ATen's loops vectorised for AVX2 or AVX-512, MKL's code path per vendor and
+instruction set), and kernels that sum in another order train other bits, which a staged
+collection carries into every later stage, model and result (the docs' design notes, "What
+is bit-identical across machines"). So training asks for the kernels of
+`downwash_core.numerics.PORTABLE_TORCH`: ATen's AVX2 loops and MKL's AVX2
 path in its reproducible mode (Intel's Conditional Numerical Reproducibility), which give
 the same checkpoint on every x86-64 CPU with AVX2 (since 2013-2015), AVX-512 ones included.
 (ATen's loops without vector instructions and MKL's "COMPATIBLE" path would reach older
