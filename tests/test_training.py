@@ -1,10 +1,12 @@
 """Training on data labelled by the true field: learning, determinism, early stopping, flight splits."""
 
 import dataclasses
+import importlib.util
 import multiprocessing
 import os
 import subprocess
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -189,20 +191,18 @@ def test_logs_flown_with_and_without_wind_never_mix(tmp_path):
         load_dataset([tmp_path / "still" / "flight_000.npz", tmp_path / "windy" / "flight_000.npz"])
 
 
-def _cpu_runs_portable_kernels() -> bool:
-    with open("/proc/cpuinfo") as f:
-        flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
-    return {"avx2", "fma"} <= set(flags)
+_spec = importlib.util.spec_from_file_location("golden_machine", Path(__file__).parent / "golden" / "machine.py")
+golden_machine = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(golden_machine)
 
 
-@pytest.mark.skipif(not os.path.exists("/proc/cpuinfo"), reason="reads the CPU's flags from Linux's /proc/cpuinfo")
 def test_training_runs_and_records_the_portable_kernels():
     """Asked for before torch ran here (tests/conftest.py, as the experiments do): a CPU with AVX2
     trains with them, and each history says which kernels trained it."""
     _, hist = train_model("shallow", field_dataset(600, np.random.default_rng(7), n_flights=3), None,
                           dataclasses.replace(FAST, max_epochs=2))
     assert hist["kernels"] == torch_kernels() and hist["config"]["portable"] is True
-    if _cpu_runs_portable_kernels():
+    if golden_machine.runs_portable_torch():
         assert hist["kernels"] == {"aten": "AVX2", "mkl_cbwr": "AVX2"}
 
 
