@@ -16,10 +16,7 @@ such a bit to every later sample. So:
   1e-9 of the largest are the solve's round-off where the answer is zero (a
   decoupled gain's off-diagonal blocks), different on every CPU: they become 0;
 - the readable paths take their elementary functions from the C library, as the compiled
-  kernels do (`downwash_core.libm`: NumPy ufuncs compiled by numba around libm): NumPy's own vectorised exp, log, power, arctan2, arcsin, arccos, sinh,
-  cbrt and tanh give other last bits on AVX-512 than on AVX2 (and tanh on AVX2 than on
-  older CPUs), which a flight carries to every later sample; sqrt, sin, cos and hypot
-  agree (measured with NumPy 2.4 by masking its CPU features, `NPY_DISABLE_CPU_FEATURES`);
+  kernels do (`downwash_core.libm` says why: NumPy's own differ between AVX2 and AVX-512);
 - training asks torch for kernels that are the same on every CPU with AVX2
   (`PORTABLE_TORCH`, `request_portable_torch`; `downwash.train` says why and what it
   costs), and the labels' filter coefficients are exact rationals (`downwash.labels`).
