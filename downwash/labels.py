@@ -140,10 +140,12 @@ def follower_acceleration(
     if mocap_pos.shape[0] < window:
         raise ConfigError(f"mocap_pos: {mocap_pos.shape[0]} samples is shorter than the filter window {window}")
     dt = sample_period(t)
-    acc = savgol_filter(mocap_pos, window, polyorder, deriv=2, delta=dt, axis=0, mode="interp")  # (the ends)
-    h, T = window // 2, mocap_pos.shape[0]
-    inner = convolve1d(mocap_pos, second_derivative_coeffs(window, polyorder), axis=0, mode="constant")
-    acc[h:T - h] = inner[h:T - h] / dt**2  # (the rows labels use: the same bits on every CPU)
+    acc = convolve1d(mocap_pos, second_derivative_coeffs(window, polyorder), axis=0, mode="constant") / dt**2
+    # the ends: the one-sided fits of mode "interp", which use the first and last `window` samples only
+    h = window // 2
+    fit = dict(window_length=window, polyorder=polyorder, deriv=2, delta=dt, axis=0, mode="interp")
+    acc[:h] = savgol_filter(mocap_pos[:window], **fit)[:h]
+    acc[-h:] = savgol_filter(mocap_pos[-window:], **fit)[-h:]
     return acc
 
 

@@ -21,89 +21,54 @@ from downwash_core.jit import njit
 __all__ = ["exp", "log", "power", "tanh", "sinh", "arcsinh", "arccos", "arctan2", "cbrt"]
 
 
+_EXP, _LOG, _TANH, _SINH, _ARCSINH, _ARCCOS, _CBRT, _POWER, _ARCTAN2 = range(9)  # (the binary ones last)
+
+
+@njit
+def _apply(op, x, y, out):
+    """out[i] = the C library's function `op` of x[i] (and y[i] for power and arctan2)."""
+    for i in range(out.size):
+        v = x[i]
+        if op == _EXP:
+            r = math.exp(v)
+        elif op == _LOG:
+            r = math.log(v) if v > 0.0 else (-math.inf if v == 0.0 else math.nan)
+        elif op == _TANH:
+            r = math.tanh(v)
+        elif op == _SINH:
+            r = math.sinh(v)
+        elif op == _ARCSINH:
+            r = math.asinh(v)
+        elif op == _ARCCOS:
+            r = math.acos(v) if -1.0 <= v <= 1.0 else math.nan
+        elif op == _CBRT:
+            r = np.cbrt(v)
+        elif op == _POWER:
+            r = v ** y[i]
+        else:
+            r = math.atan2(v, y[i])
+        out[i] = r
+
+
 def _contiguous(x) -> np.ndarray:
     a = np.asarray(x, dtype=np.float64)  # (0-d stays 0-d, unlike np.ascontiguousarray)
     return a if a.flags.c_contiguous else a.copy()
 
 
-def _unary(kernel):
-    def ufunc(x):
-        a = _contiguous(x)
-        out = np.empty_like(a)
-        kernel(a.reshape(-1), out.reshape(-1))
+def _ufunc(name: str, op: int):
+    def ufunc(*args):
+        a = [_contiguous(v) for v in args]
+        shape = np.broadcast_shapes(*(v.shape for v in a))
+        a = [v if v.shape == shape else np.broadcast_to(v, shape).copy() for v in a]
+        out = np.empty(shape)
+        _apply(op, a[0].reshape(-1), a[-1].reshape(-1), out.reshape(-1))
         return out if out.ndim else out[()]
 
+    ufunc.__name__ = ufunc.__qualname__ = name
+    ufunc.__doc__ = f"np.{name} with the C library's bits (module doc): float64 arrays or scalars."
     return ufunc
 
 
-def _binary(kernel):
-    def ufunc(x, y):
-        a, b = _contiguous(x), _contiguous(y)
-        shape = np.broadcast_shapes(a.shape, b.shape)
-        a, b = (v if v.shape == shape else np.broadcast_to(v, shape).copy() for v in (a, b))
-        out = np.empty_like(a)
-        kernel(a.reshape(-1), b.reshape(-1), out.reshape(-1))
-        return out if out.ndim else out[()]
-
-    return ufunc
-
-
-@njit
-def _exp(x, out):
-    for i in range(x.size):
-        out[i] = math.exp(x[i])
-
-
-@njit
-def _log(x, out):
-    for i in range(x.size):
-        out[i] = math.log(x[i]) if x[i] > 0.0 else (-math.inf if x[i] == 0.0 else math.nan)
-
-
-@njit
-def _power(x, y, out):
-    for i in range(x.size):
-        out[i] = x[i] ** y[i]
-
-
-@njit
-def _tanh(x, out):
-    for i in range(x.size):
-        out[i] = math.tanh(x[i])
-
-
-@njit
-def _sinh(x, out):
-    for i in range(x.size):
-        out[i] = math.sinh(x[i])
-
-
-@njit
-def _arcsinh(x, out):
-    for i in range(x.size):
-        out[i] = math.asinh(x[i])
-
-
-@njit
-def _arccos(x, out):
-    for i in range(x.size):
-        out[i] = math.acos(x[i]) if -1.0 <= x[i] <= 1.0 else math.nan
-
-
-@njit
-def _arctan2(y, x, out):
-    for i in range(x.size):
-        out[i] = math.atan2(y[i], x[i])
-
-
-@njit
-def _cbrt(x, out):
-    for i in range(x.size):
-        out[i] = np.cbrt(x[i])
-
-
-exp, log, tanh, sinh, arcsinh, arccos, cbrt = (_unary(k) for k in (_exp, _log, _tanh, _sinh, _arcsinh, _arccos, _cbrt))
-power, arctan2 = _binary(_power), _binary(_arctan2)
-for _name in __all__:
-    globals()[_name].__name__ = globals()[_name].__qualname__ = _name
-    globals()[_name].__doc__ = f"np.{_name} with the C library's bits (module doc): float64 arrays or scalars."
+exp, log, tanh, sinh = _ufunc("exp", _EXP), _ufunc("log", _LOG), _ufunc("tanh", _TANH), _ufunc("sinh", _SINH)
+arcsinh, arccos, cbrt = _ufunc("arcsinh", _ARCSINH), _ufunc("arccos", _ARCCOS), _ufunc("cbrt", _CBRT)
+power, arctan2 = _ufunc("power", _POWER), _ufunc("arctan2", _ARCTAN2)
