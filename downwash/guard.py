@@ -48,6 +48,11 @@ confidences in [0, 1]:
   equivariant, so the guard is too. The evidence stays one sum over both parts: per part the
   smaller lateral forces rarely outweigh the skepticism, and models outside their support lost
   lateral help they had earned.
+- **Fast monitor.** A second pair of sums with a short memory (``fast_monitor``, 0.2 s) gives a
+  second scale per part, and each gain is the lower of the two: a model that was right for
+  seconds and then over-predicts (a neighbour passing close) is turned down within a fifth of a
+  second, where the one-second sums still hold the earlier agreement. Its prior (``fast_prior``,
+  in (m/s^2)^2) keeps the noise of ten ticks from turning a right model down.
 - **Rate limit.** Each part's applied fraction may drop at once but rises by at most
   ``recovery`` per second (a model that left its support gets authority back over
   1 / recovery seconds, not in one tick).
@@ -90,8 +95,8 @@ from downwash_core.geometry import dot
 from downwash_core.params import RATES
 from downwash_core.state import VehicleStates
 from downwash.features import KIND_FEATURES, kind_descriptors, neighbour_kinds
-from downwash.guard_fused import (CMD, DEN, EVIDENCE, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_FN, MONITOR_WIDTH, NEXT,
-                                  NUM, RAW, VEL, guard_into, monitor_into, pack_guard)
+from downwash.guard_fused import (CMD, DEN, EVIDENCE, FAST_DEN, FAST_NUM, FRACTION, GAIN, GUARD_FN, HELD, MONITOR_FN,
+                                  MONITOR_WIDTH, NEXT, NUM, RAW, VEL, guard_into, monitor_into, pack_guard)
 from downwash.predictor import clamp_magnitude
 from downwash.support import (DEPTH_COLUMN, GUARD_FEATURES, MARGIN, SUPPORT_QUANTILE, Support, support_inputs,
                               support_of)
@@ -102,9 +107,11 @@ __all__ = ["GUARD_FEATURES", "SUPPORT_QUANTILE", "Support", "support_of", "Guard
            "guard_settings"]
 
 # 1/s (0 to full in 0.2 s); m/s^2, the pair clamp's bound; s, the monitor's memory; (m/s^2)^2, its prior
-# and the skepticism of its evidence outside the support (module doc)
+# and the skepticism of its evidence outside the support; s and (m/s^2)^2, the fast sums' memory and prior
+# (module doc)
 MONITOR_PARTS = ("lateral", "vertical")  # the parts of a prediction the monitor judges apart (module doc)
-GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0, "skeptic": 5.0}
+GUARD_DEFAULTS = {"recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0, "skeptic": 5.0, "fast_monitor": 0.2,
+                  "fast_prior": 3.0}
 
 
 def _by_part(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -132,7 +139,8 @@ class GuardedPredictor:
     recovery: 1/s, how fast the applied fraction may rise; bound: m/s^2, the hard bound;
     monitor: s, the time constant of the monitor's sums; prior: (m/s^2)^2, its prior evidence that
     the model is right; skeptic: (m/s^2)^2, the evidence a model outside its support must first
-    outweigh (module doc; inf: the support alone decides there);
+    outweigh (module doc; inf: the support alone decides there); fast_monitor: s, the memory of the
+    fast sums, and fast_prior: (m/s^2)^2, their prior (module doc);
     vehicle_kinds: the scene's V vehicle kinds (names or `VehicleKind`s; None: paper quads), as
     ``for_vehicles`` tells them.
     """
@@ -142,7 +150,9 @@ class GuardedPredictor:
     def __init__(self, predictor: Any, support: Support | None = None, recovery: float = GUARD_DEFAULTS["recovery"],
                  bound: float = GUARD_DEFAULTS["bound"], predictor_hz: float = RATES.predictor_hz,
                  vehicle_kinds: Any = None, monitor: float = GUARD_DEFAULTS["monitor"],
-                 prior: float = GUARD_DEFAULTS["prior"], skeptic: float = GUARD_DEFAULTS["skeptic"]):
+                 prior: float = GUARD_DEFAULTS["prior"], skeptic: float = GUARD_DEFAULTS["skeptic"],
+                 fast_monitor: float = GUARD_DEFAULTS["fast_monitor"],
+                 fast_prior: float = GUARD_DEFAULTS["fast_prior"]):
         if support is None:
             record = ((getattr(predictor, "record", None) or {}).get("data") or {}).get("support")
             if record is None:
@@ -150,7 +160,8 @@ class GuardedPredictor:
                                   "older code); retrain it, or pass support=downwash.guard.support_of(...)")
             support = Support.from_record(record)
         for name, value in (("recovery", recovery), ("bound", bound), ("predictor_hz", predictor_hz),
-                            ("monitor", monitor), ("prior", prior), ("skeptic", skeptic)):
+                            ("monitor", monitor), ("prior", prior), ("skeptic", skeptic),
+                            ("fast_monitor", fast_monitor), ("fast_prior", fast_prior)):
             if not (isinstance(value, (int, float)) and (math.isfinite(value) or name == "skeptic" and value == math.inf)
                     and value > 0):
                 what = "a number > 0 (inf: no authority outside the support)" if name == "skeptic" else "a finite number > 0"
@@ -158,6 +169,7 @@ class GuardedPredictor:
         self.predictor, self.support, self.predictor_hz = predictor, support, float(predictor_hz)
         self.recovery, self.bound = float(recovery), float(bound)
         self.monitor, self.prior, self.skeptic = float(monitor), float(prior), float(skeptic)
+        self.fast_monitor, self.fast_prior = float(fast_monitor), float(fast_prior)
         self.vehicle_kinds = None if vehicle_kinds is None else tuple(getattr(k, "name", k) for k in vehicle_kinds)
         self._kinds = None if vehicle_kinds is None else kind_descriptors(vehicle_kinds)  # (V, D)
         self.step = self.recovery / self.predictor_hz  # the most the fraction rises per call
@@ -166,7 +178,8 @@ class GuardedPredictor:
         self._seen: np.ndarray | None = None  # (W, V, MONITOR_WIDTH) the monitor's sums and last ticks (`observe`)
         self._seen_t: np.ndarray | None = None  # (W,) the time of each world's last tick seen (NaN: none)
         self._pack = pack_guard(self.support, predictor.neighbours, self.step, self.bound, self._kinds)
-        self._monitor_pack = (np.array([self.monitor, self.prior, self.skeptic]), np.array([MONITOR_WIDTH], np.int64))
+        self._monitor_pack = (np.array([self.monitor, self.prior, self.skeptic, self.fast_monitor, self.fast_prior]),
+                              np.array([MONITOR_WIDTH], np.int64))
 
     def for_vehicles(self, kinds: Any) -> "GuardedPredictor":
         """This guard for a scene of these vehicle kinds: its support check reads them, and its
@@ -177,7 +190,7 @@ class GuardedPredictor:
         if inner is self.predictor and mine.shape == told.shape and np.array_equal(mine, told):
             return self  # (the guard a scene of paper quads flies is the one it was given)
         return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds,
-                                self.monitor, self.prior, self.skeptic)
+                                self.monitor, self.prior, self.skeptic, self.fast_monitor, self.fast_prior)
 
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
@@ -206,7 +219,7 @@ class GuardedPredictor:
         if state is None or len(state) != len(t):
             return  # (no call yet in these worlds: nothing predicted to judge)
         monitor_into(t, vel_est, u_cmd, state, self._seen, self._seen_t, self.monitor, self.prior,
-                     self.skeptic)  # (float64 arrays)
+                     self.skeptic, self.fast_monitor, self.fast_prior)  # (float64 arrays)
 
     def monitor_reference(self, t: np.ndarray, vel_est: np.ndarray, u_cmd: np.ndarray, state: np.ndarray,
                           seen: np.ndarray, seen_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -216,13 +229,16 @@ class GuardedPredictor:
         force = (vel_est - seen[..., VEL:VEL + 3]) / np.where(dt > 0, dt, 1.0)[:, None, None] - seen[..., CMD:CMD + 3]
         raw = seen[..., HELD:HELD + 3]
         ok = (dt > 0)[:, None] & np.isfinite(force.sum(-1) + raw.sum(-1))
-        decay = libm.exp(-np.where(ok, dt[:, None], 0.0) / self.monitor)[..., None]
         after, state = seen.copy(), state.copy()
-        num, den = seen[..., NUM:NUM + 2], seen[..., DEN:DEN + 2]
-        after[..., NUM:NUM + 2] = np.where(ok[..., None], decay * num + _by_part(force, raw), num)
-        after[..., DEN:DEN + 2] = np.where(ok[..., None], decay * den + _by_part(raw, raw), den)
+        for sums, to, memory in ((NUM, DEN, self.monitor), (FAST_NUM, FAST_DEN, self.fast_monitor)):
+            decay = libm.exp(-np.where(ok, dt[:, None], 0.0) / memory)[..., None]
+            num, den = seen[..., sums:sums + 2], seen[..., to:to + 2]
+            after[..., sums:sums + 2] = np.where(ok[..., None], decay * num + _by_part(force, raw), num)
+            after[..., to:to + 2] = np.where(ok[..., None], decay * den + _by_part(raw, raw), den)
+        scale = [np.clip((after[..., sums:sums + 2] + prior) / (after[..., to:to + 2] + prior), 0.0, 1.0)
+                 for sums, to, prior in ((NUM, DEN, self.prior), (FAST_NUM, FAST_DEN, self.fast_prior))]
+        state[..., GAIN:GAIN + 2] = np.minimum(*scale)
         num, den = after[..., NUM:NUM + 2], after[..., DEN:DEN + 2]
-        state[..., GAIN:GAIN + 2] = np.clip((num + self.prior) / (den + self.prior), 0.0, 1.0)
         state[..., EVIDENCE] = np.clip((num[..., 0] + num[..., 1]) / (den[..., 0] + den[..., 1] + self.skeptic), 0.0, 1.0)
         after[..., HELD:HELD + 3], after[..., NEXT:NEXT + 3] = seen[..., NEXT:NEXT + 3], state[..., RAW:RAW + 3]
         after[..., VEL:VEL + 3], after[..., CMD:CMD + 3] = vel_est, u_cmd
@@ -308,4 +324,5 @@ class GuardedPredictor:
     def describe(self) -> dict[str, Any]:
         inner = getattr(self.predictor, "describe", lambda: {})()
         return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound,
-                                   "monitor": self.monitor, "prior": self.prior, "skeptic": self.skeptic}}
+                                   "monitor": self.monitor, "prior": self.prior, "skeptic": self.skeptic,
+                                   "fast_monitor": self.fast_monitor, "fast_prior": self.fast_prior}}

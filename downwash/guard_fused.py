@@ -137,18 +137,20 @@ GUARD_FN = _guard_c
 
 # the monitor's memory per world and vehicle (`monitor_into`): its sums (each of the lateral, then the
 # vertical part), the last tick's estimated velocity and command, the prediction held through the last
-# tick and the one after it
-NUM, DEN, VEL, CMD, HELD, NEXT = 0, 2, 4, 7, 10, 13
-MONITOR_WIDTH = 16
+# tick and the one after it, the fast sums (as the sums, over the fast memory)
+NUM, DEN, VEL, CMD, HELD, NEXT, FAST_NUM, FAST_DEN = 0, 2, 4, 7, 10, 13, 16, 18
+MONITOR_WIDTH = 20
+assert DEN == NUM + 2 and FAST_DEN == FAST_NUM + 2, "monitor_into reads each part's |r|^2 sum two after its f.r sum"
 
 
 @njit
-def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic):
+def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic, fast, fast_prior):
     """The monitor after a tick (`downwash.guard`, ``GuardedPredictor.observe``): from its row's t (W,),
     vel_est and u_cmd (W, V, 3), the force of the tick before each vehicle felt, paired with the
     prediction held through it; the sums of the lateral and the vertical parts (seen (W, V,
-    MONITOR_WIDTH), decayed over `memory` s), their gains (state's GAIN columns, with its `prior`) and
-    the evidence of both parts together (its EVIDENCE column, with its `skeptic`) advanced in place.
+    MONITOR_WIDTH), decayed over `memory` s, and again over `fast` s), their gains (state's GAIN
+    columns: the lower of the two scales, with `prior` and `fast_prior`) and the evidence of both parts
+    together (its EVIDENCE column, from the slow sums, with its `skeptic`) advanced in place.
     seen_t (W,): the last tick's times (NaN: none)."""
     W, V = state.shape[0], state.shape[1]
     for w in range(W):
@@ -162,13 +164,16 @@ def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic)
                 fz = (vel_est[w, j, 2] - m[VEL + 2]) / dt - m[CMD + 2]
                 rx, ry, rz = m[HELD], m[HELD + 1], m[HELD + 2]
                 if np.isfinite(fx + fy + fz + rx + ry + rz):
-                    decay = np.exp(-dt / memory)
-                    m[NUM] = decay * m[NUM] + (fx * rx + fy * ry)
-                    m[NUM + 1] = decay * m[NUM + 1] + fz * rz
-                    m[DEN] = decay * m[DEN] + (rx * rx + ry * ry)
-                    m[DEN + 1] = decay * m[DEN + 1] + rz * rz
+                    for sums, tau in ((NUM, memory), (FAST_NUM, fast)):  # the slow sums, then the fast ones
+                        decay = np.exp(-dt / tau)
+                        m[sums] = decay * m[sums] + (fx * rx + fy * ry)
+                        m[sums + 1] = decay * m[sums + 1] + fz * rz
+                        m[sums + 2] = decay * m[sums + 2] + (rx * rx + ry * ry)
+                        m[sums + 3] = decay * m[sums + 3] + rz * rz
             for p in range(2):  # the lateral part, the vertical part
-                state[w, j, GAIN + p] = _min(_max((m[NUM + p] + prior) / (m[DEN + p] + prior), 0.0), 1.0)
+                slow = _min(_max((m[NUM + p] + prior) / (m[DEN + p] + prior), 0.0), 1.0)
+                quick = _min(_max((m[FAST_NUM + p] + fast_prior) / (m[FAST_DEN + p] + fast_prior), 0.0), 1.0)
+                state[w, j, GAIN + p] = _min(slow, quick)
             state[w, j, EVIDENCE] = _min(_max((m[NUM] + m[NUM + 1]) / (m[DEN] + m[DEN + 1] + skeptic), 0.0), 1.0)
             for k in range(3):  # this tick's prediction was made before it: it is held through the next one
                 m[HELD + k], m[NEXT + k] = m[NEXT + k], state[w, j, RAW + k]
@@ -177,10 +182,11 @@ def monitor_into(t, vel_est, u_cmd, state, seen, seen_t, memory, prior, skeptic)
 
 @numba.cfunc(MONITOR_SIGNATURE, cache=True, nopython=True)
 def _monitor_c(n_worlds, n_veh, t, vel_est, u_cmd, state, seen, seen_t, params, iparams):
-    p = carray(params, (3,))  # memory, prior, skeptic
+    p = carray(params, (5,))  # memory, prior, skeptic, fast, fast_prior
     monitor_into(carray(t, (n_worlds,)), carray(vel_est, (n_worlds, n_veh, 3)), carray(u_cmd, (n_worlds, n_veh, 3)),
                  carray(state, (n_worlds, n_veh, GUARD_STATE_WIDTH)),
-                 carray(seen, (n_worlds, n_veh, carray(iparams, (1,))[0])), carray(seen_t, (n_worlds,)), p[0], p[1], p[2])
+                 carray(seen, (n_worlds, n_veh, carray(iparams, (1,))[0])), carray(seen_t, (n_worlds,)),
+                 p[0], p[1], p[2], p[3], p[4])
 
 
 MONITOR_FN = _monitor_c  # the monitor as the fused tick calls it (`sim.predictor.MONITOR_SIGNATURE`)

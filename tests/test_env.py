@@ -631,7 +631,8 @@ def test_a_predictor_object_flies_as_each_envs_own_copy():
     support = support_of(dp, rng.normal(size=(500, 3)) * 0.05, rng.normal(size=(500, 3)) * 0.3,
                          np.broadcast_to(np.eye(3), (500, 3, 3)))  # a hovering leader, its estimate noisy
     guard = GuardedPredictor(LearnedPredictor(wrap_pairwise(make_model("equivariant").double().eval())), support,
-                             prior=1e12)  # (its monitor trusts the untrained model: the support alone acts)
+                             prior=1e12, fast_prior=1e12)  # (its monitor trusts the untrained model: the
+    # support alone acts)
     env = DownwashFollowerEnv(reference="hover", separation=0.6, predictor=guard)
     env.reset(seed=1)
     for _ in range(20):

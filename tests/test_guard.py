@@ -205,8 +205,9 @@ def test_a_trained_checkpoint_records_its_support_and_the_condition_flies_guarde
     assert guard_record(["baseline", "deep"]) is None
     assert guard_record(["deep_guarded"]) == {"features": "general", "kinds": ["log_mass", "log_rotor_radius"],
                                               "support_quantile": 0.001, "margin": 0.25,
-                                              "monitor_parts": ["lateral", "vertical"], "recovery": 5.0, "bound": 6.0, "monitor": 1.0, "prior": 1.0,
-                                              "skeptic": 5.0}
+                                              "monitor_parts": ["lateral", "vertical"], "recovery": 5.0, "bound": 6.0,
+                                              "monitor": 1.0, "prior": 1.0, "skeptic": 5.0, "fast_monitor": 0.2,
+                                              "fast_prior": 3.0}
 
 
 def test_the_loop_logs_the_applied_fraction(support):
@@ -217,8 +218,8 @@ def test_the_loop_logs_the_applied_fraction(support):
     from sim.flight import fly
     from sim.scene import build_scene
 
-    guard = _guard(support, 7, prior=1e12, skeptic=np.inf)  # (a monitor that trusts the random model inside the
-    # support and gives it nothing outside: the support alone acts)
+    guard = _guard(support, 7, prior=1e12, fast_prior=1e12, skeptic=np.inf)  # (a monitor that trusts the random
+    # model inside the support and gives it nothing outside: the support alone acts)
     routed = PerWorldPredictor([guard, ZeroPredictor()], np.array([0, 0, 1]))
     top = np.array(LEADER_POSITION)
     leader = Line(top - [1.5, 0, 0], (3.0, 0.0, 0.0), duration=1.0, n_worlds=3)  # fast: out of the support
@@ -337,9 +338,10 @@ def test_the_monitor_scales_a_model_to_the_forces_felt(support, scale):
     that is right in full, one that points the wrong way or at nothing not at all: the monitor's gain of
     each part of the prediction (lateral, vertical; the forces felt are `scale` (lateral, vertical) times
     it) is the least-squares scale of that part against the forces felt, clipped to [0, 1], and the
-    motion-capture noise in those forces (1 m/s^2 per axis) does not bias it."""
+    motion-capture noise in those forces (1 m/s^2 per axis) does not bias it. (The one-second sums: the fast
+    ones' prior is put out of reach here; they are the next test's.)"""
     rng = np.random.default_rng(11)
-    guard = _guard(support, 3, bound=1e6)
+    guard = _guard(support, 3, bound=1e6, fast_prior=1e12)
     states = _states(rng, 16)
     assert np.all(guard.confidence(states) == 1.0)
     _observe_forces(guard, states, np.array(scale)[[0, 0, 1]], rng)
@@ -354,6 +356,28 @@ def test_the_monitor_scales_a_model_to_the_forces_felt(support, scale):
     np.testing.assert_allclose(out[:, 1], raw[:, 1] * gain[:, [0, 0, 1]], atol=1e-12)
     np.testing.assert_allclose(guard.applied[:, 1], np.linalg.norm(out[:, 1], axis=-1) / np.linalg.norm(raw[:, 1], axis=-1),
                                rtol=1e-12)
+
+
+def test_the_fast_monitor_turns_a_model_down_within_a_fifth_of_a_second(support):
+    """A model right for two seconds (applied nearly in full through 1 m/s^2 of noise per axis) that then
+    predicts three times the force felt (a neighbour passing close) is turned down to under 0.7 within
+    0.2 s by the fast sums; the one-second sums alone, still holding the earlier agreement, apply over
+    0.8 of it. Each gain is the lower of the two scales, so the fast monitor never raises one."""
+    rng = np.random.default_rng(12)
+    states = _states(rng, 16)
+    gains = {}
+    for fast in (0.2, 1.0):  # (1.0: the fast sums are the slow ones, with their prior: the one-second monitor alone)
+        guard = _guard(support, 3, bound=1e6, fast_monitor=fast, **({} if fast < 1.0 else {"fast_prior": 1.0}))
+        _observe_forces(guard, states, 1.0, np.random.default_rng(5))
+        right = guard._state[:, 1, GAIN:GAIN + 2].copy()
+        _observe_forces(guard, states, 1 / 3, np.random.default_rng(6), seconds=0.2)
+        gains[fast] = guard._state[:, 1, GAIN:GAIN + 2]
+        strength = np.column_stack([np.linalg.norm(guard.predictor(states)[:, 1, :2], axis=-1),
+                                    np.abs(guard.predictor(states)[:, 1, 2])])
+        judged = strength > 1.0
+        assert np.mean(judged) > 0.4 and np.median(right[judged]) > 0.9, right  # right: (nearly) in full before
+    assert np.all(gains[0.2] <= gains[1.0])
+    assert np.median(gains[0.2][judged]) < 0.7 < 0.8 < np.median(gains[1.0][judged]), gains
 
 
 def test_the_monitor_starts_afresh_and_skips_ticks_it_cannot_judge(support):

@@ -88,7 +88,8 @@ def test_a_guard_in_a_mixed_scene_flies_the_fused_path_with_its_state_where_the_
     F = len(SUPPORT_FEATURES)
     support = Support(np.full(F, -8.0), np.full(F, 8.0), np.full(F, 0.5))  # (every kind inside it)
     guard = GuardedPredictor(LearnedPredictor(make_model("equivariant_general")), support,
-                             prior=1e12)  # (a monitor that trusts the untrained model: the support alone acts)
+                             prior=1e12, fast_prior=1e12)  # (a monitor that trusts the untrained model:
+    # the support alone acts)
     pred = PerWorldPredictor([ZeroPredictor(), guard], np.arange(4) % 2)
     sims = [Simulator(mixed, _mixed_reference(4), [20, 21, 22, 23], fast=fast, predictor=copy.deepcopy(pred))
             for fast in (True, False)]
