@@ -30,7 +30,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 from scipy.ndimage import convolve1d
-from scipy.signal import savgol_coeffs, savgol_filter
+from scipy.signal import savgol_filter
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import quat_to_mat
