@@ -6,6 +6,13 @@ linearisation and returns per-rotor thrust commands (N), which the MuJoCo rotor
 actuators follow with their first-order lag. One `Autopilot` is one vehicle's; the
 simulator flies a scene of several kinds with `Autopilot.tables`: the same attitude loop
 for every vehicle, each through its own inertia, mixer and rotor limit.
+
+Saturation puts attitude first: when a rotor's demand exceeds its limit, every rotor's
+demand drops by the excess (the torques kept, collective thrust given up), then each is
+clipped to [0, limit]. This is what flight firmware does (the Crazyflie's power
+distribution cap, PX4's mixer desaturation). Clipping each rotor on its own instead
+throws away the torques exactly when a vehicle needs all its thrust: in a strong wake it
+loses its attitude as well as its height, and falls.
 """
 
 from __future__ import annotations
@@ -76,6 +83,12 @@ class Autopilot:
             ]
         )
 
+    def describe(self) -> dict:
+        """The attitude loop and its saturation rule, for provenance (the vehicle's numbers are the scene's)."""
+        omega_rp, zeta_rp, omega_yaw, zeta_yaw = self.gains
+        return {"type": f"{type(self).__module__}.{type(self).__qualname__}", "omega_rp": omega_rp, "zeta_rp": zeta_rp,
+                "omega_yaw": omega_yaw, "zeta_yaw": zeta_yaw, "saturation": "attitude_first"}
+
     def for_vehicle(self, params: QuadParams) -> "Autopilot":
         """This autopilot (the same natural frequencies and damping) for a vehicle of `params`:
         itself when `params` are its own vehicle's, so its `gain` flies as it is."""
@@ -97,7 +110,7 @@ class Autopilot:
         thrust_acc: np.ndarray,
         mass: np.ndarray | float | None = None,
     ) -> np.ndarray:
-        """Rotor thrust commands (..., 4) N, clipped to [0, max_rotor_thrust].
+        """Rotor thrust commands (..., 4) N in [0, max_rotor_thrust], attitude first (module doc).
 
         rot, rot_des: (..., 3, 3) body-to-world; omega: (..., 3) rad/s body frame;
         yaw_rate_des: (...,) rad/s; thrust_acc: (...,) m/s^2 collective thrust / mass.
@@ -129,7 +142,8 @@ def rotor_thrusts(rot, omega, rot_des, yaw_rate_des, thrust_acc, mass, gain, max
 
     rot, rot_des: (3, 3) body-to-world; omega: (3,) rad/s body frame; yaw_rate_des rad/s;
     thrust_acc m/s^2; mass kg; gain: Autopilot.gain (14, 4); max_thrust N.
-    x: (14,) scratch; out: (4,) receives the rotor thrusts (N), clipped to [0, max_thrust].
+    x: (14,) scratch; out: (4,) receives the rotor thrusts (N): the demands less the largest one's
+    excess over max_thrust (attitude first, module doc), clipped to [0, max_thrust].
     """
     for a in range(3):
         for b in range(3):  # E = R_d^T R, flattened row-major
@@ -139,8 +153,13 @@ def rotor_thrusts(rot, omega, rot_des, yaw_rate_des, thrust_acc, mass, gain, max
     x[0] = mass * thrust_acc * max(x[9], 0.5)
     x[10], x[11], x[12] = omega[0], omega[1], omega[2]
     x[13] = yaw_rate_des
+    highest = -np.inf
     for k in range(4):
         acc = 0.0
         for j in range(14):
             acc += x[j] * gain[j, k]
-        out[k] = min(max(acc, 0.0), max_thrust)
+        out[k] = acc
+        highest = max(highest, acc)
+    excess = max(highest - max_thrust, 0.0)
+    for k in range(4):
+        out[k] = min(max(out[k] - excess, 0.0), max_thrust)

@@ -62,6 +62,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
+from controllers.autopilot import Autopilot
 from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import atomic_write_json
@@ -165,6 +166,7 @@ def provenance(cfg: CollectionConfig, field: Any) -> dict[str, Any]:
         "scene": build_scene().describe(),
         "sim": describe(SimConfig()),
         "controller": describe(FeedbackLinearisedLQR()),
+        "autopilot": describe(Autopilot()),
         "turbulence": describe(OUTurbulence()),
         "collection": {
             "stages": describe(STAGES), "stage_minutes": cfg.effective_stage_minutes,

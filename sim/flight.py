@@ -88,6 +88,7 @@ def fly(
             "scene": scene.describe(),  # with each vehicle's kind in full unless all are the paper quad
             **kinds,
             "controller": describe(sim.controller),
+            "autopilot": describe(sim.autopilot),
             "turbulence": describe(sim.turbulence),
             "field": describe(sim.field),
             # how the wakes combined (None: linear); with two vehicles every law is the pairwise field

@@ -50,14 +50,61 @@ def test_saturation():
     np.testing.assert_allclose(out, 0.0)
 
 
-def test_attitude_step_converges_in_mujoco():
-    """From level, a 10 degree roll set-point is reached in MuJoCo with the motor lag."""
+def _readable_rotor_thrusts(ap, R, w, Rd, yr, T):
+    """The autopilot in plain linear algebra: the PD wrench through the inverse mixer, then
+    attitude first (every demand less the largest one's excess), clipped to [0, max]."""
+    E = np.swapaxes(Rd, -1, -2) @ R
+    S = E - np.swapaxes(E, -1, -2)
+    eR = 0.5 * np.stack([S[:, 2, 1], S[:, 0, 2], S[:, 1, 0]], -1)
+    wd = np.zeros_like(w)
+    wd[:, 2] = yr
+    b3 = np.maximum(np.einsum("ni,ni->n", Rd[:, :, 2], R[:, :, 2]), 0.5)
+    wrench = np.concatenate([(QUAD.mass * T * b3)[:, None], -ap.kR * eR - ap.kW * (w - wd)], axis=1)
+    demand = wrench @ np.linalg.inv(mixer_matrix()).T
+    excess = np.maximum(demand.max(axis=1) - QUAD.max_rotor_thrust, 0.0)
+    return np.clip(demand - excess[:, None], 0.0, QUAD.max_rotor_thrust), demand
+
+
+def test_saturation_gives_up_thrust_not_attitude():
+    """Over random attitudes, rates and collective demands up to 3 g: the compiled mixer is its
+    readable form; where a rotor saturates, the torques are the unsaturated PD torques as long as
+    no rotor is driven to zero, and only the collective thrust falls short."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    n = 400
+    ap = Autopilot()
+    R = Rotation.from_rotvec(rng.normal(scale=0.3, size=(n, 3))).as_matrix()
+    Rd = Rotation.from_rotvec(rng.normal(scale=0.3, size=(n, 3))).as_matrix()
+    w = rng.normal(scale=1.0, size=(n, 3))
+    yr = rng.normal(scale=0.5, size=n)
+    T = rng.uniform(0.0, 3.0 * GRAVITY, size=n)
+    rotors = ap(R, w, Rd, yr, T)
+    expected, demand = _readable_rotor_thrusts(ap, R, w, Rd, yr, T)
+    np.testing.assert_allclose(rotors, expected, rtol=1e-12, atol=1e-12)
+    saturated = (demand.max(axis=1) > QUAD.max_rotor_thrust) & (demand.min(axis=1) - (
+        demand.max(axis=1) - QUAD.max_rotor_thrust) > 0)
+    assert saturated.sum() > 50  # (the draw exercises the rule)
+    kept = rotors[saturated] @ mixer_matrix().T
+    wanted = demand[saturated] @ mixer_matrix().T
+    np.testing.assert_allclose(kept[:, 1:], wanted[:, 1:], atol=1e-12)
+    assert (kept[:, 0] < wanted[:, 0]).all()
+    np.testing.assert_allclose(rotors[saturated].max(axis=1), QUAD.max_rotor_thrust)
+
+
+@pytest.mark.parametrize("climb_g", [0.0, 2.0])
+def test_attitude_step_converges_in_mujoco(climb_g):
+    """From level, a 10 degree roll set-point is reached in MuJoCo with the motor lag, also while
+    the collective demand (hover plus climb_g g) saturates the rotors: attitude comes first."""
     sc = build_scene(("solo",))
     d = mujoco.MjData(sc.model)
     d.qpos[2] = 2.0
     d.act[:] = QUAD.hover_rotor_thrust
     ap = Autopilot()
-    thrust, Rd = attitude_setpoint(np.array([[0.0, -GRAVITY * np.tan(np.deg2rad(10)), 0.0]]), np.zeros(1))
+    thrust, Rd = attitude_setpoint(np.array([[0.0, -(1 + climb_g) * GRAVITY * np.tan(np.deg2rad(10)),
+                                                             climb_g * GRAVITY]]),
+                                   np.zeros(1))
+    assert (climb_g == 0.0) == bool(thrust[0] * QUAD.mass / 4 < QUAD.max_rotor_thrust)
     for _ in range(100):  # 1 s at the 100 Hz autopilot rate
         R = quat_to_mat(d.qpos[3:7][None])
         d.ctrl[:] = ap(R, d.qvel[3:6][None], Rd, np.zeros(1), thrust)[0]
