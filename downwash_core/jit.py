@@ -62,7 +62,8 @@ def install_locator() -> bool:
     try:
         from numba.core import caching
 
-        impl, bases = caching.CacheImpl, (caching.UserProvidedCacheLocator, caching.InTreeCacheLocator)
+        impl = caching.CacheImpl
+        bases = (caching.UserProvidedCacheLocator, caching.InTreeCacheLocator, caching.UserWideCacheLocator)
         if not (isinstance(impl._locator_classes, list) and all(hasattr(b, "get_source_stamp") for b in bases)):
             return False
     except (ImportError, AttributeError):
@@ -79,7 +80,7 @@ def install_locator() -> bool:
             "get_source_stamp": lambda self: source_stamp(),
             "from_function": classmethod(from_function),
         }))
-    impl._locator_classes[:0] = stamped  # (tried first, in numba's own order: a user's cache dir, then in-tree)
+    impl._locator_classes[:0] = stamped  # (tried first, in numba's order: a user's cache dir, in-tree, user-wide)
     return True
 
 

@@ -63,7 +63,7 @@ def test_the_stamp_covers_every_kernel_package_and_only_ours():
     from numba.core import caching
 
     stamped = [c for c in caching.CacheImpl._locator_classes if getattr(c, "_downwash_stamp", False)]
-    assert len(stamped) == 2
+    assert len(stamped) == 3
     import sim.passes
 
     locator = sim.passes._actuate_kernel._cache._impl.locator
