@@ -32,6 +32,7 @@ from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
 from downwash_core.errors import ConfigError
+from downwash_core.validate import count
 
 from downwash.features import (FEATURE_SETS, MEMORY_FEATURE_SETS, assemble, depth, model_inputs,
                                project_onto_basis)
@@ -284,6 +285,13 @@ def _floored_std(a: torch.Tensor) -> torch.Tensor:
     return torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
 
 
+def layer_widths(name: str, widths: Sequence[int]) -> tuple[int, ...]:
+    """Hidden widths: a sequence of integers in [1, MAX_WIDTH]; ConfigError naming the argument."""
+    if isinstance(widths, (int, str)) or not hasattr(widths, "__iter__"):
+        raise ConfigError(f"{name}: expected a sequence of layer widths, got {widths!r}")
+    return tuple(count(name, w, 1, MAX_WIDTH) for w in widths)
+
+
 def _mlp(widths: Sequence[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
@@ -298,7 +306,7 @@ class _OneHiddenLayer(DownwashModel):
 
     def __init__(self, feature_set: str | None = None, hidden: int = 32):
         super().__init__(feature_set)
-        self.hidden = int(hidden)
+        self.hidden = count("hidden", hidden, 1, MAX_WIDTH)
         self.net = _mlp([self.n_features, self.hidden, self.n_outputs])
 
     def architecture(self) -> dict[str, Any]:
@@ -398,7 +406,7 @@ class DeepSNMLP(DownwashModel):
 
     def __init__(self, feature_set: str | None = None, hidden: Sequence[int] = DEFAULT_HIDDEN, gamma: float = 2.0):
         super().__init__(feature_set)
-        self.hidden = tuple(int(h) for h in hidden)
+        self.hidden = layer_widths("hidden", hidden)
         self.gamma = float(gamma)
         widths = [self.n_features, *self.hidden, 3]
         layers: list[nn.Module] = []

@@ -65,7 +65,7 @@ from downwash_core.errors import ConfigError
 from downwash_core.validate import count, positive_float
 from downwash.features import (EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEATURES, MEMORY_FEATURE_SETS, N_BASIS, depth,
                                model_inputs)
-from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters,
+from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters, layer_widths,
                              settle_spectral_norm)
 
 __all__ = ["Encoded", "kind_columns", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
@@ -124,13 +124,6 @@ def kind_columns(kind_a: Any, kind_b: Any, B: int, K: int) -> np.ndarray:
 def _floored_std(a: torch.Tensor) -> torch.Tensor:
     std = a.std(0) if a.shape[0] > 1 else torch.ones(a.shape[1:], dtype=a.dtype)
     return torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
-
-
-def _widths_arg(name: str, widths: Sequence[int]) -> tuple[int, ...]:
-    """Hidden widths: a sequence of integers in [1, MAX_WIDTH]; ConfigError naming the argument."""
-    if isinstance(widths, (int, str)) or not hasattr(widths, "__iter__"):
-        raise ConfigError(f"{name}: expected a sequence of layer widths, got {widths!r}")
-    return tuple(count(name, w, 1, MAX_WIDTH) for w in widths)
 
 
 def _sn_mlp(widths: Sequence[int], gamma: float) -> nn.Sequential:
@@ -419,7 +412,7 @@ class DeepSetsEquivariant(_DeepSetsBase):
         super().__init__(len(FEATURE_SETS[feature_set]), kinds)
         self.feature_set = feature_set
         self.n_basis = N_BASIS[feature_set]
-        self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
+        self.phi_hidden, self.rho_hidden = layer_widths("phi_hidden", phi_hidden), layer_widths("rho_hidden", rho_hidden)
         self.latent, self.vectors = count("latent", latent, 1, MAX_WIDTH), count("vectors", vectors, 1, MAX_WIDTH)
         self.gamma = positive_float("gamma", gamma, "(largest singular value)")
         nb = self.n_basis
@@ -491,7 +484,7 @@ class DeepSets(_DeepSetsBase):
     def __init__(self, phi_hidden: Sequence[int] = (48, 48), latent: int = 24, rho_hidden: Sequence[int] = (48, 48),
                  gamma: float = 2.0, kinds: bool = False):
         super().__init__(len(RAW_SWARM_FEATURES), kinds)
-        self.phi_hidden, self.rho_hidden = _widths_arg("phi_hidden", phi_hidden), _widths_arg("rho_hidden", rho_hidden)
+        self.phi_hidden, self.rho_hidden = layer_widths("phi_hidden", phi_hidden), layer_widths("rho_hidden", rho_hidden)
         self.latent = count("latent", latent, 1, MAX_WIDTH)
         self.gamma = positive_float("gamma", gamma, "(largest singular value)")
         self.phi = _sn_mlp([self.n_features, *self.phi_hidden, self.latent], self.gamma)

@@ -290,3 +290,29 @@ def test_compiled_predictor_equals_the_readable_one(feature_set, clamp):
             got, want = fast(states), slow(states)
             assert np.abs(want).max() > 0
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", sorted(PAIRWISE_KINDS))
+@pytest.mark.parametrize("bad", [0, -1, False, True, 5000, "32", 2.5, None, "shape"])
+def test_bad_layer_widths_raise_config_error_naming_hidden(kind, bad):
+    """Widths are integers (not bools) in [1, MAX_WIDTH]: one for a one-hidden-layer model, a
+    sequence for a deep one ("shape": the other form). A width of 0 used to build a zero-width
+    layer, and torch only warned."""
+    from downwash_core.errors import ConfigError
+
+    deep = issubclass(PAIRWISE_KINDS[kind], DeepSNMLP)
+    if bad == "shape":
+        bad = 32 if deep else [32]
+    elif deep:
+        bad = [40, bad]
+    with pytest.raises(ConfigError, match="hidden"):
+        make_model(kind, hidden=bad)
+
+
+@pytest.mark.parametrize("name", ["phi_hidden", "rho_hidden"])
+@pytest.mark.parametrize("bad", [[0], [32, False], 32, "32"])
+def test_bad_set_model_widths_raise_config_error_naming_them(name, bad):
+    from downwash_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=name):
+        make_model("deepsets_equivariant", **{name: bad})
