@@ -190,8 +190,8 @@ class GuardedPredictor:
         mine = np.zeros_like(told) if self._kinds is None else self._kinds  # (None: paper quads)
         if inner is self.predictor and mine.shape == told.shape and np.array_equal(mine, told):
             return self  # (the guard a scene of paper quads flies is the one it was given)
-        return GuardedPredictor(inner, self.support, self.recovery, self.bound, self.predictor_hz, kinds,
-                                self.monitor, self.prior, self.skeptic, self.fast_monitor, self.fast_prior)
+        return GuardedPredictor(inner, self.support, predictor_hz=self.predictor_hz, vehicle_kinds=kinds,
+                                **self._settings())
 
     def reset(self, worlds: Any = None) -> None:
         """These worlds (None: all) start afresh: no compensation, rising at the recovery rate, and
@@ -322,8 +322,10 @@ class GuardedPredictor:
         if self._kinds is not None and len(self._kinds) != V:
             raise ConfigError(f"guard: told {len(self._kinds)} vehicle kinds, flies {V} vehicles")
 
+    def _settings(self) -> dict[str, float]:
+        """This guard's value of each of `GUARD_DEFAULTS`' settings, in their order."""
+        return {name: getattr(self, name) for name in GUARD_DEFAULTS}
+
     def describe(self) -> dict[str, Any]:
         inner = getattr(self.predictor, "describe", lambda: {})()
-        return {**inner, "guard": {"support": self.support.describe(), "recovery": self.recovery, "bound": self.bound,
-                                   "monitor": self.monitor, "prior": self.prior, "skeptic": self.skeptic,
-                                   "fast_monitor": self.fast_monitor, "fast_prior": self.fast_prior}}
+        return {**inner, "guard": {"support": self.support.describe(), **self._settings()}}
