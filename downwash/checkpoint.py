@@ -11,10 +11,18 @@ written beside it as ``<name>.json``; loading reads only the weights file.
 Loading uses ``torch.load(..., weights_only=True)``: a file holding any pickled
 object other than tensors and plain containers is refused. Writes are atomic
 (temporary file, then ``os.replace``).
+
+Integrity. torch ignores the zip's CRC-32s, so a flipped bit in a weight would load and
+fly. Each file therefore carries the SHA-256 of its metadata and of every tensor's name,
+dtype, shape and bytes (`content_digest`), also written in the sidecar; every load
+(`load_checkpoint`, `read_metadata`) recomputes it and raises `CheckpointError` naming the
+file when it differs. A collection's manifest records the same digest of each model it
+made (`downwash.manifest`), so a model swapped for another valid one is found too.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -39,11 +47,11 @@ from sim.neighbours import NeighbourSet
 
 __all__ = [
     "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "Checkpoint", "CheckpointError", "save_checkpoint", "load_checkpoint",
-    "wrap_pairwise", "check_expectations", "read_metadata", "sidecar_path",
+    "wrap_pairwise", "check_expectations", "read_metadata", "sidecar_path", "content_digest", "checkpoint_digest",
 ]
 
 CHECKPOINT_FORMAT = "downwash-model"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: the content's SHA-256, checked on every load; 1 (no digest) is refused
 _OLD_SET_FORMAT = "downwash-swarm-model"  # models of sets were written in a format of their own; still read
 
 
@@ -116,24 +124,33 @@ def save_checkpoint(path: str | os.PathLike, model: nn.Module, meta: dict[str, A
     return write_checkpoint(path, model, record, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
 
 
+def content_digest(meta_json: str, state: dict[str, torch.Tensor]) -> str:
+    """The SHA-256 (hex) of a checkpoint's content: its metadata text and, in name order, every
+    tensor's name, dtype, shape and bytes. Independent of how torch lays out the zip."""
+    h = hashlib.sha256(meta_json.encode())
+    for name in sorted(state):
+        t = state[name].detach().cpu().contiguous()
+        h.update(f"\0{name}:{t.dtype}:{tuple(t.shape)}\0".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
 def write_checkpoint(path: str | os.PathLike, model: torch.nn.Module, record: dict, fmt: str, version: int) -> dict:
-    """Atomically write `model`'s tensors and `record` (JSON-safe, also as a `.json` sidecar) to `path`;
-    returns the record as stored."""
+    """Atomically write `model`'s tensors, `record` (JSON-safe) and their `content_digest` to `path`, with
+    the record and the digest (``content_sha256``) as a `.json` sidecar; returns the record as stored."""
     try:
         meta_json = to_json(record)
     except TypeError as e:
         raise TypeError(f"checkpoint metadata: {e}") from e
     record = json.loads(meta_json)
-    payload = {
-        "format": fmt,
-        "version": version,
-        "meta_json": meta_json,
-        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-    }
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    digest = content_digest(meta_json, state)
+    payload = {"format": fmt, "version": version, "meta_json": meta_json, "state_dict": state, "content_sha256": digest}
     buf = io.BytesIO()
     torch.save(payload, buf)
     path = Path(path)
-    atomic_write_bytes(sidecar_path(path), (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
+    sidecar = {**record, "content_sha256": digest}
+    atomic_write_bytes(sidecar_path(path), (json.dumps(sidecar, indent=2, sort_keys=True) + "\n").encode())
     atomic_write_bytes(path, buf.getvalue())
     return record
 
@@ -196,16 +213,36 @@ def _read(path: Path) -> tuple[dict, dict]:
     found = payload.get("format") if isinstance(payload, dict) else None
     if found not in (CHECKPOINT_FORMAT, _OLD_SET_FORMAT):
         raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT!r} checkpoint of this project")
+    if payload.get("version") == 1:
+        raise CheckpointError(f"{path}: a checkpoint of an older format (version 1) that carries no digest of its "
+                              "weights, so a corrupted copy cannot be told apart; delete it and rerun to train it "
+                              "again")
     if payload.get("version") != CHECKPOINT_VERSION:
         raise CheckpointError(f"{path}: checkpoint version {payload.get('version')!r}, this code reads "
                               f"{CHECKPOINT_VERSION}")
+    meta_json, state, recorded = payload.get("meta_json"), payload.get("state_dict"), payload.get("content_sha256")
+    if (not isinstance(meta_json, str) or not isinstance(recorded, str) or not isinstance(state, dict)
+            or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items())):
+        raise CheckpointError(f"{path}: corrupt checkpoint: its metadata text, state dict of tensors or digest is "
+                              "missing or of the wrong type")
+    found = content_digest(meta_json, state)
+    if found != recorded:
+        raise CheckpointError(f"{path}: corrupt checkpoint: its content's SHA-256 is {found[:12]}..., the file "
+                              f"records {recorded[:12]}... (altered since it was written); restore it, or delete it "
+                              "and rerun to train it again")
     try:
-        record = json.loads(payload["meta_json"])
-    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        record = json.loads(meta_json)
+    except json.JSONDecodeError as e:
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: {e!r}") from e
     if not isinstance(record, dict):
         raise CheckpointError(f"{path}: corrupt checkpoint metadata: not a record")
     return payload, record
+
+
+def checkpoint_digest(path: str | os.PathLike) -> str:
+    """The content SHA-256 that the checkpoint at `path` records, after checking that its content has it
+    (CheckpointError naming the file otherwise): what a manifest records of a model."""
+    return _read(Path(path))[0]["content_sha256"]
 
 
 def read_metadata(path: str | os.PathLike) -> dict[str, Any]:

@@ -3,9 +3,11 @@ against it (`downwash.staged` writes it; training, the sweep and reruns check it
 
 As each stage's flights are done, the manifest records every log of the stage: its
 SHA-256 (of the file, read in 1 MiB chunks), the digest of its arrays, its rows,
-labelled samples and status. Before anything is trained on a collection, its logs are
-checked against that record (`verify_collection`): a missing, altered or unlisted log
-stops the run with a DataError naming the file and how to re-fly it. The check reads
+labelled samples and status; as each model is trained (each stage's deployed model, the final
+models), it records the model's content digest (`downwash.checkpoint.checkpoint_digest`).
+Before anything is trained or flown on a collection, its logs and models are checked
+against that record (`verify_collection`): a missing, altered or unlisted log, or a model
+altered or replaced, stops the run with a DataError naming the file and what to do. The check reads
 every log each time: about 0.05 s for a full collection (72 logs, 54 MB) in the page
 cache. `collection_digest` keys the sweep's cells by the data they train on.
 """
@@ -20,14 +22,16 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import DataError
+from downwash_core.errors import CheckpointError
 from downwash_core.provenance import fingerprint
+from downwash.checkpoint import checkpoint_digest
 from downwash.labels import labels_from_log
 from sim.logs import FlightLog, load_log
 
 __all__ = ["MANIFEST_VERSION", "file_sha256", "log_record", "read_manifest", "verify_collection", "check_logs",
-           "integrity_error", "listed_logs", "stage_folder", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
+           "integrity_error", "listed_logs", "recorded_models", "check_models", "stage_folder", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
 
-MANIFEST_VERSION = 3  # 3: every log's digests and sample count, checked before training; 2: provenance, resume
+MANIFEST_VERSION = 4  # 4: every model's digest; 3: every log's digests and sample count; 2: provenance, resume
 _CHUNK = 1 << 20  # bytes read at a time when hashing a log
 _RERUN = "python -m experiments.staged_collection"
 
@@ -107,6 +111,36 @@ def check_logs(out: Path, manifest: dict, scope: Sequence[Path] | None = None) -
     return problems
 
 
+def recorded_models(out: Path, manifest: dict, models_dir: Path | None) -> dict[Path, str]:
+    """The content digest the manifest records of every model it made, by path: each stage's deployed
+    model (``model_sha256`` of its stage entry) and, with `models_dir`, the final models."""
+    models = {out / stage_folder(k) / e["model_file"]: e["model_sha256"]
+              for k, e in manifest.get("stages", {}).items() if "model_sha256" in e}
+    if models_dir is not None:
+        models.update({models_dir / f"{kind}.pt": e["sha256"] for kind, e in manifest.get("final_models", {}).items()
+                       if "sha256" in e})
+    return models
+
+
+def check_models(out: Path, manifest: dict, models_dir: Path | None) -> list[tuple[str, Path, str]]:
+    """("model", path, detail) for every recorded model that is there but is not the model recorded: its
+    content does not match its own digest (a corrupt file), or it is another model. (A missing model is
+    trained again by the collection, bit for bit the one it was.)"""
+    problems = []
+    for path, recorded in recorded_models(out, manifest, models_dir).items():
+        if not path.is_file():
+            continue
+        try:
+            found = checkpoint_digest(path)
+        except CheckpointError as e:
+            problems.append(("model", path, str(e).removeprefix(f"{path}: ")))
+            continue
+        if found != recorded:
+            problems.append(("model", path, f"not the model this collection trained (content SHA-256 {found[:12]}..., "
+                                            f"the manifest records {recorded[:12]}...)"))
+    return problems
+
+
 def integrity_error(out: Path, problems: list[tuple[str, Path, str]], rerun: str) -> DataError:
     """The DataError for `problems`: each file and what is wrong, then how to re-fly or remove it."""
     kinds = {p[0] for p in problems}
@@ -118,9 +152,12 @@ def integrity_error(out: Path, problems: list[tuple[str, Path, str]], rerun: str
         advice.append(("Delete the altered logs and rerun" if "altered" in kinds else "Rerun")
                       + f" `{rerun}` with the options that made this collection (its manifest's provenance): "
                       "a rerun re-flies only what is missing, with the seeds of the original flights.")
+    if "model" in kinds:
+        advice.append(f"Delete the altered models and rerun `{rerun}`: it trains them again, as they were.")
     if "extra" in kinds:
         advice.append("Move the unlisted files out of the stage folders (a collection holds only the logs it flew).")
-    return DataError(f"{out}: the collection's logs do not match its manifest ({out / 'manifest.json'}), so nothing "
+    what = "logs and models" if "model" in kinds else "logs"
+    return DataError(f"{out}: the collection's {what} do not match its manifest ({out / 'manifest.json'}), so nothing "
                      "is trained on them:\n  " + "\n  ".join(lines) + "\n" + " ".join(advice))
 
 
@@ -131,14 +168,17 @@ def rerun_command(collection_dir: Path, models_dir: Path | None = None) -> str:
 def verify_collection(collection_dir: str | Path, manifest: dict | None = None, models_dir: str | Path | None = None,
                       scope: Sequence[Path] | None = None) -> None:
     """DataError, naming each file and how to re-fly it, unless every log that the manifest of
-    `collection_dir` records is there unaltered (its SHA-256) and no unlisted .npz lies in a stage folder.
+    `collection_dir` records is there unaltered (its SHA-256), no unlisted .npz lies in a stage folder,
+    and every model it records that is there (its stage models; with `models_dir` its final models) is
+    the one it trained.
 
     Reads every log (streaming): about 0.05 s for a full collection in the page cache.
     scope: only these folders (stage or train/val folders; default every finished stage).
     """
     out = Path(collection_dir)
     manifest = read_manifest(out / "manifest.json") if manifest is None else manifest
-    problems = check_logs(out, manifest, scope)
+    problems = check_logs(out, manifest, scope) + check_models(out, manifest, None if models_dir is None
+                                                               else Path(models_dir))
     if problems:
         raise integrity_error(out, problems, rerun_command(out, Path(models_dir) if models_dir else None))
 
@@ -174,6 +214,6 @@ def read_manifest(path: Path) -> dict:
         raise DataError(f"{path}: unreadable collection manifest ({e}); delete the folder to start afresh") from e
     if manifest.get("version") != MANIFEST_VERSION or "provenance" not in manifest:
         raise DataError(f"{path}: a collection of an older format (manifest version {manifest.get('version')!r}; this "
-                        f"code records and checks every log's digest, version {MANIFEST_VERSION}); delete the folder "
+                        f"code records and checks every log's and model's digest, version {MANIFEST_VERSION}); delete the folder "
                         "(and its models folder) to collect afresh, or use another --collection-dir")
     return manifest

@@ -33,9 +33,10 @@ so a rerun flies only the missing flights and gets the same results as an
 uninterrupted run. A kill loses at most the batch in flight.
 
 Integrity. As each stage's flights are done, the manifest records every log of the
-stage (`downwash.manifest`), and before anything is trained on a collection its logs are
-checked against that record: a missing, altered or unlisted log stops the run, naming
-the file and how to re-fly it. `collect` itself re-flies the missing logs of a finished
+stage (`downwash.manifest`), and as each model is trained, its content digest; before
+anything is trained or flown on a collection its logs and models are checked against that
+record: a missing, altered or unlisted log, or an altered model, stops the run, naming
+the file and what to do. `collect` itself re-flies the missing logs of a finished
 stage (only those; the re-flown log must hold the same data as the one recorded, else it
 stops). A stage where most flights diverge (a field with NaN or runaway forces where it
 was never checked) stops with the counts before training.
@@ -70,12 +71,12 @@ from downwash_core.locks import folder_lock
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import code_version, describe, differences, fingerprint
 from downwash_core.status import Status
-from downwash.checkpoint import load_checkpoint, read_metadata, save_checkpoint
+from downwash.checkpoint import checkpoint_digest, load_checkpoint, read_metadata, save_checkpoint
 from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.guard import GuardedPredictor, guard_settings
 from downwash.labels import label_noise_floor
-from downwash.manifest import (MANIFEST_VERSION, check_logs, integrity_error, listed_logs, read_manifest,
-                               rerun_command, verify_collection)
+from downwash.manifest import (MANIFEST_VERSION, check_logs, check_models, integrity_error, listed_logs,
+                               read_manifest, rerun_command, verify_collection)
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.stages import ProgressFactory, Stage, fly_recorded
@@ -375,7 +376,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         if (models_dir / f"{kind}.pt").is_file():
             check_checkpoint(models_dir / f"{kind}.pt", kind, record)
     rerun = rerun_command(out, models_dir)
-    problems = check_logs(out, manifest)  # before any work
+    problems = check_logs(out, manifest) + check_models(out, manifest, models_dir)  # before any work
     if any(p[0] != "missing" for p in problems) or (problems and not refly_missing):
         raise integrity_error(out, problems, rerun)
     refly: dict[Path, list[Path]] = {}
@@ -412,7 +413,8 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             log.info("stage %d: training the %s model that stage %d flies with", k, DEPLOYED_KIND, k + 1)
             _train_and_save(DEPLOYED_KIND, labelled(train_dirs), train_dirs, sdir / f"{DEPLOYED_KIND}.pt", cfg,
                             record, {"stage": k})
-            entry["model_done"] = True
+            entry.update(model_done=True, model_file=f"{DEPLOYED_KIND}.pt",
+                         model_sha256=checkpoint_digest(sdir / f"{DEPLOYED_KIND}.pt"))
             run["models"].append(f"stage{k}/{DEPLOYED_KIND}")
             atomic_write_json(manifest_path, manifest)
         if "deployed_val_rmse" not in entry:
@@ -437,7 +439,8 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         def train_one(kind: str) -> dict:
             path, t0 = models_dir / f"{kind}.pt", time.perf_counter()
             history = _train_and_save(kind, data, train_dirs, path, cfg, record, {"stage": "final"})
-            return {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"]}
+            return {"path": str(path), "train_seconds": time.perf_counter() - t0, "epochs": history["epochs"],
+                    "sha256": checkpoint_digest(path)}
 
         for kind, entry in _in_parallel(train_one, missing):
             finals[kind] = entry

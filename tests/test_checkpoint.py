@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from downwash.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, sidecar_path
+from downwash.checkpoint import CheckpointError, checkpoint_digest, load_checkpoint, save_checkpoint, sidecar_path
 from downwash.models import DeepSNMLP
 from downwash.registry import make_model
 from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig
 from sim.predictor import VehicleStates
+from conftest import restamp
 
 
 def trained_like(kind, feature_set=None, seed=0):
@@ -54,7 +55,8 @@ def test_round_trip_gives_identical_predictions(tmp_path, kind, feature_set):
     assert desc["n_parameters"] == sum(p.numel() for p in model.parameters())
     assert desc["normalization"]["in_std"] == pytest.approx(model.in_std.tolist())
     assert meta2["config"]["seed"] == 3 and meta2["data"]["n_samples"] == 100 and meta2["source"] == str(tmp_path)
-    assert json.loads(sidecar_path(path).read_text()) == record  # the human-readable copy
+    sidecar = json.loads(sidecar_path(path).read_text())  # the human-readable copy, with the content's digest
+    assert sidecar.pop("content_sha256") == checkpoint_digest(path) and sidecar == record
 
 
 def test_float64_round_trip(tmp_path):
@@ -115,7 +117,7 @@ def test_mismatches_are_named(tmp_path):
     # tensor shapes that do not fit the architecture in the metadata
     payload = torch.load(path, weights_only=True)
     payload["state_dict"]["net.0.weight"] = torch.zeros(32, 6)
-    torch.save(payload, tmp_path / "bad_shape.pt")
+    torch.save(restamp(payload), tmp_path / "bad_shape.pt")
     with pytest.raises(CheckpointError, match=r"bad_shape.pt: .*tensor 'net.0.weight' has shape \(32, 6\), expected \(32, 5\)"):
         load_checkpoint(tmp_path / "bad_shape.pt")
     # metadata claiming another feature set than the weights were trained for
@@ -123,13 +125,13 @@ def test_mismatches_are_named(tmp_path):
     meta["model"]["feature_set"] = "6"
     payload["meta_json"] = json.dumps(meta)
     payload["state_dict"]["net.0.weight"] = torch.zeros(32, 5)
-    torch.save(payload, tmp_path / "bad_meta.pt")
+    torch.save(restamp(payload), tmp_path / "bad_meta.pt")
     with pytest.raises(CheckpointError, match=r"bad_meta.pt: weights do not match a 'equivariant' model with feature set '6'.*in_mean"):
         load_checkpoint(tmp_path / "bad_meta.pt")
     del payload["state_dict"]["out_std"]
     meta["model"]["feature_set"] = "5"
     payload["meta_json"] = json.dumps(meta)
-    torch.save(payload, tmp_path / "missing.pt")
+    torch.save(restamp(payload), tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match=r"missing tensor 'out_std'"):
         load_checkpoint(tmp_path / "missing.pt")
 

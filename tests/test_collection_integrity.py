@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from downwash_core.errors import DataError
+from downwash_core.errors import CheckpointError, DataError
+from downwash.checkpoint import checkpoint_digest, load_checkpoint
 from downwash_core.locks import LOCK_NAME, holder
-from downwash.models import PAIRWISE_KINDS
+from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.manifest import MANIFEST_VERSION, collection_digest, file_sha256
 from downwash.staged import CollectionConfig, collect, ensure_collection, ensure_models
 from downwash.sweep_cells import SweepGrid, load_collection, plan_cells
@@ -70,7 +71,7 @@ def _manifest(base: Path) -> dict:
 
 def test_the_manifest_records_every_log_of_every_stage(collection):
     m = _manifest(collection)
-    assert m["version"] == MANIFEST_VERSION == 3 and m["complete"]
+    assert m["version"] == MANIFEST_VERSION == 4 and m["complete"]
     logs = sorted((collection / "staged").rglob("*.npz"))
     listed = {collection / "staged" / f"stage{k}" / rel: info for k, e in m["stages"].items()
               for rel, info in e["files"].items()}
@@ -133,6 +134,64 @@ def test_an_altered_log_stops_training_before_any_work(copy, field, kind):
     # a rerun of the collection does not overwrite it either: the user decides
     with pytest.raises(DataError, match="altered since it was flown"):
         collect(CFG, copy / "staged", copy / "models", field)
+
+
+def _flip_bit(path: Path, at: float) -> None:
+    """One bit flipped at the fraction `at` of the file: its size stays, only a digest sees it."""
+    data = bytearray(path.read_bytes())
+    data[int(at * (len(data) - 1))] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def test_the_manifest_records_every_model_it_trained(collection):
+    m = _manifest(collection)
+    stage_models = {k: e["model_sha256"] == checkpoint_digest(collection / "staged" / f"stage{k}" / e["model_file"])
+                    for k, e in m["stages"].items() if "model_sha256" in e}
+    assert stage_models == {"0": True, "1": True}  # stage 2's model is the final one
+    assert sorted(m["final_models"]) == sorted(STAGED_KINDS)
+    for kind, entry in m["final_models"].items():
+        assert entry["sha256"] == checkpoint_digest(collection / "models" / f"{kind}.pt")
+
+
+def _weights_offset(path: Path) -> float:
+    """The middle of a checkpoint's largest tensor's bytes (a stored zip record under data/), as a
+    fraction of the file."""
+    import struct
+    import zipfile
+    with zipfile.ZipFile(path) as z:
+        info = max((i for i in z.infolist() if "/data/" in i.filename), key=lambda i: i.file_size)
+    raw = path.read_bytes()
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26:info.header_offset + 30])
+    start = info.header_offset + 30 + name_len + extra_len  # the local header, then the stored bytes
+    return (start + info.file_size // 2) / (len(raw) - 1)
+
+
+@pytest.mark.parametrize("which", ["stage1/equivariant.pt", "models/deep.pt"])
+@pytest.mark.parametrize("kind", ["ensure_collection", "collect", "load_collection"])
+def test_a_flipped_bit_in_a_model_stops_every_run_by_name(copy, field, which, kind):
+    """torch ignores the zip's CRC-32s: a bit flipped in a weight loads. The digest each file carries
+    refuses it, and a complete collection rereads its models (ensure_collection, collect) before work."""
+    path = copy / "staged" / which if which.startswith("stage") else copy / which
+    _flip_bit(path, _weights_offset(path))
+    if kind == "load_collection" and which.startswith("models"):
+        kind = "load_model"  # the sweep's loader reads no final model: a flight reads it
+    before = _mtimes(copy)
+    with pytest.raises((DataError, CheckpointError)) as e:
+        if kind == "load_model":
+            load_checkpoint(path)
+        else:
+            _train(kind, copy, field)
+    assert f"{path}: " in str(e.value) and "SHA-256" in str(e.value)
+    assert _mtimes(copy) == before
+
+
+def test_a_model_swapped_for_another_valid_one_is_found(copy, field):
+    """A stage model replaced by another well-formed checkpoint (the final equivariant model) passes its
+    own digest but not the manifest's."""
+    stage = copy / "staged" / "stage0" / "equivariant.pt"
+    shutil.copy(copy / "models" / "equivariant.pt", stage)
+    with pytest.raises(DataError, match=rf"(?s){stage}: not the model this collection trained.*Delete the altered models"):
+        ensure_collection(copy / "staged", copy / "models", CFG, field)
 
 
 def test_an_unlisted_log_in_a_stage_folder_is_reported(copy, field):

@@ -45,6 +45,7 @@ from downwash.models import PAIRWISE_KINDS, DeepSNMLP
 from downwash.registry import make_model
 from sim.field import DownwashField, pairwise_field
 from sim.logs import ARRAY_SPECS, FlightLog
+from conftest import restamp
 
 
 def _settings(n: int):
@@ -715,7 +716,7 @@ def _mistyped_bytes(recipe) -> bytes:
         payload["meta_json"] = json.dumps(record)
     else:
         payload["state_dict"][recipe[2]] = recipe[3]
-    return _torch_saved(payload)
+    return _torch_saved(restamp(payload))
 
 
 @_settings(40)

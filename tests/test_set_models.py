@@ -30,6 +30,7 @@ from sim.scene import build_scene
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from test_features import random_rotations
 from downwash_trajectories import Hover, Transect, stack
+from conftest import restamp
 
 LEADER = np.array(LEADER_POSITION)
 LINEAR = {"type": "sim.aggregation.LinearSuperposition", "name": "linear"}
@@ -506,7 +507,7 @@ def test_bad_checkpoint_files_raise_checkpoint_errors(tmp_path):
         load_checkpoint(tmp_path / "evil.pt")
     payload = torch.load(path, weights_only=True)
     payload["state_dict"] = {k: v for k, v in payload["state_dict"].items() if not k.startswith("rho.0.")}
-    torch.save(payload, tmp_path / "short.pt")
+    torch.save(restamp(payload), tmp_path / "short.pt")
     with pytest.raises(CheckpointError, match="short.pt: weights do not match.*missing tensor 'rho.0"):
         load_checkpoint(tmp_path / "short.pt")
 
