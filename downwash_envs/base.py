@@ -8,8 +8,8 @@
 next-step autoreset, written once. `FollowerEnvBase` binds the follower task to them (the
 swarm's binding is in `downwash_envs.swarm`).
 
-Also here: the spaces, the reset-option checks, a vector env's reset plan, and pickling
-an env as the call that made it.
+Also here: the spaces, the reset-option checks, a vector env's reset plan, pickling
+an env as the call that made it, and `ResetNeededError` (step() before the first reset()).
 """
 
 from __future__ import annotations
@@ -30,11 +30,18 @@ from downwash_envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
 __all__ = [
-    "TaskEnv", "VectorAutoreset", "AutoresetStep", "FollowerEnvBase", "agent_spaces", "make_spaces",
-    "check_reset_options", "vector_reset_plan", "pickled_as_constructed",
+    "TaskEnv", "VectorAutoreset", "AutoresetStep", "FollowerEnvBase", "ResetNeededError", "agent_spaces",
+    "make_spaces", "check_reset_options", "vector_reset_plan", "pickled_as_constructed",
 ]  # fmt: skip
 
 RENDER_MODES = ("rgb_array",)
+
+
+class ResetNeededError(gym.error.ResetNeeded, RuntimeError):
+    """step() on an env with no episode to step: before its first reset() (a new env, or an unpickled
+    copy, which is a new env), or a PettingZoo env whose episode has ended. Gymnasium's
+    `ResetNeeded` (what its OrderEnforcing wrapper raises), so that envs made directly, not
+    through `gym.make`, refuse alike; also a RuntimeError, as the swarm env raised before."""
 
 
 def agent_spaces(low: np.ndarray, high: np.ndarray) -> tuple[spaces.Box, spaces.Box]:
@@ -90,7 +97,8 @@ def pickled_as_constructed(cls: type) -> type:
     buffers, helper threads) cannot be copied, and a pickled copy of those objects is an env
     that silently does not move; libraries that copy envs by pickling them (SuperSuit,
     subprocess vector envs) get a working env instead. The copy does not carry the original's
-    generator: seed its reset."""
+    generator or its episode (nor its step counter): like any new env it raises
+    `ResetNeededError` on step() until reset(); seed that reset."""
     init = cls.__init__
 
     @functools.wraps(init)
@@ -142,6 +150,31 @@ class TaskEnv:
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": worlds.task.control_hz}  # one frame per env step
         self._renderer: Any = None
+        # the worlds never reset: built with placeholder episodes, they must not be stepped (`_check_reset`)
+        self._unreset = np.ones(n_worlds, bool)
+        self._all_reset = False  # once True, stays True (a world never becomes unreset again)
+
+    def _mark_reset(self, worlds: Any) -> None:
+        """Record that `worlds` (indices or a (W,) mask) have started an episode."""
+        self._unreset[worlds] = False
+
+    def _check_reset(self) -> None:
+        """ResetNeededError unless every world has been reset at least once (one attribute read once they have)."""
+        if self._all_reset:
+            return
+        if self._unreset.size == 1 and self._unreset[0]:
+            raise ResetNeededError(
+                "step() before reset(): call reset() first (a new env, or an unpickled copy of one, has no episode "
+                "to step)"
+            )
+        if self._unreset.any():
+            never = np.flatnonzero(self._unreset).tolist()
+            raise ResetNeededError(
+                f"step() before reset(): world(s) {never} have never been reset; call reset() first (a new env, "
+                "or an unpickled copy of one, has no episode to step; reset(options={'reset_mask': mask}) resets "
+                "only the masked worlds)"
+            )
+        self._all_reset = True
 
     @property
     def dt(self) -> float:
@@ -214,6 +247,7 @@ class VectorAutoreset:
             episodes.append(self._worlds.new_episode(self._rngs[w]))
         self._worlds.reset_worlds(worlds, episodes)
         self._elapsed[worlds] = 0
+        self._mark_reset(worlds)
         return episodes
 
     def _seeded_reset(self, seed: Any, options: Mapping[str, Any] | None) -> tuple[np.ndarray, np.ndarray, list]:
@@ -229,7 +263,7 @@ class VectorAutoreset:
 
     def _autoreset_step(self, actions: np.ndarray, max_steps: int | None) -> AutoresetStep:
         """Step the worlds with checked `actions`; those that ended at the last step start anew
-        instead. max_steps: the truncation horizon (None: none)."""
+        instead. max_steps: the truncation horizon (None: none). The caller checks `_check_reset` first."""
         resetting = self._autoreset
         stepping = ~resetting
         any_reset = bool(resetting.any())

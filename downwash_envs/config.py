@@ -3,7 +3,8 @@
 Every field of `FollowerConfig` is a `gymnasium.make` keyword. `make_config` turns
 keyword options into a validated config: an unknown name raises TypeError listing
 the allowed ones, a bad value `downwash_core.errors.ConfigError` (a ValueError) naming the
-option and its allowed range, before anything is built.
+option and its allowed range, before anything is built. Numeric options refuse strings and
+bools ("0.6", True): float() would read them as numbers.
 """
 
 from __future__ import annotations
@@ -225,8 +226,48 @@ def make_config(options: Mapping[str, Any] | None = None) -> FollowerConfig:
     return FollowerConfig(**options)
 
 
+def _text_or_bool(value: Any) -> tuple[bool, Any]:
+    """(True, the first string or bool in `value`) or (False, None); `value` a number, or a sequence
+    or array of them. float() reads "0.6" as 0.6 and True as 1.0, so these would pass a range check."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        return True, value
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind in "bUS":
+            return True, value
+        if value.dtype.kind != "O":
+            return False, None
+        value = value.ravel().tolist()
+    if isinstance(value, (list, tuple)):
+        for v in value:
+            found, bad = _text_or_bool(v)
+            if found:
+                return True, bad
+    return False, None
+
+
+def check_not_text_or_bool(name: str, value: Any, allowed: str) -> None:
+    """ConfigError naming `name` and what is `allowed` when `value` is, or holds, a string or a bool."""
+    found, bad = _text_or_bool(value)
+    if found:
+        what = f"a {type(bad).__name__}" if bad is value else f"{bad!r} is a {type(bad).__name__}"
+        raise ConfigError(f"{name}: expected a number, got {value!r} ({what}, not a number); allowed {allowed}")
+
+
+def number_option(name: str, value: Any, unit: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
+    """`downwash_core.validate.number`, which also refuses strings and bools."""
+    check_not_text_or_bool(name, value, f"{'(' if lo_open else '['}{lo}, {hi}] {unit}")
+    return number(name, value, unit, lo, hi, lo_open=lo_open)
+
+
+def pair_option(name: str, value: Any, unit: str, lo: float, hi: float) -> tuple[float, float]:
+    """`downwash_core.validate.pair`, which also refuses strings and bools."""
+    check_not_text_or_bool(name, value, f"(low, high) with {lo} <= low <= high <= {hi} {unit}")
+    return pair(name, value, unit, lo, hi)
+
+
 def _separation_range(sep: Any) -> tuple[float, float]:
     lo, hi = SEPARATION_RANGE
+    check_not_text_or_bool("separation", sep, f"a number in [{lo}, {hi}] m, or (low, high) within it")
     if np.ndim(sep) == 0:
         s = number("separation", sep, "m", lo, hi)
         return s, s
@@ -242,7 +283,7 @@ def _validate(c: FollowerConfig) -> None:
     """Check every option; raise ConfigError naming the first bad one and what is allowed."""
     choice("action_mode", c.action_mode, ACTION_MODES)
     if c.action_bound is not None:
-        number("action_bound", c.action_bound, "m/s^2", 0.0, MAX_ACTION_BOUND, lo_open=True)
+        number_option("action_bound", c.action_bound, "m/s^2", 0.0, MAX_ACTION_BOUND, lo_open=True)
     choice("reference", c.reference, REFERENCES)
     if c.reference_kwargs is not None:
         if not isinstance(c.reference_kwargs, Mapping):
@@ -253,6 +294,11 @@ def _validate(c: FollowerConfig) -> None:
                 f"reference_kwargs: unknown {unknown} for reference {c.reference!r}; "
                 f"allowed: {', '.join(REFERENCE_KWARGS[c.reference])}"
             )
+        lim = REFERENCE_LIMITS
+        for k, v in c.reference_kwargs.items():  # every shape parameter is a number or numbers
+            check_not_text_or_bool(f"reference_kwargs[{k!r}]", v, f"numbers (the {c.reference} reference checks "
+                                   f"their ranges; its path must stay within {lim['extent']} m of the point below "
+                                   f"the leader, {lim['speed']} m/s, {lim['acc']} m/s^2)")
     _validate_geometry(c)
     if not isinstance(c.random_phase, (bool, np.bool_)):
         raise ConfigError(f"random_phase: expected True or False, got {c.random_phase!r}")
@@ -281,11 +327,11 @@ def _validate(c: FollowerConfig) -> None:
         )
     _validate_field(c)
     if c.mass_randomization is not None:
-        pair("mass_randomization", c.mass_randomization, "(factor)", *MASS_SCALE_RANGE)
+        pair_option("mass_randomization", c.mass_randomization, "(factor)", *MASS_SCALE_RANGE)
     _validate_randomize(c)
-    number("max_tracking_error", c.max_tracking_error, "m", 0.0, 5.0, lo_open=True)
+    number_option("max_tracking_error", c.max_tracking_error, "m", 0.0, 5.0, lo_open=True)
     for name in REWARD_WEIGHTS:
-        number(name, getattr(c, name), "(reward weight)", 0.0, 1e6)
+        number_option(name, getattr(c, name), "(reward weight)", 0.0, 1e6)
     count("render_width", c.render_width, 16, 640)  # pixels
     count("render_height", c.render_height, 16, 480)
     # Reference shape parameters: let the reference classes check them (they name the argument).
@@ -303,7 +349,7 @@ def _validate_randomize(c: FollowerConfig) -> None:
     if unknown:
         raise ConfigError(f"randomize: unknown parameter(s) {unknown}; allowed: {', '.join(VEHICLE_RANDOMIZABLE)}")
     for k, v in r.items():
-        number(f"randomize[{k!r}]", v, "(relative spread)", 0.0, VEHICLE_SPREAD_MAX)
+        number_option(f"randomize[{k!r}]", v, "(relative spread)", 0.0, VEHICLE_SPREAD_MAX)
     if c.mass_randomization is not None:
         raise ConfigError("randomize and mass_randomization: give one (randomize={'mass': s} draws the follower's "
                           "mass factor from U(1 - s, 1 + s))")
@@ -312,6 +358,8 @@ def _validate_randomize(c: FollowerConfig) -> None:
 def _validate_geometry(c: FollowerConfig) -> None:
     """Separation and leader position: the reference must stay above MIN_FOLLOWER_HEIGHT."""
     _, sep_hi = _separation_range(c.separation)
+    check_not_text_or_bool("leader_position", c.leader_position,
+                           f"(x, y, z) m, z in [{MIN_FOLLOWER_HEIGHT} + separation, 20]")
     try:
         leader = np.array(c.leader_position, dtype=float)
     except (TypeError, ValueError):
@@ -327,9 +375,9 @@ def _validate_geometry(c: FollowerConfig) -> None:
 
 def _validate_field(c: FollowerConfig) -> None:
     """The field knobs, field randomisation, and a custom field."""
-    number("c4_amplitude", c.c4_amplitude, "-", -0.99, 0.99)
-    number("swirl", c.swirl, "-", -10.0, 10.0)
-    number("skew", c.skew, "s/m", 0.0, 10.0)
+    number_option("c4_amplitude", c.c4_amplitude, "-", -0.99, 0.99)
+    number_option("swirl", c.swirl, "-", -10.0, 10.0)
+    number_option("skew", c.skew, "s/m", 0.0, 10.0)
     knobs = any(float(getattr(c, k)) != 0.0 for k in FIELD_KNOBS)
     fr = c.field_randomization
     if fr is not None:
@@ -345,7 +393,7 @@ def _validate_field(c: FollowerConfig) -> None:
                     f"field_randomization: unknown constant(s) {unknown}; allowed: {', '.join(FIELD_RANDOMIZABLE)}"
                 )
             for k, v in fr.items():
-                pair(f"field_randomization[{k!r}]", v, "(factor)", *FIELD_SCALE_RANGE)
+                pair_option(f"field_randomization[{k!r}]", v, "(factor)", *FIELD_SCALE_RANGE)
         else:
             raise ConfigError(f"field_randomization: expected None, 'default' or a dict, got {type(fr).__name__}")
     if c.field is not None:

@@ -106,8 +106,9 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     ## Options
     See `downwash_envs.config.FollowerConfig` (every field is a keyword); unknown names raise
     TypeError naming the allowed ones, bad values ValueError naming the allowed range.
-    `reset(options=...)` takes no options. Randomness: every episode draws its
-    parameters and its noise seed from `self.np_random`.
+    `reset(options=...)` takes no options. `step()` before the first `reset()` (also on an
+    unpickled copy, which is a new env) raises `gymnasium.error.ResetNeeded`. Randomness:
+    every episode draws its parameters and its noise seed from `self.np_random`.
 
     ## Rendering
     ``render_mode="rgb_array"``: `render()` returns a (render_height, render_width, 3)
@@ -135,9 +136,11 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
         check_reset_options(options, allowed=())
         ep = self._worlds.new_episode(self.np_random)
         self._worlds.reset_worlds([0], [ep])
+        self._mark_reset(0)
         return self._worlds.observe()[0], episode_info(self.config, ep)
 
     def step(self, action: Any):
+        self._check_reset()
         a = self._worlds.check_actions(action, (3,))
         out = self._worlds.step(a[None], None)
         obs = self._worlds.observe(fresh=False)[0]
@@ -170,7 +173,8 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
     torch threads: the helper threads wait for work by spinning.
     Other keywords: `FollowerConfig` (see `DownwashFollowerEnv` for the spaces,
     reward and termination). `reset(options={"reset_mask": mask})` resets only
-    the masked worlds. `render()` returns one frame per world.
+    the masked worlds; `step()` raises `gymnasium.error.ResetNeeded` while any world has never
+    been reset. `render()` returns one frame per world.
     """
 
     metadata = {"render_modes": [*RENDER_MODES, "human"], "render_fps": 50, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -219,6 +223,7 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
         return self._worlds.observe(), infos
 
     def step(self, actions: Any):
+        self._check_reset()
         N = self.num_envs
         a = self._worlds.check_actions(actions, (N, 3))
         result = self._autoreset_step(a, self.max_episode_steps)

@@ -100,6 +100,9 @@ each agent its own factors; the leader keeps its nominal vehicle). Unknown names
 TypeError, bad values `downwash_core.errors.ConfigError`, both before anything is built.
 `reset(options=...)`: the ParallelEnv takes none (any given are ignored with a warning:
 PettingZoo's API test passes some), the vector env ``{"reset_mask": (W,) bool}``.
+`step()` before the first `reset()` (also on an unpickled copy, which is a new env; in the
+vector env, while any world has never been reset), or on a ParallelEnv whose episode has
+ended, raises `downwash_envs.base.ResetNeededError`, a `gymnasium.error.ResetNeeded`.
 
 ## Rendering
 ``render_mode="rgb_array"``: one (render_height, render_width, 3) uint8 frame per
@@ -120,7 +123,9 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from downwash_core.validate import count
-from downwash_envs.base import RENDER_MODES, TaskEnv, VectorAutoreset, agent_spaces, pickled_as_constructed
+from downwash_envs.base import (
+    RENDER_MODES, ResetNeededError, TaskEnv, VectorAutoreset, agent_spaces, pickled_as_constructed,
+)
 from downwash_envs.config import make_config  # noqa: F401  (the shared options' validation, as before the split)
 from downwash_envs.swarm_task import (  # noqa: F401  (the task's names, importable from here as before)
     NEIGHBOUR_DIM, NEIGHBOUR_OBSERVATION, OWN_DIM, OWN_OBSERVATION, SHARED_OPTIONS, SwarmConfig, SwarmEpisode,
@@ -199,6 +204,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
             self.np_random, _ = seeding.np_random(seed)
         ep = self._worlds.new_episode(self.np_random)
         self._worlds.reset_worlds([0], [ep])
+        self._mark_reset(0)
         self._elapsed = 0
         self.agents = list(self.possible_agents)
         obs = self._worlds.observe()[0]
@@ -207,7 +213,8 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
 
     def step(self, actions: Mapping[str, Any]):
         if not self.agents:
-            raise RuntimeError("step() with no live agents: the episode has ended; call reset()")
+            self._check_reset()  # before the first reset(): say so
+            raise ResetNeededError("step() with no live agents: the episode has ended; call reset()")
         a = self._worlds.check_actions(actions, self.agents, None)
         terminated, info = self._worlds.step(a, None)
         self._elapsed += 1
@@ -282,6 +289,7 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
         return self._per_agent(self._worlds.observe()), self._infos({}, mask)
 
     def step(self, actions: Mapping[str, Any]):
+        self._check_reset()
         a = self._worlds.check_actions(actions, self.possible_agents, self.n_worlds)
         result = self._autoreset_step(a, self.max_steps)
         self._record_episodes(result.reset_indices, result.episodes)

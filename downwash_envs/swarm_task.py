@@ -28,8 +28,10 @@ from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 from downwash_core.provenance import describe
 from downwash_core.roles import MAX_VEHICLES, Role
-from downwash_core.validate import count, number
-from downwash_envs.config import REWARD_WEIGHTS, FollowerConfig, build_field, make_config, predictor_of
+from downwash_core.validate import count
+from downwash_envs.config import (
+    REWARD_WEIGHTS, FollowerConfig, build_field, make_config, number_option, predictor_of,
+)
 from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
 from downwash_envs.observation import OBSERVATION, ObsEntry, format_table, layout_bounds, layout_slices, table_row
 from downwash_envs.reward import REWARD_TERMS
@@ -304,7 +306,7 @@ def make_swarm_config(
     if duration is None:
         duration = float(preset.duration)
     else:
-        duration = number("duration", duration, "s", 0.0, 1e5, lo_open=True)
+        duration = number_option("duration", duration, "s", 0.0, 1e5, lo_open=True)
         if round(duration * task.control_hz) < 1:
             raise ConfigError(f"duration: {duration} s is shorter than one env step ({1.0 / task.control_hz} s)")
     if not isinstance(random_phase, (bool, np.bool_)):

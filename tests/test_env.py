@@ -18,6 +18,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import downwash_envs
+from downwash_core.errors import ConfigError
 from downwash_core.status import Status
 from downwash_envs import (
     OBS_DIM,
@@ -379,6 +380,81 @@ def test_bad_options_name_the_allowed_values():
 
 
 # ----------------------------------------------------------------------------- episode ends
+
+
+# Each numeric option given as a string or a bool: float() reads "0.6" as 0.6 and True as 1.0, so each
+# of these was accepted; every one now names the option and its allowed range.
+_TEXT_OR_BOOL = [
+    (dict(separation="0.6"), r"separation: expected a number, got '0.6' \(a str.*allowed .*\[0.3, 2.0\] m"),
+    (dict(separation=True), r"separation: expected a number, got True \(a bool.*allowed .*\[0.3, 2.0\] m"),
+    (dict(separation=np.bool_(True)), r"separation: expected a number.*a bool"),
+    (dict(separation=(0.5, "1.0")), r"separation: .*'1.0' is a str.*allowed"),
+    (dict(separation=(True, 1.0)), r"separation: .*True is a bool.*allowed"),
+    (dict(action_bound="5"), r"action_bound: expected a number.*allowed \(0.0, 20.0\] m/s\^2"),
+    (dict(action_bound=True), r"action_bound: expected a number.*allowed \(0.0, 20.0\] m/s\^2"),
+    (dict(leader_position=("0", "0", "2")), r"leader_position: expected a number.*allowed \(x, y, z\) m, z in"),
+    (dict(leader_position=(0.0, False, 2.0)), r"leader_position: .*False is a bool"),
+    (dict(c4_amplitude=False), r"c4_amplitude: expected a number.*allowed \[-0.99, 0.99\]"),
+    (dict(swirl="0.1"), r"swirl: expected a number.*allowed \[-10.0, 10.0\]"),
+    (dict(skew=False), r"skew: expected a number.*allowed \[0.0, 10.0\] s/m"),
+    (dict(max_tracking_error="1"), r"max_tracking_error: expected a number.*allowed \(0.0, 5.0\] m"),
+    *((dict([(w, True)]), rf"{w}: expected a number.*allowed \[0.0, 1000000.0\]") for w in (
+        "alive_reward", "position_cost_weight", "velocity_cost_weight", "action_cost_weight",
+        "action_rate_cost_weight", "termination_penalty")),
+    (dict(mass_randomization=("0.9", 1.1)), r"mass_randomization: .*allowed \(low, high\) with 0.5 <= low"),
+    (dict(field_randomization={"strength": (True, 1.2)}), r"field_randomization\['strength'\]: .*bool.*0.1 <= low"),
+    (dict(reference_kwargs={"half_length": "1.0"}), r"reference_kwargs\['half_length'\]: expected a number"),
+    (dict(reference_kwargs={"period": True}), r"reference_kwargs\['period'\]: expected a number.*a bool"),
+    (dict(reference="transect", reference_kwargs={"x_offset": False}), r"reference_kwargs\['x_offset'\]"),
+    (dict(reference="hover", reference_kwargs={"offset": ("0.1", 0.0, 0.0)}), r"reference_kwargs\['offset'\]"),
+    (dict(reference="passes", reference_kwargs={"duration": "10"}), r"reference_kwargs\['duration'\]"),
+    (dict(reference="passes", reference_kwargs={"speed_range": ("0.5", 1.0)}), r"reference_kwargs\['speed_range'\]"),
+    (dict(reference="passes", reference_kwargs={"hover_prob": True}), r"reference_kwargs\['hover_prob'\]"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("opts, match", _TEXT_OR_BOOL, ids=[repr(opts) for opts, _ in _TEXT_OR_BOOL])
+def test_numeric_options_refuse_strings_and_bools(opts, match):
+    with pytest.raises(ConfigError, match=match):
+        DownwashFollowerEnv(**opts)
+    with pytest.raises(ConfigError, match=match):
+        DownwashFollowerVectorEnv(2, **opts)
+
+
+def test_numeric_options_still_take_numpy_numbers():
+    """The string/bool refusal leaves numpy scalars and arrays alone (they fly as before)."""
+    env = DownwashFollowerEnv(separation=np.float64(0.7), action_bound=np.float32(4.0),
+                              leader_position=np.array([0.0, 0.0, 2.0]), reference="hover")
+    assert env.config.separation_range == (0.7, 0.7) and env.config.bound == 4.0
+    env = gym.make("downwash/FollowerPasses-v1", separation=np.array([0.5, 1.0]))
+    assert env.unwrapped.config.separation_range == (0.5, 1.0)
+    with pytest.raises(ConfigError, match="separation: expected a number, got '0.6'"):
+        gym.make("downwash/Follower-v1", separation="0.6")
+
+
+def test_step_before_the_first_reset_raises_reset_needed():
+    """An env made directly (no gym.make, so no OrderEnforcing wrapper) refuses to step an episode it never
+    started, rather than flying the placeholder state it was built with; nothing is stepped."""
+    env = DownwashFollowerEnv(reference="hover")
+    with pytest.raises(gym.error.ResetNeeded, match=r"step\(\) before reset\(\): call reset\(\) first"):
+        env.step(np.zeros(3, np.float32))
+    assert np.array_equal(env.simulator.t, np.zeros(1))
+    env.reset(seed=0)
+    env.step(np.zeros(3, np.float32))
+    assert env.simulator.t[0] > 0.0
+    envs = DownwashFollowerVectorEnv(3, reference="hover")
+    with pytest.raises(gym.error.ResetNeeded, match=r"world\(s\) \[0, 1, 2\] have never been reset"):
+        envs.step(np.zeros((3, 3), np.float32))
+    envs.reset(seed=0, options={"reset_mask": np.array([True, False, True])})
+    with pytest.raises(gym.error.ResetNeeded, match=r"world\(s\) \[1\] have never been reset.*reset_mask"):
+        envs.step(np.zeros((3, 3), np.float32))
+    assert np.array_equal(envs.simulator.t, np.zeros(3))
+    envs.reset(seed=0, options={"reset_mask": np.array([False, True, False])})
+    envs.step(np.zeros((3, 3), np.float32))
+    assert np.all(envs.simulator.t > 0.0)
+    vec = gym.make_vec("downwash/Follower-v1", num_envs=2, reference="hover")  # the native env, unwrapped
+    with pytest.raises(gym.error.ResetNeeded):
+        vec.step(np.zeros((2, 3), np.float32))
 
 
 @pytest.mark.parametrize("push, status", [((0.0, 0.0, 10.0), Status.VEHICLE), ((0.0, 0.0, -10.0), Status.GROUND),

@@ -117,6 +117,8 @@ def test_draws_repeat_for_a_seed_and_the_vector_env_equals_single_envs():
     ({"mass": 0.7}, r"randomize\['mass'\]: got 0.7; allowed \[0.0, 0.5\]"),
     ({"motor_lag": -0.1}, r"randomize\['motor_lag'\]: got -0.1; allowed \[0.0, 0.5\]"),
     ({"inertia": "a lot"}, r"randomize\['inertia'\]: expected a number"),
+    ({"mass": "0.1"}, r"randomize\['mass'\]: expected a number, got '0.1' \(a str.*allowed \[0.0, 0.5\]"),
+    ({"motor_lag": False}, r"randomize\['motor_lag'\]: expected a number, got False \(a bool.*allowed \[0.0, 0.5\]"),
     ({"drag": 0.1}, r"randomize: unknown parameter\(s\) \['drag'\]; allowed: mass, inertia, motor_lag"),
     (0.1, r"randomize: expected None or a dict"),
 ])  # fmt: skip

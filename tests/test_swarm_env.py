@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
+from gymnasium import error as gym_error
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pettingzoo.test import parallel_api_test
@@ -394,6 +395,13 @@ def test_a_nonlinear_aggregation_reaches_the_flight():
     ({"duration": -1.0}, "duration"),
     ({"duration": 0.001}, "duration: 0.001 s is shorter than one env step"),
     ({"action_bound": 50.0}, "action_bound"),
+    # strings and bools are not numbers (float() would read them as 1.0, 0.5, ...)
+    ({"duration": "1.0"}, r"duration: expected a number, got '1.0' \(a str.*allowed \(0.0, 100000.0\] s"),
+    ({"duration": True}, r"duration: expected a number, got True \(a bool.*allowed \(0.0, 100000.0\] s"),
+    ({"action_bound": "5"}, r"action_bound: expected a number.*allowed \(0.0, 20.0\] m/s\^2"),
+    ({"max_tracking_error": True}, r"max_tracking_error: expected a number.*allowed \(0.0, 5.0\] m"),
+    ({"termination_penalty": "50"}, r"termination_penalty: expected a number.*allowed \[0.0, 1000000.0\]"),
+    ({"randomize": {"mass": "0.1"}}, r"randomize\['mass'\]: expected a number.*allowed \[0.0, 0.5\]"),
 ])  # fmt: skip
 def test_bad_options_raise_config_error_before_any_simulation(kwargs, match, monkeypatch):
     def no_sim(*args, **kw):
@@ -427,6 +435,28 @@ def test_bad_names_and_actions():
         vec.step({"follower_0": np.zeros(3), "follower_1": np.zeros(3)})
     with pytest.raises(ValueError, match="reset_mask"):
         vec.reset(options={"reset_mask": np.zeros(2, bool)})
+
+
+def test_step_before_the_first_reset_raises_reset_needed():
+    """Neither swarm env steps an episode it never started: gymnasium's ResetNeeded (also a RuntimeError, as
+    the ParallelEnv raised before), saying to reset first; the vector env names the worlds never reset."""
+    zeros = {"follower_0": np.zeros(3, np.float32), "follower_1": np.zeros(3, np.float32)}
+    env = parallel_env(preset="stack3")
+    with pytest.raises(gym_error.ResetNeeded, match=r"step\(\) before reset\(\): call reset\(\) first"):
+        env.step(zeros)
+    env.reset(seed=0)
+    env.step(zeros)
+    vec = SwarmVectorEnv(2, preset="stack3")
+    both = {a: np.zeros((2, 3), np.float32) for a in vec.possible_agents}
+    with pytest.raises(gym_error.ResetNeeded, match=r"world\(s\) \[0, 1\] have never been reset"):
+        vec.step(both)
+    vec.reset(seed=0, options={"reset_mask": np.array([False, True])})
+    with pytest.raises(gym_error.ResetNeeded, match=r"world\(s\) \[0\] have never been reset"):
+        vec.step(both)
+    assert np.array_equal(vec.simulator.t, np.zeros(2))  # nothing stepped
+    vec.reset(seed=0)
+    vec.step(both)
+    assert np.all(vec.simulator.t > 0.0)
 
 
 # ----------------------------------------------------------------------------- rendering
