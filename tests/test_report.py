@@ -9,6 +9,7 @@ transect run catches drift between the experiment's keys and the report.
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -288,10 +289,12 @@ def test_check_fails_on_a_stale_section_and_passes_after_regeneration(tmp_path):
     _write_fakes(tmp_path / "runs", names={"force_maps", "benchmark", "lemniscate"})
     readme, docs = tmp_path / "README.md", tmp_path / "docs" / "results.md"
     readme.write_text(README)
+    with pytest.raises(ConfigError, match="--results: .* does not exist"):  # --check copies nothing: no results
+        _main(tmp_path, "--check")
+    report.copy_results(tmp_path / "runs", tmp_path / "results")
     with pytest.raises(SystemExit) as e:  # no markers yet, no results page: stale
         _main(tmp_path, "--check")
-    assert e.value.code == 1 and readme.read_text() == README and not (tmp_path / "results").exists()
-    assert not docs.exists()
+    assert e.value.code == 1 and readme.read_text() == README and not docs.exists()
     _main(tmp_path)
     _main(tmp_path, "--check")
     for page, number in ((docs, fmt(0.0521)), (readme, fmt(0.09461))):  # a hand-typed edit inside the markers
@@ -456,3 +459,172 @@ def test_the_outdoor_section_says_how_much_error_is_the_downwash_and_what_the_st
             "on average per stage") in render_outdoor(regime, "x")
     regime["outdoor_collection"]["stages"] = [{"name": "outdoor-still"}]  # (results written before the guard flew)
     assert "flown with no model" in render_outdoor(regime, "x")
+
+
+# What the docs say of the results files, since nothing guards their numbers (checked below).
+UNCHECKED = ("The results files are not checked for integrity: they carry no digest, so the report renders any "
+             "edit to one that still parses and has its experiment's keys.")
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """runs/ with every fake results file, results/ copied from it, and the README and the results page
+    generated from them: a checkout whose pages show results."""
+    work = tmp_path_factory.mktemp("generated")
+    _write_fakes(work / "runs")
+    (work / "README.md").write_text(README)
+    _main(work)
+    return work
+
+
+def _copy(generated: Path, tmp_path: Path) -> Path:
+    work = tmp_path / "work"
+    shutil.copytree(generated, work, symlinks=True)
+    return work
+
+
+def _pages_of(work: Path) -> tuple[bytes, bytes]:
+    return (work / "README.md").read_bytes(), (work / "docs" / "results.md").read_bytes()
+
+
+def _render_only(work: Path, results, *extra: str) -> str:
+    return report.main(["--runs", "", "--results", str(results), "--docs", str(work / "docs" / "results.md"),
+                        "--readme", str(work / "README.md"), *extra])
+
+
+def test_a_results_folder_that_is_missing_or_holds_no_results_is_refused(generated, tmp_path):
+    work = _copy(generated, tmp_path)
+    before = _pages_of(work)
+    # the command line: a mistyped folder is one line naming --results, exit 2, and both pages stay as they were
+    proc = subprocess.run([sys.executable, "-m", "experiments.report", "--runs", "", "--results", "resultz"],
+                          cwd=work, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.startswith("error: --results: resultz does not exist")
+    assert proc.stderr.count("\n") == 1 and proc.stdout == "" and _pages_of(work) == before
+    (work / "empty").mkdir()
+    (work / "only_record").mkdir()
+    (work / "only_record" / "report.json").write_text('{"files": {}}')
+    (work / "a_file").write_text("x")
+    for results, message in ((work / "empty", "holds none of"), (work / "only_record", "holds none of"),
+                             (work / "a_file", "is not a folder")):
+        with pytest.raises(ConfigError, match=f"--results: {re.escape(str(results))} {message}"):
+            _render_only(work, results)
+        with pytest.raises(ConfigError, match="--results"):  # --check renders from the same folder
+            _render_only(work, results, "--check")
+        assert _pages_of(work) == before
+    # asked for explicitly, every section says it has no results
+    assert "--allow-empty" in subprocess.run([sys.executable, "-m", "experiments.report", "--help"], cwd=work,
+                                             capture_output=True, text=True, timeout=120).stdout
+    _render_only(work, work / "empty", "--allow-empty")
+    docs = _docs(work)
+    assert all(f"No results yet for `{name}`" in docs for name in report.EXPERIMENTS)
+    assert "No tracking results yet" in (work / "README.md").read_text()
+
+
+def test_a_section_that_shows_results_is_not_replaced_by_an_empty_one(generated, tmp_path):
+    work = _copy(generated, tmp_path)
+    before = _pages_of(work)
+    (work / "speed_only").mkdir()  # results the README's headline does not show
+    (work / "speed_only" / "benchmark.json").write_bytes((work / "results" / "benchmark.json").read_bytes())
+    with pytest.raises(ConfigError, match=re.escape(f"{work / 'README.md'}: ") + ".*replaced by an empty one.*"
+                                          "--allow-empty"):
+        _render_only(work, work / "speed_only")
+    assert _pages_of(work) == before  # the results page, which would have had something, is not written either
+    # copying into a new folder the same way: refused before the copy
+    runs = tmp_path / "speed_runs"
+    _write_fakes(runs, names={"benchmark"})
+    with pytest.raises(ConfigError, match="replaced by an empty one"):
+        report.main(["--runs", str(runs), "--results", str(tmp_path / "fresh"), "--docs",
+                     str(work / "docs" / "results.md"), "--readme", str(work / "README.md")])
+    assert not (tmp_path / "fresh").exists() and _pages_of(work) == before
+    _render_only(work, work / "speed_only", "--allow-empty")
+    assert "No tracking results yet" in (work / "README.md").read_text()
+    assert "No results yet for `benchmark`" not in _docs(work)
+
+
+def test_a_symlinked_page_or_results_file_is_written_through_and_keeps_its_mode(tmp_path):
+    _write_fakes(tmp_path / "runs", names={"benchmark", "lemniscate"})
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "README.md").write_text(README)
+    (real / "results.md").write_text(report.RESULTS_PAGE)
+    (real / "benchmark.json").write_text("{}\n")  # an old copy, replaced through the link
+    for name, mode in (("README.md", 0o640), ("results.md", 0o604), ("benchmark.json", 0o600)):
+        os.chmod(real / name, mode)
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "results").mkdir()
+    links = {tmp_path / "README.md": real / "README.md", tmp_path / "docs" / "results.md": real / "results.md",
+             tmp_path / "results" / "benchmark.json": real / "benchmark.json"}
+    for link, target in links.items():
+        link.symlink_to(target)
+    _main(tmp_path)
+    for link, target in links.items():
+        assert link.is_symlink() and link.resolve() == target, link
+    assert section_of((real / "README.md").read_text(), HEADLINE_BEGIN, HEADLINE_END) == \
+        render_headline(tmp_path / "results", "docs/results.md")
+    assert section_of((real / "results.md").read_text()) == render(tmp_path / "results")
+    assert (real / "benchmark.json").read_bytes() == (tmp_path / "runs" / "benchmark" / "results.json").read_bytes()
+    assert {n: (real / n).stat().st_mode & 0o7777 for n in ("README.md", "results.md", "benchmark.json")} == \
+        {"README.md": 0o640, "results.md": 0o604, "benchmark.json": 0o600}
+    assert sorted(p.name for p in real.iterdir()) == ["README.md", "benchmark.json", "results.md"]  # no temp files
+    # a link to nothing is refused by name: writing would create a file nobody named
+    dangling = tmp_path / "docs" / "results.md"
+    dangling.unlink()
+    dangling.symlink_to(real / "gone.md")
+    before = (real / "README.md").read_bytes()
+    with pytest.raises(ConfigError, match=re.escape(f"--docs: {dangling} is a link to {real / 'gone.md'}, which "
+                                                    "does not exist")):
+        _main(tmp_path, "--runs", "")
+    assert not (real / "gone.md").exists() and (real / "README.md").read_bytes() == before
+
+
+@pytest.mark.parametrize("name,data", [
+    ("lemniscate", b'{"conditions": {'), ("lemniscate", b"\xff\xfe{}"), ("lemniscate", b'{"seeds": "\xe9"}'),
+    ("benchmark", b""), ("lemniscate", b"null"), ("force_maps", b"[1, 2]"), ("swarm", b'{"conditions": []}'),
+    ("report", b"[]"), ("report", b'{"files": {"benchmark": 3}}')],
+    ids=["bad-json", "not-utf8", "not-utf8-in-a-string", "empty", "null", "a-list", "missing-keys",
+         "record-a-list", "record-entry-a-number"])
+def test_an_unreadable_results_file_is_a_named_error(generated, tmp_path, name, data):
+    work = _copy(generated, tmp_path)
+    path = work / "results" / f"{name}.json"
+    path.write_bytes(data)
+    before = _pages_of(work)
+    with pytest.raises(ConfigError) as e:
+        _render_only(work, work / "results")
+    assert str(e.value).startswith(f"{path}: ") and "\n" not in str(e.value)
+    assert _pages_of(work) == before
+    if name == "lemniscate" and data == b"null":  # on the command line: one line, exit 2, no traceback
+        proc = subprocess.run([sys.executable, "-m", "experiments.report", "--runs", "", "--check"], cwd=work,
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and proc.stderr == f"error: {Path('results') / 'lemniscate.json'}: not a " \
+                                                       "lemniscate results file (missing conditions, seeds)\n"
+
+
+def test_flipped_bytes_in_a_results_file_are_refused_by_name_or_rendered(generated, tmp_path):
+    """Results files carry no digest, so a changed byte is either caught (the file no longer parses or
+    no longer renders: one line naming the file) or rendered as it is, which the docs say plainly."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    for page in (ROOT / "docs" / "results.md", ROOT / "docs" / "experiments.md"):
+        assert UNCHECKED in " ".join(page.read_text().split()), page
+    work = _copy(generated, tmp_path)
+    files = sorted((work / "results").glob("*.json"))
+    originals = {p: p.read_bytes() for p in files}
+
+    @settings(max_examples=40, deadline=None, database=None,
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+    @given(st.data())
+    def flip(data):
+        path = data.draw(st.sampled_from(files))
+        raw = bytearray(originals[path])
+        for _ in range(data.draw(st.integers(1, 3))):
+            raw[data.draw(st.integers(0, len(raw) - 1))] ^= data.draw(st.integers(1, 255))
+        path.write_bytes(bytes(raw))
+        try:
+            _render_only(work, work / "results")
+        except ConfigError as e:
+            assert str(path) in str(e) and "\n" not in str(e), str(e)
+        finally:
+            path.write_bytes(originals[path])
+
+    flip()

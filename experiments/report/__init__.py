@@ -1,17 +1,23 @@
 """The measured results, generated from the experiments' results files, never typed.
 
     python -m experiments.report [--runs runs] [--results results] [--docs docs/results.md]
-                                 [--readme README.md] [--check]
+                                 [--readme README.md] [--check] [--allow-empty]
 
-Copies every `runs/<name>/results.json` that exists (for the names in EXPERIMENTS) to
-`results/<name>.json`, records the machine and the dates in `results/report.json`,
-then renders from `results/` alone the full results into the docs' results page
-(between the markers BEGIN and END) and a short headline table into the README
-(between HEADLINE_BEGIN and HEADLINE_END). Rendering reads only `results/`, so the
-committed files always regenerate the committed pages (a test checks this).
-`--check` writes nothing and exits 1 when a results file was made by code older than
-the last commit that moved a golden number (`tests/golden/`), or when either page differs from what `results/`
-renders; `--runs ''` skips the copy and only re-renders. The common options (--out,
+Copies every `runs/<name>/results.json` that exists (one per experiment) to
+`results/<name>.json`, records the machine and the dates in `results/report.json`, then
+renders from `results/` alone the full results into the docs' results page (between the
+markers <!-- results:begin --> and <!-- results:end -->) and a short headline table into
+the README (between <!-- headline:begin --> and <!-- headline:end -->). Rendering reads
+only `results/`, so the committed files always regenerate the committed pages (a test
+checks this). `--check` writes nothing and exits 1 when a results file was made by code
+older than the last commit that moved a golden number (`tests/golden/`), or when either
+page differs from what `results/` renders; `--runs ''` skips the copy and only
+re-renders. When nothing is copied (`--runs ''`, `--check`), --results must be a folder
+holding at least one results file; and a page's generated section is never replaced by
+one with no results unless --allow-empty is given. A page that is a symlink is written
+through: the link stays, the file it points to is rewritten and keeps its mode. Results
+files carry no digest: the report checks that each parses and has its experiment's keys,
+not that its numbers are the ones the experiment wrote. The common options (--out,
 --seed, --quick, --field) are accepted for the shared contract and not used.
 """
 
@@ -26,10 +32,12 @@ from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_bytes
 from experiments.common import CommonArgs, arg, parse_args, script
 from experiments.report.formatting import _ordered, _table, fmt, pct, short
-from experiments.report.results import EXPERIMENTS, copy_results, load_results, machine, stale_results
-from experiments.report.sections import (PAPER_RMSE, _equivariance_verdict, _memory_verdict, _render_one,
-                                         render_benchmark, render_efficiency, render_force_maps, render_machine,
-                                         render_provenance, render_staged, render_tracking, render_worst_cases)
+from experiments.report.results import (EXPERIMENTS, copy_results, load_results, machine, read_runs, stale_results,
+                                        write_copies, write_path)
+from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _equivariance_verdict, _memory_verdict,
+                                         _render_one, render_benchmark, render_efficiency, render_error,
+                                         render_force_maps, render_machine, render_provenance, render_staged,
+                                         render_tracking, render_worst_cases, worst_cases)
 
 # The command and its two pages live here; the results files are `experiments.report.results`, each
 # experiment's section `experiments.report.sections`, the rendering helpers `experiments.report.formatting`.
@@ -65,12 +73,27 @@ class ReportArgs(CommonArgs):
     readme: str = arg("README.md", "the README, whose section between the headline markers is rewritten with the "
                                    "headline table")
     check: bool = arg(False, "write nothing; exit 1 when either page differs from what --results renders")
+    allow_empty: bool = arg(False, "render even when --results holds no results files, and let a page's generated "
+                                   "section be replaced by one that shows no results (refused without it)")
 
 
 def render(results_dir: str | Path) -> str:
     """The results page's section (without markers) from results_dir/*.json alone: every result."""
     found, record = load_results(results_dir)
-    parts = [GENERATED, render_machine(record),
+    return _render_found(found, record, results_dir)
+
+
+def _file(results_dir: str | Path, *names: str) -> str:
+    """The results files of `names` in results_dir, for an error message."""
+    return ", ".join(str(Path(results_dir) / f"{n}.json") for n in names)
+
+
+def _render_found(found: dict[str, dict], record: dict, results_dir: str | Path) -> str:
+    try:
+        machines = render_machine(record)
+    except RENDER_ERRORS as e:
+        raise render_error(_file(results_dir, "report"), "the machine and the dates", e) from e
+    parts = [GENERATED, machines,
              "Paper numbers come from real flights and are not expected to match the simulation in absolute terms."]
     for name, (title, _) in EXPERIMENTS.items():
         parts.append(f"## {title}")
@@ -78,7 +101,8 @@ def render(results_dir: str | Path) -> str:
             parts.append(f"No results yet for `{name}` (`python -m experiments.{name}`, then "
                          "`python -m experiments.report`).")
             continue
-        parts += _render_one(name, found[name], record, f"{Path(results_dir).resolve().name}/{name}.json")
+        parts += _render_one(name, found[name], record, f"{Path(results_dir).resolve().name}/{name}.json",
+                             _file(results_dir, name))
         if name == "transect" or (name == "lemniscate" and "transect" not in found):
             parts.append(PAPER_TRACKING)
     return "\n\n".join(parts) + "\n"
@@ -92,7 +116,11 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
     """The README's section (without markers) from results_dir/*.json alone: the tracking errors of
     the lemniscate and the transect side by side, the final models' validation RMSE and the
     verdict on the paper's sample-efficiency claim; `link` points at the full results."""
-    found, _ = load_results(results_dir)
+    return _headline_found(load_results(results_dir)[0], link, results_dir)
+
+
+def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) -> str:
+    """The README's section from the results `found` in results_dir (which errors name)."""
     tracks = [n for n in ("lemniscate", "transect") if n in found]
     parts = [GENERATED]
     if tracks:
@@ -110,43 +138,59 @@ def render_headline(results_dir: str | Path, link: str = "docs/results.md") -> s
                       f"Simulated flights: every result, with its machine and provenance, is on the "
                       f"[results page]({link}).",
                       _table(["condition"] + tracks + ([f"{n}, guarded" for n in tracks] if guarded else []), rows)]
-        except (KeyError, TypeError, IndexError, ValueError) as e:
-            raise ConfigError(f"{results_dir}: cannot render the headline tracking table ({type(e).__name__}: "
-                              f"{e})") from e
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, *tracks), "the headline tracking table", e) from e
     else:
         parts.append("No tracking results yet (`python -m experiments.lemniscate`, then "
                      f"`python -m experiments.report`); see the [results page]({link}).")
     if "swarm" in found:
         try:
             parts.append(_swarm_headline(found["swarm"], link))
-        except (KeyError, TypeError, IndexError, ValueError, StopIteration) as e:
-            raise ConfigError(f"{results_dir}: cannot render the headline swarm table ({type(e).__name__}: {e})") from e
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, "swarm"), "the headline swarm table", e) from e
     if "outdoor" in found:
         try:
             parts.append(_outdoor_headline(found["outdoor"], link))
-        except (KeyError, TypeError, IndexError, ValueError) as e:
-            raise ConfigError(f"{results_dir}: cannot render the headline outdoor lines ({type(e).__name__}: {e})") from e
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, "outdoor"), "the headline outdoor lines", e) from e
     try:
         worst = render_worst_cases(found)
-    except (KeyError, TypeError, IndexError, ValueError) as e:
-        raise ConfigError(f"{results_dir}: cannot render the worst-case table ({type(e).__name__}: {e})") from e
+    except RENDER_ERRORS as e:
+        # the table spans every file: name the one that fails on its own, else them all
+        culprit = [n for n in found if _fails(worst_cases, {n: found[n]})][:1] or list(found)
+        raise render_error(_file(results_dir, *culprit), "the worst-case table", e) from e
     if worst:
         parts.append(worst)
     lines = []
     if "staged_collection" in found:
         r = found["staged_collection"]
-        models = ", ".join(f"{k} {fmt(m.get('val_rmse'))}" for k, m in _ordered(r.get("models", {})))
-        floor = (r.get("noise_floor") or {}).get("rmse_mean")
+        try:
+            models = ", ".join(f"{k} {fmt(m.get('val_rmse'))}" for k, m in _ordered(r.get("models", {})))
+            floor = (r.get("noise_floor") or {}).get("rmse_mean")
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, "staged_collection"), "the headline's final models", e) from e
         lines.append(f"Validation RMSE of the final models, m/s^2 (label-noise floor {fmt(floor)}): {models}.")
-    claim = (found.get("sample_efficiency") or {}).get("claim")
+    claim = found["sample_efficiency"].get("claim") if "sample_efficiency" in found else None
     if claim:
-        verdict = "holds" if claim["ci_high"] < 0 else ("does not hold" if claim["ci_low"] > 0 else
-                                                         "is not established (the 95 % interval contains 0)")
-        lines.append(f"The paper's sample-efficiency claim, \"{claim['statement']}\", over {claim['n']} paired "
-                     f"trials: it {verdict}.")
+        try:
+            verdict = "holds" if claim["ci_high"] < 0 else ("does not hold" if claim["ci_low"] > 0 else
+                                                             "is not established (the 95 % interval contains 0)")
+            lines.append(f"The paper's sample-efficiency claim, \"{claim['statement']}\", over {claim['n']} paired "
+                         f"trials: it {verdict}.")
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, "sample_efficiency"), "the headline's claim", e) from e
     if lines:
         parts.append(" ".join(lines))
     return "\n\n".join(parts) + "\n"
+
+
+def _fails(fn, *args) -> bool:
+    """Whether `fn(*args)` raises what a renderer raises on a bad results file."""
+    try:
+        fn(*args)
+    except RENDER_ERRORS:
+        return True
+    return False
 
 
 def _outdoor_headline(r: dict, link: str) -> str:
@@ -283,6 +327,8 @@ def _pages(args: ReportArgs) -> list[tuple[Path, str, tuple[str, str, str]]]:
     """(path, its current text, (begin, end, heading)) of the results page and the README, checked
     before any write: the README must exist; a missing results page starts from RESULTS_PAGE."""
     docs, readme = Path(args.docs), Path(args.readme)
+    write_path(readme, "--readme")
+    write_path(docs, "--docs")
     if not readme.is_file():
         raise ConfigError(f"--readme: {readme} is not a file")
     if docs.is_dir():
@@ -294,17 +340,59 @@ def _pages(args: ReportArgs) -> list[tuple[Path, str, tuple[str, str, str]]]:
     return pages
 
 
+def _link(args: ReportArgs) -> str:
+    """The results page as the README links to it: from the paths as named, not where symlinks lead, since a
+    reader follows the link from where the README is."""
+    return Path(os.path.relpath(os.path.abspath(args.docs), os.path.dirname(os.path.abspath(args.readme)))).as_posix()
+
+
 def _rendered(args: ReportArgs, pages: list) -> list[str]:
     """The new text of each page, rendered from --results."""
     (docs, docs_text, dm), (readme, readme_text, rm) = pages
-    link = Path(os.path.relpath(Path(args.docs).resolve(), Path(args.readme).resolve().parent)).as_posix()
     return [rewrite_section(docs_text, render(args.results), *dm, str(docs)),
-            rewrite_section(readme_text, render_headline(args.results, link), *rm, str(readme))]
+            rewrite_section(readme_text, render_headline(args.results, _link(args)), *rm, str(readme))]
+
+
+def _check_results_folder(args: ReportArgs, copying: bool) -> None:
+    """--results must be a folder; without a copy into it, one that holds at least one results file
+    (an empty or mistyped folder would render every section as "No results yet"), unless --allow-empty."""
+    results = Path(args.results)
+    if (results.exists() or results.is_symlink()) and not results.is_dir():
+        raise ConfigError(f"--results: {results} is not a folder (expected the folder of <name>.json results files)")
+    if copying:
+        return  # --runs is checked by read_runs, and the copy creates the folder
+    names = ", ".join(f"{n}.json" for n in EXPERIMENTS)
+    if not results.is_dir():
+        raise ConfigError(f"--results: {results} does not exist (expected a folder holding any of {names}; "
+                          f"`python -m experiments.report --runs FOLDER` copies the experiments' results into it)")
+    if not args.allow_empty and not any((results / f"{n}.json").is_file() for n in EXPERIMENTS):
+        raise ConfigError(f"--results: {results} holds none of {names}; pass --allow-empty to render every "
+                          f"section as having no results")
+
+
+def _refuse_emptying(args: ReportArgs, pages: list, found: dict[str, dict]) -> None:
+    """A page whose generated section shows results is not rewritten with one that shows none (what
+    `found`, the results after the copy, renders for that page is what no results render), unless
+    --allow-empty. Checked before any write."""
+    if args.allow_empty:
+        return
+    (docs, docs_text, dm), (readme, readme_text, rm) = pages
+    link, where = _link(args), args.results
+    empty_headline = _headline_found({}, link, where)
+    for path, text, (begin, end, _), empty, nothing in (
+            (docs, docs_text, dm, not found, _render_found({}, {}, where)),
+            (readme, readme_text, rm, _headline_found(found, link, where) == empty_headline, empty_headline)):
+        old = section_of(text, begin, end)
+        if empty and old is not None and old.strip() and old != nothing:
+            raise ConfigError(f"{path}: {Path(where)}/ holds no results this page shows, so its generated section "
+                              f"would be replaced by an empty one; pass --allow-empty to do that")
 
 
 def main(argv=None) -> str:
     """Returns the new text of the README."""
     args = parse_args(ReportArgs, "report", argv, __doc__)
+    copying = bool(args.runs) and not args.check
+    _check_results_folder(args, copying)
     pages = _pages(args)
     if args.check:
         stale = [str(path) for (path, text, _), new in zip(pages, _rendered(args, pages))
@@ -320,14 +408,18 @@ def main(argv=None) -> str:
             raise SystemExit(1)
         print(f"{args.docs} and {args.readme}: the results match {args.results}/")
         return pages[1][1]
-    copied = copy_results(args.runs, args.results) if args.runs else []
+    loaded = read_runs(args.runs, args.results) if copying else {}
+    found = {**load_results(args.results, skip=tuple(loaded))[0], **{n: data for n, (_, data) in loaded.items()}}
+    _refuse_emptying(args, pages, found)
+    copied = write_copies(loaded, args.results) if loaded else []
     said = []
     texts = _rendered(args, pages)
-    for (path, text, _), new in zip(pages, texts):
+    for (path, text, _), new, option in zip(pages, texts, ("--docs", "--readme")):
         changed = new != text or not path.is_file()
         if changed:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_bytes(path, new.encode())
+            target = write_path(path, option)  # a symlinked page is written through, keeping the link
+            target.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(target, new.encode())
         said.append(f"{path} " + ("rewritten" if changed else "unchanged"))
     print(f"copied {', '.join(copied) or 'nothing'} into {args.results}/; {'; '.join(said)}")
     return texts[1]

@@ -4,6 +4,10 @@
 `EXPERIMENTS`) to `results/<name>.json` and records the machine and the dates in
 `results/report.json`; `load_results` reads them back; `stale_results` names the
 files made by code older than the last commit that moved a golden number.
+
+Results files carry no digest: a file that parses and holds its experiment's keys is
+rendered as it is. What is checked is that each one is UTF-8 JSON of the right shape, and
+anything else is a ConfigError naming the file.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json, to_json
 from experiments.report.sections import _render_one
 
-__all__ = ["EXPERIMENTS", "GOLDEN_FILES", "load_results", "code_commit", "stale_results", "machine", "copy_results"]
+__all__ = ["EXPERIMENTS", "GOLDEN_FILES", "load_results", "code_commit", "stale_results", "machine", "copy_results",
+           "read_runs", "write_copies", "write_path"]
 
 # name -> (title, keys its results.json must hold)
 EXPERIMENTS = {
@@ -39,16 +44,50 @@ EXPERIMENTS = {
 
 
 def _read(path: Path) -> Any:
+    # bytes, then UTF-8 explicitly: the locale's encoding would read the same file differently elsewhere
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"{path}: not a readable JSON results file: {e}") from e
+        return json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise ConfigError(f"{path}: not a readable JSON results file: {' '.join(str(e).split())}") from e
 
 
-def load_results(results_dir: str | Path) -> tuple[dict[str, dict], dict]:
-    """({name: results} for the files present in results_dir, the report.json record or {})."""
-    found = {n: _read(p) for n in [*EXPERIMENTS, "report"] if (p := Path(results_dir) / f"{n}.json").is_file()}
-    return found, found.pop("report", {})
+def _check_shape(name: str, data: Any, path: Path) -> dict:
+    """`data` when it is a dict with the keys `name`'s results hold; ConfigError naming `path` otherwise."""
+    missing = [k for k in EXPERIMENTS[name][1] if not isinstance(data, dict) or k not in data]
+    if missing:
+        raise ConfigError(f"{path}: not a {name} results file (missing {', '.join(missing)})")
+    return data
+
+
+def _check_record(data: Any, path: Path) -> dict:
+    """The report.json record: {"files": {name: {source, written, copied, machine}}}."""
+    files = data.get("files", {}) if isinstance(data, dict) else None
+    if not isinstance(files, dict) or not all(isinstance(f, dict) and isinstance(f.get("machine", {}), dict)
+                                              for f in files.values()):
+        raise ConfigError(f"{path}: not the report's record (expected an object whose \"files\" maps each "
+                          "experiment's name to an object with its source, dates and machine)")
+    return data
+
+
+def load_results(results_dir: str | Path, skip: tuple[str, ...] = ()) -> tuple[dict[str, dict], dict]:
+    """({name: results} for the files present in results_dir but those in `skip`, the report.json
+    record or {}), each checked for its shape (ConfigError naming the file)."""
+    found = {n: _check_shape(n, _read(p), p) for n in EXPERIMENTS
+             if n not in skip and (p := Path(results_dir) / f"{n}.json").is_file()}
+    record = Path(results_dir) / "report.json"
+    return found, (_check_record(_read(record), record) if record.is_file() else {})
+
+
+def write_path(path: str | Path, option: str) -> Path:
+    """Where rewriting `path` writes: the file itself, or for a symlink the file it points to, so that the
+    link stays a link and the file replaced keeps its own mode (what `open(path, "w")` would do). A link to
+    nothing is a ConfigError naming `option`: writing would create a file somewhere the user did not name."""
+    path = Path(path)
+    if not path.is_symlink():
+        return path
+    if not path.exists():
+        raise ConfigError(f"{option}: {path} is a link to {os.readlink(path)}, which does not exist")
+    return Path(os.path.realpath(path))
 
 
 # The golden records (tests/golden/): the commit that last changed one moved a number of the
@@ -117,32 +156,45 @@ def _utc(timestamp: float) -> str:
     return datetime.fromtimestamp(timestamp, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def copy_results(runs: str | Path, results_dir: str | Path) -> list[str]:
-    """Copy runs/<name>/results.json to results/<name>.json (all checked before any write) and record
-    the source, its date and the machine in results/report.json. Returns the names copied."""
+def read_runs(runs: str | Path, results_dir: str | Path) -> dict[str, tuple[Path, dict]]:
+    """{name: (runs/<name>/results.json, its results)} for the files present, each checked (readable,
+    its keys, renderable) before anything is written, and the copies' targets checked for writing."""
     runs, results_dir = Path(runs), Path(results_dir)
     if not runs.is_dir():
         raise ConfigError(f"--runs: {runs} is not a folder (expected {runs}/<name>/results.json for name in "
                           f"{', '.join(EXPERIMENTS)}; pass --runs '' to only render from {results_dir}/)")
     loaded = {}
-    for name, (_, keys) in EXPERIMENTS.items():
+    for name in EXPERIMENTS:
         if not (path := runs / name / "results.json").is_file():
             continue
-        data = _read(path)
-        missing = [k for k in keys if not isinstance(data, dict) or k not in data]
-        if missing:
-            raise ConfigError(f"{path}: not a {name} results file (missing {', '.join(missing)})")
+        data = _check_shape(name, _read(path), path)
         _render_one(name, data, {}, str(path))  # a file the report cannot render stops here, before any write
         loaded[name] = (path, data)
     if not loaded:
         raise ConfigError(f"--runs: {runs} holds no <name>/results.json for any of {', '.join(EXPERIMENTS)}; "
                           f"pass --runs '' to only render from {results_dir}/")
-    files, here, now = load_results(results_dir)[1].get("files", {}), machine(), _utc(datetime.now().timestamp())
+    for name in [*loaded, "report"]:
+        write_path(results_dir / f"{name}.json", "--results")
+    return loaded
+
+
+def write_copies(loaded: dict[str, tuple[Path, dict]], results_dir: str | Path) -> list[str]:
+    """Write each of `read_runs`' files to results/<name>.json and record the source, its date and the
+    machine in results/report.json (a symlinked copy is written through). Returns the names copied."""
+    results_dir = Path(results_dir)
+    files, here, now = load_results(results_dir, skip=tuple(loaded))[1].get("files", {}), machine(), \
+        _utc(datetime.now().timestamp())
     for name, (path, data) in loaded.items():
         target = results_dir / f"{name}.json"
         if name in files and target.is_file() and target.read_bytes() == (to_json(data, indent=2) + "\n").encode():
             continue  # unchanged: keep its record, so a rerun changes nothing
-        atomic_write_json(target, data)
+        atomic_write_json(write_path(target, "--results"), data)
         files[name] = {"source": str(path), "written": _utc(path.stat().st_mtime), "copied": now, "machine": here}
-    atomic_write_json(results_dir / "report.json", {"files": files})
+    atomic_write_json(write_path(results_dir / "report.json", "--results"), {"files": files})
     return list(loaded)
+
+
+def copy_results(runs: str | Path, results_dir: str | Path) -> list[str]:
+    """Copy runs/<name>/results.json to results/<name>.json (all checked before any write) and record
+    the source, its date and the machine in results/report.json. Returns the names copied."""
+    return write_copies(read_runs(runs, results_dir), results_dir)

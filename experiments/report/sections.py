@@ -17,7 +17,7 @@ from experiments.report.formatting import ORDER, _ordered, _table, fmt, pct, sho
 __all__ = [
     "TRACKED", "PAPER_RMSE", "RENDERERS", "render_machine", "render_provenance", "render_staged", "render_efficiency",
     "render_tracking", "render_outdoor", "render_swarm", "render_force_maps", "render_benchmark", "render_field_table",
-    "worst_cases", "render_worst_cases",
+    "worst_cases", "render_worst_cases", "RENDER_ERRORS", "render_error",
 ]
 
 TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
@@ -455,8 +455,20 @@ RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_eff
              "field_table": render_field_table, "benchmark": render_benchmark}
 
 
-def _render_one(name: str, data: dict, record: dict, label: str) -> list[str]:
+# What a results file of the right keys but wrong values raises in a renderer (a string where a number
+# was, a list where an object was, a zero divisor, an empty list to take the max of).
+RENDER_ERRORS = (KeyError, TypeError, IndexError, ValueError, AttributeError, ArithmeticError, StopIteration)
+
+
+def render_error(where: str, what: str, e: BaseException) -> ConfigError:
+    """The one-line ConfigError for a results file (or files) `where` that `what` could not render."""
+    return ConfigError(f"{where}: cannot render {what} ({type(e).__name__}: {' '.join(str(e).split())})")
+
+
+def _render_one(name: str, data: dict, record: dict, label: str, where: str | None = None) -> list[str]:
+    """The section of one results file and its provenance line; `label` names the file in the text,
+    `where` (default `label`) in the error when it cannot be rendered."""
     try:
         return [RENDERERS[name](data, label), render_provenance(name, data, record, label)]
-    except (KeyError, TypeError, IndexError, ValueError) as e:
-        raise ConfigError(f"{label}: cannot render this {name} results file ({type(e).__name__}: {e})") from e
+    except RENDER_ERRORS as e:
+        raise render_error(where or label, f"this {name} results file", e) from e
