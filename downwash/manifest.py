@@ -17,22 +17,24 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from downwash_core.errors import DataError
 from downwash_core.errors import CheckpointError
+from downwash_core.io import atomic_write_json, to_json
 from downwash_core.provenance import fingerprint
 from downwash.checkpoint import checkpoint_digest
 from downwash.labels import labels_from_log
 from sim.logs import FlightLog, load_log
 
 __all__ = ["MANIFEST_VERSION", "file_sha256", "log_record", "read_manifest", "verify_collection", "check_logs",
-           "integrity_error", "listed_logs", "recorded_models", "check_models", "stage_folder", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
+           "integrity_error", "listed_logs", "recorded_models", "check_models", "write_manifest", "load_manifest_file", "stage_folder", "finished_stages", "collection_logs", "collection_digest", "rerun_command"]
 
 MANIFEST_VERSION = 4  # 4: every model's digest; 3: every log's digests and sample count; 2: provenance, resume
 _CHUNK = 1 << 20  # bytes read at a time when hashing a log
+_DIGEST_KEY = "manifest_sha256"  # the manifest's digest of the rest of itself
 _RERUN = "python -m experiments.staged_collection"
 
 
@@ -203,17 +205,53 @@ def collection_digest(collection_dir: str | Path, manifest: dict | None = None) 
     return fingerprint(data, length=16)
 
 
+def _manifest_digest(manifest: dict) -> str:
+    """The SHA-256 of a manifest's content (canonical JSON: sorted keys, no spacing), less its own digest."""
+    return hashlib.sha256(to_json({k: v for k, v in manifest.items() if k != _DIGEST_KEY}).encode()).hexdigest()
+
+
+def write_manifest(path: Path, manifest: dict) -> None:
+    """Write a collection's manifest atomically, stamped with the digest of its content (in place)."""
+    manifest[_DIGEST_KEY] = _manifest_digest(manifest)
+    atomic_write_json(path, manifest)
+
+
+def load_manifest_file(path: Path, check: Callable[[dict], None] = lambda manifest: None) -> dict:
+    """A manifest as `write_manifest` wrote it, its digest checked: DataError naming the file when it is
+    unreadable, not a JSON object, or altered since it was written (or has no digest: an older
+    version's). check(manifest): a caller's check of the format, before the digest's."""
+    try:
+        manifest = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DataError(f"{path}: unreadable collection manifest ({e}); delete the folder to start afresh") from e
+    if not isinstance(manifest, dict):
+        raise DataError(f"{path}: unreadable collection manifest (not a JSON object); delete the folder to start "
+                        "afresh")
+    check(manifest)
+    recorded = manifest.get(_DIGEST_KEY)
+    if recorded is None:
+        raise DataError(f"{path}: a collection manifest with no digest of itself (written by an older version); "
+                        "delete the folder to collect afresh")
+    found = _manifest_digest(manifest)
+    if found != recorded:
+        raise DataError(f"{path}: the collection manifest was altered since it was written (its content's SHA-256 "
+                        f"is {found[:12]}..., it records {str(recorded)[:12]}...); restore it, or delete the folder to "
+                        "collect afresh")
+    return manifest
+
+
 def read_manifest(path: Path) -> dict:
     """A collection manifest of this format; DataError naming the file otherwise."""
     if not path.is_file():
         raise DataError(f"{path}: no collection manifest here, so this is no staged collection (or an unfinished "
                         f"one); run `{rerun_command(path.parent)}` to collect it")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise DataError(f"{path}: unreadable collection manifest ({e}); delete the folder to start afresh") from e
-    if manifest.get("version") != MANIFEST_VERSION or "provenance" not in manifest:
-        raise DataError(f"{path}: a collection of an older format (manifest version {manifest.get('version')!r}; this "
-                        f"code records and checks every log's and model's digest, version {MANIFEST_VERSION}); delete the folder "
-                        "(and its models folder) to collect afresh, or use another --collection-dir")
+
+    def check(manifest: dict) -> None:
+        if manifest.get("version") != MANIFEST_VERSION or "provenance" not in manifest:
+            raise DataError(f"{path}: a collection of an older format (manifest version {manifest.get('version')!r}; "
+                            f"this code records and checks every log's and model's digest, version "
+                            f"{MANIFEST_VERSION}); delete the folder (and its models folder) to collect afresh, or use "
+                            "another --collection-dir")
+
+    manifest = load_manifest_file(path, check)
     return manifest

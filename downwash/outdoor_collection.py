@@ -39,7 +39,6 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import describe
 from downwash.checkpoint import load_checkpoint
@@ -47,7 +46,9 @@ from downwash.labels import PAIR
 from downwash.models import PAIRWISE_KINDS
 from downwash.guard import guard_settings
 from downwash.staged import DEPLOYED_KIND, STAGES, deployed_predictor, train_config
-from downwash.stages import CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, open_manifest
+from downwash.manifest import write_manifest
+from downwash.stages import (CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, locked_folder,
+                             open_manifest)
 from downwash.train import rmse, save_trained, train_model
 from sim.logs import load_log
 from sim.wind import DrydenWind
@@ -123,39 +124,41 @@ def collect_outdoor(
     unknown = [k for k in kinds if k not in PAIRWISE_KINDS]
     if unknown:
         raise ConfigError(f"kinds: unknown {unknown}; allowed: {', '.join(PAIRWISE_KINDS)}")
-    t0 = time.perf_counter()
-    out, pair_collection = Path(out), Path(pair_collection)
-    record = outdoor_provenance(cfg, pair_record)
-    manifest_path = out / "manifest.json"
-    manifest = open_manifest(out, record, "an outdoor collection")
-    stages = outdoor_stages(cfg)
-    for stage in stages:
-        fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(stage.name, {}), cfg.n_train, cfg.n_val,
-                     cfg.seconds, collection=str(out), save=lambda: atomic_write_json(manifest_path, manifest),
-                     field=field, predictor=deployed_predictor(Path(deployed), pair_record["collection"]["clamp"],
-                                                               guard=True),
-                     batch_flights=cfg.batch_flights, threads=cfg.threads, progress=progress)
-    load = CheckedLoader(PAIR, {out: manifest}, f"python -m experiments.outdoor (the outdoor stages of {out})",
-                         mixed=("wind",))
-    indoor = [pair_collection / f"stage{k}" / "train" for k in range(len(STAGES))]
-    data = load(indoor + [out / st.name / "train" for st in stages])
-    val = load([out / st.name / "val" for st in stages])  # judged on the regime's own validation flights
-    checkpoints, models = {}, {}
-    for kind in kinds:
-        path = out / "models" / f"{kind}.pt"
-        if not path.is_file():
-            model, history = train_model(kind, data, None, train_config(cfg.seed, cfg.quick))
-            save_trained(path, model, history, data)
-        checkpoints[kind] = path
-        models[kind] = {"path": str(path), "val_rmse": rmse(load_checkpoint(path, expect_kind=kind).model, val)[0]}
-    manifest["complete"] = True
-    atomic_write_json(manifest_path, manifest)
-    return {"checkpoints": checkpoints, "models": models, "key": manifest["key"], "provenance": record,
-            "data_winds": (data.provenance or {}).get("wind", {}).get("mixed"),  # every regime the models saw
-            "stages": [{"name": st.name, "wind": describe(st.wind) if st.wind else None,
-                        "flights": cfg.n_train + cfg.n_val, "deployed_applied": _mean_applied(out / st.name)}
-                       for st in stages],
-            "minutes": len(stages) * cfg.n_train * cfg.seconds / 60, "wall_seconds": time.perf_counter() - t0}
+    with locked_folder(Path(out), "outdoor collection"):
+        t0 = time.perf_counter()
+        out, pair_collection = Path(out), Path(pair_collection)
+        record = outdoor_provenance(cfg, pair_record)
+        manifest_path = out / "manifest.json"
+        manifest = open_manifest(out, record, "an outdoor collection")
+        stages = outdoor_stages(cfg)
+        for stage in stages:
+            fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(stage.name, {}), cfg.n_train,
+                         cfg.n_val, cfg.seconds, collection=str(out),
+                         save=lambda: write_manifest(manifest_path, manifest), field=field,
+                         predictor=deployed_predictor(Path(deployed), pair_record["collection"]["clamp"], guard=True),
+                         batch_flights=cfg.batch_flights, threads=cfg.threads, progress=progress)
+        load = CheckedLoader(PAIR, {out: manifest}, f"python -m experiments.outdoor (the outdoor stages of {out})",
+                             mixed=("wind",))
+        indoor = [pair_collection / f"stage{k}" / "train" for k in range(len(STAGES))]
+        data = load(indoor + [out / st.name / "train" for st in stages])
+        val = load([out / st.name / "val" for st in stages])  # judged on the regime's own validation flights
+        checkpoints, models = {}, {}
+        for kind in kinds:
+            path = out / "models" / f"{kind}.pt"
+            if not path.is_file():
+                model, history = train_model(kind, data, None, train_config(cfg.seed, cfg.quick))
+                save_trained(path, model, history, data)
+            checkpoints[kind] = path
+            model = load_checkpoint(path, expect_kind=kind).model
+            models[kind] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
+        manifest["complete"] = True
+        write_manifest(manifest_path, manifest)
+        return {"checkpoints": checkpoints, "models": models, "key": manifest["key"], "provenance": record,
+                "data_winds": (data.provenance or {}).get("wind", {}).get("mixed"),  # every regime the models saw
+                "stages": [{"name": st.name, "wind": describe(st.wind) if st.wind else None,
+                            "flights": cfg.n_train + cfg.n_val, "deployed_applied": _mean_applied(out / st.name)}
+                           for st in stages],
+                "minutes": len(stages) * cfg.n_train * cfg.seconds / 60, "wall_seconds": time.perf_counter() - t0}
 
 
 def _mean_applied(stage_dir: Path) -> float | None:

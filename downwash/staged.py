@@ -66,7 +66,6 @@ from typing import Any, Callable, Iterator, Sequence
 from controllers.autopilot import Autopilot
 from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConfigError, DataError
-from downwash_core.io import atomic_write_json
 from downwash_core.locks import folder_lock
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import code_version, describe, differences, fingerprint
@@ -76,10 +75,10 @@ from downwash.datasets import Dataset, concatenate, load_dataset
 from downwash.guard import GuardedPredictor, guard_settings
 from downwash.labels import label_noise_floor
 from downwash.manifest import (MANIFEST_VERSION, check_logs, check_models, integrity_error, listed_logs,
-                               read_manifest, rerun_command, verify_collection)
+                               read_manifest, rerun_command, verify_collection, write_manifest)
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
-from downwash.stages import ProgressFactory, Stage, fly_recorded
+from downwash.stages import ProgressFactory, Stage, fly_recorded, locked_folder
 from downwash.train import TrainConfig, rmse, train_model
 from sim.logs import SCHEMA_VERSION
 from sim.physics import resolve_threads, usable_cores
@@ -361,8 +360,9 @@ def collect(
 
 @contextlib.contextmanager
 def _pipeline_lock(collection_dir: str | Path, models_dir: str | Path) -> Iterator[None]:
-    """The locks of a collection folder and then of its models folder (always in this order: no deadlock)."""
-    with folder_lock(collection_dir, label="staged collection"), folder_lock(models_dir, label="staged models"):
+    """The locks of a collection folder and then of its models folder (always in this order: no deadlock),
+    with what killed runs left half-written there removed."""
+    with locked_folder(Path(collection_dir), "staged collection"), locked_folder(Path(models_dir), "staged models"):
         yield
 
 
@@ -387,7 +387,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
                     ", ".join(str(p[1]) for p in problems))
     out.mkdir(parents=True, exist_ok=True)
     models_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(manifest_path, manifest)
+    write_manifest(manifest_path, manifest)
     n_train, n_val, flight_seconds = cfg.n_train, cfg.n_val, cfg.effective_flight_seconds
     # what this run did, in the manifest's "runs" when it did anything
     run = {"pid": os.getpid(), "host": socket.gethostname(),
@@ -402,7 +402,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         if not entry.get("flights_done") or sdir in refly:  # (a done stage's missing logs: refly_missing)
             run["flights"] += fly_recorded(
                 _stage(k, cfg, deployed), sdir, entry, n_train, n_val, flight_seconds,
-                collection=f"{out} and {models_dir}", save=lambda: atomic_write_json(manifest_path, manifest),
+                collection=f"{out} and {models_dir}", save=lambda: write_manifest(manifest_path, manifest),
                 field=field, predictor=deployed_predictor(deployed, cfg.clamp, cfg.guard),
                 batch_flights=cfg.batch_flights, threads=cfg.threads,
                 progress=progress)
@@ -416,11 +416,11 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             entry.update(model_done=True, model_file=f"{DEPLOYED_KIND}.pt",
                          model_sha256=checkpoint_digest(sdir / f"{DEPLOYED_KIND}.pt"))
             run["models"].append(f"stage{k}/{DEPLOYED_KIND}")
-            atomic_write_json(manifest_path, manifest)
+            write_manifest(manifest_path, manifest)
         if "deployed_val_rmse" not in entry:
             entry["deployed_val_rmse"] = (None if deployed is None or n_val == 0
                                           else _val_rmse(deployed, DEPLOYED_KIND, labelled([sdir / "val"])))
-            atomic_write_json(manifest_path, manifest)
+            write_manifest(manifest_path, manifest)
         samples = len(labelled([sdir / "train"]))
         stage_results.append({"stage": k, "separation": list(stage["separation"]),
                               "minutes": n_train * flight_seconds / 60, "samples": samples,
@@ -445,7 +445,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
         for kind, entry in _in_parallel(train_one, missing):
             finals[kind] = entry
             run["models"].append(kind)
-            atomic_write_json(manifest_path, manifest)
+            write_manifest(manifest_path, manifest)
     for kind in kinds:
         path = models_dir / f"{kind}.pt"
         models[kind] = {"path": str(path), "val_rmse": _val_rmse(path, kind, labelled(val_dirs)) if val_dirs else None,
@@ -457,7 +457,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     manifest["complete"] = True
     if run["flights"] or run["models"]:
         manifest.setdefault("runs", []).append(run)
-    atomic_write_json(manifest_path, manifest)
+    write_manifest(manifest_path, manifest)
     return {"stages": stage_results, "training_minutes": len(STAGES) * n_train * flight_seconds / 60,
             "validation_minutes": len(STAGES) * n_val * flight_seconds / 60, "models": models,
             "noise_floor": floor, "collection_dir": str(out), "models_dir": str(models_dir),

@@ -23,9 +23,10 @@ are re-flown and kept only if they hold the recorded data (`accept_reflown`).
 
 from __future__ import annotations
 
-import json
+import contextlib
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -33,11 +34,13 @@ from typing import Any, Callable
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
-from downwash_core.io import atomic_write_json
+from downwash_core.io import remove_temporaries
+from downwash_core.locks import folder_lock
 from downwash_core.provenance import differences, fingerprint
 from downwash_core.roles import VEHICLE_NAMES, Role
 from downwash.datasets import concatenate, load_dataset
-from downwash.manifest import check_logs, integrity_error, listed_logs, log_record, read_manifest
+from downwash.manifest import (check_logs, integrity_error, listed_logs, load_manifest_file, log_record, read_manifest,
+                               write_manifest)
 from sim.flight import fly
 from sim.logs import load_log, save_log
 from sim.neighbours import NeighbourSet
@@ -45,7 +48,7 @@ from sim.scene import build_scene
 from downwash_trajectories import (Circle, Hover, Line, Mixed, Relative, StackedReference, collection_reference,
                                    stack)
 
-__all__ = ["Stage", "StageBudget", "open_manifest", "fly_stage", "record_stage", "accept_reflown", "fly_recorded",
+__all__ = ["Stage", "StageBudget", "locked_folder", "open_manifest", "fly_stage", "record_stage", "accept_reflown", "fly_recorded",
            "CheckedLoader", "ProgressFactory"]
 
 log = logging.getLogger(__name__)
@@ -156,6 +159,18 @@ class StageBudget:
         return max(1, math.ceil(self.val_ratio * self.n_train))
 
 
+@contextlib.contextmanager
+def locked_folder(folder: Path, label: str) -> Iterator[None]:
+    """The lock of a folder a collection writes in (`downwash_core.locks.folder_lock`: a second run waits,
+    then resumes what the first made), with the temporary files that killed runs left there removed
+    first: under the lock no live writer's file is taken."""
+    with folder_lock(folder, label=label):
+        stale = remove_temporaries(folder)
+        if stale:
+            log.info("%s: removed %d temporary files that an interrupted run left", folder, len(stale))
+        yield
+
+
 def open_manifest(out: Path, record: dict, what: str, **fields: Any) -> dict:
     """The manifest of the collection in `out` made with `record` (its provenance): the one there, or a
     new one ({provenance, key, stages, **fields}) written there; DataError with the differences when
@@ -163,14 +178,14 @@ def open_manifest(out: Path, record: dict, what: str, **fields: Any) -> dict:
     manifest_path = out / "manifest.json"
     manifest = {"provenance": record, "key": fingerprint(record), "stages": {}, **fields}
     if manifest_path.is_file():
-        have = json.loads(manifest_path.read_text())
+        have = load_manifest_file(manifest_path)
         if have.get("key") != manifest["key"]:
             raise DataError(f"{out}: this folder holds {what} made with other settings:\n  "
                             + "\n  ".join(differences(have.get("provenance"), record))
                             + "\nuse another folder or delete this one to start afresh")
         manifest = have
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(manifest_path, manifest)
+    write_manifest(manifest_path, manifest)
     return manifest
 
 

@@ -50,11 +50,12 @@ from pathlib import Path
 from typing import Any
 
 from downwash_core.errors import ConfigError
-from downwash_core.io import atomic_write_json
 from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import describe, fingerprint
 from downwash.staged import STAGES, train_config
-from downwash.stages import CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, open_manifest
+from downwash.manifest import write_manifest
+from downwash.stages import (CheckedLoader, ProgressFactory, Stage, StageBudget, fly_recorded, locked_folder,
+                             open_manifest)
 from downwash.train import TrainConfig
 from downwash.datasets import concatenate
 from sim.neighbours import NeighbourSet
@@ -171,64 +172,68 @@ def collect_swarm(
     it by `pair_models_key`, so that a folder never holds models of other settings).
     Returns {stages: [...], models: {kind-mix: {path, val_rmse}}, provenance, key}.
     """
-    t0 = time.perf_counter()
-    out, pair_collection = Path(out), Path(pair_collection)
-    record = swarm_provenance(cfg, law, pair_record)
-    manifest_path = out / "manifest.json"
-    manifest = open_manifest(out, record, "a swarm collection", models={})
-    neighbours = cfg.neighbours
+    with locked_folder(Path(out), "swarm collection"):
+        t0 = time.perf_counter()
+        out, pair_collection = Path(out), Path(pair_collection)
+        record = swarm_provenance(cfg, law, pair_record)
+        manifest_path = out / "manifest.json"
+        manifest = open_manifest(out, record, "a swarm collection", models={})
+        neighbours = cfg.neighbours
 
-    def fly(stage: Stage, key: str, deployed: Any) -> None:
-        """The stage flown with `deployed` where flights are missing, recorded in the manifest's entry `key`."""
-        fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(key, {}), cfg.n_train, cfg.n_val,
-                     cfg.seconds, collection=str(out), save=lambda: atomic_write_json(manifest_path, manifest),
-                     field=field, predictor=deployed, aggregation=law, batch_flights=cfg.batch_flights,
-                     threads=cfg.threads, progress=progress)
+        def fly(stage: Stage, key: str, deployed: Any) -> None:
+            """The stage flown with `deployed` where flights are missing, recorded in the manifest's entry `key`."""
+            fly_recorded(stage, out / stage.name, manifest["stages"].setdefault(key, {}), cfg.n_train, cfg.n_val,
+                         cfg.seconds, collection=str(out), save=lambda: write_manifest(manifest_path, manifest),
+                         field=field, predictor=deployed, aggregation=law, batch_flights=cfg.batch_flights,
+                         threads=cfg.threads, progress=progress)
 
-    # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they learn that a
-    # set of neighbours all below pushes nothing
-    load = CheckedLoader(neighbours, {out: manifest},
-                         f"python -m experiments.swarm --collection-dir {pair_collection} (the swarm stages of {out})",
-                         targets="all")
-    stages = []
-    for n_vehicles in SWARM_STAGES:
-        if n_vehicles == SWARM_STAGES[0]:
-            model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
-        else:
-            model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
-        deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
-        fly(_stage(cfg, n_vehicles), str(n_vehicles), deployed)
-        if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
-            path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
-            if not path.is_file():
-                swarm_dirs = [out / f"stage{n}" / "train" for n in SWARM_STAGES if n <= n_vehicles]
-                data = concatenate([load(_pair_dirs(pair_collection, "train")), load(swarm_dirs, True)])
-                _train(DEPLOYED_SWARM_KIND, data, path, cfg)
-        stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
-                       "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
-    for stage in _kind_stages(cfg):
-        fly(stage, stage.name, None)
-        stages.append({"vehicles": stage.n_vehicles, "kinds": list(stage.kinds), "flights": cfg.n_train + cfg.n_val,
-                       "minutes": cfg.n_train * cfg.seconds / 60, "deployed": None})
+        # every vehicle is a target, the leader too: the models of sets fly on every vehicle, so they learn that a
+        # set of neighbours all below pushes nothing
+        load = CheckedLoader(neighbours, {out: manifest},
+                             f"python -m experiments.swarm --collection-dir {pair_collection} "
+                             f"(the swarm stages of {out})",
+                             targets="all")
+        stages = []
+        for n_vehicles in SWARM_STAGES:
+            if n_vehicles == SWARM_STAGES[0]:
+                model = wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")
+            else:
+                model = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
+            deployed = LearnedPredictor(model, clamp=cfg.clamp)  # bounded as the pair stages' deployed models
+            fly(_stage(cfg, n_vehicles), str(n_vehicles), deployed)
+            if n_vehicles != SWARM_STAGES[-1]:  # the model the next stage flies with
+                path = swarm_model_path(out / "staged_models", DEPLOYED_SWARM_KIND, "mixed")
+                if not path.is_file():
+                    swarm_dirs = [out / f"stage{n}" / "train" for n in SWARM_STAGES if n <= n_vehicles]
+                    data = concatenate([load(_pair_dirs(pair_collection, "train")), load(swarm_dirs, True)])
+                    _train(DEPLOYED_SWARM_KIND, data, path, cfg)
+            stages.append({"vehicles": n_vehicles, "flights": cfg.n_train + cfg.n_val,
+                           "minutes": cfg.n_train * cfg.seconds / 60, "deployed": type(deployed.model).__name__})
+        for stage in _kind_stages(cfg):
+            fly(stage, stage.name, None)
+            stages.append({"vehicles": stage.n_vehicles, "kinds": list(stage.kinds), "flights": cfg.n_train + cfg.n_val,
+                           "minutes": cfg.n_train * cfg.seconds / 60, "deployed": None})
 
-    pair_data = load(_pair_dirs(pair_collection, "train"))
-    everything = concatenate([pair_data, load(_swarm_dirs(cfg, out, "train"), True)])
-    data = {"pair": pair_data, "mixed": everything, "kinds": everything}
-    val = load(_swarm_dirs(cfg, out, "val"), True)  # every model is judged on the same many-vehicle validation flights
-    models = {}
-    for kind in TRAINABLE_SET_KINDS:
-        for mix in DATA_MIXES:
-            path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
-            if not path.is_file():
-                _train(kind, data[mix], path, cfg, kinds=mix == "kinds")
-            model = load_checkpoint(path, expect_kind=kind).model
-            models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
-    manifest["complete"] = True
-    atomic_write_json(manifest_path, manifest)
-    return {"stages": stages, "models": models, "provenance": record, "key": manifest["key"],
-            "pair_models_dir": str(pair_models_dir),
-            "failed_flights_left_out": {str(d.relative_to(out)): n for d, n in load.skipped.items() if n and d.is_relative_to(out)},
-            "wall_seconds": time.perf_counter() - t0}
+        pair_data = load(_pair_dirs(pair_collection, "train"))
+        everything = concatenate([pair_data, load(_swarm_dirs(cfg, out, "train"), True)])
+        data = {"pair": pair_data, "mixed": everything, "kinds": everything}
+        # every model is judged on the same many-vehicle validation flights
+        val = load(_swarm_dirs(cfg, out, "val"), True)
+        models = {}
+        for kind in TRAINABLE_SET_KINDS:
+            for mix in DATA_MIXES:
+                path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
+                if not path.is_file():
+                    _train(kind, data[mix], path, cfg, kinds=mix == "kinds")
+                model = load_checkpoint(path, expect_kind=kind).model
+                models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
+        manifest["complete"] = True
+        write_manifest(manifest_path, manifest)
+        return {"stages": stages, "models": models, "provenance": record, "key": manifest["key"],
+                "pair_models_dir": str(pair_models_dir),
+                "failed_flights_left_out": {str(d.relative_to(out)): n for d, n in load.skipped.items()
+                                            if n and d.is_relative_to(out)},
+                "wall_seconds": time.perf_counter() - t0}
 
 
 def _train(kind: str, data, path: Path, cfg: SwarmCollectionConfig, kinds: bool = False) -> None:

@@ -5,6 +5,10 @@ that needs a path, `atomic_path`): a temporary file in the same folder, flushed 
 disk, then renamed over the target. The file ends with the mode a plain `open()`
 would give it: the target's own mode when it exists, else 0666 less the umask, so
 lab-mates read what the umask lets them (a bare `mkstemp` file would stay 0600).
+
+A process killed while writing (SIGKILL, a lost node) leaves its temporary file, named
+``.<target>.<random>.tmp``; `remove_temporaries` clears them from a folder whose lock the
+caller holds (so no live writer's file is taken), as each resumable run does when it starts.
 """
 
 from __future__ import annotations
@@ -21,7 +25,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "json_default", "plain_open_mode", "to_json"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "json_default", "plain_open_mode", "to_json",
+           "remove_temporaries"]
+
+_TEMPORARY_SUFFIX = ".tmp"  # what `atomic_path` names its temporary files with by default
 
 _UMASK_LOCK = threading.Lock()
 
@@ -49,10 +56,13 @@ def plain_open_mode(path: str | os.PathLike) -> int:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, suffix: str = _TEMPORARY_SUFFIX) -> Iterator[Path]:
     """A temporary path beside `path` for a writer to fill; renamed over `path` when the block
-    ends without an exception (with `plain_open_mode`), removed when it raises."""
+    ends without an exception (with `plain_open_mode`), removed when it raises. A symlink is written
+    through, as `open(path, "w")` would: its target is replaced and the link stays."""
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
@@ -97,3 +107,16 @@ def to_json(obj: Any, **kwargs: Any) -> str:
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     """Atomically write `obj` as indented JSON."""
     atomic_write_bytes(path, (to_json(obj, indent=2) + "\n").encode())
+
+
+def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files that killed writers left in `folder` and its subfolders (``.*.tmp``,
+    as `atomic_path` names them); returns them. Only under the folder's lock
+    (`downwash_core.locks.folder_lock`): a live writer in the folder would lose its file."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stale = [p for p in folder.rglob(f".*{_TEMPORARY_SUFFIX}") if p.is_file() and not p.is_symlink()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale

@@ -24,12 +24,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from downwash_core.errors import CheckpointError, DataError
 from downwash.checkpoint import checkpoint_digest, load_checkpoint
 from downwash_core.locks import LOCK_NAME, holder
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
-from downwash.manifest import MANIFEST_VERSION, collection_digest, file_sha256
+from downwash.manifest import MANIFEST_VERSION, collection_digest, file_sha256, write_manifest
 from downwash.staged import CollectionConfig, collect, ensure_collection, ensure_models
 from downwash.sweep_cells import SweepGrid, load_collection, plan_cells
 from experiments.common import load_field
@@ -194,6 +196,18 @@ def test_a_model_swapped_for_another_valid_one_is_found(copy, field):
         ensure_collection(copy / "staged", copy / "models", CFG, field)
 
 
+def test_a_rerun_removes_what_killed_runs_left_half_written(copy, field):
+    """A run killed while writing (SIGKILL) leaves its temporary files beside the logs and models; the next
+    run on the folders removes them under their locks, and changes nothing else."""
+    stale = [copy / "staged" / "stage1" / "train" / ".flight_005.npz.q1w2e3.tmp",
+             copy / "staged" / ".manifest.json.r4t5y6.tmp", copy / "models" / ".deep.pt.u7i8o9.tmp"]
+    for p in stale:
+        p.write_bytes(b"half a file")
+    before = _mtimes(copy)
+    collect(CFG, copy / "staged", copy / "models", field)
+    assert not any(p.exists() for p in stale) and _mtimes(copy) == before
+
+
 def test_an_unlisted_log_in_a_stage_folder_is_reported(copy, field):
     extra = copy / "staged" / "stage0" / "train" / "flight_099.npz"
     shutil.copy(copy / "staged" / "stage0" / "train" / "flight_000.npz", extra)
@@ -236,7 +250,7 @@ def test_a_reflown_log_with_other_data_is_refused(copy, field):
     path = copy / "staged" / "manifest.json"
     m = json.loads(path.read_text())
     m["stages"]["1"]["files"]["train/flight_000.npz"]["data_sha256"] = "0" * 64  # as if flown by other code
-    path.write_text(json.dumps(m))
+    write_manifest(path, m)
     gone = copy / "staged" / "stage1" / "train" / "flight_000.npz"
     gone.unlink()
     with pytest.raises(DataError, match=r"flight_000.npz: re-flown, but the data differ .* Delete .* collect afresh"):
@@ -249,9 +263,21 @@ def test_a_manifest_of_the_older_format_is_refused(copy, field):
     path = copy / "staged" / "manifest.json"
     m = json.loads(path.read_text())
     m["version"] = 2
-    path.write_text(json.dumps(m))
+    path.write_text(json.dumps(m))  # an older version's: no digest of itself
     for kind in ("load_collection", "ensure_collection"):
         with pytest.raises(DataError, match=r"older format \(manifest version 2.*delete the folder"):
+            _train(kind, copy, field)
+
+
+def test_an_edited_manifest_is_refused_by_name(copy, field):
+    """The manifest is what the logs are checked against, so it carries the digest of itself: a hand edit
+    (a log's sample count, which no other check sees) stops every reader."""
+    path = copy / "staged" / "manifest.json"
+    m = json.loads(path.read_text())
+    m["stages"]["0"]["files"]["train/flight_000.npz"]["samples"] += 1
+    path.write_text(json.dumps(m, indent=2))
+    for kind in ENTRY_POINTS:
+        with pytest.raises(DataError, match=rf"{path}: the collection manifest was altered since it was written"):
             _train(kind, copy, field)
 
 
@@ -266,13 +292,59 @@ def test_sweep_cells_follow_the_data(copy, collection):
     path = copy / "staged" / "manifest.json"
     m = json.loads(path.read_text())
     m["stages"]["1"]["files"]["train/flight_000.npz"]["data_sha256"] = "0" * 64
-    path.write_text(json.dumps(m))
+    write_manifest(path, m)  # as other code would have written it
     *_, other = _load_collection(copy / "staged")  # the files still match their SHA-256
     assert other != digest
     a = plan_cells(grid, {"": ("key", 0.4, digest)})
     b = plan_cells(grid, {"": ("key", 0.4, other)})
     assert len(a) == len(b) == 4 and not {c.key for c in a} & {c.key for c in b}
     assert {c.key for c in plan_cells(grid, {"": ("key", 0.4, digest)})} == {c.key for c in a}  # stable
+
+
+ARTIFACTS = {  # every kind of file a collection is trusted by, as one of this collection's files
+    "log": "staged/stage1/train/flight_000.npz", "manifest": "staged/manifest.json",
+    "stage model": "staged/stage0/equivariant.pt", "model": "models/equivariant.pt",
+}
+
+
+@pytest.fixture(scope="module")
+def corruptible(collection, tmp_path_factory):
+    """A copy of the collection whose files the property test flips bytes of (each restored after)."""
+    base = tmp_path_factory.mktemp("corruptible")
+    shutil.copytree(collection / "staged", base / "staged")
+    shutil.copytree(collection / "models", base / "models")
+    return base
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(artifact=st.sampled_from(sorted(ARTIFACTS)), at=st.floats(0.0, 1.0), bits=st.integers(1, 255))
+def test_a_flipped_byte_in_any_artifact_is_refused_by_name(corruptible, field, artifact, at, bits):
+    """Any byte of a log, the manifest, a stage model or a final model, changed: the complete collection
+    is refused before any work, with the file named (or, for the few bytes that carry no content,
+    such as a zip member's time stamp, its content is unchanged and it is read as it was)."""
+    path = corruptible / ARTIFACTS[artifact]
+    original = path.read_bytes()
+    data = bytearray(original)
+    data[int(at * (len(data) - 1))] ^= bits
+    path.write_bytes(bytes(data))
+    try:
+        try:
+            ensure_collection(corruptible / "staged", corruptible / "models", CFG, field)
+        except (DataError, CheckpointError) as e:
+            assert str(path) in str(e)
+        else:  # a byte no content depends on: a model's zip records are stamped by what they hold
+            assert artifact.endswith("model"), "a changed log or manifest was read as if unchanged"
+            unchanged = path.with_name("unchanged.pt")
+            unchanged.write_bytes(original)
+            assert checkpoint_digest(path) == checkpoint_digest(unchanged)
+            unchanged.unlink()
+        if artifact.endswith("model"):  # a flight reads it alone: refused by its own digest, or the same model
+            try:
+                load_checkpoint(path)
+            except CheckpointError as e:
+                assert str(e).startswith(f"{path}: ")
+    finally:
+        path.write_bytes(original)
 
 
 def nan_below(p_a, v_a, R_a, p_b, v_b):

@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from downwash_core.io import atomic_path, atomic_write_bytes, atomic_write_json, plain_open_mode
+from downwash_core.io import atomic_path, atomic_write_bytes, atomic_write_json, plain_open_mode, remove_temporaries
 
 
 def _mode(path) -> int:
@@ -45,3 +45,33 @@ def test_a_failed_write_leaves_neither_the_file_nor_a_temporary(tmp_path):
             tmp.write_bytes(b"half")
             raise RuntimeError("writer died")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_symlink_is_written_through_and_stays_a_link(tmp_path, umask):
+    """As `open(path, "w")`: the target gets the data and keeps its mode; the link keeps pointing at it."""
+    umask(0o022)
+    target, link = tmp_path / "target.json", tmp_path / "link.json"
+    atomic_write_json(target, {"a": 1})
+    os.chmod(target, 0o600)
+    link.symlink_to(target)
+    atomic_write_json(link, {"a": 2})
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert _mode(target) == 0o600 and '"a": 2' in target.read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "target.json"]
+
+
+def test_temporaries_that_killed_writers_left_are_removed(tmp_path):
+    """What a SIGKILL during `atomic_path` leaves (``.<name>.<random>.tmp``), in the folder and below it,
+    goes; finished files, hidden files of other kinds and the lock file stay."""
+    stage = tmp_path / "stage0" / "train"
+    stage.mkdir(parents=True)
+    (stage / "flight_000.npz").write_bytes(b"log")
+    (tmp_path / ".lock").write_text("")
+    (tmp_path / ".notes").write_text("mine")
+    stale = [stage / ".flight_001.npz.k2j4_x.tmp", tmp_path / ".manifest.json.a8b3c.tmp"]
+    for p in stale:
+        p.write_bytes(b"half")
+    assert sorted(remove_temporaries(tmp_path)) == sorted(stale)
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == [
+        ".lock", ".notes", "stage0", "stage0/train", "stage0/train/flight_000.npz"]
+    assert remove_temporaries(tmp_path / "missing") == []
