@@ -15,6 +15,7 @@ def test_level_hover_gives_equal_hover_thrust():
     ap = Autopilot()
     R = np.broadcast_to(np.eye(3), (3, 3, 3)).copy()
     out = ap(R, np.zeros((3, 3)), R, np.zeros(3), np.full(3, GRAVITY))
+    # the collective row is LAPACK's inverse of the 4x4 mixer (cond 62.5): ~cond * eps = 1.4e-14 on any kernel
     np.testing.assert_allclose(out, QUAD.hover_rotor_thrust, rtol=1e-12)
 
 
@@ -37,6 +38,8 @@ def test_wrench_matches_pd_law():
     eR = 0.5 * np.stack([S[:, 2, 1], S[:, 0, 2], S[:, 1, 0]], -1)
     wd = np.zeros_like(w)
     wd[:, 2] = yr
+    # the mixer's inverse (LAPACK, cond 62.5) and 4-term BLAS products: any kernel is within ~cond * eps *
+    # |thrust| ~ 1e-14 (N, N m) of exact, under the 1e-12 floor (rtol 1e-7 covers the nonzero entries)
     np.testing.assert_allclose(wrench[:, 1:], -ap.kR * eR - ap.kW * (w - wd), atol=1e-12)
     np.testing.assert_allclose(wrench[:, 0], QUAD.mass * T * np.einsum("ni,ni->n", Rd[:, :, 2], R[:, :, 2]), atol=1e-12)
 
@@ -81,12 +84,15 @@ def test_saturation_gives_up_thrust_not_attitude():
     T = rng.uniform(0.0, 3.0 * GRAVITY, size=n)
     rotors = ap(R, w, Rd, yr, T)
     expected, demand = _readable_rotor_thrusts(ap, R, w, Rd, yr, T)
+    # both go through the same LAPACK inverse of the mixer (cond 62.5) and then BLAS / compiled sums of 4-14
+    # terms in their own orders: ~cond * eps * 4 N ~ 6e-14 apart on any kernel (measured 4e-15)
     np.testing.assert_allclose(rotors, expected, rtol=1e-12, atol=1e-12)
     saturated = (demand.max(axis=1) > QUAD.max_rotor_thrust) & (demand.min(axis=1) - (
         demand.max(axis=1) - QUAD.max_rotor_thrust) > 0)
     assert saturated.sum() > 50  # (the draw exercises the rule)
     kept = rotors[saturated] @ mixer_matrix().T
     wanted = demand[saturated] @ mixer_matrix().T
+    # 4-term BLAS products of thrusts <= 4 N with |mixer| <= 1: within 4 eps * 16 ~ 1e-14 of exact on any kernel
     np.testing.assert_allclose(kept[:, 1:], wanted[:, 1:], atol=1e-12)
     assert (kept[:, 0] < wanted[:, 0]).all()
     np.testing.assert_allclose(rotors[saturated].max(axis=1), QUAD.max_rotor_thrust)

@@ -14,7 +14,8 @@ from downwash_core.state import RefSample
 
 
 # The gain is rounded to float32 precision so that every CPU gets its bits (downwash_core.numerics):
-# half a float32 step, relative.
+# half a float32 step, relative. LAPACK's own error (the Riccati solve, ~1e-15 relative here) is far
+# below it, and the rounded bits are the same under every OpenBLAS kernel (tests/test_numerics.py).
 F32 = 2.0**-24
 
 
@@ -50,6 +51,9 @@ def test_matches_scipy_riccati_and_is_stable():
         N = rng.normal(size=(4, 4))
         R = N @ N.T + 0.5 * np.eye(4)
         P = scipy.linalg.solve_continuous_are(A, B, Q, R)
+        # python-control (without slycot) makes its gain with this same scipy CARE and solve: the raw gain
+        # equals the right side bit for bit on any CPU (slycot's SB02MD would differ by ~cond * eps, ~1e-14
+        # here); what is left is lqr_gain's float32 rounding, <= 2^-24 = 6.0e-8 relative (0.45 of rtol)
         np.testing.assert_allclose(lqr_gain(Q, R), np.linalg.solve(R, B.T @ P), rtol=1e-7, atol=1e-9)
         assert np.linalg.eigvals(A - B @ lqr_gain(Q, R)).real.max() < 0
 
@@ -96,6 +100,8 @@ def test_attitude_setpoint():
     acc = rng.normal(scale=2.0, size=(50, 3))
     yaw = rng.uniform(-np.pi, np.pi, 50)
     thrust, R = attitude_setpoint(acc, yaw)
+    # BLAS/LAPACK on an orthonormal R: any kernel's 3-term sums are within 3 eps of exact (|rows| = 1),
+    # det's LU within a few eps (cond(R) = 1): ~1e-15 against 1e-12
     np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), (50, 3, 3)), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
     # thrust vector realises the commanded acceleration when inside the limits

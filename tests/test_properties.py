@@ -135,6 +135,9 @@ def pair_states(draw, shape=None, mode=None):
 
 def _about_axis(R_a: np.ndarray, angle: float) -> np.ndarray:
     """H = R_a Rz(angle) R_a^T: the rotation by `angle` about the leader's axis n = R_a[:, 2]."""
+    # BLAS products: H is orthogonal to ~3 eps with the kernel's last bits (exactly Rz for R_a = I, where every
+    # sum has one nonzero term). The equivariance tests allow 1e-9 m/s^2; follower positions up to 50 m are
+    # re-rounded (~7e-15 m) and the field's steepest slope is ~100 s^-2: ~1e-12, H's round-off less
     c, s = math.cos(angle), math.sin(angle)
     Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return R_a @ Rz @ np.swapaxes(R_a, -1, -2)
@@ -220,7 +223,7 @@ def test_field_equivariance_check_fails_for_c4_and_skew():
     p_b = np.array([0.16, 0.0, -0.5])
     angle = math.pi / 4
     ok = _equivariance_error(FIELDS["default"], p_a, np.zeros(3), R, p_b, np.zeros(3), angle)
-    assert ok < 1e-12  # the same inputs pass for the equivariant default field
+    assert ok < 1e-12  # the same inputs pass for the equivariant default field (R = I: H = Rz exactly, any kernel)
     broken = _equivariance_error(FIELDS["c4_amplitude"], p_a, np.zeros(3), R, p_b, np.zeros(3), angle)
     # down = A w G (1 + c4 taper cos 4 theta) with w = 1, G = exp(-1/2), taper = 1 / 1.0625 and
     # cos 4 theta = +1 before and -1 after the turn; the radial force is the same, so the error
@@ -478,6 +481,7 @@ def test_labels_equal_exact_acceleration_minus_smoothed_command(case):
     np.testing.assert_array_equal(lab["t"], log["t"][rows])
     np.testing.assert_array_equal(lab["field_mean"], log["field_mean"][rows, follower])
     R_a = lab["R_a"][:, 0]  # a rotation, from the leader's (unnormalised) quaternion
+    # a BLAS product of orthonormal rows: within 3 eps of exact on any kernel (~1e-15 against 1e-12)
     np.testing.assert_allclose(R_a @ np.swapaxes(R_a, -1, -2), np.broadcast_to(np.eye(3), R_a.shape), atol=1e-12)
 
 

@@ -88,6 +88,8 @@ def test_a_flight_measures_what_the_readable_law_says(scene, sensor, fast):
         offset = draw_episode_offset(sensor, seed, V)
         pos, quat = sensor.measure(log["pos"], log["quat"], normals, offset)
         assert np.array_equal(log["mocap_pos"], pos)
+        # NumPy's float64 sin/cos do not depend on its SIMD loops (downwash_core.libm): equal to the bit here
+        # with its AVX-512 loops and with only its baseline ones (NPY_DISABLE_CPU_FEATURES), measured
         np.testing.assert_allclose(log["quat_est"], quat, rtol=0, atol=1e-15)  # sin/cos: NumPy's or the kernel's
 
 

@@ -135,6 +135,8 @@ def test_off_describe_axes_airspeed():
     assert d == DrydenWind.preset("moderate", mean=(3, 4, 0)).describe() == describe(wind)
     assert json.loads(json.dumps(d)) == d and d["type"] == "sim.wind.DrydenWind"
     e = wind.axes()
+    # rows (0.6, 0.8, 0), (-0.8, 0.6, 0), z, each entry within half an ulp; a 3-term BLAS dot of unit rows is
+    # within 3 u = 3.3e-16 of exact on any kernel: |e e^T - I| <= ~8e-16 (2.7e-17 or 0 measured)
     np.testing.assert_allclose(e @ e.T, np.eye(3), atol=1e-15)
     np.testing.assert_allclose(e[0], [0.6, 0.8, 0.0])  # u along the horizontal mean wind
     np.testing.assert_allclose(np.cross(e[0], e[1]), e[2])  # right-handed, w = world z
@@ -158,6 +160,7 @@ def test_step_and_gust_match_the_compiled_coefficients():
     np.testing.assert_allclose(gust, np.einsum("iaj,wvaj->wvi", C, state), rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(wind.wind(state), wind_at(wind.mean, gust))
     g_u = state[..., 0, 0]  # the longitudinal gust is its first state, along the horizontal mean wind
+    # a 3-term BLAS dot with a unit row: within ~3 eps |gust| ~ 1e-14 of exact on any kernel
     np.testing.assert_allclose(gust @ wind.axes()[0], g_u, rtol=1e-12, atol=1e-12)
 
 
@@ -190,6 +193,8 @@ def test_sampled_recursion_is_exact(airspeed, dt):
     for axis in range(3):
         P = scipy.linalg.solve_discrete_lyapunov(A[axis], B[axis] @ B[axis].T)
         Sigma = scipy.linalg.solve_continuous_lyapunov(A_c[axis], -np.outer(b[axis], b[axis]))
+        # two LAPACK Lyapunov solves: the discrete one's condition ~1 / (1 - a^2) <= ~1e3 (a = e^(-dt/T) at
+        # T <= 23 s), so ~1e3 eps = 2e-13 relative apart on any kernel (measured 2.3e-13): rtol 1e-9 is 4000x
         np.testing.assert_allclose(P, Sigma, rtol=1e-9, atol=1e-12)  # the state stays stationary for any V
         np.testing.assert_allclose(c[axis] @ P @ c[axis], SIGMA[axis] ** 2, rtol=1e-7)  # SIGMA: 8 digits
         T_ = T[axis] * V / Vf
@@ -200,6 +205,8 @@ def test_sampled_recursion_is_exact(airspeed, dt):
             r_disc = c[axis] @ np.linalg.matrix_power(A[axis], k) @ P @ c[axis]
             assert r_disc == pytest.approx(r_cont, rel=1e-6, abs=1e-12 * SIGMA[axis] ** 2)  # 8-digit T, SIGMA
         L = wind.stationary_state(unit)[:, axis, :].T  # the stationary factor, column by column
+        # closed-form L against LAPACK's continuous Lyapunov solve (2x2, well conditioned: one repeated
+        # eigenvalue -1/T, no near-cancellation): a few eps relative on any kernel, measured 4e-16
         np.testing.assert_allclose(L @ L.T, Sigma, rtol=1e-12, atol=1e-15)
 
 
@@ -225,6 +232,8 @@ def test_one_step_coefficients_equal_a_fine_integration(airspeed):
         M, bb = A_c[axis], np.outer(b[axis], b[axis])
         Phi = rk4(lambda X: M @ X, np.eye(2), DT / 100, 100)  # noqa: B023
         Q = rk4(lambda X: M @ X + X @ M.T + bb, np.zeros((2, 2)), DT / 100, 100)  # noqa: B023
+        # sized for RK4's truncation error (0.001 and 0.16 of these tolerances measured); the round-off of the
+        # 2x2 BLAS products over 100 steps is a few hundred eps (< 1e-13 relative) on any kernel
         np.testing.assert_allclose(A[axis], Phi, rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(B[axis] @ B[axis].T, Q, rtol=1e-9, atol=1e-14 * SIGMA[axis] ** 2)
 
@@ -306,6 +315,8 @@ def test_power_spectral_density_matches_dryden(gusts):
     # scipy's one-sided density per Hz (Welch uses the same scaling) integrates to the mean square:
     # exactly so for the boxcar periodogram (Parseval)
     f, P = scipy.signal.periodogram(gusts[:4], fs=1.0 / DT, window="boxcar", detrend=False, axis=-1)
+    # scipy's FFT (pocketfft: no BLAS) against a mean: ~log2(N) eps = 3e-15 relative, 4e-16 measured under
+    # every kernel (the gusts themselves come from BLAS 2x2 products, so their bits are the kernel's)
     np.testing.assert_allclose(P.sum(axis=-1) * (f[1] - f[0]), (gusts[:4] ** 2).mean(axis=-1), rtol=1e-10)
     for axis in range(3):
         passed, ratios = psd_check(gusts[:, axis], PHI[axis], SIGMA[axis], T[axis])
