@@ -1,0 +1,163 @@
+"""The Crazyflie micro-SD card deck's synchronous log format, read and written exactly.
+
+This is the format of the Crazyflie firmware's uSD deck in 2019-2020 (logging in the
+stabilizer loop, "mode 1: synchronous"), the one the Neural-Swarm data set's onboard
+binaries are in. Written from the format's layout (all little-endian):
+
+    header   [n: u8]  n entries ``name(t),`` in ASCII, t a struct type code   [CRC-32: 4 bytes]
+    blocks   [count: u8]  count records, each the n fields in header order    [CRC-32: 4 bytes]
+             ... to the end of the file
+
+Each CRC-32 covers the bytes of its header or block (the block's count byte included)
+and is stored as the one's complement of zlib's CRC-32, little-endian, so that the
+CRC-32 of the bytes followed by it is 0xFFFFFFFF.
+
+`read_usd_sync` reads a whole file or nothing: a truncated file, a CRC mismatch, an
+unknown field type or a malformed header raises `UsdFormatError` naming the file, the
+byte offset and, for a block, its index; values are returned raw, with the log's own
+field names and types. The format has no record count or end mark, so a file cut exactly
+between two blocks (power lost while logging) reads as the shorter log it then is.
+`write_usd_sync` writes the same format, for tests and for tools that make such files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from downwash_core.errors import LogError
+from downwash_core.io import atomic_write_bytes
+
+__all__ = ["USD_SYNC_FORMAT", "FIELD_TYPES", "UsdFormatError", "UsdLog", "read_usd_sync", "encode_usd_sync",
+           "write_usd_sync"]
+
+USD_SYNC_FORMAT = "crazyflie-usd-sync"
+# the struct type codes the firmware's log variables use, with their NumPy types (little-endian)
+FIELD_TYPES: dict[str, str] = {"b": "<i1", "B": "<u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4",
+                               "q": "<i8", "Q": "<u8", "e": "<f2", "f": "<f4", "d": "<f8"}
+_MAX_BLOCK = 255  # records in one block: its count is one byte
+
+
+class UsdFormatError(LogError):
+    """A uSD log that is not exactly the format: the message names the file and byte offset."""
+
+
+@dataclass(frozen=True)
+class UsdLog:
+    """One decoded file: ``fields[name]`` (N,) raw values in the log's own types, in header order;
+    ``types[name]`` the struct code; ``source`` the file, format and SHA-256; ``blocks`` how many."""
+
+    fields: dict[str, np.ndarray]
+    types: dict[str, str]
+    source: dict[str, Any] = field(default_factory=dict)
+    blocks: int = 0
+
+    def __len__(self) -> int:
+        return len(next(iter(self.fields.values()))) if self.fields else 0
+
+
+def _crc(data: bytes) -> bytes:
+    """What the format stores after `data`: its CRC-32's complement, little-endian."""
+    return ((~zlib.crc32(data)) & 0xFFFFFFFF).to_bytes(4, "little")
+
+
+def _parse_header(raw: bytes, where: str) -> tuple[list[str], list[str], int]:
+    """(names, type codes, offset of the first block) of a file's bytes; UsdFormatError otherwise."""
+    if not raw:
+        raise UsdFormatError(f"{where}: empty file (no header)")
+    n, offset, names, codes = raw[0], 1, [], []
+    if n == 0:
+        raise UsdFormatError(f"{where}: byte 0: the header declares 0 fields")
+    for i in range(n):
+        end = raw.find(b",", offset)
+        if end < 0:
+            raise UsdFormatError(f"{where}: byte {offset}: truncated header (field {i + 1} of {n} has no ',')")
+        entry = raw[offset:end]
+        try:
+            text = entry.decode("ascii")
+        except UnicodeDecodeError:
+            raise UsdFormatError(f"{where}: byte {offset}: field {i + 1} of the header is not ASCII: {entry[:40]!r}") from None
+        if len(text) < 4 or text[-3] != "(" or text[-1] != ")" or not text[:-3].strip():
+            raise UsdFormatError(f"{where}: byte {offset}: header field {text!r} is not 'name(t)'")
+        name, code = text[:-3].strip(), text[-2]
+        if code not in FIELD_TYPES:
+            raise UsdFormatError(f"{where}: byte {end - 2}: unknown field type {code!r} of {name!r} (known: "
+                                 f"{''.join(FIELD_TYPES)})")
+        if name in names:
+            raise UsdFormatError(f"{where}: byte {offset}: field {name!r} appears twice in the header")
+        names.append(name)
+        codes.append(code)
+        offset = end + 1
+    if len(raw) < offset + 4:
+        raise UsdFormatError(f"{where}: byte {offset}: truncated header (its CRC-32 is cut off)")
+    if raw[offset:offset + 4] != _crc(raw[:offset]):
+        raise UsdFormatError(f"{where}: byte {offset}: CRC mismatch in the header")
+    return names, codes, offset + 4
+
+
+def read_usd_sync(path: str | os.PathLike) -> UsdLog:
+    """Decode a synchronous-mode uSD log (module doc). UsdFormatError, naming the file and the byte
+    offset, on a truncated file, a CRC mismatch, an unknown field type or a malformed header."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise UsdFormatError(f"{path}: cannot read it: {e.strerror or e}") from e
+    names, codes, offset = _parse_header(raw, str(path))
+    dtype = np.dtype([(f"f{i}", FIELD_TYPES[c]) for i, c in enumerate(codes)])  # packed: no padding
+    size = dtype.itemsize
+    chunks, block = [], 0
+    while offset < len(raw):
+        count = raw[offset]
+        end = offset + 1 + count * size
+        if end + 4 > len(raw):
+            raise UsdFormatError(f"{path}: byte {offset}: truncated block {block} ({count} records need "
+                                 f"{end + 4 - offset} bytes, {len(raw) - offset} are left)")
+        if raw[end:end + 4] != _crc(raw[offset:end]):
+            raise UsdFormatError(f"{path}: byte {offset}: CRC mismatch in block {block}")
+        chunks.append(raw[offset + 1:end])
+        offset, block = end + 4, block + 1
+    records = np.frombuffer(b"".join(chunks), dtype=dtype)
+    fields = {name: records[f"f{i}"].astype(FIELD_TYPES[c][1:]) for i, (name, c) in enumerate(zip(names, codes))}
+    source = {"file": str(path), "format": USD_SYNC_FORMAT, "sha256": hashlib.sha256(raw).hexdigest()}
+    return UsdLog(fields, dict(zip(names, codes)), source, block)
+
+
+def encode_usd_sync(columns: Mapping[str, tuple[str, Any]], block_records: int = 4) -> bytes:
+    """The bytes of a synchronous-mode log of `columns` (name -> (type code, values (N,))), the
+    records in blocks of `block_records` (1-255; the last block holds the rest)."""
+    if not columns:
+        raise ValueError("columns: at least one field is needed")
+    if not 1 <= block_records <= _MAX_BLOCK:
+        raise ValueError(f"block_records: allowed 1-{_MAX_BLOCK}, got {block_records}")
+    unknown = {n: c for n, (c, _) in columns.items() if c not in FIELD_TYPES}
+    if unknown:
+        raise ValueError(f"columns: unknown type codes {unknown} (known: {''.join(FIELD_TYPES)})")
+    if len(columns) > 255:
+        raise ValueError(f"columns: at most 255 fields, got {len(columns)}")
+    values = {n: np.asarray(v) for n, (_, v) in columns.items()}
+    lengths = {len(v) for v in values.values()}
+    if len(lengths) != 1:
+        raise ValueError(f"columns: every field needs the same number of values, got {sorted(lengths)}")
+    header = bytes([len(columns)]) + b"".join(f"{n}({c}),".encode("ascii") for n, (c, _) in columns.items())
+    dtype = np.dtype([(f"f{i}", FIELD_TYPES[c]) for i, (_, (c, _)) in enumerate(columns.items())])
+    records = np.zeros(lengths.pop(), dtype=dtype)
+    for i, v in enumerate(values.values()):
+        records[f"f{i}"] = v
+    out = [header, _crc(header)]
+    for start in range(0, len(records), block_records):
+        chunk = records[start:start + block_records]
+        block = bytes([len(chunk)]) + chunk.tobytes()
+        out += [block, _crc(block)]
+    return b"".join(out)
+
+
+def write_usd_sync(path: str | os.PathLike, columns: Mapping[str, tuple[str, Any]], block_records: int = 4) -> None:
+    """Write `encode_usd_sync(columns, block_records)` to `path` atomically."""
+    atomic_write_bytes(path, encode_usd_sync(columns, block_records))
