@@ -22,7 +22,8 @@ Rules that keep it simple:
   after their parent died.
 - `remove=True` deletes the lock file on release (one file per cache entry would
   pile up); a waiter that then gets the lock of a deleted file notices (the path no
-  longer names the file it locked) and tries again on the new one.
+  longer names the file it locked) and tries again on the new one, making its folder
+  again if the holder removed that too (a folder it made and left empty).
 - flock works on local file systems and NFSv4; a folder on a file system without
   locks, or one this process may not write (a read-only copy of a finished
   collection), is used without the lock, with a warning.
@@ -102,7 +103,11 @@ def _acquire(path: str, wait: bool, timeout: float | None, label: str, target: s
     deadline = None if timeout is None else time.monotonic() + timeout
     announced = False
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        except FileNotFoundError:  # a holder removed the folder of the lock file (it left it empty): make it again
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            continue
         acquired = poll = False
         try:
             try:

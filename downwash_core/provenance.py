@@ -113,10 +113,13 @@ def code_version() -> dict[str, Any]:
     except metadata.PackageNotFoundError:
         version = None
     commit, dirty = None, None
+    # --no-optional-locks: `git status` would otherwise refresh the index under .git/index.lock, and the
+    # user's own git command at that moment would fail on the lock
+    git = ["git", "--no-optional-locks"]
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=_ROOT, capture_output=True, text=True,
+        commit = subprocess.run([*git, "rev-parse", "HEAD"], cwd=_ROOT, capture_output=True, text=True,
                                 timeout=5, check=True).stdout.strip() or None
-        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=_ROOT,
+        status = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], cwd=_ROOT,
                                 capture_output=True, text=True, timeout=5, check=True).stdout
         dirty = bool(status.strip())
     except (OSError, subprocess.SubprocessError):

@@ -52,8 +52,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from downwash_core.params import LEADER_POSITION, RATES
-from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_table, load_field, parse_args, run_main,
-                                setup_logging, write_results, script)
+from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_table, load_field, out_lock, parse_args,
+                                run_main, setup_logging, write_results, script)
 
 if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
     from downwash.guard import GuardedPredictor
@@ -358,8 +358,9 @@ def train_equivariant(minutes: float, field: Any) -> tuple[float, Any, Any]:
 def main(argv=None) -> dict:
     setup_logging()
     args = parse_args(BenchmarkArgs, "benchmark", argv, __doc__)
-    results = run(args)
-    path = write_results(args.out, results, args)
+    with out_lock(args, "benchmark"):
+        results = run(args)
+        path = write_results(args.out, results, args)
     rows = [[k, v] for k, v in results.items() if isinstance(v, float)]
     print(format_table(rows, ["key", "value"]))
     print(f"\nwrote {path}")

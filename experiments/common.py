@@ -5,11 +5,14 @@ one-line `help`), parsed once in `main()`; the parsed config and seed are writte
 beside the results. Any option may also come from a TOML file (`--config FILE.toml`,
 keys are the long option names); a flag on the command line overrides the file.
 
-Every numeric option states its range once, in its `arg(..., ge=, gt=, le=, lt=)`;
-`parse_args` checks each number (finite, within its range) and each output folder
-(writable) before any work, naming the flag. `run_main` runs an experiment from the
-command line: an expected error (`TestbedError`) prints one line and exits 2 (a bad
-option) or 1 (a bad file), `--debug` shows its traceback; a bug keeps its traceback.
+Every numeric option states its range once, in its `arg(..., ge=, gt=, le=, lt=)`, and
+every option of names states them in its `check=`; `parse_args` checks each number (finite, within its
+range), each name and each output folder (writable) before any work, naming the flag.
+`--quick` gives the options with an `arg(..., quick=)` that value unless they are given.
+`out_lock` holds the --out folder for the run, so two runs on one folder take turns.
+`run_main` runs an experiment from the command line: an expected error (`TestbedError`)
+prints one line and exits 2 (a bad option) or 1 (a bad file), `--debug` shows its
+traceback; a bug keeps its traceback.
 
 Importing this module is cheap (no torch, numba, mujoco or matplotlib), and so is
 importing an experiment: they load the heavy stack inside the functions that need it,
@@ -20,6 +23,7 @@ the static copies below, which tests/test_cli.py ties to their registries.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import math
@@ -29,14 +33,15 @@ import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, NoReturn, Sequence, TypeVar
+from typing import Any, Callable, Iterator, NoReturn, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError, TestbedError
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
     "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
-    "check_writable", "allowed_range", "names_check", "OneLineParser", "setup_logging", "CONDITIONS",
+    "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check", "wind_check",
+    "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging", "CONDITIONS", "SEED_COUNT_MAX",
     "DEFAULT_CONDITIONS", "PAIRWISE_KINDS",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
@@ -64,20 +69,30 @@ FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)
 
 SEED_MAX = 2**32 - 1  # seeds go to NumPy's and torch's generators; seed + k stays far inside int64
 FLIGHT_SECONDS_MAX = 3600.0  # s, one flight: its log rows are allocated up front, so a huge length is refused
+# flights per condition (or trials per point): they fly as one batch of worlds, so a count beyond any sensible
+# study is refused while parsing, not by the memory check after the collection and training
+SEED_COUNT_MAX = 1000
+CONFIG_BYTES_MAX = 1 << 20  # an options file is a few lines; reading a huge or endless one is refused
+_NO_QUICK = object()  # arg(quick=...) not given: --quick leaves the option alone
 
 
 def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
-        lt: float | None = None, check: Callable[[Any], str | None] | None = None, output: str | None = None) -> Any:
+        lt: float | None = None, check: Callable[[Any], str | None] | None = None, output: str | None = None,
+        quick: Any = _NO_QUICK) -> Any:
     """A dataclass field with a default and a one-line help text.
 
     A number's range is stated here, once (`ge`/`gt`/`le`/`lt`, and/or `check(value)`, which
     returns what is expected when the value is bad, else None): `parse_args` checks it, and
     that a float is finite, before any work. `output` ("dir" or "file") marks a path the
-    experiment writes, checked for writing before any work.
+    experiment writes, checked for writing before any work. `quick`: the value `--quick`
+    gives the option when it is not given (on the command line or in --config); one given
+    is kept.
     """
     if output not in (None, "dir", "file"):
         raise ValueError(f"output: expected None, 'dir' or 'file', got {output!r}")
     metadata: dict[str, Any] = {"help": help}
+    if quick is not _NO_QUICK:
+        metadata["quick"] = quick
     bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le), ("lt", lt)) if v is not None}
     if bounds:
         metadata["bounds"] = bounds
@@ -88,6 +103,50 @@ def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = 
     return field(default=default, metadata=metadata)
 
 
+def seed_count_check(n: int) -> str | None:
+    """A `check` for a count of seeds (flights per condition, trials per point): at most SEED_COUNT_MAX."""
+    return None if n <= SEED_COUNT_MAX else f"expected at most {SEED_COUNT_MAX}"
+
+
+def one_of(allowed: Sequence[str]) -> Callable[[str], str | None]:
+    """A `check` for one name from `allowed`."""
+
+    def check(text: str) -> str | None:
+        return None if text in allowed else f"unknown {text!r}; allowed: {', '.join(allowed)}"
+
+    return check
+
+
+def registered_field_names() -> tuple[str, ...]:
+    """The registered field names: the registry's own once it is loaded (a user's `register_field`
+    shows there), else the static copy (nothing can have added to a registry not yet loaded)."""
+    registry = sys.modules.get("sim.fields.registry")
+    return tuple(registry.FIELDS) if registry is not None else FIELD_NAMES
+
+
+def field_check(spec: str) -> str | None:
+    """A `check` for a `--field` spec: the grammar of `sim.fields.registry.parse_field_spec` and its
+    names, without loading the registry (numba). Parameters and import paths are checked when the
+    field is loaded (`load_field`), still before any work."""
+    text = spec.strip()
+    if not text:
+        return None
+    names = registered_field_names()
+    head, colon, tail = text.partition(":")
+    if head in names:
+        return None
+    registered = ", ".join(names)
+    if not colon:
+        return (f"unknown field {text!r}; registered: {registered}; or a MODULE:FACTORY import path "
+                "(e.g. mypkg.fields:make_field)")
+    if "=" in tail:
+        return (f"unknown field {head!r} in {text!r}; registered: {registered} (a MODULE:FACTORY import path takes "
+                "no KEY=VALUE parameters)")
+    if ":" in tail or not head or not tail:
+        return f"expected a registered field ({registered}) or MODULE:FACTORY (e.g. mypkg.fields:make_field)"
+    return None
+
+
 @dataclass(frozen=True)
 class CommonArgs:
     """Options every experiment takes (DESIGN section 10)."""
@@ -95,7 +154,7 @@ class CommonArgs:
     out: str = arg("", "output folder (default runs/<experiment>)", output="dir")
     seed: int = arg(0, "base seed; world k of a run uses seed + k", ge=0, le=SEED_MAX)
     quick: bool = arg(False, "tiny budget for smoke tests")
-    field: str = arg("", f"the ground-truth field (default {DEFAULT_FIELD}): {FIELD_CHOICES}")
+    field: str = arg("", f"the ground-truth field (default {DEFAULT_FIELD}): {FIELD_CHOICES}", check=field_check)
 
 
 @dataclass(frozen=True)
@@ -234,12 +293,22 @@ def _out_of_range(f: dataclasses.Field, value: Any) -> str | None:
     refused by the field's `check`), else None."""
     if _kind(f) in (int, float) and not isinstance(value, bool):
         b = f.metadata.get("bounds", {})
-        ok = (math.isfinite(value) and ("ge" not in b or value >= b["ge"]) and ("gt" not in b or value > b["gt"])
+        finite = isinstance(value, int) or math.isfinite(value)  # isfinite cannot take an int beyond a float
+        ok = (finite and ("ge" not in b or value >= b["ge"]) and ("gt" not in b or value > b["gt"])
               and ("le" not in b or value <= b["le"]) and ("lt" not in b or value < b["lt"]))
         if not ok:
             return f"expected {allowed_range(f)}"
     check = f.metadata.get("check")
     return check(value) if check is not None else None
+
+
+def check_options(args: Any) -> None:
+    """ConfigError naming the first option of the dataclass `args` whose value is out of its range or
+    refused by its check: what parse_args checks, for options built in Python (`run(args)`)."""
+    for f in dataclasses.fields(args):
+        problem = _out_of_range(f, getattr(args, f.name))
+        if problem:
+            raise ConfigError(f"{_option(f.name)}: {problem}, got {getattr(args, f.name)!r}")
 
 
 def names_check(allowed: Sequence[str]) -> Callable[[str], str | None]:
@@ -267,8 +336,9 @@ class OneLineParser(argparse.ArgumentParser):
 
 def build_parser(cls: type, name: str, description: str = "") -> argparse.ArgumentParser:
     """The argparse parser of the dataclass `cls`: one long option per field, plus --config and --debug."""
+    # allow_abbrev=False: otherwise `--models x` is silently `--models-dir x` where no --models exists
     parser = OneLineParser(prog=f"python -m experiments.{name}", description=description,
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+                           formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
     for f in dataclasses.fields(cls):
         help_text = f.metadata.get("help", "")
         if _kind(f) is bool:  # --no-X undoes an X = true of the config file
@@ -278,9 +348,11 @@ def build_parser(cls: type, name: str, description: str = "") -> argparse.Argume
             notes = [f"default: {f.default}"] if f.default != "" else []
             if _kind(f) in (int, float) and "bounds" in f.metadata:
                 notes.append(allowed_range(f).removeprefix("an integer ").removeprefix("a finite number "))
+            if "quick" in f.metadata:
+                notes.append(f"--quick: {f.metadata['quick']}")
             parser.add_argument(_option(f.name), type=_kind(f), default=f.default,
                                 help=f"{help_text} ({'; '.join(notes)})" if notes else help_text)
-    parser.add_argument("--config", metavar="FILE.toml", default="",
+    parser.add_argument("--config", metavar="FILE.toml", default=None,
                         help="read options from this TOML file (keys: the long option names, with - or _); "
                              "flags on the command line override it")
     parser.add_argument("--debug", action="store_true",
@@ -295,13 +367,19 @@ def read_config(path: str | Path, cls: type) -> dict[str, Any]:
     allowed = ", ".join(f.name.replace("_", "-") for f in fields.values())
     try:
         with open(path, "rb") as fh:
-            raw = tomllib.load(fh)
+            data = fh.read(CONFIG_BYTES_MAX + 1)
     except FileNotFoundError:
         raise ConfigError(f"--config {path}: no such file") from None
     except OSError as e:
         raise ConfigError(f"--config {path}: cannot read it ({e.strerror or e})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"--config {path}: not valid TOML ({e})") from None
+    if len(data) > CONFIG_BYTES_MAX:
+        raise ConfigError(f"--config {path}: larger than {CONFIG_BYTES_MAX >> 20} MiB; expected a short TOML file")
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"--config {path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except (ValueError, RecursionError) as e:  # TOMLDecodeError; an integer of thousands of digits; deep nesting
+        raise ConfigError(f"--config {path}: not valid TOML ({_one_line(e)})") from None
     values: dict[str, Any] = {}
     for key, value in raw.items():
         name = key.replace("-", "_")
@@ -316,8 +394,16 @@ def read_config(path: str | Path, cls: type) -> dict[str, Any]:
         if not ok:
             raise ConfigError(f"--config {path}: {key} = {value!r}: expected {_EXPECTED[kind]}, got a TOML "
                               f"{_toml_type(value)} ({_option(name)}: {fields[name].metadata.get('help', '')})")
-        values[name] = float(value) if kind is float else value
+        try:
+            values[name] = float(value) if kind is float else value
+        except OverflowError:  # an integer beyond any float
+            raise ConfigError(f"--config {path}: {key}: expected a finite number, got an integer of "
+                              f"{len(str(abs(value)))} digits") from None
     return values
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
 
 
 _EXPECTED = {bool: "a boolean (true or false)", int: "an integer", float: "a number", str: "a string"}
@@ -336,16 +422,20 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
 
     With `--config FILE.toml`, the file's values replace the defaults and the flags given
     override the file. A bad file, an unknown key, a value of the wrong type, a number that
-    is not finite or outside its field's range (from a flag or the file) is a usage error
-    (exit 2, one line) naming the option, before any work. Then each output path (`--out`,
-    any field with `output=`) is checked for writing: ConfigError naming it.
+    is not finite or outside its field's range (from a flag or the file), an empty --out or
+    --config is a usage error (exit 2, one line) naming the option, before any work. With
+    --quick, each option with a `quick` value that was not given takes it. Then each output
+    path (`--out`, any field with `output=`) is checked for writing: ConfigError naming it.
     """
     global _debug
+    argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(cls, name, description)
     ns = parser.parse_args(argv)
     _debug = ns.debug
     from_file: dict[str, Any] = {}
-    if ns.config:
+    if ns.config is not None:
+        if not ns.config.strip():  # else it would silently mean "no file"
+            parser.error(f"--config: expected the path of a TOML file, got {ns.config!r}")
         try:
             from_file = read_config(ns.config, cls)
         except ConfigError as e:
@@ -354,17 +444,33 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
         ns = parser.parse_args(argv)
     fields = dataclasses.fields(cls)
     values = {f.name: getattr(ns, f.name) for f in fields}
+    given = _given_on_command_line(cls, name, argv) | set(from_file)
+    if values.get("quick"):
+        for f in fields:
+            if "quick" in f.metadata and f.name not in given:
+                values[f.name] = f.metadata["quick"]
     for f in fields:
+        where = f" (from --config {ns.config})" if f.name in from_file and values[f.name] is from_file[f.name] else ""
         problem = _out_of_range(f, values[f.name])
         if problem:
-            where = f" (from --config {ns.config})" if f.name in from_file and values[f.name] is from_file[f.name] else ""
             parser.error(f"{_option(f.name)}: {problem}, got {values[f.name]!r}{where}")
+        if f.name == "out" and f.name in given and not values["out"].strip():  # else it would mean runs/<name>
+            parser.error(f"--out: expected a folder path (without --out: runs/{name}), got {values['out']!r}{where}")
     if not values.get("out"):
         values["out"] = str(Path("runs") / name)
     for f in fields:
         if f.metadata.get("output") and values[f.name]:
             check_writable(_option(f.name), values[f.name], f.metadata["output"])
     return cls(**values)
+
+
+def _given_on_command_line(cls: type, name: str, argv: list[str]) -> set[str]:
+    """The options of `cls` that `argv` gives (so that --quick keeps them)."""
+    unset = object()  # not a string: argparse would convert a string default with the option's type
+    probe = build_parser(cls, name)
+    probe.set_defaults(**{f.name: unset for f in dataclasses.fields(cls)})
+    ns = probe.parse_args(argv)
+    return {f.name for f in dataclasses.fields(cls) if getattr(ns, f.name) is not unset}
 
 
 def load_field(spec: str) -> Any:
@@ -377,16 +483,59 @@ def load_field(spec: str) -> Any:
     """
     from downwash_core.provenance import describe
     from sim.field import check_field
-    from sim.fields.registry import DEFAULT_FIELD, resolve_field_spec
+    from sim.fields.registry import DEFAULT_FIELD, parse_field_spec, resolve_field_spec
 
-    obj = resolve_field_spec(spec, label="--field")
-    check_field(obj, name=f"--field {spec or DEFAULT_FIELD}")
-    describe(obj)  # a field that cannot be fingerprinted stops here, before any work
+    label = f"--field {spec or DEFAULT_FIELD}"
+    imported = parse_field_spec(spec, label="--field")[0] == "import"
+    try:
+        obj = resolve_field_spec(spec, label="--field")
+        check_field(obj, name=label)
+        describe(obj)  # a field that cannot be fingerprinted stops here, before any work
+    except ConfigError:
+        raise
+    except (Exception, SystemExit) as e:
+        if not imported:  # a registered field that fails is a bug: keep its traceback
+            raise
+        # the user's MODULE:FACTORY is not a field factory (it needs arguments, exits, or what it returns
+        # fails when called as a field): name the option, as for any bad value
+        raise ConfigError(f"{label}: expected MODULE:FACTORY to name a function that takes no arguments and "
+                          f"returns a field; it failed with {type(e).__name__}: {_one_line(e)}") from e
     return obj
 
 
 WIND_HELP = (f"ambient wind: off (default), or a MIL-F-8785C severity {'|'.join(WIND_SEVERITIES)}|calm (calm: no gusts) "
              "with an optional mean wind, e.g. light:mean=2,0,0 (m/s, world frame, air moving toward +x)")
+
+
+def _parse_wind(spec: str) -> tuple[str, tuple[float, ...]] | None:
+    """(severity, mean) of a `--wind` spec, None for "" / "off"; ConfigError naming what is allowed.
+    Plain text work (the severities are the static copy), so that parse_args can check it."""
+    text = (spec or "").strip()
+    if text in ("", "off"):
+        return None
+    severity, _, rest = text.partition(":")
+    allowed = f"off, calm, {', '.join(WIND_SEVERITIES)}, each with an optional :mean=U,V,W (m/s, finite)"
+    if severity not in ("calm", *WIND_SEVERITIES):
+        raise ConfigError(f"--wind: unknown {severity!r}; allowed: {allowed}")
+    mean: tuple[float, ...] = (0.0, 0.0, 0.0)
+    if rest:
+        key, eq, value = rest.partition("=")
+        try:
+            mean = tuple(float(x) for x in value.split(","))
+        except ValueError:
+            mean = ()
+        if key.strip() != "mean" or not eq or len(mean) != 3 or not all(map(math.isfinite, mean)):
+            raise ConfigError(f"--wind: bad {rest!r} in {spec!r}; allowed: {allowed}")
+    return severity, mean
+
+
+def wind_check(spec: str) -> str | None:
+    """A `check` for a `--wind` spec (what `load_wind` accepts)."""
+    try:
+        _parse_wind(spec)
+    except ConfigError as e:
+        return str(e).removeprefix("--wind: ")
+    return None
 
 
 def load_wind(spec: str) -> Any:
@@ -396,26 +545,39 @@ def load_wind(spec: str) -> Any:
     MIL-F-8785C W20 of 15, 30, 45 kt, which sets the gust intensities) or calm (no gusts,
     the mean wind only); U, V, W in m/s, world frame. ConfigError naming what is allowed.
     """
-    from sim.wind import PRESETS_KT, DrydenWind
-
-    text = (spec or "").strip()
-    if text in ("", "off"):
+    parsed = _parse_wind(spec)
+    if parsed is None:
         return None
-    severity, _, rest = text.partition(":")
-    allowed = f"off, calm, {', '.join(PRESETS_KT)}, each with an optional :mean=U,V,W (m/s)"
-    if severity not in ("calm", *PRESETS_KT):
-        raise ConfigError(f"--wind: unknown {severity!r}; allowed: {allowed}")
-    mean = (0.0, 0.0, 0.0)
-    if rest:
-        key, eq, value = rest.partition("=")
-        try:
-            mean = tuple(float(x) for x in value.split(","))
-        except ValueError:
-            mean = ()
-        if key.strip() != "mean" or not eq or len(mean) != 3:
-            raise ConfigError(f"--wind: bad {rest!r} in {spec!r}; allowed: {allowed}")
+    from sim.wind import DrydenWind
+
+    severity, mean = parsed
     wind = DrydenWind(mean=mean) if severity == "calm" else DrydenWind.preset(severity, mean=mean)
     return None if wind.off else wind
+
+
+@contextlib.contextmanager
+def out_lock(args: Any, name: str) -> Iterator[None]:
+    """Hold the lock of the run's --out folder (`args.out`) for the block, so that two runs on one
+    folder never mix their files: the second waits for the first (logging once which process holds
+    it), then runs, as a second collection on a pipeline folder does (`downwash_core.locks`). A killed
+    holder lets go at once. The lock file goes on release, and so do the folders the lock had to make
+    if the run left them empty (a run refused after parsing leaves nothing behind)."""
+    from downwash_core.locks import LOCK_NAME, file_lock
+
+    out = Path(args.out)
+    made, q = [], out  # the folders that do not exist yet, deepest first
+    while not q.exists() and q != q.parent:
+        made.append(q)
+        q = q.parent
+    try:
+        with file_lock(out / LOCK_NAME, label=f"python -m experiments.{name}", target=out, remove=True):
+            yield
+    finally:
+        for d in made:
+            try:
+                d.rmdir()
+            except OSError:  # holds the run's files, or another run's
+                break
 
 
 def write_results(out: str | Path, results: dict, args: Any, provenance: dict | None = None) -> Path:

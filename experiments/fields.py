@@ -30,12 +30,20 @@ from typing import Sequence
 
 from downwash_core.errors import ConfigError
 from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field,
-                                parse_args, run_main, setup_logging, write_results, script)
+                                out_lock, parse_args, registered_field_names, run_main, setup_logging, write_results,
+                                script)
 
 __all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
 
 # per condition, from each field's lemniscate results: what the field x model table shows
 TABLE_KEYS = ("improvement_pos_3d", "improvement_pos_z", "gap_to_oracle_pos_3d", "pos_err_3d_mean", "crash_rate")
+
+
+def _only_check(only: str) -> str | None:
+    """--only while parsing (the registry's names without loading it): None when every name is registered."""
+    allowed = registered_field_names()
+    unknown = [n.strip() for n in only.split(",") if n.strip() and n.strip() not in allowed]
+    return f"unknown fields {unknown}; allowed: {', '.join(allowed)}" if unknown else None
 
 
 @dataclass(frozen=True)
@@ -44,7 +52,7 @@ class FieldsArgs(CommonArgs):
 
     run: bool = arg(False, "run the main job (python -m experiments.lemniscate) on every registered field")
     only: str = arg("", f"with --run: a comma list of registered field names, of {', '.join(FIELD_NAMES)} "
-                        "(default: all of them)")
+                        "(default: all of them)", check=_only_check)
     fresh: bool = arg(False, "with --run: collect and train from scratch into <out>/pipeline/<field> "
                              "instead of reusing the keyed pipeline folders")
 
@@ -115,9 +123,8 @@ def run(args: FieldsArgs) -> dict:
         results["selected"] = {"spec": args.field, "field": describe(load_field(args.field))}
     print(format_table([(f["name"], f["description"], f["symmetry"]) for f in results["fields"]],
                        ("name", "description", "symmetry")))
-    if args.run:  # its own default folder: the report reads the table from runs/field_table/results.json
-        if Path(args.out) == Path("runs") / "fields":  # the listing's default: --run keeps its table apart
-            args = dataclasses.replace(args, out=str(Path("runs") / "field_table"))
+    args = _with_out(args)
+    if args.run:
         out = Path(args.out)
         results["table"] = run_every_field(args, out)
         conditions = [c for c in CONDITIONS if c in next(iter(results["table"].values()))["conditions"]]
@@ -132,9 +139,18 @@ def run(args: FieldsArgs) -> dict:
     return results
 
 
+def _with_out(args: FieldsArgs) -> FieldsArgs:
+    """--run has its own default folder: the report reads the table from runs/field_table/results.json."""
+    if args.run and Path(args.out) == Path("runs") / "fields":  # the listing's default: --run keeps its table apart
+        return dataclasses.replace(args, out=str(Path("runs") / "field_table"))
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
-    return run(parse_args(FieldsArgs, "fields", argv, __doc__))
+    args = _with_out(parse_args(FieldsArgs, "fields", argv, __doc__))
+    with out_lock(args, "fields"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main,
-                                setup_logging, write_results, script)
+from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, out_lock, parse_args, resolve_pipeline,
+                                run_main, setup_logging, write_results, script)
 
 __all__ = ["ForceMapArgs", "run", "main"]
 
@@ -145,7 +145,9 @@ def run(args: ForceMapArgs) -> dict:
 
 def main(argv=None) -> dict:
     setup_logging()
-    return run(parse_args(ForceMapArgs, "force_maps", argv, __doc__))
+    args = parse_args(ForceMapArgs, "force_maps", argv, __doc__)
+    with out_lock(args, "force_maps"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

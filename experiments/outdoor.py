@@ -35,9 +35,10 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs, ProgressBar,
-                                arg, format_table, load_field, load_wind, names_check, parse_args, resolve_pipeline,
-                                run_main, setup_logging, write_results, script)
+from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, PipelineArgs,
+                                ProgressBar, arg, check_options, field_check, format_table, load_field, load_wind,
+                                names_check, one_of, out_lock, parse_args, resolve_pipeline, run_main, seed_count_check,
+                                setup_logging, wind_check, write_results, script)
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -46,67 +47,100 @@ TRAINED = ("indoor", "outdoor")  # the data the learned conditions were trained 
 SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor, sustained-speed regime)
 
 
+# The checks of the list options, run while parsing (before the stack is imported): each returns what is
+# expected when the text is bad, else None.
+
+
+def _trained_check(text: str) -> str | None:
+    trained = _trained_of(text)
+    if not trained or not set(trained) <= set(TRAINED) or len(set(trained)) != len(trained):
+        return f"expected a comma list of {', '.join(TRAINED)}, each at most once"
+    return None
+
+
+def _speeds_check(text: str) -> str | None:
+    try:
+        speeds = _sweep_speeds(text)
+    except ValueError:
+        speeds = None
+    lo, hi = SPEED_RANGE
+    if speeds is None or not all(lo <= v <= hi for v in speeds) or len(set(speeds)) != len(speeds):
+        return f"expected a comma list of distinct speeds in {lo}-{hi} m/s"
+    return None
+
+
+def _winds_check(text: str) -> str | None:
+    winds = _items(text)
+    if len(set(winds)) != len(winds):
+        return f"duplicate winds in {winds}"
+    for spec in winds:
+        problem = wind_check(spec)
+        if problem:
+            return f"--wind: {problem}"  # each item is a --wind spec
+    return None
+
+
+def _fields_check(text: str) -> str | None:
+    fields = _items(text)
+    if len(set(fields)) != len(fields):
+        return f"duplicate truths in {fields}"
+    for spec in fields:
+        problem = field_check(spec)
+        if problem:
+            return f"--field: {problem}"  # each item is a --field spec
+    return None
+
+
 @dataclass(frozen=True)
 class OutdoorArgs(PipelineArgs):
     conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
-    seeds: int = arg(5, "number of seeds (flights per condition)", ge=1)
-    leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)")
+    seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
+                     check=seed_count_check, quick=1)
+    leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)", check=one_of(LEADERS))
     speed: float = arg(1.5, "the leader's ground speed, m/s", ge=SPEED_RANGE[0], le=SPEED_RANGE[1])
     radius: float = arg(2.0, "radius of the leader's circle, m", ge=1.0, le=10.0)
     separation: float = arg(0.6, "the follower's depth below the leader, m", ge=0.3, le=2.0)
     lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m", ge=0.0, le=1.0)
-    wind: str = arg("light:mean=2,0,0", WIND_HELP)
-    duration: float = arg(20.0, "flight length, s", gt=0.0, le=FLIGHT_SECONDS_MAX)
+    wind: str = arg("light:mean=2,0,0", WIND_HELP, check=wind_check)
+    duration: float = arg(20.0, "flight length, s", gt=0.0, le=FLIGHT_SECONDS_MAX, quick=2.0)
     trained: str = arg("indoor,outdoor", "the models the learned conditions fly, comma list: indoor (the staged "
-                                         "collection's) and outdoor (also trained on the outdoor stages: <kind>-outdoor)")
+                                         "collection's) and outdoor (also trained on the outdoor stages: <kind>-outdoor)",
+                       check=_trained_check)
     outdoor_minutes: float = arg(1.0, "training flight minutes per wind setting of the outdoor stages", gt=0.0, le=60.0)
     sweep_speeds: str = arg("", "also fly every condition at these leader speeds (comma list, m/s, in 0.5-3) and plot "
-                                "each one's improvement against the speed (improvement_vs_speed.png)")
+                                "each one's improvement against the speed (improvement_vs_speed.png)",
+                        check=_speeds_check)
     sweep_winds: str = arg("", "also fly every condition in each of these winds at --speed (';'-separated --wind specs, "
-                               "e.g. 'off;light:mean=2,0,0;moderate:mean=2,0,0')")
+                               "e.g. 'off;light:mean=2,0,0;moderate:mean=2,0,0')", check=_winds_check)
     sweep_fields: str = arg("", "also run the whole job, sweeps included, on each of these ground truths (';'-separated "
-                                "--field specs, e.g. 'momentum;shed'), one Ray task each, into <out>/truths/")
+                                "--field specs, e.g. 'momentum;shed'), one Ray task each, into <out>/truths/",
+                        check=_fields_check)
     workers: int = arg(0, "CPUs of the local Ray for --sweep-fields (0: all cores; 1: no Ray, one truth after the "
                           "other); unused with --address", ge=0)
     address: str = arg("", "address of a running Ray cluster for --sweep-fields (ray start --head)")
 
 
 def _validate(args: OutdoorArgs) -> list[str]:
+    """Check every option before any flight (parse_args has checked each alone; again here for options
+    built in Python); returns the condition list."""
     from downwash.conditions import parse_conditions
 
+    check_options(args)
     conditions = parse_conditions(args.conditions)
-    checks = [
-        (args.leader in LEADERS, f"--leader: unknown {args.leader!r}; allowed: {', '.join(LEADERS)}"),
-        (SPEED_RANGE[0] <= args.speed <= SPEED_RANGE[1],
-         f"--speed: {args.speed} m/s is out of range; allowed {SPEED_RANGE[0]}-{SPEED_RANGE[1]} m/s"),
-        (1.0 <= args.radius <= 10.0, f"--radius: {args.radius} m is out of range; allowed 1-10 m"),
-        (0.3 <= args.separation <= 2.0, f"--separation: {args.separation} m is out of range; allowed 0.3-2.0 m"),
-        (0.0 <= args.lateral <= 1.0, f"--lateral: {args.lateral} m is out of range; allowed 0-1 m"),
-        (args.seeds >= 1, f"--seeds: expected >= 1, got {args.seeds}"),
-        (args.duration > 0, f"--duration: expected > 0 s, got {args.duration}"),
-    ]
-    trained = _trained(args)
-    try:
-        speeds = _sweep_speeds(args.sweep_speeds)
-    except ValueError:
-        speeds = None
-    checks.append((speeds is not None and all(SPEED_RANGE[0] <= v <= SPEED_RANGE[1] for v in speeds)
-                   and len(set(speeds)) == len(speeds),
-                   f"--sweep-speeds: expected a comma list of distinct speeds in {SPEED_RANGE[0]}-{SPEED_RANGE[1]} m/s, "
-                   f"got {args.sweep_speeds!r}"))
-    checks.append((bool(trained) and set(trained) <= set(TRAINED) and len(set(trained)) == len(trained),
-                   f"--trained: expected a comma list of {', '.join(TRAINED)}, got {args.trained!r}"))
-    winds, fields = _items(args.sweep_winds), _items(args.sweep_fields)
-    checks.append((len(set(winds)) == len(winds), f"--sweep-winds: duplicate winds in {winds}"))
-    checks.append((len(set(fields)) == len(fields) and _main_field(args) not in fields,
-                   f"--sweep-fields: expected distinct truths other than --field ({_main_field(args)}), got {fields}"))
-    for ok, message in checks:
-        if not ok:
-            raise ConfigError(message)
-    for spec in winds:
-        load_wind(spec)  # ConfigError naming what is allowed
+    fields = _items(args.sweep_fields)
+    if _main_field(args) in fields:
+        raise ConfigError(f"--sweep-fields: expected distinct truths other than --field ({_main_field(args)}), "
+                          f"got {fields}")
+    for spec in _items(args.sweep_winds):
+        try:
+            load_wind(spec)
+        except ConfigError as e:
+            raise ConfigError(f"--sweep-winds: {e}") from e
     for spec in fields:
-        load_field(spec)
+        try:
+            load_field(spec)
+        except ConfigError as e:  # a parameter or an import path: name the option that gave it
+            raise ConfigError(f"--sweep-fields: {e}") from e
     return conditions
 
 
@@ -121,7 +155,11 @@ def _main_field(args: OutdoorArgs) -> str:
 
 def _trained(args: OutdoorArgs) -> list[str]:
     """The data mixes of --trained, in order."""
-    return [t.strip() for t in args.trained.split(",") if t.strip()]
+    return _trained_of(args.trained)
+
+
+def _trained_of(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
 
 
 def _sweep_speeds(text: str) -> list[float]:
@@ -347,9 +385,8 @@ def _speed_figure(out: Path, results: dict, truth: str) -> None:
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
     args = parse_args(OutdoorArgs, "outdoor", argv, __doc__)
-    if args.quick:
-        args = dataclasses.replace(args, seeds=1, duration=min(args.duration, 2.0))
-    return run(args)
+    with out_lock(args, "outdoor"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -23,6 +23,7 @@ the cell counts (``cells``: total, cached, computed).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,20 +31,32 @@ from pathlib import Path
 from typing import Any
 
 from downwash_core.errors import ConfigError
-from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, PipelineArgs, ProgressBar, arg,
-                                format_table, parse_args, resolve_pipeline, run_main, setup_logging, write_results,
-                                script)
+from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
+                                arg, format_table, names_check, out_lock, parse_args, resolve_pipeline, run_main,
+                                seed_count_check, setup_logging, write_results, script)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]
 
 MINUTES = PAPER_MINUTES  # plus the full set
 
 
+def _minutes_check(text: str) -> str | None:
+    """--minutes while parsing: what `downwash.sweep_cells.SweepGrid` takes, without importing it."""
+    try:
+        values = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        values = [math.nan]
+    return None if all(math.isfinite(v) and v > 0 for v in values) else "expected a comma list of numbers > 0 (min)"
+
+
 @dataclass(frozen=True)
 class EfficiencyArgs(PipelineArgs):
-    trials: int = arg(10, "trials per point (different data subsets and seeds; --quick: at most 2)", ge=1)
-    minutes: str = arg(",".join(f"{m:g}" for m in MINUTES), "comma list of training minutes; the full set is always added")
-    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(PAIRWISE_KINDS)}")
+    trials: int = arg(10, f"trials per point (different data subsets and seeds; at most {SEED_COUNT_MAX}; --quick: "
+                          "at most 2)", ge=1, check=seed_count_check)
+    minutes: str = arg(",".join(f"{m:g}" for m in MINUTES),
+                       "comma list of training minutes; the full set is always added", check=_minutes_check)
+    models: str = arg(",".join(PAPER_MODELS), f"comma list of model kinds: {', '.join(PAIRWISE_KINDS)}",
+                      check=names_check(PAIRWISE_KINDS))
     workers: int = arg(0, "CPUs of the local Ray that trains the models (0: all cores)", ge=0)
     address: str = arg("", "address of a running Ray cluster; default: a local Ray")
     cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with experiments.sweep)", output="dir")
@@ -107,7 +120,9 @@ def run(args: EfficiencyArgs) -> dict:
 
 def main(argv=None) -> dict:
     setup_logging()
-    return run(parse_args(EfficiencyArgs, "sample_efficiency", argv, __doc__))
+    args = parse_args(EfficiencyArgs, "sample_efficiency", argv, __doc__)
+    with out_lock(args, "sample_efficiency"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

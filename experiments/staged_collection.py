@@ -20,8 +20,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main,
-                                setup_logging, write_results, script)
+from experiments.common import (PipelineArgs, ProgressBar, arg, format_table, out_lock, parse_args, resolve_pipeline,
+                                run_main, setup_logging, write_results, script)
 
 __all__ = ["StagedArgs", "run", "main"]
 
@@ -74,7 +74,9 @@ def run(args: StagedArgs) -> dict:
 
 def main(argv=None) -> dict:
     setup_logging()
-    return run(parse_args(StagedArgs, "staged_collection", argv, __doc__))
+    args = parse_args(StagedArgs, "staged_collection", argv, __doc__)
+    with out_lock(args, "staged_collection"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -28,7 +28,6 @@ the baseline and gap to the oracle.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,8 +36,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, PipelineArgs, ProgressBar, arg, format_table,
-                                parse_args, resolve_pipeline, run_main, setup_logging, write_results, script)
+from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
+                                arg, check_options, format_table, out_lock, parse_args, resolve_pipeline, run_main,
+                                seed_count_check, setup_logging, write_results, script)
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -55,22 +55,42 @@ def conditions() -> list[str]:
     return ["baseline", "oracle"] + models + [c + GUARDED for c in models]
 
 
+def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
+    """A `check` for a comma list of NAME[:KEY=VALUE,...] specs whose NAME is one of `names`, run while
+    parsing (before the stack is imported); the parameters are checked when the specs are built."""
+
+    def check(text: str) -> str | None:
+        try:
+            items = _split(text)
+        except ValueError as e:
+            return str(e)
+        unknown = [spec for spec in items if spec.partition(":")[0].strip() not in names]
+        return f"{label}: unknown {unknown[0]!r}; allowed: {allowed}" if unknown else None
+
+    return check
+
+
 @dataclass(frozen=True)
 class SwarmArgs(PipelineArgs):
     presets: str = arg(DEFAULT_PRESETS, f"comma list of presets: {', '.join(PRESETS)} (stack:n=N takes N = 2-8, "
-                                        "and spacing=)")
+                                        "and spacing=)",
+                       check=_specs_check("preset", PRESETS, f"{', '.join(PRESETS)} (stack takes n=2-8, spacing=; "
+                                                              "heavy_over_light separation=)"))
     aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
-                                               f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)")
-    seeds: int = arg(3, "flights per condition, preset and law", ge=1)
+                                               f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)",
+                            check=_specs_check("aggregation", AGGREGATIONS, ", ".join(AGGREGATIONS)))
+    seeds: int = arg(3, f"flights per condition, preset and law (at most {SEED_COUNT_MAX})", ge=1,
+                     check=seed_count_check, quick=1)
     duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)", ge=0.0, le=FLIGHT_SECONDS_MAX)
     swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)", gt=0.0, le=60.0)
     video: str = arg("", "also write an mp4 of the first preset and law, the first seed of every condition side by "
                          "side with the wakes drawn (.mp4; needs pip install -e '.[video]')", output="file")
 
 
-def _split(text: str, label: str) -> list[str]:
+def _split(text: str) -> list[str]:
     """A comma list of specs whose parameters may hold commas: 'linear,shielding:eta=0.8,radius=0.3'
-    is ['linear', 'shielding:eta=0.8,radius=0.3'] (a KEY=VALUE part belongs to the spec before it)."""
+    is ['linear', 'shielding:eta=0.8,radius=0.3'] (a KEY=VALUE part belongs to the spec before it).
+    ValueError for an empty list or one that names a spec twice."""
     items: list[str] = []
     for part in (x.strip() for x in text.split(",")):
         if items and "=" in part and ":" not in part:
@@ -78,9 +98,9 @@ def _split(text: str, label: str) -> list[str]:
         elif part:
             items.append(part)
     if not items:
-        raise ConfigError(f"--{label}: expected a comma list, got {text!r}")
+        raise ValueError("expected a comma list")
     if len(set(items)) != len(items):
-        raise ConfigError(f"--{label}: duplicates in {text!r}")
+        raise ValueError("expected each at most once")
     return items
 
 
@@ -88,14 +108,17 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
     from sim.aggregation import make_aggregation
     from sim.presets import make_preset
 
-    presets = [make_preset(p) for p in _split(args.presets, "presets")]  # ConfigError for a bad name or N
-    laws = [(a, make_aggregation(a)) for a in _split(args.aggregations, "aggregations")]
-    if args.seeds < 1:
-        raise ConfigError(f"--seeds: expected >= 1, got {args.seeds}")
-    if args.duration < 0:
-        raise ConfigError(f"--duration: expected >= 0 s, got {args.duration}")
-    for p in presets:  # vehicles inside each other are named before any flight
-        p.reference(1)
+    check_options(args)  # parse_args has; again for options built in Python
+    try:
+        presets = [make_preset(p) for p in _split(args.presets)]  # ConfigError for a bad parameter (N)
+        for p in presets:  # vehicles inside each other are named before any flight
+            p.reference(1)
+    except ConfigError as e:
+        raise ConfigError(f"--presets: {e}") from e
+    try:
+        laws = [(a, make_aggregation(a)) for a in _split(args.aggregations)]
+    except ConfigError as e:
+        raise ConfigError(f"--aggregations: {e}") from e
     return presets, laws
 
 
@@ -261,9 +284,8 @@ def _figure(out: Path, preset: str, by_law: dict) -> None:
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
     args = parse_args(SwarmArgs, "swarm", argv, __doc__)
-    if args.quick:
-        args = dataclasses.replace(args, seeds=1)
-    return run(args)
+    with out_lock(args, "swarm"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
-from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, WIND_HELP, PipelineArgs,
-                                ProgressBar, arg, format_table, load_wind, names_check, parse_args, resolve_pipeline,
-                                setup_logging, write_results)
+from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP,
+                                PipelineArgs, ProgressBar, arg, check_options, format_table, load_wind, names_check,
+                                out_lock, parse_args, resolve_pipeline, seed_count_check, setup_logging, wind_check,
+                                write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -65,10 +65,12 @@ TRACKS = {
 @dataclass(frozen=True)
 class TrackingArgs(PipelineArgs):
     conditions: str = arg(",".join(DEFAULT_CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
-    seeds: int = arg(5, "number of seeds (flights per condition)", ge=1)
+    seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
+                     check=seed_count_check, quick=1)
     separation: float = arg(0.6, "vertical separation below the leader, m", ge=SEPARATION_RANGE[0], le=SEPARATION_RANGE[1])
-    duration: float = arg(0.0, "flight length, s (0: one period of the reference)", ge=0.0, le=FLIGHT_SECONDS_MAX)
-    wind: str = arg("off", WIND_HELP)
+    duration: float = arg(0.0, "flight length, s (0: one period of the reference)", ge=0.0, le=FLIGHT_SECONDS_MAX,
+                          quick=2.0)
+    wind: str = arg("off", WIND_HELP, check=wind_check)
     video: str = arg("", "also write an mp4 of the first seed of every condition, side by side with the wake "
                          "drawn, to this path (.mp4; needs pip install -e '.[video]')", output="file")
 
@@ -81,18 +83,12 @@ def args_class(track: str) -> type:
 
 
 def _validate(args: TrackingArgs) -> list[str]:
-    """Check every option before any flight starts; returns the condition list."""
+    """Check every option before any flight starts (parse_args has; again here for options built in
+    Python); returns the condition list."""
     from downwash.conditions import parse_conditions
 
-    conditions = parse_conditions(args.conditions)
-    lo, hi = SEPARATION_RANGE
-    if not lo <= args.separation <= hi:
-        raise ConfigError(f"--separation: {args.separation} m is out of range; allowed {lo}-{hi} m")
-    if args.seeds < 1:
-        raise ConfigError(f"--seeds: expected >= 1, got {args.seeds}")
-    if args.duration < 0:
-        raise ConfigError(f"--duration: expected >= 0 s, got {args.duration}")
-    return conditions
+    check_options(args)
+    return parse_conditions(args.conditions)
 
 
 def run(track: str, args: Any) -> dict:
@@ -156,9 +152,8 @@ def _video(path: str, scene, per_cond_logs: dict, field) -> None:
 def main(track: str, argv=None) -> dict:
     setup_logging()
     args = parse_args(args_class(track), track, argv, TRACKS[track].doc)
-    if args.quick:
-        args = dataclasses.replace(args, seeds=min(args.seeds, 1), duration=args.duration or 2.0)
-    return run(track, args)
+    with out_lock(args, track):
+        return run(track, args)
 
 
 def _table(name: str, results: dict) -> str:

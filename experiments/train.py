@@ -18,15 +18,15 @@ from pathlib import Path
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
-from experiments.common import (PAIRWISE_KINDS, CommonArgs, arg, format_table, load_field, parse_args, run_main,
-                                setup_logging, write_results, script)
+from experiments.common import (PAIRWISE_KINDS, CommonArgs, arg, format_table, load_field, one_of, out_lock,
+                                parse_args, run_main, setup_logging, write_results, script)
 
 __all__ = ["TrainArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
 class TrainArgs(CommonArgs):
-    model: str = arg("equivariant", "model kind: " + ", ".join(PAIRWISE_KINDS))
+    model: str = arg("equivariant", "model kind: " + ", ".join(PAIRWISE_KINDS), check=one_of(PAIRWISE_KINDS))
     logs: str = arg("", "folder of training flight logs (.npz), searched recursively")
     val_logs: str = arg("", "folder of validation flight logs (.npz), searched recursively")
     minutes: float = arg(0.0, "shorten the training data to this many minutes, each stage proportionally (0: all)",
@@ -95,7 +95,9 @@ def run(args: TrainArgs) -> dict:
 
 def main(argv=None) -> dict:
     setup_logging()
-    return run(parse_args(TrainArgs, "train", argv, __doc__))
+    args = parse_args(TrainArgs, "train", argv, __doc__)
+    with out_lock(args, "train"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import CommonArgs, arg, format_table, parse_args, run_main, script, setup_logging, write_results
+from experiments.common import (CommonArgs, arg, format_table, out_lock, parse_args, run_main, script, setup_logging,
+                                write_results)
 
 __all__ = ["VehiclesArgs", "VEHICLE_NAMES", "listing", "run", "main"]
 
@@ -66,7 +67,9 @@ def run(args: VehiclesArgs) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> dict:
     setup_logging()
-    return run(parse_args(VehiclesArgs, "vehicles", argv, __doc__))
+    args = parse_args(VehiclesArgs, "vehicles", argv, __doc__)
+    with out_lock(args, "vehicles"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

@@ -7,7 +7,9 @@ and one console script per experiment.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import os
 import subprocess
@@ -17,6 +19,8 @@ from importlib.metadata import EntryPoint
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from experiments import common
 from experiments.common import parse_args, read_config, script
@@ -129,6 +133,10 @@ def test_config_values_apply_and_flags_override_them(tmp_path):
     ("seeds = 1\n[lemniscate]\nseeds = 2\n", ["unknown key 'lemniscate'; allowed:"]),
     ("seeds = 1\nse-eds = 2\n", ["unknown key 'se-eds'"]),
     ("half-length = 1.0\nhalf_length = 2.0\n", ["given twice"]),
+    pytest.param("separation = " + "9" * 400 + "\n", ["separation: expected a finite number", "400 digits"],
+                 id="integer-beyond-a-float"),
+    pytest.param("seeds = " + "1" * 5000 + "\n", ["not valid TOML"], id="integer-beyond-the-digits-limit"),
+    pytest.param("seeds = " + "[" * 2000 + "]" * 2000 + "\n", ["not valid TOML"], id="nested-beyond-recursion"),
 ])
 def test_bad_config_is_a_usage_error_naming_the_key_and_the_allowed_options(tmp_path, capsys, text, expected):
     path = _toml(tmp_path, text)
@@ -139,6 +147,93 @@ def test_bad_config_is_a_usage_error_naming_the_key_and_the_allowed_options(tmp_
     assert f"--config {path}" in err
     for part in expected:
         assert part in err, err
+
+
+def test_a_binary_or_non_utf8_config_is_one_line_naming_the_file(tmp_path, capsys):
+    """What tomllib's UTF-8 decoding raises is a bad file like any other: one line, exit 2, on the command line too."""
+    for data in (b"seeds = 3\nconditions = \"caf\xe9\"\n", bytes(range(256)), b"\x89PNG\r\n\x1a\n\x00\x00"):
+        path = tmp_path / "c.toml"
+        path.write_bytes(data)
+        with pytest.raises(SystemExit) as e:
+            parse_args(_lemniscate_args(), "lemniscate", ["--config", str(path), "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"--config {path}: not a UTF-8 text file" in err, err
+    proc = _python("import sys, runpy; sys.argv = ['lemniscate', '--config', 'c.toml', '--out', 'o']\n"
+                   "runpy.run_module('experiments.lemniscate', run_name='__main__')", cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.strip().endswith("--config c.toml: not a UTF-8 text file (invalid start byte at byte 0)")
+    assert sorted(os.listdir(tmp_path)) == ["c.toml"]
+
+
+VALID_CONFIG = (b'seeds = 3\nseparation = 0.8\nconditions = "baseline,oracle"\nquick = true\nhalf-length = 2.0\n'
+                b'duration = 12.5\nwind = "light:mean=1,0,0"\nfield = "so2"\ncollection_dir = "c"\n')
+
+
+@settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.integers(0, len(VALID_CONFIG) - 1), st.integers(0, 255)), min_size=1, max_size=4))
+def test_a_config_with_flipped_bytes_is_refused_naming_the_file_or_parses_within_range(tmp_path, flips):
+    """Any damage to a valid file: one line naming the file (exit 2), or options that pass every check."""
+    data = bytearray(VALID_CONFIG)
+    for at, byte in flips:
+        data[at] = byte
+    path = tmp_path / "c.toml"
+    path.write_bytes(bytes(data))
+    cls = _lemniscate_args()
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            args = parse_args(cls, "lemniscate", ["--config", str(path), "--out", str(tmp_path / "o")])
+    except SystemExit as e:
+        lines = err.getvalue().strip().splitlines()
+        assert e.code == 2 and len(lines) == 1 and lines[0].startswith("python -m experiments.lemniscate: error: ")
+        assert f"--config {path}" in lines[0], lines[0]
+    except common.ConfigError as e:  # an output path from the file that cannot be written
+        assert str(path) in str(e) or str(e).startswith("--"), e
+    else:
+        for f in dataclasses.fields(cls):
+            assert common._out_of_range(f, getattr(args, f.name)) is None, (f.name, getattr(args, f.name))
+
+
+def test_an_empty_config_path_is_refused(capsys):
+    """`--config ''` would read no file at all, silently."""
+    with pytest.raises(SystemExit) as e:
+        parse_args(_lemniscate_args(), "lemniscate", ["--config", ""])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.strip().endswith("error: --config: expected the path of a TOML file, got ''")
+
+
+def test_an_abbreviated_option_is_refused_not_taken_for_a_longer_one(capsys):
+    """argparse's prefix matching made `--models x` mean `--models-dir x` where no --models exists."""
+    from experiments.swarm import SwarmArgs
+
+    with pytest.raises(SystemExit) as e:
+        parse_args(SwarmArgs, "swarm", ["--models", "nonsense"])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.strip().endswith("error: unrecognized arguments: --models nonsense")
+
+
+@pytest.mark.parametrize("module, patch, argv, quick, given", [
+    ("lemniscate", "experiments.tracking", ["--seeds", "3"], {"seeds": 1, "duration": 2.0}, {"seeds": 3}),
+    ("transect", "experiments.tracking", ["--duration", "0"], {"seeds": 1, "duration": 2.0}, {"duration": 0.0}),
+    ("outdoor", "experiments.outdoor", ["--seeds", "2", "--duration", "3"], {"seeds": 1, "duration": 2.0},
+     {"seeds": 2, "duration": 3.0}),
+    ("swarm", "experiments.swarm", ["--seeds", "4"], {"seeds": 1}, {"seeds": 4}),
+])
+def test_quick_keeps_the_options_given(tmp_path, monkeypatch, module, patch, argv, quick, given):
+    """--quick shrinks what is left out, never what is given, on the command line or in --config."""
+    import importlib
+
+    seen = []
+    monkeypatch.setattr(importlib.import_module(patch), "run", lambda *a: seen.append(a[-1]) or {})
+    main = importlib.import_module(f"experiments.{module}").main
+    main(["--quick", "--out", str(tmp_path / "a")])
+    assert {k: getattr(seen[-1], k) for k in quick} == quick
+    main(["--quick", *argv, "--out", str(tmp_path / "b")])
+    assert {k: getattr(seen[-1], k) for k in given} == given
+    text = "".join(f"{k} = {v}\n" for k, v in given.items())
+    main(["--quick", "--config", str(_toml(tmp_path, text)), "--out", str(tmp_path / "c")])
+    assert {k: getattr(seen[-1], k) for k in given} == given
 
 
 def test_missing_config_file_is_named(tmp_path):

@@ -76,10 +76,17 @@ BAD_NUMBERS = [
     ("fields", ["--seed", "-5"], "--seed"),
     ("report", ["--seed", "-5"], "--seed"),
     ("vehicles", ["--seed", "-5"], "--seed"),
+    # counts of flights or trials fly or train as one batch: a huge one is refused here, not after the training
+    ("lemniscate", ["--seeds", "1000000000"], "--seeds"),
+    ("transect", ["--seeds", "1001"], "--seeds"),
+    ("outdoor", ["--seeds", "1000000000"], "--seeds"),
+    ("swarm", ["--seeds", "1000000000"], "--seeds"),
+    ("sample_efficiency", ["--trials", "1000000000"], "--trials"),
+    ("lemniscate", ["--seeds", "9" * 400], "--seeds"),  # an integer beyond any float
 ]
 
 
-@pytest.mark.parametrize("name, argv, flag", BAD_NUMBERS, ids=[f"{n}{'='.join(a)}" for n, a, _ in BAD_NUMBERS])
+@pytest.mark.parametrize("name, argv, flag", BAD_NUMBERS, ids=[f"{n}{'='.join(a)}"[:50] for n, a, _ in BAD_NUMBERS])
 def test_bad_number_is_one_line_naming_the_flag_before_any_work(tmp_path, name, argv, flag):
     proc = _run(name, *argv, "--out", "o", cwd=tmp_path)
     err = _one_line_error(proc, flag)
@@ -120,6 +127,106 @@ def test_bad_condition_name_is_refused_while_parsing(tmp_path):
     assert sorted(os.listdir(tmp_path)) == []
 
 
+# every option that takes names, each with a name no registry holds
+BAD_NAMES = [
+    ("swarm", ["--models", "nonsense"], "unrecognized arguments: --models"),  # was --models-dir, by abbreviation
+    ("outdoor", ["--models", "nonsense"], "unrecognized arguments: --models"),
+    ("swarm", ["--presets", "stack3,nonsense"], "--presets: preset: unknown 'nonsense'"),
+    ("swarm", ["--aggregations", "nonsense"], "--aggregations: aggregation: unknown 'nonsense'"),
+    ("sample_efficiency", ["--models", "nonsense"], "--models: unknown ['nonsense']"),
+    ("sample_efficiency", ["--minutes", "nonsense"], "--minutes: expected a comma list of numbers"),
+    ("outdoor", ["--leader", "nonsense"], "--leader: unknown 'nonsense'"),
+    ("outdoor", ["--trained", "nonsense"], "--trained: expected a comma list of indoor, outdoor"),
+    ("outdoor", ["--wind", "nonsense"], "--wind: unknown 'nonsense'"),
+    ("outdoor", ["--sweep-winds", "off;nonsense"], "--sweep-winds: --wind: unknown 'nonsense'"),
+    ("outdoor", ["--sweep-fields", "nonsense"], "--sweep-fields: --field: unknown field 'nonsense'"),
+    ("outdoor", ["--sweep-speeds", "nonsense"], "--sweep-speeds: expected a comma list of distinct speeds"),
+    ("lemniscate", ["--wind", "nonsense"], "--wind: unknown 'nonsense'"),
+    ("transect", ["--field", "nonsense"], "--field: unknown field 'nonsense'"),
+    ("train", ["--model", "nonsense"], "--model: unknown 'nonsense'"),
+    ("fields", ["--run", "--only", "nonsense"], "--only: unknown fields ['nonsense']"),
+]
+NAMES_RUN = """
+import runpy, sys, time
+sys.argv = [{name!r}, *{argv!r}]
+t0 = time.perf_counter()
+try:
+    runpy.run_module("experiments.{name}", run_name="__main__")
+except SystemExit as e:
+    code = e.code
+else:
+    code = 0
+print("HEAVY=" + ",".join(m for m in {heavy!r} if m in sys.modules), file=sys.stderr)
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("name, argv, message", BAD_NAMES, ids=[f"{n}{' '.join(a)}" for n, a, _ in BAD_NAMES])
+def test_bad_name_is_one_line_naming_the_flag_before_any_import_of_the_stack(tmp_path, name, argv, message):
+    """The registries' names are checked while parsing, from their static copies: at once, not after the
+    heavy imports (15-30 s), naming the flag the user typed."""
+    code = NAMES_RUN.format(name=name, argv=[*argv, "--out", "o"], heavy=HEAVY)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    *lines, heavy = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert message in lines[0] and "error:" in lines[0], lines[0]
+    assert heavy == "HEAVY=", heavy
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_every_option_that_takes_names_states_its_check():
+    """A new list option without a `check` would be refused only after the heavy imports."""
+    from experiments.sweep import SweepArgs  # another's; its lists are checked by downwash.sweep
+
+    free = {"out", "collection_dir", "models_dir", "video", "logs", "val_logs", "checkpoint", "cache_dir",
+            "address",  # paths and a cluster address: not names
+            "feature_set"}  # its names depend on --model: checked with the model, before any work
+    exempt = {"vehicles.VehiclesArgs.only"}  # checked in run(), at once: the listing imports nothing heavy
+    for label, cls in _args_classes().items():
+        if cls is SweepArgs or label.startswith("report."):
+            continue
+        for f in dataclasses.fields(cls):
+            if common._kind(f) is str and f.name not in free and f"{label}.{f.name}" not in exempt:
+                assert f.metadata.get("check"), f"{label}.{f.name}: give it a check= that names what is allowed"
+
+
+@pytest.mark.parametrize("argv, where", [(["--out", ""], ""), (["--out", "  "], ""),
+                                         (["--config", "c.toml"], " (from --config c.toml)")])
+def test_an_empty_out_is_refused(tmp_path, monkeypatch, capsys, argv, where):
+    """`--out ''` would silently mean runs/<experiment>."""
+    from experiments.tracking import args_class
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "c.toml").write_text('out = ""\n')
+    with pytest.raises(SystemExit) as e:
+        parse_args(args_class("lemniscate"), "lemniscate", argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("python -m experiments.lemniscate: error: --out: expected a folder path (without --out: "
+                          "runs/lemniscate), got '") and err.endswith("'" + where), err
+    assert sorted(os.listdir(tmp_path)) == ["c.toml"]
+
+
+def test_a_module_factory_that_makes_no_field_is_one_line_naming_the_field_option(tmp_path, monkeypatch):
+    """MODULE:FACTORY is the user's code: one that needs arguments, exits, or returns something that fails
+    when called as a field is a bad --field, not a traceback."""
+    (tmp_path / "not_fields.py").write_text(
+        "def needs_args(x):\n    return x\n\n"
+        "def bad_field():\n    return lambda p_a, v_a, R_a, p_b, v_b: {}['no such key']\n\n"
+        "def exits():\n    raise SystemExit(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for spec, detail in [("os:system", "TypeError: system() missing required argument"),
+                         ("not_fields:needs_args", "TypeError"), ("not_fields:bad_field", "KeyError"),
+                         ("not_fields:exits", "SystemExit")]:
+        with pytest.raises(ConfigError) as e:
+            common.load_field(spec)
+        message = str(e.value)
+        assert message.startswith(f"--field {spec}: expected MODULE:FACTORY to name a function that takes no "
+                                  "arguments and returns a field; it failed with "), message
+        assert detail in message and "\n" not in message, message
+
+
 # ----------------------------------------------------------------------------- every field has a range
 
 
@@ -148,8 +255,10 @@ def test_every_numeric_option_of_every_experiment_declares_its_range():
     assert modules >= set(EXPERIMENTS) - {"lemniscate", "transect"} | {"tracking"}, modules
     for label, cls in classes.items():
         assert _undeclared(cls) == [], f"{label}: give these options a range in arg(..., ge=/gt=/le=/lt=/check=)"
-        for f in dataclasses.fields(cls):  # and every default lies within it
+        for f in dataclasses.fields(cls):  # and every default, and what --quick gives, lies within it
             assert common._out_of_range(f, f.default) is None, f"{label}.{f.name}: default {f.default!r} out of range"
+            if "quick" in f.metadata:
+                assert common._out_of_range(f, f.metadata["quick"]) is None, f"{label}.{f.name}: --quick value"
 
 
 def test_an_option_without_a_range_fails_the_check():

@@ -149,3 +149,127 @@ def test_a_read_only_folder_is_used_without_the_lock(tmp_path, caplog):
         assert "going on without the lock" in caplog.text
     finally:
         folder.chmod(0o755)
+
+
+def test_a_waiter_makes_the_folder_again_when_the_holder_removed_it(tmp_path):
+    """An experiment removes the --out folder its lock made when the run left it empty (a refused run
+    leaves nothing): a run waiting on that folder makes it again instead of failing to open its lock file."""
+    folder = tmp_path / "out"
+    code = textwrap.dedent(f"""
+        import os, time
+        from downwash_core.locks import file_lock
+        with file_lock({str(folder / LOCK_NAME)!r}, remove=True):
+            print("held", flush=True)
+            time.sleep(1.0)
+            os.unlink({str(folder / LOCK_NAME)!r})
+            os.rmdir({str(folder)!r})
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        with folder_lock(folder, timeout=60) as held:
+            assert held and holder(folder / LOCK_NAME)["pid"] == os.getpid()
+            assert proc.wait(timeout=60) == 0
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+
+
+# ----------------------------------------------------------------------------- an experiment's --out folder
+
+# every experiment of experiments/common.py's dataclasses: the module whose `run` it calls, and that call's arguments
+RUNS = {"lemniscate": "tracking", "transect": "tracking", "outdoor": "outdoor", "swarm": "swarm",
+        "sample_efficiency": "sample_efficiency", "staged_collection": "staged_collection",
+        "force_maps": "force_maps", "train": "train", "fields": "fields", "vehicles": "vehicles",
+        "benchmark": "benchmark"}
+
+
+def _held_here(lock: Path) -> bool:
+    """Whether some open file of this process holds the flock of `lock` (a second open cannot take it)."""
+    import fcntl
+
+    fd = os.open(lock, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+@pytest.mark.parametrize("name", sorted(RUNS))
+def test_every_experiment_holds_its_out_folder_for_the_whole_run(tmp_path, monkeypatch, name):
+    """Two runs on one --out would mix their files (results.json of one, figures of the other): each run
+    holds the folder's lock from before its work to after its last file, and leaves no lock file behind."""
+    import importlib
+
+    out = tmp_path / "a" / "out"
+    seen = []
+
+    def run(*args):
+        lock = out / LOCK_NAME
+        seen.append((lock.is_file() and _held_here(lock), (holder(lock) or {}).get("pid"),
+                     (holder(lock) or {}).get("label")))
+        return {}
+
+    monkeypatch.setattr(importlib.import_module(f"experiments.{RUNS[name]}"), "run", run)
+    importlib.import_module(f"experiments.{name}").main(["--out", str(out)])
+    assert seen == [(True, os.getpid(), f"python -m experiments.{name}")]
+    assert not (out / LOCK_NAME).exists()
+    if name != "benchmark":  # its main writes results.json itself
+        assert not (tmp_path / "a").exists()  # the folders the lock made, left empty, are gone again
+
+
+def test_a_second_run_on_one_out_folder_waits_for_the_first(tmp_path):
+    """folder_lock's behaviour, as for a pipeline folder: the second run says who holds the folder, waits,
+    and runs once it is free (a killed holder frees it at once)."""
+    import select
+
+    out = tmp_path / "out"
+    proc = _holder(out, seconds=600)
+    run = subprocess.Popen([sys.executable, "-m", "experiments.vehicles", "--out", str(out)], cwd=tmp_path,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        deadline, said = time.monotonic() + 60, ""
+        while "waiting for" not in said and time.monotonic() < deadline:
+            if select.select([run.stderr], [], [], 1.0)[0]:
+                said += run.stderr.readline()
+        assert f"waiting for pid {proc.pid} on host" in said and str(out) in said, said
+        time.sleep(0.5)
+        assert run.poll() is None and not (out / "results.json").exists()
+        proc.kill()
+        proc.wait(timeout=30)
+        assert run.wait(timeout=60) == 0, run.stderr.read()
+        assert (out / "results.json").is_file()
+    finally:
+        for p in (proc, run):
+            p.kill()
+            p.wait(timeout=30)
+
+
+# ----------------------------------------------------------------------------- the user's git
+
+
+@pytest.mark.skipif(__import__("shutil").which("git") is None, reason="needs git")
+def test_recording_the_code_version_takes_no_lock_of_the_users_git(tmp_path, monkeypatch):
+    """Every run records the commit and whether the tree has changes. Plain `git status` refreshes the
+    index under .git/index.lock (a user's git command at that moment fails on it) and rewrites it;
+    with --no-optional-locks it leaves .git alone."""
+    from downwash_core import provenance
+
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(tmp_path)]
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "f.py").write_text("x = 1\n")
+    subprocess.run([*git, "add", "f.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "one"], check=True)
+    stamp = (tmp_path / "f.py").stat().st_mtime_ns + 5_000_000_000
+    os.utime(tmp_path / "f.py", ns=(stamp, stamp))  # same content, new times: the index is stale
+    index = tmp_path / ".git" / "index"
+    before = (index.stat().st_ino, index.stat().st_mtime_ns, index.read_bytes())
+    monkeypatch.setattr(provenance, "_ROOT", tmp_path)
+    version = provenance.code_version.__wrapped__()
+    assert version["commit"] and version["dirty"] is False
+    assert (index.stat().st_ino, index.stat().st_mtime_ns, index.read_bytes()) == before
