@@ -214,7 +214,7 @@ def _empty(K: int) -> dict[str, np.ndarray]:
 def log_targets(log: FlightLog, targets: Sequence[int] | str | None = None) -> list[int]:
     """The vehicles labelled in a log: ``None`` every vehicle but the leader (``log.meta['leader']``;
     the pair's follower), ``"all"`` every vehicle, or a sequence of distinct vehicle indices."""
-    V = log.arrays["pos"].shape[1]
+    V = log.n_vehicles
     if targets is None:
         leader = int(log.meta.get("leader", -1))
         return [v for v in range(V) if v != leader]
@@ -230,7 +230,7 @@ def log_targets(log: FlightLog, targets: Sequence[int] | str | None = None) -> l
 
 def log_kinds(log: FlightLog) -> list[str]:
     """Each vehicle's kind in a log (``meta['kinds']``; a log without it flew paper quads only)."""
-    V = log.arrays["pos"].shape[1]
+    V = log.n_vehicles
     kinds = list(log.meta.get("kinds") or [DEFAULT_VEHICLE] * V)
     if len(kinds) != V:
         raise ConfigError(f"log meta 'kinds': expected {V} vehicle kinds, got {kinds}")
@@ -275,7 +275,7 @@ def labels_from_log(
       hist (N, K, H, 3)  the neighbour's displacement over each lag (`past_positions`)
       y (N, 3) m/s^2     label f = a - u on the target (module doc), world frame
       t, row (N,)        the tick time and row index in the log
-      field_mean, field_applied (N, 3) m/s^2   the true field on the target
+      field_mean, field_applied (N, 3) m/s^2   the true field on the target (NaN in a real flight)
 
     Dropped: the first and last ``window // 2`` rows (filter edges); for a flight that
     ended early (status != 0) the last ``fail_margin_s`` seconds too (contact or
@@ -320,10 +320,16 @@ def labels_from_log(
             "hist": hist[:, v],
             "vehicle": np.full(rows.size, v, dtype=np.int64), "y": acc[rows] - u[rows],
             "t": arr["t"][rows].astype(np.float64), "row": rows.astype(np.int64),
-            "field_mean": arr["field_mean"][rows, v].astype(np.float64),
-            "field_applied": arr["field_applied"][rows, v].astype(np.float64),
+            "field_mean": _truth(arr, "field_mean", rows, v), "field_applied": _truth(arr, "field_applied", rows, v),
         })  # fmt: skip
     return {name: np.concatenate([p[name] for p in parts]) for name in SAMPLE_SCHEMA}
+
+
+def _truth(arr: dict[str, np.ndarray], name: str, rows: np.ndarray, v: int) -> np.ndarray:
+    """A truth array's rows of vehicle v, float64; NaN where the log has none (a real flight)."""
+    if name not in arr:
+        return np.full((rows.size, 3), np.nan)
+    return arr[name][rows, v].astype(np.float64)
 
 
 def label_noise_floor(
@@ -341,6 +347,9 @@ def label_noise_floor(
     errs_applied, errs_mean = [], []
     for item in logs:
         log, source = (item, None) if isinstance(item, FlightLog) else (load_log(item), item)
+        if log.real:
+            raise ConfigError(f"label_noise_floor: {source or 'a log'} is a real flight: it has no true field to "
+                              "compare the labels with")
         lab = labels_from_log(log, window=window, polyorder=polyorder, source=source)
         errs_applied.append(lab["y"] - lab["field_applied"])
         errs_mean.append(lab["y"] - lab["field_mean"])

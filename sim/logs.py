@@ -4,6 +4,11 @@ A log holds the arrays below (T rows, V vehicles) plus a JSON metadata record wi
 the schema version, the full flight config and the seed. Loading checks all of it
 and names the file in every error, so a truncated or foreign file never reaches
 training silently.
+
+A real flight (a lab's log read by `downwash.real_logs`) is a log like any other, with a
+``source`` in its metadata (the file, its format and digest) and without the arrays of
+the truth (`TRUTH_ARRAYS`), which no lab has; labels and data sets read the same arrays
+from both.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "ARRAY_SPECS",
     "OPTIONAL_SPECS",
+    "TRUTH_ARRAYS",
     "FlightLog",
     "LogError",
     "save_log",
@@ -53,6 +59,8 @@ ARRAY_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "field_mean": (("V", 3), "m/s^2, true mean downwash on the vehicle at the tick"),
     "field_applied": (("V", 3), "m/s^2, downwash actually applied at the tick (mean + turbulence)"),
 }
+# what only a simulator knows: a real flight's log (meta "source") has none of them
+TRUTH_ARRAYS = ("pos", "vel", "quat", "field_mean", "field_applied")
 # logged when their component is there: the wind (`sim.wind`) and a guard's applied fraction (`sim.predictor`)
 OPTIONAL_SPECS: dict[str, tuple[tuple[str, ...], str]] = {
     "wind": (("V", 3), "m/s, the air's velocity at the vehicle (mean + gust)"),
@@ -68,7 +76,8 @@ class FlightLog:
     arrays: name -> (T, ...) array, see ARRAY_SPECS.
     meta: JSON-serialisable dict; always holds schema_version, seed, config,
       vehicles (names), roles, leader and follower (indices), status (a `Status`
-      code; a flight that ends early keeps its rows up to the end), message.
+      code; a flight that ends early keeps its rows up to the end), message; a real
+      flight's also its ``source`` (and its arrays lack `TRUTH_ARRAYS`).
     """
 
     arrays: dict[str, np.ndarray]
@@ -81,13 +90,22 @@ class FlightLog:
         return int(self.arrays["t"].shape[0])
 
     @property
+    def real(self) -> bool:
+        """A lab's flight (its meta has a ``source``): no truth arrays."""
+        return "source" in self.meta
+
+    @property
+    def n_vehicles(self) -> int:
+        return int(self.arrays["pos_est"].shape[1])
+
+    @property
     def ok(self) -> bool:
         return self.meta.get("status", Status.OK) == Status.OK
 
 
 def save_log(path: str | os.PathLike, log: FlightLog) -> None:
     """Save a flight log atomically as compressed `.npz` (arrays + `__meta__` JSON)."""
-    _check_arrays(log.arrays, where=str(path))
+    _check_arrays(log.arrays, where=str(path), real="source" in log.meta)
     meta = dict(log.meta)
     meta["schema_version"] = SCHEMA_VERSION
     buf = io.BytesIO()
@@ -115,19 +133,25 @@ def load_log(path: str | os.PathLike) -> FlightLog:
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION:
         raise LogError(f"{path}: schema version {version!r}, this code reads version {SCHEMA_VERSION}")
-    _check_arrays(contents, where=str(path))
+    _check_arrays(contents, where=str(path), real="source" in meta)
     return FlightLog(contents, meta)
 
 
-def _check_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
-    missing = sorted(set(ARRAY_SPECS) - set(arrays))
+def _check_arrays(arrays: dict[str, np.ndarray], where: str, real: bool = False) -> None:
+    """LogError unless `arrays` hold every array of ARRAY_SPECS (a real flight: all but TRUTH_ARRAYS,
+    which it must not hold) in its shape."""
+    specs = {k: v for k, v in ARRAY_SPECS.items() if not (real and k in TRUTH_ARRAYS)}
+    missing = sorted(set(specs) - set(arrays))
     if missing:
         raise LogError(f"{where}: missing arrays {missing}")
+    if real and set(TRUTH_ARRAYS) & set(arrays):
+        raise LogError(f"{where}: a real flight (its metadata has a source) holds simulator truth arrays "
+                       f"{sorted(set(TRUTH_ARRAYS) & set(arrays))}")
     T = arrays["t"].shape[0] if arrays["t"].ndim == 1 else None
     if T is None:
         raise LogError(f"{where}: 't' must be 1-D, got shape {arrays['t'].shape}")
-    V = arrays["pos"].shape[1] if arrays["pos"].ndim == 3 else None
-    for name, (trail, _) in ARRAY_SPECS.items():
+    V = arrays["pos_est"].shape[1] if arrays["pos_est"].ndim == 3 else None
+    for name, (trail, _) in specs.items():
         shape = arrays[name].shape
         expected = (T,) + tuple(V if d == "V" else d for d in trail)
         if shape != expected:

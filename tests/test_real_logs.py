@@ -3,9 +3,13 @@
 The uSD deck's synchronous format: a round trip of every field type and block size, the CRC
 convention checked by hand (zlib over the bytes and the stored value gives 0xFFFFFFFF), and any
 byte flipped or any cut of a file refused with the file and a byte offset named, never a crash
-or a partial read.
+or a partial read. The compressed quaternions, by hand and over random rotations. The
+Neural-Swarm layout: files written as the firmware logs them give flight logs in SI units whose
+labels are an analytic force (a known thrust map and a known motion), save and load without
+truth, are grouped into flights and aligned at their first ticks, and name what is wrong.
 """
 
+import math
 import struct
 import zlib
 
@@ -14,9 +18,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from downwash_core.errors import LogError
-from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, encode_usd_sync,
-                                              read_usd_sync, write_usd_sync)
+from downwash_core.errors import ConfigError, LogError
+from downwash_core.params import GRAVITY
+from downwash.labels import label_noise_floor, labels_from_log, second_derivative_coeffs
+from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, compress_quaternions,
+                                              decompress_quaternions, encode_usd_sync, read_usd_sync, write_usd_sync)
+from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, read_flight, setpoint_offset
+from sim.logs import TRUTH_ARRAYS, FlightLog, load_log, save_log
 
 
 def _columns(n: int = 37, seed: int = 0) -> dict:
@@ -136,3 +144,142 @@ def test_writer_arguments_are_checked():
         encode_usd_sync({"a": ("I", [1])}, block_records=0)
     with pytest.raises(ValueError, match="the same number of values"):
         encode_usd_sync({"a": ("I", [1]), "b": ("I", [1, 2])})
+
+
+# ----------------------------------------------------------------------------- compressed quaternions
+
+
+def test_quaternions_survive_compression_to_the_formats_resolution():
+    """9 bits over [0, 1/sqrt(2)] per small component: each within half a step (plus what the largest
+    one, rebuilt from the unit norm, inherits), the largest made positive (q and -q are one rotation)."""
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(20_000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    packed = compress_quaternions(q)
+    back = decompress_quaternions(packed)
+    assert np.allclose(np.linalg.norm(back, axis=1), 1.0, atol=1e-15)
+    same = q * np.sign(np.sum(back * q, axis=1))[:, None]
+    assert np.abs(back - same).max() < 2e-3 and np.median(np.abs(back - same)) < 7e-4
+    largest = ((packed >> 30).astype(int) + 1) % 4  # the firmware's x, y, z, w index in (w, x, y, z)
+    assert np.all(back[np.arange(len(back)), largest] > 0) and np.all(np.argmax(np.abs(q), axis=1) == largest)
+
+
+def test_compressed_quaternion_layout_by_hand():
+    """The identity is w largest (firmware index 3, x y z w order) and three zero components."""
+    assert compress_quaternions(np.array([[1.0, 0, 0, 0]]))[0] == 3 << 30
+    assert np.array_equal(decompress_quaternions(np.array([3 << 30], np.uint32)), [[1.0, 0, 0, 0]])
+    # x largest (index 0), then y = -1/sqrt(2) exactly: sign bit and full magnitude in the first slot
+    packed = (0 << 30) | ((1 << 9 | 511) << 20)
+    q = decompress_quaternions(np.array([packed], np.uint32))[0]
+    np.testing.assert_allclose(q, [0.0, math.sqrt(0.5), -math.sqrt(0.5), 0.0], atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- the data set's layout
+
+
+MASS = NEURAL_SWARM_VEHICLES["small"].mass
+MAP = NEURAL_SWARM_VEHICLES["small"].thrust_map
+
+
+def _pwm_for(grams: np.ndarray, vbat: np.ndarray) -> np.ndarray:
+    """The PWM (0-65535) at which one rotor of the small vehicle gives `grams` at battery `vbat` V."""
+    v = vbat / 4.2
+    a, b, c = MAP.c20, MAP.c10 + MAP.c11 * v, MAP.c00 + MAP.c01 * v - grams
+    return (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a) * 65536
+
+
+def _neural_swarm_columns(t: np.ndarray, z: np.ndarray, thrust: np.ndarray, vbat: np.ndarray,
+                          tick0: int = 123_456) -> dict:
+    """A level vehicle at (0.1, -0.2, z) m with total thrust `thrust` N, as the firmware logs it."""
+    n = len(t)
+    pwm = np.round(_pwm_for(thrust / 4 / GRAVITY * 1e3, vbat)).astype(np.uint32)
+    cols = {"tick": ("I", (tick0 + np.round(t * 1e6)).astype(np.int64) % 2**32)}
+    for axis, value in zip("xyz", (np.full(n, 100), np.full(n, -200), np.round(z * 1e3))):
+        cols[f"stateEstimateZ.{axis}"] = ("h", value)
+    for axis in ("vx", "vy", "vz"):
+        cols[f"stateEstimateZ.{axis}"] = ("h", np.zeros(n))
+    cols["stateEstimateZ.quat"] = ("I", compress_quaternions(np.tile([1.0, 0, 0, 0], (n, 1))))
+    for axis in ("x", "y", "z", "vx", "vy", "vz"):
+        cols[f"ctrltargetZ.{axis}"] = ("h", np.zeros(n))
+    for i in range(1, 5):
+        cols[f"pwm.m{i}_pwm"] = ("I", pwm)
+    cols["pm.vbatMV"] = ("H", np.round(vbat * 1e3))
+    return cols
+
+
+def test_labels_of_a_known_thrust_and_motion_are_the_known_force(tmp_path):
+    """Analytic: a vehicle moving z = 1 + 0.2 sin(2 pi 0.3 t) whose rotors give T = m (g + z'' - f) at a
+    falling battery voltage (PWM from the thrust map's inverse, rounded as logged) feels f = (0, 0, -0.8)
+    m/s^2; the labels find it through the int16 mm positions, the PWM and the clock's wrap."""
+    rate, f_z = 101.3, -0.8  # the data set's logs run at about 101 Hz
+    t = np.arange(int(40 * rate)) / rate
+    w = 2 * np.pi * 0.3
+    z, zdd = 1.0 + 0.2 * np.sin(w * t), -0.2 * w**2 * np.sin(w * t)
+    vbat = np.linspace(4.0, 3.6, t.size)
+    thrust = MASS * (GRAVITY + zdd - f_z)
+    path = tmp_path / "cf50_07"
+    write_usd_sync(path, _neural_swarm_columns(t, z, thrust, vbat, tick0=2**32 - 5_000_000), block_records=3)
+    log = read_flight([path])
+    assert log.real and log.n_vehicles == 1 and log.meta["frames"] == ["small"] and log.meta["vehicles"] == ["cf50"]
+    assert log.meta["source"]["files"][0]["file"] == str(path)
+    np.testing.assert_allclose(np.diff(log["t"]), 0.01, atol=1e-12)  # resampled onto 100 Hz from the start
+    np.testing.assert_allclose(log["pos_est"][:, 0, :2], [[0.1, -0.2]] * len(log), atol=1e-12)
+    lab = labels_from_log(log, targets="all")
+    assert len(lab["y"]) > 3500 and np.isnan(lab["field_mean"]).all()
+    np.testing.assert_allclose(lab["y"][:, :2], 0.0, atol=1e-9)
+    err = lab["y"][:, 2] - f_z
+    # the floor of 1 mm position steps (uniform, sd 1 mm / sqrt 12) through the filter: sd |c| / dt^2
+    floor = 1e-3 / math.sqrt(12) * np.linalg.norm(second_derivative_coeffs()) / 0.01**2
+    assert abs(err.mean()) < 0.01 and np.sqrt(np.mean(err**2)) < 1.2 * floor
+
+
+def test_a_real_flight_saves_and_loads_without_truth(tmp_path):
+    t = np.arange(300) / 100.0
+    path = tmp_path / "cf101_03"
+    write_usd_sync(path, _neural_swarm_columns(t, np.full(t.size, 0.5), np.full(t.size, 0.3), np.full(t.size, 3.9)))
+    flight = read_flight([path])
+    save_log(tmp_path / "f.npz", flight)
+    back = load_log(tmp_path / "f.npz")
+    assert back.real and not set(TRUTH_ARRAYS) & set(back.arrays) and back.meta["frames"] == ["large"]
+    for name, value in flight.arrays.items():
+        np.testing.assert_array_equal(back[name], value)
+    with pytest.raises(LogError, match="holds simulator truth arrays"):
+        save_log(tmp_path / "g.npz", FlightLog({**flight.arrays, "pos": flight["pos_est"]}, flight.meta))
+    with pytest.raises(ConfigError, match="is a real flight: it has no true field"):
+        label_noise_floor([back])
+
+
+def test_the_data_sets_errors_are_named(tmp_path):
+    t = np.arange(300) / 100.0
+    cols = _neural_swarm_columns(t, np.full(t.size, 0.5), np.full(t.size, 0.3), np.full(t.size, 3.9))
+    write_usd_sync(tmp_path / "cf7_00", cols)
+    with pytest.raises(ConfigError, match=r"cf7_00: not a vehicle of the data set \(known: cf50 \(small\)"):
+        read_flight([tmp_path / "cf7_00"])
+    ms = dict(cols, tick=("I", np.round(t * 1e3)))  # a tick in ms, as the data set's CSV headers say
+    write_usd_sync(tmp_path / "cf50_00", ms)
+    with pytest.raises(UsdFormatError, match=r"cf50_00: unit mismatch: 'tick' steps by 10 per record; expected "
+                                             "microseconds"):
+        read_flight([tmp_path / "cf50_00"])
+    write_usd_sync(tmp_path / "cf51_00", {k: v for k, v in cols.items() if k != "pm.vbatMV"})
+    with pytest.raises(UsdFormatError, match=r"cf51_00: not a Neural-Swarm onboard log: no \['pm.vbatMV'\]"):
+        read_flight([tmp_path / "cf51_00"])
+
+
+def test_flights_are_grouped_by_number_and_aligned_at_their_first_tick(tmp_path):
+    """Two vehicles whose clocks differ (their first ticks 3 s apart) and whose setpoints start moving at
+    the same moment after it: one flight, aligned, the setpoints' residual offset 0 (and 0.2 s when one
+    log starts 0.2 s late)."""
+    t = np.arange(1000) / 100.0
+    for ident, tick0, late in ((50, 1_000_000, 0.0), (101, 4_000_000, 0.0), (51, 9_000_000, 0.2)):
+        cols = _neural_swarm_columns(t, np.full(t.size, 0.5), np.full(t.size, 0.4), np.full(t.size, 3.9), tick0)
+        cols["ctrltargetZ.vx"] = ("h", np.where((t + late > 4) & (t + late < 6), 300, 0))
+        folder = tmp_path / ("one" if ident != 51 else "two")
+        folder.mkdir(exist_ok=True)
+        write_usd_sync(folder / f"cf{ident}_04", cols)
+    (tmp_path / "one" / "cf50_04.csv").write_text("not a log")
+    flights = flight_files(tmp_path / "one")
+    assert list(flights) == ["04"] and [p.name for p in flights["04"]] == ["cf50_04", "cf101_04"]
+    log = read_flight(flights["04"])
+    assert log.meta["frames"] == ["small", "large"] and setpoint_offset(log, 0, 1) == 0.0
+    late = read_flight([tmp_path / "one" / "cf50_04", tmp_path / "two" / "cf51_04"])
+    assert setpoint_offset(late, 0, 1) == pytest.approx(-0.2)

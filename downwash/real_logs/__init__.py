@@ -1,7 +1,12 @@
 """Real flights: readers of labs' onboard logs.
 
 - `downwash.real_logs.crazyflie_usd`: the Crazyflie micro-SD deck's synchronous log format
-  (the Neural-Swarm data set's onboard binaries), read and written exactly
+  (the Neural-Swarm data set's onboard binaries), read and written exactly; compressed quaternions
+- `downwash.real_logs.neural_swarm`: the Neural-Swarm data set's flights as flight logs (SI units,
+  vehicles aligned at their common start, ``u`` from PWM and battery voltage through each frame's
+  thrust map), so that labels, data sets and training are the simulator's own
+
+A real flight is a `sim.logs.FlightLog` with a ``source`` in its metadata and no truth arrays.
 """
 
-__all__ = ["crazyflie_usd"]
+__all__ = ["crazyflie_usd", "neural_swarm"]

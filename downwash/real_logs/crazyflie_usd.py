@@ -18,11 +18,17 @@ byte offset and, for a block, its index; values are returned raw, with the log's
 field names and types. The format has no record count or end mark, so a file cut exactly
 between two blocks (power lost while logging) reads as the shorter log it then is.
 `write_usd_sync` writes the same format, for tests and for tools that make such files.
+
+The firmware logs an attitude as one uint32 (a "compressed quaternion": the index of the
+largest component in the top 2 bits, then for each other component, in order, a sign bit
+and 9 bits of its magnitude over 1/sqrt(2)); `decompress_quaternions` and
+`compress_quaternions` convert, between that and the (w, x, y, z) order used here.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import zlib
 from dataclasses import dataclass, field
@@ -35,7 +41,7 @@ from downwash_core.errors import LogError
 from downwash_core.io import atomic_write_bytes
 
 __all__ = ["USD_SYNC_FORMAT", "FIELD_TYPES", "UsdFormatError", "UsdLog", "read_usd_sync", "encode_usd_sync",
-           "write_usd_sync"]
+           "write_usd_sync", "decompress_quaternions", "compress_quaternions"]
 
 USD_SYNC_FORMAT = "crazyflie-usd-sync"
 # the struct type codes the firmware's log variables use, with their NumPy types (little-endian)
@@ -161,3 +167,36 @@ def encode_usd_sync(columns: Mapping[str, tuple[str, Any]], block_records: int =
 def write_usd_sync(path: str | os.PathLike, columns: Mapping[str, tuple[str, Any]], block_records: int = 4) -> None:
     """Write `encode_usd_sync(columns, block_records)` to `path` atomically."""
     atomic_write_bytes(path, encode_usd_sync(columns, block_records))
+
+
+_MAG = (1 << 9) - 1  # a compressed component's magnitude: 9 bits over [0, 1/sqrt(2)]
+_XYZW = (1, 2, 3, 0)  # the firmware's component order (x, y, z, w) in this project's (w, x, y, z)
+
+
+def decompress_quaternions(packed: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions (w, x, y, z) of the firmware's compressed ones (N,) uint32 (module doc);
+    the largest component comes out positive (q and -q are one rotation)."""
+    packed = np.asarray(packed, dtype=np.uint64)
+    largest = (packed >> 30).astype(np.int64)
+    q = np.zeros((packed.size, 4))  # firmware order x, y, z, w
+    rest = packed.copy()
+    for i in (3, 2, 1, 0):  # the last component written is in the lowest bits
+        value = (rest & _MAG).astype(np.float64) / _MAG * math.sqrt(0.5)
+        value = np.where((rest >> 9) & 1, -value, value)
+        rest = np.where(largest != i, rest >> 10, rest)
+        q[:, i] = np.where(largest != i, value, 0.0)
+    q[np.arange(packed.size), largest] = np.sqrt(np.maximum(1.0 - np.sum(q**2, axis=1), 0.0))
+    return q[:, [3, 0, 1, 2]]
+
+
+def compress_quaternions(quat: np.ndarray) -> np.ndarray:
+    """(N,) uint32: unit quaternions (N, 4) (w, x, y, z) compressed as the firmware logs them."""
+    q = np.asarray(quat, dtype=np.float64).reshape(-1, 4)[:, list(_XYZW)]  # to x, y, z, w
+    largest = np.argmax(np.abs(q), axis=1)
+    negate = q[np.arange(len(q)), largest] < 0
+    packed = largest.astype(np.uint64)
+    for i in range(4):
+        mag = np.floor(_MAG * np.abs(q[:, i]) / math.sqrt(0.5) + 0.5).astype(np.uint64)
+        bits = (((q[:, i] < 0) ^ negate).astype(np.uint64) << 9) | mag
+        packed = np.where(largest != i, (packed << 10) | bits, packed)
+    return packed.astype(np.uint32)

@@ -1,0 +1,221 @@
+"""The Neural-Swarm data set's onboard logs as flight logs, in SI units, vehicles aligned.
+
+The data set (Shi et al., "Neural-Swarm2", github.com/aerorobotics/neural-swarm, no licence:
+point the readers at your own clone) holds Crazyflie 2.x flights logged onboard by the uSD
+deck (`downwash.real_logs.crazyflie_usd`): one file per vehicle and flight, ``cf<ID>_<NN>``,
+the vehicles of one flight sharing ``NN`` in one task folder (``swap_sl``, ``randomwalk_ssl``, ...).
+Logging started on every vehicle at one broadcast, so each log's first tick is the common
+start (`read_flight`); the residual offset is checked by the setpoints' cross-correlation
+(`setpoint_offset`).
+
+The logged variables (the firmware's compressed state, integers):
+
+| variable | unit | here |
+|---|---|---|
+| ``tick`` | us (uint32, wraps) | ``t`` s from the first tick |
+| ``stateEstimateZ.x/y/z`` | mm | ``pos_est``, ``mocap_pos`` m (the onboard estimate fuses the motion capture) |
+| ``stateEstimateZ.vx/vy/vz`` | mm/s | ``vel_est`` m/s |
+| ``stateEstimateZ.quat`` | compressed quaternion | ``quat_est`` (w, x, y, z), ``yaw_est`` |
+| ``ctrltargetZ.x/y/z``, ``.vx/vy/vz`` | mm, mm/s | ``ref_pos``, ``ref_vel`` |
+| ``pwm.m1_pwm`` ... ``m4_pwm`` | 0-65535 | with ``pm.vbatMV`` (mV): the thrust (`ThrustMap`) |
+
+``u_cmd`` is the acceleration of the rotors' thrust less gravity, ``R e3 T / m - g e3``, with T
+from each rotor's PWM and the battery voltage: so the labels ``f = a - u`` (`downwash.labels`)
+are the paper's residual force per mass, ``a - R T / m + g e3``, whatever model flew. The
+reference's acceleration is not logged (``ref_acc`` 0) and neither is the prediction in use
+(``f_hat`` NaN).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from downwash_core.errors import ConfigError
+from downwash_core.geometry import quat_to_mat
+from downwash_core.params import GRAVITY
+from downwash_core.status import Status
+from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_quaternions, read_usd_sync
+from sim.logs import FlightLog
+
+__all__ = ["ThrustMap", "LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
+           "read_flight", "flight_from_logs", "setpoint_offset", "TICK_WRAP"]
+
+TICK_WRAP = 2**32  # us: the tick is a uint32 (71.6 minutes)
+_TICK_STEP_US = (2_000, 50_000)  # a log at 20-500 Hz: its tick steps by 2-50 ms in microseconds
+_FILE = re.compile(r"^cf(\d+)_(\d+)$")
+
+
+@dataclass(frozen=True)
+class ThrustMap:
+    """One rotor's thrust from its PWM and the battery voltage, a system identification's polynomial:
+    grams-force ``c00 + c10 p + c01 v + c20 p^2 + c11 p v`` with ``p = pwm / 65536`` and
+    ``v = vbat / 4.2 V``; `source` says where the coefficients come from."""
+
+    c00: float
+    c10: float
+    c01: float
+    c20: float
+    c11: float
+    source: str = ""
+
+    def thrust(self, pwm: np.ndarray, vbat: np.ndarray) -> np.ndarray:
+        """N per rotor: pwm (..., R) 0-65535, vbat (...) V."""
+        p, v = np.asarray(pwm, np.float64) / 65536.0, np.asarray(vbat, np.float64)[..., None] / 4.2
+        grams = self.c00 + self.c10 * p + self.c01 * v + self.c20 * p * p + self.c11 * p * v
+        return grams * 1e-3 * GRAVITY
+
+
+@dataclass(frozen=True)
+class LoggedVehicle:
+    """What labels need of a logged vehicle: its mass (kg) and rotor thrust map, with their source."""
+
+    name: str
+    mass: float
+    thrust_map: ThrustMap
+    description: str
+    source: str
+
+
+_SOURCE = "Neural-Swarm data set (github.com/aerorobotics/neural-swarm), data/training/datacollection*/"
+NEURAL_SWARM_VEHICLES = {
+    "small": LoggedVehicle(
+        "small", 0.032,
+        ThrustMap(11.093358483549203, -39.08104165843915, -9.525647087583181, 20.573302305476638,
+                  38.42885066644033, source=_SOURCE + "defaultcf.txt (C_00 ... C_11; fit score 0.998)"),
+        "Crazyflie 2.1, unmodified (cf50, cf51, cf52)",
+        _SOURCE + "readme.txt; mass 32 g as the data set's training code uses it (learning/training.py)"),
+    "large": LoggedVehicle(
+        "large", 0.067,
+        ThrustMap(44.10386631845999, -122.51151800146272, -36.18484254283743, 53.10772568607133,
+                  107.6819263349139, source=_SOURCE + "parrot_frame.txt (C_00 ... C_11; fit score 0.995)"),
+        "Crazyflie 2.x on a larger (Parrot) frame and propellers (cf100, cf101, cf102)",
+        _SOURCE + "parrot_frame.txt (mass: 67g)"),
+}
+VEHICLE_IDS = {50: "small", 51: "small", 52: "small", 100: "large", 101: "large", 102: "large"}
+
+REQUIRED_FIELDS = (
+    "tick", *(f"stateEstimateZ.{a}" for a in ("x", "y", "z", "vx", "vy", "vz", "quat")),
+    *(f"ctrltargetZ.{a}" for a in ("x", "y", "z", "vx", "vy", "vz")),
+    *(f"pwm.m{i}_pwm" for i in range(1, 5)), "pm.vbatMV",
+)
+
+
+def flight_files(folder: str | os.PathLike) -> dict[str, list[Path]]:
+    """The flights of one task folder: flight number ``NN`` -> its vehicles' files ``cf<ID>_<NN>``, by ID."""
+    flights: dict[str, list[Path]] = {}
+    for path in sorted(Path(folder).iterdir()):
+        m = _FILE.match(path.name)
+        if m and path.is_file():
+            flights.setdefault(m.group(2), []).append(path)
+    return {k: sorted(v, key=lambda p: int(_FILE.match(p.name).group(1))) for k, v in sorted(flights.items())}
+
+
+def _vehicle(path: Path) -> LoggedVehicle:
+    m = _FILE.match(path.name)
+    ident = int(m.group(1)) if m else None
+    if ident not in VEHICLE_IDS:
+        raise ConfigError(f"{path}: not a vehicle of the data set (known: "
+                          f"{', '.join(f'cf{i} ({k})' for i, k in VEHICLE_IDS.items())})")
+    return NEURAL_SWARM_VEHICLES[VEHICLE_IDS[ident]]
+
+
+def _seconds(log: UsdLog) -> np.ndarray:
+    """The log's times in s from its first tick, the tick's wraps undone; UsdFormatError unless the
+    tick steps like microseconds at 20-500 Hz (the data set's CSV headers call it ms)."""
+    tick = log.fields["tick"].astype(np.int64)
+    steps = np.diff(tick)
+    steps = np.where(steps < 0, steps + TICK_WRAP, steps)
+    where = log.source.get("file", "log")
+    if steps.size == 0:
+        raise UsdFormatError(f"{where}: fewer than two records")
+    step = float(np.median(steps))
+    if not _TICK_STEP_US[0] <= step <= _TICK_STEP_US[1]:
+        raise UsdFormatError(f"{where}: unit mismatch: 'tick' steps by {step:g} per record; expected microseconds "
+                             f"of a 20-500 Hz log ({_TICK_STEP_US[0]}-{_TICK_STEP_US[1]})")
+    if np.any(steps <= 0):
+        raise UsdFormatError(f"{where}: 'tick' does not increase at record {int(np.argmax(steps <= 0)) + 1}")
+    return np.concatenate([[0.0], np.cumsum(steps)]) * 1e-6
+
+
+def _resample(t: np.ndarray, grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """values (N, C) at times t (N,), linear at grid (G,)."""
+    return np.stack([np.interp(grid, t, values[:, c]) for c in range(values.shape[1])], axis=1)
+
+
+def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np.ndarray) -> dict[str, np.ndarray]:
+    f = log.fields
+    col = lambda *names: np.stack([f[n].astype(np.float64) for n in names], axis=1)  # noqa: E731
+    quat = decompress_quaternions(f["stateEstimateZ.quat"])
+    quat *= np.where(np.cumsum(np.r_[0, np.sum(quat[1:] * quat[:-1], axis=1) < 0]) % 2 == 1, -1.0, 1.0)[:, None]
+    quat = _resample(t, grid, quat)  # one hemisphere, so that the components interpolate
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    pwm = _resample(t, grid, col(*(f"pwm.m{i}_pwm" for i in range(1, 5))))
+    vbat = np.interp(grid, t, f["pm.vbatMV"].astype(np.float64)) * 1e-3
+    thrust = vehicle.thrust_map.thrust(pwm, vbat).sum(axis=1)  # N
+    body_z = quat_to_mat(quat)[..., 2]  # R e3, world frame
+    pos = _resample(t, grid, col(*(f"stateEstimateZ.{a}" for a in "xyz"))) * 1e-3
+    w, x, y, z = quat.T
+    return {
+        "pos_est": pos, "mocap_pos": pos,
+        "vel_est": _resample(t, grid, col(*(f"stateEstimateZ.v{a}" for a in "xyz"))) * 1e-3,
+        "quat_est": quat, "yaw_est": np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
+        "ref_pos": _resample(t, grid, col(*(f"ctrltargetZ.{a}" for a in "xyz"))) * 1e-3,
+        "ref_vel": _resample(t, grid, col(*(f"ctrltargetZ.v{a}" for a in "xyz"))) * 1e-3,
+        "ref_acc": np.zeros((grid.size, 3)),
+        "u_cmd": body_z * (thrust / vehicle.mass)[:, None] - np.array([0.0, 0.0, GRAVITY]),
+        "f_hat": np.full((grid.size, 3), np.nan),
+    }  # fmt: skip
+
+
+def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], names: Sequence[str],
+                     rate_hz: float = 100.0) -> FlightLog:
+    """One flight of decoded logs (one per vehicle, each started at one broadcast): every vehicle's
+    signals in SI units on one uniform grid at `rate_hz` from the common start to the first log's end
+    (module doc)."""
+    if not 10.0 <= rate_hz <= 500.0:
+        raise ConfigError(f"rate_hz: allowed 10-500 Hz, got {rate_hz!r}")
+    for log in logs:
+        missing = [n for n in REQUIRED_FIELDS if n not in log.fields]
+        if missing:
+            raise UsdFormatError(f"{log.source.get('file', 'log')}: not a Neural-Swarm onboard log: no {missing}")
+    times = [_seconds(log) for log in logs]
+    end = min(t[-1] for t in times)
+    grid = np.arange(int(math.floor(end * rate_hz)) + 1) / rate_hz
+    per = [_vehicle_arrays(log, v, t, grid) for log, v, t in zip(logs, vehicles, times)]
+    arrays = {"t": grid, **{name: np.stack([p[name] for p in per], axis=1) for name in per[0]}}
+    meta = {
+        "source": {"format": logs[0].source.get("format"), "files": [dict(log.source) for log in logs]},
+        "vehicles": list(names), "frames": [v.name for v in vehicles], "masses": [v.mass for v in vehicles],
+        "leader": -1, "status": Status.OK, "status_name": Status.OK.label, "message": "", "seed": None,
+        "config": {"rate_hz": rate_hz, "thrust_maps": {v.name: v.thrust_map.source for v in vehicles}},
+    }  # fmt: skip
+    return FlightLog(arrays, meta)
+
+
+def read_flight(files: Sequence[str | os.PathLike], rate_hz: float = 100.0) -> FlightLog:
+    """The flight of the data set's files of its vehicles (``cf<ID>_<NN>``, one flight number), as
+    `flight_from_logs`; ConfigError for a vehicle ID the data set does not have."""
+    paths = [Path(f) for f in files]
+    vehicles = [_vehicle(p) for p in paths]
+    return flight_from_logs([read_usd_sync(p) for p in paths], vehicles, [p.name.split("_")[0] for p in paths],
+                            rate_hz)
+
+
+def setpoint_offset(log: FlightLog, a: int, b: int, max_lag_s: float = 1.0) -> float:
+    """s: the lag that best aligns vehicle b's setpoint speed with vehicle a's (the peak of their
+    cross-correlation within +-max_lag_s). Vehicles of one task start and stop their moves together
+    (a swap moves them in opposite directions), so the speeds' peak is at 0 when the common start holds."""
+    dt = float(log["t"][1] - log["t"][0])
+    x, y = (np.linalg.norm(log["ref_vel"][:, v], axis=1) for v in (a, b))
+    x, y = x - x.mean(), y - y.mean()
+    lags = np.arange(-int(max_lag_s / dt), int(max_lag_s / dt) + 1)
+    n = len(x)
+    score = [np.sum(x[max(0, -k):n - max(0, k)] * y[max(0, k):n - max(0, -k)]) for k in lags]
+    return float(lags[int(np.argmax(score))] * dt)
