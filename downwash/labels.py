@@ -229,8 +229,12 @@ def log_targets(log: FlightLog, targets: Sequence[int] | str | None = None) -> l
 
 
 def log_kinds(log: FlightLog) -> list[str]:
-    """Each vehicle's kind in a log (``meta['kinds']``; a log without it flew paper quads only)."""
+    """Each vehicle's kind in a log (``meta['kinds']``; a simulated log without it flew paper quads only,
+    a real flight without it is a ConfigError)."""
     V = log.n_vehicles
+    if log.real and not log.meta.get("kinds"):  # a lab's vehicles are not paper quads unless it says so
+        raise ConfigError(f"{log.meta['source'].get('file', 'a real flight')}: names no registered vehicle kinds "
+                          f"(meta 'kinds'; its frames: {log.meta.get('frames')}), so models of kinds cannot read it")
     kinds = list(log.meta.get("kinds") or [DEFAULT_VEHICLE] * V)
     if len(kinds) != V:
         raise ConfigError(f"log meta 'kinds': expected {V} vehicle kinds, got {kinds}")
@@ -306,7 +310,9 @@ def labels_from_log(
     rot = quat_to_mat(arr["quat_est"][rows].astype(np.float64))
     index, mask = select_neighbours(pos, neighbours)  # (R, V, K)
     inputs = gather_neighbours(pos, vel, rot, index, mask)
-    kinds = kind_descriptors(log_kinds(log))  # (V, D)
+    # a real flight whose vehicles are no registered kinds: NaN kinds (only models of kinds read them)
+    unregistered = log.real and not log.meta.get("kinds")
+    kinds = np.full((log.n_vehicles, len(KIND_FEATURES)), np.nan) if unregistered else kind_descriptors(log_kinds(log))
     kind_a = neighbour_kinds(kinds, index, mask)  # (R, V, K, D)
     hist = neighbour_history(pos, past_positions(arr["t"], arr["pos_est"], rows), index, mask)  # (R, V, K, H, 3)
     parts = []

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from downwash_core.errors import ConfigError, LogError
 from downwash_core.params import GRAVITY
-from downwash.labels import label_noise_floor, labels_from_log, second_derivative_coeffs
+from downwash.labels import label_noise_floor, labels_from_log, log_kinds, second_derivative_coeffs
 from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, compress_quaternions,
                                               decompress_quaternions, encode_usd_sync, read_usd_sync, write_usd_sync)
 from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, read_flight, setpoint_offset
@@ -225,7 +225,9 @@ def test_labels_of_a_known_thrust_and_motion_are_the_known_force(tmp_path):
     np.testing.assert_allclose(np.diff(log["t"]), 0.01, atol=1e-12)  # resampled onto 100 Hz from the start
     np.testing.assert_allclose(log["pos_est"][:, 0, :2], [[0.1, -0.2]] * len(log), atol=1e-12)
     lab = labels_from_log(log, targets="all")
-    assert len(lab["y"]) > 3500 and np.isnan(lab["field_mean"]).all()
+    assert len(lab["y"]) > 3500 and np.isnan(lab["field_mean"]).all() and np.isnan(lab["kind_b"]).all()
+    with pytest.raises(ConfigError, match=r"names no registered vehicle kinds .*its frames: \['small'\]"):
+        log_kinds(log)
     np.testing.assert_allclose(lab["y"][:, :2], 0.0, atol=1e-9)
     err = lab["y"][:, 2] - f_z
     # the floor of 1 mm position steps (uniform, sd 1 mm / sqrt 12) through the filter: sd |c| / dt^2
