@@ -17,7 +17,7 @@ traceback; a bug keeps its traceback.
 Importing this module is cheap (no torch, numba, mujoco or matplotlib), and so is
 importing an experiment: they load the heavy stack inside the functions that need it,
 so that `--help` and a bad option answer at once. The choices the help lists come from
-the static copies below, which tests/test_cli.py ties to their registries.
+the static copies in `experiments.options`, which tests/test_cli.py ties to their registries.
 """
 
 from __future__ import annotations
@@ -36,6 +36,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError, TestbedError
+from experiments.options import (AGGREGATIONS, CONDITIONS, DEFAULT_CONDITIONS, DEFAULT_FIELD, FIELD_CHOICES,
+                                 FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, PRESETS, SEED_COUNT_MAX,
+                                 WIND_HELP, WIND_SEVERITIES, field_check, load_wind, names_check, one_of,
+                                 registered_field_names, seed_count_check, wind_check)
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
@@ -48,30 +52,8 @@ __all__ = [
 
 A = TypeVar("A")
 
-# The names the options take, copied from their registries so that `--help` needs none of
-# the heavy imports behind them (tests/test_cli.py checks each against its source).
-PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equivariant_memory",
-                  "deep_memory")  # downwash.models.PAIRWISE_KINDS
-CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS,
-              *(k + "_guarded" for k in PAIRWISE_KINDS))  # downwash.conditions.CONDITIONS
-DEFAULT_CONDITIONS = (*CONDITIONS[:7], *(k + "_guarded" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
-FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
-DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
-PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS
-AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS
-WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
-PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep_cells.PAPER_MINUTES
-PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep_cells.PAPER_MODELS
-
-FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
-                 f"lists their parameters), or MODULE:FACTORY returning a field object")
-
-
 SEED_MAX = 2**32 - 1  # seeds go to NumPy's and torch's generators; seed + k stays far inside int64
 FLIGHT_SECONDS_MAX = 3600.0  # s, one flight: its log rows are allocated up front, so a huge length is refused
-# flights per condition (or trials per point): they fly as one batch of worlds, so a count beyond any sensible
-# study is refused while parsing, not by the memory check after the collection and training
-SEED_COUNT_MAX = 1000
 CONFIG_BYTES_MAX = 1 << 20  # an options file is a few lines; reading a huge or endless one is refused
 _NO_QUICK = object()  # arg(quick=...) not given: --quick leaves the option alone
 
@@ -101,50 +83,6 @@ def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = 
     if output is not None:
         metadata["output"] = output
     return field(default=default, metadata=metadata)
-
-
-def seed_count_check(n: int) -> str | None:
-    """A `check` for a count of seeds (flights per condition, trials per point): at most SEED_COUNT_MAX."""
-    return None if n <= SEED_COUNT_MAX else f"expected at most {SEED_COUNT_MAX}"
-
-
-def one_of(allowed: Sequence[str]) -> Callable[[str], str | None]:
-    """A `check` for one name from `allowed`."""
-
-    def check(text: str) -> str | None:
-        return None if text in allowed else f"unknown {text!r}; allowed: {', '.join(allowed)}"
-
-    return check
-
-
-def registered_field_names() -> tuple[str, ...]:
-    """The registered field names: the registry's own once it is loaded (a user's `register_field`
-    shows there), else the static copy (nothing can have added to a registry not yet loaded)."""
-    registry = sys.modules.get("sim.fields.registry")
-    return tuple(registry.FIELDS) if registry is not None else FIELD_NAMES
-
-
-def field_check(spec: str) -> str | None:
-    """A `check` for a `--field` spec: the grammar of `sim.fields.registry.parse_field_spec` and its
-    names, without loading the registry (numba). Parameters and import paths are checked when the
-    field is loaded (`load_field`), still before any work."""
-    text = spec.strip()
-    if not text:
-        return None
-    names = registered_field_names()
-    head, colon, tail = text.partition(":")
-    if head in names:
-        return None
-    registered = ", ".join(names)
-    if not colon:
-        return (f"unknown field {text!r}; registered: {registered}; or a MODULE:FACTORY import path "
-                "(e.g. mypkg.fields:make_field)")
-    if "=" in tail:
-        return (f"unknown field {head!r} in {text!r}; registered: {registered} (a MODULE:FACTORY import path takes "
-                "no KEY=VALUE parameters)")
-    if ":" in tail or not head or not tail:
-        return f"expected a registered field ({registered}) or MODULE:FACTORY (e.g. mypkg.fields:make_field)"
-    return None
 
 
 @dataclass(frozen=True)
@@ -309,21 +247,6 @@ def check_options(args: Any) -> None:
         problem = _out_of_range(f, getattr(args, f.name))
         if problem:
             raise ConfigError(f"{_option(f.name)}: {problem}, got {getattr(args, f.name)!r}")
-
-
-def names_check(allowed: Sequence[str]) -> Callable[[str], str | None]:
-    """A `check` for a comma list of names from `allowed` (at least one, each once), so that a bad
-    name is refused with the others, before any import of the registry it comes from."""
-
-    def check(text: str) -> str | None:
-        names = [n.strip() for n in text.split(",") if n.strip()]
-        unknown = [n for n in names if n not in allowed]
-        if not names or unknown or len(set(names)) != len(names):
-            why = f"unknown {unknown}" if unknown else "duplicate names" if names else "no name"
-            return f"{why}; allowed: a comma list of {', '.join(allowed)}, each at most once"
-        return None
-
-    return check
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -501,58 +424,6 @@ def load_field(spec: str) -> Any:
         raise ConfigError(f"{label}: expected MODULE:FACTORY to name a function that takes no arguments and "
                           f"returns a field; it failed with {type(e).__name__}: {_one_line(e)}") from e
     return obj
-
-
-WIND_HELP = (f"ambient wind: off (default), or a MIL-F-8785C severity {'|'.join(WIND_SEVERITIES)}|calm (calm: no gusts) "
-             "with an optional mean wind, e.g. light:mean=2,0,0 (m/s, world frame, air moving toward +x)")
-
-
-def _parse_wind(spec: str) -> tuple[str, tuple[float, ...]] | None:
-    """(severity, mean) of a `--wind` spec, None for "" / "off"; ConfigError naming what is allowed.
-    Plain text work (the severities are the static copy), so that parse_args can check it."""
-    text = (spec or "").strip()
-    if text in ("", "off"):
-        return None
-    severity, _, rest = text.partition(":")
-    allowed = f"off, calm, {', '.join(WIND_SEVERITIES)}, each with an optional :mean=U,V,W (m/s, finite)"
-    if severity not in ("calm", *WIND_SEVERITIES):
-        raise ConfigError(f"--wind: unknown {severity!r}; allowed: {allowed}")
-    mean: tuple[float, ...] = (0.0, 0.0, 0.0)
-    if rest:
-        key, eq, value = rest.partition("=")
-        try:
-            mean = tuple(float(x) for x in value.split(","))
-        except ValueError:
-            mean = ()
-        if key.strip() != "mean" or not eq or len(mean) != 3 or not all(map(math.isfinite, mean)):
-            raise ConfigError(f"--wind: bad {rest!r} in {spec!r}; allowed: {allowed}")
-    return severity, mean
-
-
-def wind_check(spec: str) -> str | None:
-    """A `check` for a `--wind` spec (what `load_wind` accepts)."""
-    try:
-        _parse_wind(spec)
-    except ConfigError as e:
-        return str(e).removeprefix("--wind: ")
-    return None
-
-
-def load_wind(spec: str) -> Any:
-    """The `DrydenWind` a `--wind` spec names, or None for "" / "off".
-
-    Grammar: SEVERITY[:mean=U,V,W] with SEVERITY one of light, moderate, severe (the
-    MIL-F-8785C W20 of 15, 30, 45 kt, which sets the gust intensities) or calm (no gusts,
-    the mean wind only); U, V, W in m/s, world frame. ConfigError naming what is allowed.
-    """
-    parsed = _parse_wind(spec)
-    if parsed is None:
-        return None
-    from sim.wind import DrydenWind
-
-    severity, mean = parsed
-    wind = DrydenWind(mean=mean) if severity == "calm" else DrydenWind.preset(severity, mean=mean)
-    return None if wind.off else wind
 
 
 @contextlib.contextmanager

@@ -1,0 +1,153 @@
+"""What each option accepts: the names it takes and the checks `experiments.common.parse_args` runs.
+
+The names are copied from their registries so that `--help` and a bad name need none of
+the heavy imports behind them (tests/test_cli.py checks each copy against its source);
+each `check` returns what is expected when a value is bad, else None, and runs while the
+command line is parsed, before any work.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any, Callable, Sequence
+
+from downwash_core.errors import ConfigError
+
+__all__ = [
+    "PAIRWISE_KINDS", "CONDITIONS", "DEFAULT_CONDITIONS", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS",
+    "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "FIELD_CHOICES", "SEED_COUNT_MAX", "WIND_HELP",
+    "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
+]
+
+# The names the options take, copied from their registries so that `--help` needs none of
+# the heavy imports behind them (tests/test_cli.py checks each against its source).
+PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equivariant_memory",
+                  "deep_memory")  # downwash.models.PAIRWISE_KINDS
+CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS,
+              *(k + "_guarded" for k in PAIRWISE_KINDS))  # downwash.conditions.CONDITIONS
+DEFAULT_CONDITIONS = (*CONDITIONS[:7], *(k + "_guarded" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
+FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
+DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
+PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS
+AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS
+WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
+PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep_cells.PAPER_MINUTES
+PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep_cells.PAPER_MODELS
+
+FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
+                 f"lists their parameters), or MODULE:FACTORY returning a field object")
+# flights per condition (or trials per point): they fly as one batch of worlds, so a count beyond any sensible
+# study is refused while parsing, not by the memory check after the collection and training
+SEED_COUNT_MAX = 1000
+
+
+def seed_count_check(n: int) -> str | None:
+    """A `check` for a count of seeds (flights per condition, trials per point): at most SEED_COUNT_MAX."""
+    return None if n <= SEED_COUNT_MAX else f"expected at most {SEED_COUNT_MAX}"
+
+
+def one_of(allowed: Sequence[str]) -> Callable[[str], str | None]:
+    """A `check` for one name from `allowed`."""
+
+    def check(text: str) -> str | None:
+        return None if text in allowed else f"unknown {text!r}; allowed: {', '.join(allowed)}"
+
+    return check
+
+
+def registered_field_names() -> tuple[str, ...]:
+    """The registered field names: the registry's own once it is loaded (a user's `register_field`
+    shows there), else the static copy (nothing can have added to a registry not yet loaded)."""
+    registry = sys.modules.get("sim.fields.registry")
+    return tuple(registry.FIELDS) if registry is not None else FIELD_NAMES
+
+
+def field_check(spec: str) -> str | None:
+    """A `check` for a `--field` spec: the grammar of `sim.fields.registry.parse_field_spec` and its
+    names, without loading the registry (numba). Parameters and import paths are checked when the
+    field is loaded (`load_field`), still before any work."""
+    text = spec.strip()
+    if not text:
+        return None
+    names = registered_field_names()
+    head, colon, tail = text.partition(":")
+    if head in names:
+        return None
+    registered = ", ".join(names)
+    if not colon:
+        return (f"unknown field {text!r}; registered: {registered}; or a MODULE:FACTORY import path "
+                "(e.g. mypkg.fields:make_field)")
+    if "=" in tail:
+        return (f"unknown field {head!r} in {text!r}; registered: {registered} (a MODULE:FACTORY import path takes "
+                "no KEY=VALUE parameters)")
+    if ":" in tail or not head or not tail:
+        return f"expected a registered field ({registered}) or MODULE:FACTORY (e.g. mypkg.fields:make_field)"
+    return None
+
+
+def names_check(allowed: Sequence[str]) -> Callable[[str], str | None]:
+    """A `check` for a comma list of names from `allowed` (at least one, each once), so that a bad
+    name is refused with the others, before any import of the registry it comes from."""
+
+    def check(text: str) -> str | None:
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        unknown = [n for n in names if n not in allowed]
+        if not names or unknown or len(set(names)) != len(names):
+            why = f"unknown {unknown}" if unknown else "duplicate names" if names else "no name"
+            return f"{why}; allowed: a comma list of {', '.join(allowed)}, each at most once"
+        return None
+
+    return check
+
+
+WIND_HELP = (f"ambient wind: off (default), or a MIL-F-8785C severity {'|'.join(WIND_SEVERITIES)}|calm (calm: no gusts) "
+             "with an optional mean wind, e.g. light:mean=2,0,0 (m/s, world frame, air moving toward +x)")
+
+
+def _parse_wind(spec: str) -> tuple[str, tuple[float, ...]] | None:
+    """(severity, mean) of a `--wind` spec, None for "" / "off"; ConfigError naming what is allowed.
+    Plain text work (the severities are the static copy), so that parse_args can check it."""
+    text = (spec or "").strip()
+    if text in ("", "off"):
+        return None
+    severity, _, rest = text.partition(":")
+    allowed = f"off, calm, {', '.join(WIND_SEVERITIES)}, each with an optional :mean=U,V,W (m/s, finite)"
+    if severity not in ("calm", *WIND_SEVERITIES):
+        raise ConfigError(f"--wind: unknown {severity!r}; allowed: {allowed}")
+    mean: tuple[float, ...] = (0.0, 0.0, 0.0)
+    if rest:
+        key, eq, value = rest.partition("=")
+        try:
+            mean = tuple(float(x) for x in value.split(","))
+        except ValueError:
+            mean = ()
+        if key.strip() != "mean" or not eq or len(mean) != 3 or not all(map(math.isfinite, mean)):
+            raise ConfigError(f"--wind: bad {rest!r} in {spec!r}; allowed: {allowed}")
+    return severity, mean
+
+
+def wind_check(spec: str) -> str | None:
+    """A `check` for a `--wind` spec (what `load_wind` accepts)."""
+    try:
+        _parse_wind(spec)
+    except ConfigError as e:
+        return str(e).removeprefix("--wind: ")
+    return None
+
+
+def load_wind(spec: str) -> Any:
+    """The `DrydenWind` a `--wind` spec names, or None for "" / "off".
+
+    Grammar: SEVERITY[:mean=U,V,W] with SEVERITY one of light, moderate, severe (the
+    MIL-F-8785C W20 of 15, 30, 45 kt, which sets the gust intensities) or calm (no gusts,
+    the mean wind only); U, V, W in m/s, world frame. ConfigError naming what is allowed.
+    """
+    parsed = _parse_wind(spec)
+    if parsed is None:
+        return None
+    from sim.wind import DrydenWind
+
+    severity, mean = parsed
+    wind = DrydenWind(mean=mean) if severity == "calm" else DrydenWind.preset(severity, mean=mean)
+    return None if wind.off else wind
