@@ -23,7 +23,7 @@ from downwash_core.params import GRAVITY
 from downwash.labels import label_noise_floor, labels_from_log, log_kinds, second_derivative_coeffs
 from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, compress_quaternions,
                                               decompress_quaternions, encode_usd_sync, read_usd_sync, write_usd_sync)
-from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, read_flight, setpoint_offset
+from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, motor_lag, read_flight, setpoint_offset
 from sim.logs import TRUTH_ARRAYS, FlightLog, load_log, save_log
 
 
@@ -285,3 +285,27 @@ def test_flights_are_grouped_by_number_and_aligned_at_their_first_tick(tmp_path)
     assert log.meta["frames"] == ["small", "large"] and setpoint_offset(log, 0, 1) == 0.0
     late = read_flight([tmp_path / "one" / "cf50_04", tmp_path / "two" / "cf51_04"])
     assert setpoint_offset(late, 0, 1) == pytest.approx(-0.2)
+
+
+def test_the_motor_lag_is_a_first_order_response(tmp_path):
+    """A thrust step through the lag: 1 - exp(-t / tau) of it at time t (exact at the samples), and
+    nothing changes without a time constant."""
+    dt, tau = 0.01, 0.057
+    step = np.r_[np.zeros(5), np.ones(100)]
+    lagged = motor_lag(step, dt, tau)
+    t = (np.arange(100) - 1) * dt  # the step is held from sample 5 and acts from sample 6
+    np.testing.assert_allclose(lagged[6:], 1.0 - np.exp(-(t[1:] + dt) / tau), atol=1e-12)
+    assert np.array_equal(lagged[:6], np.zeros(6)) and motor_lag(step, dt, None) is step
+    times = np.arange(300) / 100.0
+    cols = _neural_swarm_columns(times, np.full(300, 0.5), np.r_[np.full(150, 0.3), np.full(150, 0.4)],
+                                 np.full(300, 3.9))
+    path = tmp_path / "cf50_00"
+    write_usd_sync(path, cols)
+    fast, slow = read_flight([path]), read_flight([path], motor_time_constant=tau)
+    assert slow.meta["config"]["motor_time_constant"] == tau
+    jump = np.flatnonzero(np.diff(fast["u_cmd"][:, 0, 2]) > 1.0)[0] + 1
+    np.testing.assert_allclose(slow["u_cmd"][:jump], fast["u_cmd"][:jump], atol=1e-9)
+    assert fast["u_cmd"][jump, 0, 2] - slow["u_cmd"][jump, 0, 2] > 2.0  # the lag holds it back
+    np.testing.assert_allclose(slow["u_cmd"][-1], fast["u_cmd"][-1], atol=1e-6)
+    with pytest.raises(ConfigError, match=r"motor_time_constant: allowed \(0, 1\] s or None"):
+        read_flight([path], motor_time_constant=0.0)

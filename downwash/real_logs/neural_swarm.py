@@ -20,7 +20,8 @@ The logged variables (the firmware's compressed state, integers):
 | ``pwm.m1_pwm`` ... ``m4_pwm`` | 0-65535 | with ``pm.vbatMV`` (mV): the thrust (`ThrustMap`) |
 
 ``u_cmd`` is the acceleration of the rotors' thrust less gravity, ``R e3 T / m - g e3``, with T
-from each rotor's PWM and the battery voltage: so the labels ``f = a - u`` (`downwash.labels`)
+from each rotor's PWM and the battery voltage (optionally through a first-order motor lag,
+``motor_time_constant``: the PWM is what was asked of the motors): so the labels ``f = a - u`` (`downwash.labels`)
 are the paper's residual force per mass, ``a - R T / m + g e3``, whatever model flew. The
 reference's acceleration is not logged (``ref_acc`` 0) and neither is the prediction in use
 (``f_hat`` NaN).
@@ -45,7 +46,7 @@ from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_
 from sim.logs import FlightLog
 
 __all__ = ["ThrustMap", "LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
-           "read_flight", "flight_from_logs", "setpoint_offset", "TICK_WRAP"]
+           "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "TICK_WRAP"]
 
 TICK_WRAP = 2**32  # us: the tick is a uint32 (71.6 minutes)
 _TICK_STEP_US = (2_000, 50_000)  # a log at 20-500 Hz: its tick steps by 2-50 ms in microseconds
@@ -149,7 +150,21 @@ def _resample(t: np.ndarray, grid: np.ndarray, values: np.ndarray) -> np.ndarray
     return np.stack([np.interp(grid, t, values[:, c]) for c in range(values.shape[1])], axis=1)
 
 
-def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np.ndarray) -> dict[str, np.ndarray]:
+def motor_lag(thrust: np.ndarray, dt: float, time_constant: float | None) -> np.ndarray:
+    """thrust (N,) sampled every dt s through a first-order lag of `time_constant` s (exact for a
+    thrust held over each step), from rest at its first value; None: unchanged."""
+    if time_constant is None:
+        return thrust
+    alpha = 1.0 - math.exp(-dt / time_constant)
+    out = np.empty_like(thrust)
+    out[0] = thrust[0]
+    for k in range(1, len(thrust)):  # a few thousand steps per flight
+        out[k] = out[k - 1] + alpha * (thrust[k - 1] - out[k - 1])
+    return out
+
+
+def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np.ndarray,
+                    time_constant: float | None) -> dict[str, np.ndarray]:
     f = log.fields
     col = lambda *names: np.stack([f[n].astype(np.float64) for n in names], axis=1)  # noqa: E731
     quat = decompress_quaternions(f["stateEstimateZ.quat"])
@@ -158,7 +173,7 @@ def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np
     quat /= np.linalg.norm(quat, axis=1, keepdims=True)
     pwm = _resample(t, grid, col(*(f"pwm.m{i}_pwm" for i in range(1, 5))))
     vbat = np.interp(grid, t, f["pm.vbatMV"].astype(np.float64)) * 1e-3
-    thrust = vehicle.thrust_map.thrust(pwm, vbat).sum(axis=1)  # N
+    thrust = motor_lag(vehicle.thrust_map.thrust(pwm, vbat).sum(axis=1), float(grid[1] - grid[0]), time_constant)
     body_z = quat_to_mat(quat)[..., 2]  # R e3, world frame
     pos = _resample(t, grid, col(*(f"stateEstimateZ.{a}" for a in "xyz"))) * 1e-3
     w, x, y, z = quat.T
@@ -175,12 +190,14 @@ def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np
 
 
 def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], names: Sequence[str],
-                     rate_hz: float = 100.0) -> FlightLog:
+                     rate_hz: float = 100.0, motor_time_constant: float | None = None) -> FlightLog:
     """One flight of decoded logs (one per vehicle, each started at one broadcast): every vehicle's
     signals in SI units on one uniform grid at `rate_hz` from the common start to the first log's end
-    (module doc)."""
+    (module doc); motor_time_constant: s, the thrust's first-order lag behind the PWM (None: none)."""
     if not 10.0 <= rate_hz <= 500.0:
         raise ConfigError(f"rate_hz: allowed 10-500 Hz, got {rate_hz!r}")
+    if motor_time_constant is not None and not 0.0 < motor_time_constant <= 1.0:
+        raise ConfigError(f"motor_time_constant: allowed (0, 1] s or None, got {motor_time_constant!r}")
     for log in logs:
         missing = [n for n in REQUIRED_FIELDS if n not in log.fields]
         if missing:
@@ -188,24 +205,26 @@ def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], 
     times = [_seconds(log) for log in logs]
     end = min(t[-1] for t in times)
     grid = np.arange(int(math.floor(end * rate_hz)) + 1) / rate_hz
-    per = [_vehicle_arrays(log, v, t, grid) for log, v, t in zip(logs, vehicles, times)]
+    per = [_vehicle_arrays(log, v, t, grid, motor_time_constant) for log, v, t in zip(logs, vehicles, times)]
     arrays = {"t": grid, **{name: np.stack([p[name] for p in per], axis=1) for name in per[0]}}
     meta = {
         "source": {"format": logs[0].source.get("format"), "files": [dict(log.source) for log in logs]},
         "vehicles": list(names), "frames": [v.name for v in vehicles], "masses": [v.mass for v in vehicles],
         "leader": -1, "status": Status.OK, "status_name": Status.OK.label, "message": "", "seed": None,
-        "config": {"rate_hz": rate_hz, "thrust_maps": {v.name: v.thrust_map.source for v in vehicles}},
+        "config": {"rate_hz": rate_hz, "motor_time_constant": motor_time_constant,
+                   "thrust_maps": {v.name: v.thrust_map.source for v in vehicles}},
     }  # fmt: skip
     return FlightLog(arrays, meta)
 
 
-def read_flight(files: Sequence[str | os.PathLike], rate_hz: float = 100.0) -> FlightLog:
+def read_flight(files: Sequence[str | os.PathLike], rate_hz: float = 100.0,
+                motor_time_constant: float | None = None) -> FlightLog:
     """The flight of the data set's files of its vehicles (``cf<ID>_<NN>``, one flight number), as
     `flight_from_logs`; ConfigError for a vehicle ID the data set does not have."""
     paths = [Path(f) for f in files]
     vehicles = [_vehicle(p) for p in paths]
     return flight_from_logs([read_usd_sync(p) for p in paths], vehicles, [p.name.split("_")[0] for p in paths],
-                            rate_hz)
+                            rate_hz, motor_time_constant)
 
 
 def setpoint_offset(log: FlightLog, a: int, b: int, max_lag_s: float = 1.0) -> float:
