@@ -6,7 +6,9 @@
     results["fields"]["so2"]["models"]["equivariant"]["rmse_ci_low"]        # per minute point
 
 This module holds `run_sweep`, which spreads the missing cells over Ray (imported
-only when cells must be computed), and the checks of the command lines' options. A
+only when cells must be computed), and the checks of the command lines' options
+(cheap to import: the command lines call them while they parse). A local Ray it
+starts is shut down however the sweep ends, Ctrl-C and SIGTERM included. A
 sweep's parts have modules of their own: the grid, the cells, their training and
 their cache `downwash.sweep_cells` (with the steps `run_sweep` takes, one by one);
 the bootstrap intervals and the paired claim `downwash.sweep_stats`; the tables and
@@ -27,20 +29,29 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
+import signal
+import socket
+import threading
+import time
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
 
 from downwash_core.errors import ConfigError
-from downwash_core.numerics import PORTABLE_TORCH
-from downwash_core.provenance import fingerprint
-from downwash.datasets import Dataset
-from downwash.staged import ensure_collection
-from downwash.sweep_cells import Cell, CellCache, SweepGrid, _load_collection, batch_cells, plan_cells, run_cells
-from downwash.sweep_stats import PAPER_CLAIM, Claim, summarize_field
 
-__all__ = ["grid_from_text", "check_execution", "run_sweep", "map_on_ray"]
+if TYPE_CHECKING:
+    from downwash.datasets import Dataset
+    from downwash.sweep_cells import Cell, CellCache, SweepGrid
+    from downwash.sweep_stats import Claim
+
+# the heavy stack (torch, the simulator, Ray) is imported in the functions that use it
+
+__all__ = ["grid_from_text", "check_execution", "workers_problem", "address_problem", "check_address", "run_sweep",
+           "map_on_ray", "Terminated", "ADDRESS_TIMEOUT"]
 
 log = logging.getLogger(__name__)
+
+ADDRESS_TIMEOUT = 3.0  # s: a running cluster answers at once; Ray itself would retry for minutes
 
 
 def grid_from_text(fields: str, models: str, minutes: str, seeds: str, quick: bool = False) -> SweepGrid:
@@ -54,17 +65,95 @@ def grid_from_text(fields: str, models: str, minutes: str, seeds: str, quick: bo
             what = "numbers" if convert is float else "integers" if convert is int else "names"
             raise ConfigError(f"--{name}: expected a comma list of {what}, got {text!r}") from None
 
+    from downwash.sweep_cells import SweepGrid
+
     specs = tuple(dict.fromkeys(t.strip() for t in fields.split(";"))) if fields.strip() else ("",)
     return SweepGrid(fields=specs, models=items("models", models, str), minutes=items("minutes", minutes, float),
                      seeds=items("seeds", seeds, int), quick=quick)
 
 
-def check_execution(workers: int, batch: int) -> None:
-    """ConfigError unless ``workers >= 0`` (0: all cores) and ``batch >= 1``."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
-        raise ConfigError(f"--workers: expected an integer >= 0 (0: all cores), got {workers!r}")
+def check_execution(workers: int, batch: int, address: str = "") -> None:
+    """ConfigError unless ``workers`` is 0 (all usable cores) or at most the usable cores
+    (`workers_problem`), ``batch >= 1`` and ``address`` is well formed (`address_problem`)."""
+    problem = workers_problem(workers)
+    if problem:
+        raise ConfigError(f"--workers: {problem}, got {workers!r}")
     if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
         raise ConfigError(f"--batch: expected an integer >= 1 (cells per task), got {batch!r}")
+    problem = address_problem(address)
+    if problem:
+        raise ConfigError(f"--address: {problem}, got {address!r}")
+
+
+def workers_problem(workers: Any) -> str | None:
+    """What ``workers`` (the CPUs of a local Ray) expects when it is bad, else None: 0 (all usable cores)
+    or 1 up to the cores this process may use. More would start as many Ray workers, taking turns on
+    the cores (the numbers do not change, only memory and time grow). Bounded with ``address`` too, where
+    it is unused: one rule for every command line."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        return "expected an integer >= 0 (0: all usable cores)"
+    if workers == 0:  # the default: no need to load the simulator (and MuJoCo) to count the cores
+        return None
+    from sim.physics import usable_cores
+
+    cores = usable_cores()
+    if workers > cores:
+        return f"expected 0 (all usable cores) or 1..{cores} (the cores this machine lets the sweep use)"
+    return None
+
+
+_HOST = re.compile(r"[A-Za-z0-9]([A-Za-z0-9._-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]")
+
+
+def _split_address(address: str) -> tuple[str, int] | None:
+    """(host, port) of HOST:PORT or ray://HOST:PORT (an IPv6 host in brackets), None when malformed."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not _HOST.fullmatch(host) or not re.fullmatch(r"[0-9]{1,5}", port) or not 1 <= int(port) <= 65535:
+        return None
+    return host.strip("[]"), int(port)
+
+
+def address_problem(address: Any) -> str | None:
+    """What ``address`` expects when it is malformed, else None: "" (a local Ray), "auto" (the cluster
+    ``ray start`` runs on this machine), HOST:PORT of a running cluster's head (as ``ray start --head``
+    prints it), or ray://HOST:PORT (its Ray Client server)."""
+    if address in ("", "auto") or (isinstance(address, str) and _split_address(address)):
+        return None
+    return ("expected HOST:PORT of a running Ray cluster's head (port 1-65535, as ray start --head prints it), "
+            "ray://HOST:PORT or auto")
+
+
+def check_address(address: str, timeout: float = ADDRESS_TIMEOUT) -> None:
+    """ConfigError naming ``address`` when it is malformed or nothing answers there within ``timeout``
+    seconds (a TCP connection, the name lookup included), before Ray, which would retry for minutes.
+    "" and "auto" pass ("auto" is looked up when Ray starts)."""
+    problem = address_problem(address)
+    if problem:
+        raise ConfigError(f"--address: {problem}, got {address!r}")
+    if address in ("", "auto"):
+        return
+    host, port = _split_address(address)
+    outcome: list[BaseException | None] = []
+
+    def connect() -> None:
+        try:
+            socket.create_connection((host, port), timeout=timeout).close()
+            outcome.append(None)
+        except OSError as e:
+            outcome.append(e)
+
+    # a thread: the timeout of create_connection does not cover the name lookup, which can hang
+    probe = threading.Thread(target=connect, name="sweep-address-probe", daemon=True)
+    probe.start()
+    probe.join(timeout + 0.5)
+    if outcome and outcome[0] is None:
+        return
+    why = ("no answer within {:g} s".format(timeout) if not outcome or isinstance(outcome[0], TimeoutError)
+           else "unknown host" if isinstance(outcome[0], socket.gaierror)
+           else "connection refused" if isinstance(outcome[0], ConnectionRefusedError)
+           else outcome[0].strerror or type(outcome[0]).__name__)
+    raise ConfigError(f"--address {address}: no Ray cluster answers there ({why}); start one with ray start "
+                      "--head, or give its head's HOST:PORT")
 
 
 def run_sweep(
@@ -75,7 +164,7 @@ def run_sweep(
     workers: int = 0,
     address: str = "",
     batch: int = 5,
-    claim: Claim = PAPER_CLAIM,
+    claim: Claim | None = None,
     progress: Callable[[str], Callable[[int, int], None] | None] = lambda label: None,
 ) -> dict[str, Any]:
     """Compute the grid's missing cells on Ray and summarise every field.
@@ -90,8 +179,12 @@ def run_sweep(
     another sweep is computing are waited for and loaded); their results are cached
     here as each task lands. Ray: the one this process is connected to, else
     ``ray.init(address=address)``, else a local Ray of ``workers`` CPUs (0: all
-    cores), shut down at the end; none at all when no cell is computed here.
-    ``claim`` is tested per field (`summarize_field`); ``progress(label)`` may return a
+    usable cores), shut down however the sweep ends (`_ray_session`: Ctrl-C and
+    SIGTERM included, which then raises `Terminated`); none at all when no cell is
+    computed here. A malformed ``address``, or one where nothing answers, is a
+    ConfigError (`check_address`) before Ray is started.
+    ``claim`` (None: the paper's, `downwash.sweep_stats.PAPER_CLAIM`) is tested per field
+    (`summarize_field`); ``progress(label)`` may return a
     ``(done, total)`` callback.
 
     Returns ``fields`` (spec -> `summarize_field` plus ``collection_key``,
@@ -100,7 +193,13 @@ def run_sweep(
     and computed here), ``computed_elsewhere`` (cells another sweep computed while
     this one ran), ``workers`` (the Ray CPUs, 0 when nothing ran) and ``grid``.
     """
-    check_execution(workers, batch)
+    from downwash_core.provenance import fingerprint
+    from downwash.staged import ensure_collection
+    from downwash.sweep_cells import CellCache, _load_collection, plan_cells
+    from downwash.sweep_stats import PAPER_CLAIM, summarize_field
+
+    check_execution(workers, batch, address)
+    claim = PAPER_CLAIM if claim is None else claim
     missing = [f for f in grid.fields if f not in pipelines]
     if missing:
         raise ConfigError(f"run_sweep: no pipeline given for field(s) {missing}")
@@ -133,6 +232,8 @@ def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str,
     """One Ray task: `run_cells`, with the Ray node that ran it in each result's ``compute``."""
     import ray
 
+    from downwash.sweep_cells import run_cells
+
     node = ray.get_runtime_context().get_node_id()
     results = run_cells(cells, train, val)
     for r in results:
@@ -140,55 +241,203 @@ def _ray_task(cells: list[Cell], train: Dataset, val: Dataset) -> list[dict[str,
     return results
 
 
-def _init_ray(workers: int, address: str) -> bool:
-    """Connect to Ray: the one this process is connected to, else ``ray.init(address)``, else a local
-    Ray of ``workers`` CPUs (0: all cores). True when this call started it (the caller shuts it down)."""
+class Terminated(SystemExit):
+    """SIGTERM (or SIGHUP) while this process ran a Ray it started, raised once that Ray is shut down;
+    the exit status is the signal's usual one, 128 + its number."""
+
+    def __init__(self, signum: int):
+        super().__init__(128 + signum)
+        self.signal = signal.Signals(signum).name
+
+
+_STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+_received: list[int] = []  # the stop signals of the running session
+
+
+def _on_stop_signal(signum: int, frame: Any) -> None:
+    for other in _STOP_SIGNALS:  # a repeated signal must not cut the shutdown short
+        signal.signal(other, signal.SIG_IGN)
+    _received.append(signum)
+    # KeyboardInterrupt: the one exception ray.get and ray.wait pass on as it is (any other raised in a
+    # handler comes out as SystemExit(1) or SystemError); `_ray_session` turns it into Terminated
+    raise KeyboardInterrupt
+
+
+def _stopped_by() -> str:
+    """What stopped the sweep, for its last message: the signal, else Ctrl-C."""
+    return signal.Signals(_received[0]).name if _received else "Ctrl-C"
+
+
+@contextlib.contextmanager
+def _ray_session(workers: int, address: str) -> Iterator[bool]:
+    """Connect to Ray for the block: the one this process is connected to (yields False), else
+    ``ray.init(address)``, else a local Ray of ``workers`` CPUs (0: all usable cores); yields True.
+
+    A Ray this call started is shut down on every way out of the block: its end, an exception,
+    Ctrl-C, and SIGTERM or SIGHUP, which stop the block as Ctrl-C does and raise `Terminated` once
+    Ray is down. (Ray's core answers a SIGTERM by aborting the process, which skips every ``finally``:
+    the shutdown never runs and the local cluster's processes are left to end on their own.) A
+    signal ignored before stays ignored; the handlers before are restored after.
+    """
     import ray
 
     if ray.is_initialized():
-        return False
+        yield False
+        return
+    check_address(address)
+    # only the main thread may set handlers; elsewhere Ray's stay (and so does its abort)
+    before = ({s: signal.getsignal(s) for s in _STOP_SIGNALS}
+              if threading.current_thread() is threading.main_thread() else {})
+    _received.clear()
+    _catch_stop_signals(before)
+    others = {c.pid for c in _descendants()}  # this process's own, before Ray's
+    try:
+        try:
+            with _driver_keeps_sigterm():
+                _init_ray(workers, address)
+        except ConnectionError as e:  # "auto" with no cluster on this machine, or one that stopped meanwhile
+            if not address:
+                raise
+            why = "no running Ray cluster found on this machine" if address == "auto" else str(e)
+            raise ConfigError(f"--address {address}: {why}; start one with ray start --head, or give its head's "
+                              "HOST:PORT") from None
+        except SystemExit as e:  # ray.init's own handler while it ran: sys.exit(SIGTERM)
+            if before and e.code == signal.SIGTERM:
+                _received.append(signal.SIGTERM)
+            raise
+        _catch_stop_signals(before)  # again: ray.init set its own
+        yield True
+    except (KeyboardInterrupt, SystemExit):
+        if _received:
+            raise Terminated(_received[0]) from None
+        raise
+    finally:
+        try:
+            started = [c for c in _descendants() if c.pid not in others] if not address else []
+            ray.shutdown()  # also after a half-done ray.init: it stops the processes that one started
+            _end_leftovers(started)
+        finally:
+            for signum, handler in before.items():  # None: set outside Python; the default is the closest
+                signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+    if _received:  # the block caught the interrupt itself: the process must still end
+        raise Terminated(_received[0])
+
+
+def _descendants() -> list[Any]:
+    """This process's descendants (`psutil.Process`, which comes with Ray), [] where that fails."""
+    try:
+        import psutil
+
+        return psutil.Process().children(recursive=True)
+    except Exception:  # no psutil, or a process gone while listed: nothing to end then
+        return []
+
+
+def _end_leftovers(processes: list[Any], grace: float = 3.0) -> None:
+    """End those of ``processes`` (a local Ray's) still running ``grace`` seconds after ``ray.shutdown``:
+    SIGTERM, then SIGKILL ``grace`` seconds later. A shutdown after a half-done ray.init, or after the
+    cluster's processes were signalled too, leaves some (the raylet's agents and starting workers,
+    then children of no one), which would otherwise run on in the background."""
+    import psutil
+
+    def alive(p: Any) -> bool:
+        try:
+            return p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+        except psutil.Error:
+            return False
+
+    def wait(left: list[Any]) -> list[Any]:
+        # polled: one that ends stays a zombie where no one reaps it, which psutil.wait_procs waits out
+        deadline = time.monotonic() + grace
+        while left and time.monotonic() < deadline:
+            time.sleep(0.1)
+            left = [p for p in left if alive(p)]
+        return left
+
+    left = wait([p for p in processes if alive(p)])  # the workers end on their own soon after the raylet
+    if not left:
+        return
+    log.info("ending %d processes of the local Ray that outlived its shutdown", len(left))
+    for p in left:
+        with contextlib.suppress(psutil.Error):
+            p.terminate()
+    for p in wait(left):
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+
+
+@contextlib.contextmanager
+def _driver_keeps_sigterm() -> Iterator[None]:
+    """ray.init without the failure handler of this process's Ray core: it takes SIGTERM too, and
+    aborts the process (skipping every ``finally``, the shutdown's included). The core's handlers of
+    crashes (SIGSEGV...) go with it, here only: the workers and the cluster's processes read their
+    own setting. (A private setting of Ray's, read when the driver's core starts; where a Ray has
+    none, nothing changes.)"""
+    from ray._private import ray_constants
+
+    name = "RAY_DISABLE_FAILURE_SIGNAL_HANDLER"
+    had = getattr(ray_constants, name, None)
+    if had is None:
+        yield
+        return
+    setattr(ray_constants, name, True)
+    try:
+        yield
+    finally:
+        setattr(ray_constants, name, had)
+
+
+def _catch_stop_signals(before: Mapping[int, Any]) -> None:
+    """Each signal of ``before`` goes to `_on_stop_signal`, except those ignored in ``before``, which stay ignored."""
+    for signum, handler in before.items():
+        signal.signal(signum, signal.SIG_IGN if handler is signal.SIG_IGN else _on_stop_signal)
+
+
+def _init_ray(workers: int, address: str) -> None:
+    """``ray.init(address)``, else a local Ray of ``workers`` CPUs (0: all usable cores)."""
+    import ray
+
+    from downwash_core.numerics import PORTABLE_TORCH
+    from sim.physics import usable_cores
+
     if address:  # (a local Ray's workers inherit this process's environment, the portable kernels' request included)
         portable = {name: os.environ[name] for name in PORTABLE_TORCH if name in os.environ}
         ray.init(address=address, logging_level=logging.WARNING, runtime_env={"env_vars": portable})
     else:
         # workers at normal priority: Ray lowers them (nice 15) to keep a driver responsive, but here
         # they are the computation and the driver only waits
-        ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
+        ray.init(num_cpus=workers or usable_cores(), include_dashboard=False, logging_level=logging.WARNING,
                  _system_config={"worker_niceness": 0})
-    return True
 
 
 def map_on_ray(fn: Callable[[Any], Any], items: list[Any], workers: int = 0, address: str = "") -> list[Any]:
-    """``[fn(x) for x in items]``, each call a Ray task of one CPU (Ray as `_init_ray`; one this call
-    started is shut down at the end). ``fn`` must be importable by name (a module's function)."""
+    """``[fn(x) for x in items]``, each call a Ray task of one CPU (Ray as `_ray_session`: one this call
+    started is shut down at the end, however it ends). ``fn`` must be importable by name (a module's
+    function)."""
     import ray
 
-    check_execution(workers, 1)
-    owned = _init_ray(workers, address)
-    try:
+    check_execution(workers, 1, address)
+    with _ray_session(workers, address):
         task = ray.remote(num_cpus=1, max_retries=0)(fn)
         return ray.get([task.remote(x) for x in items])
-    finally:
-        if owned:
-            ray.shutdown()
 
 
 class _Ray:
     """The Ray the sweep computes on, started at the first task (a sweep whose missing cells other
-    processes hold needs none): the one this process is connected to, else ``ray.init(address)``,
-    else a local Ray of ``workers`` CPUs; one it started is shut down by `close`."""
+    processes hold needs none), as `_ray_session`; one it started is shut down by `close`."""
 
     def __init__(self, workers: int, address: str, data: Mapping[str, tuple]):
         self.workers, self.address, self.data = workers, address, data
-        self.started = self.owned = False
+        self.started = False
         self.cpus = 0
         self.task: Any = None
         self.refs: dict[str, tuple] = {}
+        self._session = contextlib.ExitStack()
 
     def _start(self) -> None:
         import ray
 
-        self.owned = _init_ray(self.workers, self.address)
+        self._session.enter_context(_ray_session(self.workers, self.address))
         self.started = True
         self.task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
         self.cpus = int(ray.cluster_resources().get("CPU", 0))
@@ -210,13 +459,17 @@ class _Ray:
             self.refs[spec] = (ray.put(train), ray.put(val))
         return self.task.remote(cells, *self.refs[spec])
 
-    def close(self) -> None:
+    def count_cpus(self) -> None:
+        """The Ray CPUs at the end of a sweep (a cluster's nodes may have changed). Not on the way out of
+        an interrupted one: with the local Ray's processes gone (Ctrl-C reaches them all), the query waits
+        for ever."""
         if self.started:
             import ray
 
             self.cpus = int(ray.cluster_resources().get("CPU", 0))
-            if self.owned:
-                ray.shutdown()
+
+    def close(self) -> None:
+        self._session.close()
 
 
 def _compute_missing(todo: list[Cell], data: Mapping[str, tuple], cache: CellCache, workers: int, address: str,
@@ -245,6 +498,11 @@ def _compute_missing(todo: list[Cell], data: Mapping[str, tuple], cache: CellCac
                 counts["done"] += 1
                 if progress:
                     progress(counts["done"], total)
+        ray_.count_cpus()
+    except (KeyboardInterrupt, Terminated):  # Ctrl-C, or SIGTERM while a local Ray runs (`_ray_session`)
+        log.warning("sweep stopped by %s: %d of %d cells are cached; the same command computes the rest",
+                    _stopped_by(), counts["done"], total)
+        raise
     finally:
         ray_.close()
     return counts["here"], counts["elsewhere"], ray_.cpus if counts["here"] else 0
@@ -257,6 +515,8 @@ def _compute_round(cells: list[Cell], cache: CellCache, ray_: _Ray, batch: int,
     free CPU takes the next, so the long deep batches start early) and compute those claimed.
     Returns the cells another process held, and who held the first of them."""
     import ray
+
+    from downwash.sweep_cells import batch_cells
 
     busy: list[Cell] = []
     who = ""

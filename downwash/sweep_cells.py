@@ -73,8 +73,8 @@ from downwash.train import TrainConfig
 from sim.fields.registry import resolve_field_spec
 
 __all__ = [
-    "FULL", "CELL_VERSION", "PAPER_MINUTES", "PAPER_MODELS", "SweepGrid", "Cell", "load_collection", "field_minutes",
-    "plan_cells", "cell_data", "batch_cells", "run_cells", "CellCache",
+    "FULL", "CELL_VERSION", "PAPER_MINUTES", "PAPER_MODELS", "SEED_MAX", "MAX_SEEDS", "MAX_CELLS", "SweepGrid",
+    "Cell", "load_collection", "field_minutes", "plan_cells", "cell_data", "batch_cells", "run_cells", "CellCache",
 ]  # fmt: skip
 
 log = logging.getLogger("downwash.sweep")  # the sweep's logger, as before the cells had a module of their own
@@ -84,6 +84,9 @@ CELL_VERSION = 2  # bump when the subset draw, the training or the metric of a c
 PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # 7 points, plus the full set
 PAPER_MODELS = ("shallow", "deep", "equivariant")  # the paper's three models
 _MINUTE_TICKS = 10_000  # the subset generator sees minutes rounded to 1e-4 min (6 ms of flight)
+SEED_MAX = 2**32 - 1  # as experiments.common.SEED_MAX: a seed goes to NumPy's and torch's generators
+MAX_SEEDS = 1_000  # per sweep: a point's bootstrap interval (BCa's jackknife) takes memory quadratic in them
+MAX_CELLS = 100_000  # per sweep: each is a trained model and a file; planning alone takes seconds per 10^4
 
 
 @dataclass(frozen=True)
@@ -93,8 +96,9 @@ class SweepGrid:
     fields: field specs (`sim.fields.registry` grammar; "" is the default field);
     models: kinds of `downwash.models.PAIRWISE_KINDS`; minutes: training lengths, min
     (> 0; the whole training set is always added as `FULL`, and a length at or
-    beyond it is left out for that field); seeds: the trials (ints >= 0), each a
-    data subset and a training seed shared by all models; quick: the quick
+    beyond it is left out for that field); seeds: the trials (ints in 0..`SEED_MAX`, at
+    most `MAX_SEEDS`), each a data subset and a training seed shared by all models; at most
+    `MAX_CELLS` cells in all (fields x models x (minutes + 1) x seeds); quick: the quick
     training settings (`downwash.staged.train_config`); training: a `TrainConfig`
     whose seed is replaced per cell (None: `train_config(0, quick)`).
     """
@@ -139,8 +143,18 @@ class SweepGrid:
         for s in seeds:
             if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
                 raise ConfigError(f"seeds: expected integers >= 0, got {s!r}")
+            if s > SEED_MAX:
+                raise ConfigError(f"seeds: expected integers in 0..{SEED_MAX} (a generator's seed), got {s!r}")
         if len(set(seeds)) != len(seeds):
-            raise ConfigError(f"seeds: {list(seeds)} repeats a seed (each seed is one trial)")
+            raise ConfigError(f"seeds: {_brief(seeds)} repeats a seed (each seed is one trial)")
+        points = len(set(minutes)) + 1  # the full set is always added
+        cells = len(fields) * len(models) * points * len(seeds)
+        if len(seeds) > MAX_SEEDS or cells > MAX_CELLS:
+            size = (f"{cells} cells ({_count(len(fields), 'field')} x {_count(len(models), 'model')} x "
+                    f"{_count(points, 'minute point')} x {_count(len(seeds), 'seed')})")
+            what = f"seeds: {len(seeds)} seeds make" if len(seeds) > MAX_SEEDS else "grid:"
+            raise ConfigError(f"{what} {size}; a sweep takes at most {MAX_SEEDS} seeds and {MAX_CELLS} cells: split "
+                              "it into sweeps that share the cell cache")
         if self.training is not None and not isinstance(self.training, TrainConfig):
             raise ConfigError(f"training: expected a TrainConfig or None, got {type(self.training).__name__}")
         object.__setattr__(self, "fields", fields)
@@ -156,6 +170,18 @@ class SweepGrid:
     def describe(self) -> dict[str, Any]:
         return {"fields": list(self.fields), "models": list(self.models), "minutes": list(self.minutes),
                 "full": True, "seeds": list(self.seeds), "training": self.config(0).to_dict()}
+
+
+def _brief(items: Sequence[Any], n: int = 12) -> str:
+    """A list for a message, its middle elided when long (a sweep may hold a thousand seeds)."""
+    if len(items) <= n:
+        return str(list(items))
+    head, tail = ", ".join(map(str, items[:n // 2])), ", ".join(map(str, items[-(n // 2):]))
+    return f"[{head}, ..., {tail}] ({len(items)})"
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _as_tuple(name: str, value: Any) -> tuple:

@@ -12,9 +12,11 @@ cell another sweep is computing is waited for). Every field's staged collection 
 made first, once, and its logs checked against its manifest, in this process; the
 missing cells then train in batches of ``--batch`` cells of one field and one kind,
 each batch one ensemble, as Ray tasks of one CPU: on a local Ray of ``--workers``
-CPUs (default: all cores) or, with ``--address``, on a running cluster (its nodes
-need this package installed; the cache is written here). The numbers depend
-neither on the batching nor on the nodes. The logic is `downwash.sweep`.
+CPUs (default: all usable cores, and at most those) or, with ``--address``, on a
+running cluster (its nodes need this package installed; the cache is written here).
+The numbers depend neither on the batching nor on the nodes. A local Ray is shut
+down however the sweep ends (Ctrl-C and SIGTERM included; the cells done are cached).
+The logic is `downwash.sweep`.
 
 Results: per (field, model, minutes) the mean RMSE over the seeds with a 95 %
 bootstrap CI, and the paper's claim tested seed by seed (equivariant at 5 min
@@ -28,6 +30,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from downwash.sweep import ADDRESS_TIMEOUT, address_problem, workers_problem  # cheap: no torch, no Ray
 from experiments.common import (FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
                                 ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
                                 write_results, script)
@@ -44,22 +47,29 @@ class SweepArgs(CommonArgs):
     minutes: str = arg(",".join(f"{m:g}" for m in PAPER_MINUTES), "comma list of training minutes; the full set "
                                                                     "is always added")
     seeds: str = arg(",".join(str(s) for s in range(10)), "comma list of trial seeds (each one data subset and "
-                                                          "training seed, shared by all models)")
-    workers: int = arg(0, "CPUs of the local Ray (0: all cores); unused with --address", ge=0)
-    address: str = arg("", "address of a running Ray cluster (ray start --head); default: a local Ray")
+                                                          "training seed, shared by all models); a grid too large "
+                                                          "for one sweep is refused before any work, with its size")
+    workers: int = arg(0, "CPUs of the local Ray: 0 (all usable cores) or at most the cores this machine lets the "
+                          "sweep use; unused with --address (the cluster's CPUs run the tasks) but bounded the same",
+                       ge=0, check=workers_problem)
+    address: str = arg("", "a running Ray cluster: HOST:PORT of its head (as ray start --head prints it), "
+                           "ray://HOST:PORT or auto (the one ray start runs on this machine); checked before any "
+                           f"work, nothing answering within {ADDRESS_TIMEOUT:g} s is an error; default: a local Ray",
+                       check=address_problem)
     cache_dir: str = arg("runs/cells", "folder of the cached cell results (shared with sample_efficiency)", output="dir")
     batch: int = arg(5, "cells per Ray task, trained as one ensemble of one field and one model kind (5: the "
                         "fastest per model on 2 cores)", ge=1)
 
 
 def run(args: SweepArgs) -> dict:
-    from downwash.sweep import check_execution, grid_from_text, run_sweep
+    from downwash.sweep import check_address, check_execution, grid_from_text, run_sweep
     from downwash.sweep_report import claim_text, markdown, minute_labels, plot_field, table_rows
     from downwash_core.io import atomic_write_bytes
 
     t_start = time.perf_counter()
     grid = grid_from_text(args.field, args.models, args.minutes, args.seeds, args.quick)
-    check_execution(args.workers, args.batch)
+    check_execution(args.workers, args.batch, args.address)
+    check_address(args.address)  # a cluster that is not there shows now, not after the collection
     pipelines = {spec: resolve_pipeline(PipelineArgs(seed=args.seed, quick=args.quick, field=spec))
                  for spec in grid.fields}
     results = run_sweep(grid, pipelines, args.cache_dir, workers=args.workers, address=args.address,

@@ -5,15 +5,21 @@ The first sweep computes every cell; a second run must compute none and give the
 same results; deleting (and corrupting) some cache files must recompute exactly
 those, with the numbers of the first run bit for bit although they are batched
 differently; a two-node Ray cluster driven through the command line must give the
-same numbers too. The statistics are checked on numbers whose answer is known.
+same numbers too. The statistics are checked on numbers whose answer is known. A bad
+--workers, --address or grid is refused before any work, and a sweep stopped by
+SIGTERM shuts its local Ray down.
 """
 
 import dataclasses
 import json
 import math
 import os
+import re
+import signal
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +31,7 @@ from downwash_core.errors import ConfigError
 from downwash.sweep import run_sweep
 from downwash.sweep_cells import FULL, SweepGrid, plan_cells
 from downwash.sweep_stats import Claim, bootstrap_ci, paired_comparison
-from experiments.common import PipelineArgs, parse_args, resolve_pipeline
+from experiments.common import PAIRWISE_KINDS, PipelineArgs, parse_args, resolve_pipeline
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS, MINUTES, SEEDS = ("shallow", "equivariant"), (0.1, 0.2), (0, 1, 2)
@@ -83,6 +89,112 @@ def test_bad_numbers_are_usage_errors_naming_the_flag(argv, message, tmp_path, m
         parse_args(SweepArgs, "sweep", [*argv, "--out", "out", "--cache-dir", "cells"])
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == []
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the sweep began its work (the collection) before refusing the command line")
+
+
+def _free_loopback_port() -> int:
+    """A loopback port nothing listens on (bound, then let go)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_workers_beyond_the_usable_cores_is_a_usage_error(tmp_path, monkeypatch, capsys):
+    """--workers sizes a local Ray: more CPUs than this process may use would start that many workers
+    (--workers 1000000000 asked Ray for 10^9). One line, exit 2, before any work; the help states it."""
+    from downwash.sweep import check_execution
+    from experiments.sweep import SweepArgs
+    from sim.physics import usable_cores
+
+    cores = usable_cores()
+    monkeypatch.chdir(tmp_path)
+    for workers in (cores + 1, 1_000_000_000):
+        for address in ([], ["--address", "127.0.0.1:6379"]):  # unused with --address, bounded the same
+            with pytest.raises(SystemExit) as exit_info:
+                parse_args(SweepArgs, "sweep", ["--workers", str(workers), *address, "--out", "out"])
+            err = capsys.readouterr().err
+            assert exit_info.value.code == 2 and err.count("\n") == 1
+            assert f"--workers: expected 0 (all usable cores) or 1..{cores}" in err and f"got {workers}" in err
+    assert parse_args(SweepArgs, "sweep", ["--workers", str(cores), "--out", "out"]).workers == cores
+    with pytest.raises(ConfigError, match=rf"--workers: .*1\.\.{cores}"):
+        check_execution(cores + 1, 1)  # the library's own check (run_sweep, map_on_ray, sample_efficiency)
+    # the command line of the report: one line on stderr, at once, nothing written
+    proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--workers", "1000000000"], cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "--workers" in proc.stderr, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+@pytest.mark.parametrize("address", ["nonsense", "nonsense:", ":6379", "host:0", "host:65536", "host:port",
+                                     "host:-1", "a b:6379", "http://host:6379", "host:6379/x"])
+def test_malformed_address_is_a_usage_error(address, tmp_path, monkeypatch, capsys):
+    from experiments.sweep import SweepArgs
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(SweepArgs, "sweep", ["--address", address, "--out", "out"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1
+    assert "--address: expected HOST:PORT" in err and "port 1-65535" in err and repr(address) in err
+    assert sorted(os.listdir(tmp_path)) == []
+    for good in ("auto", "127.0.0.1:6379", "head-node.cluster:6379", "ray://head:10001", "[::1]:6379"):
+        assert parse_args(SweepArgs, "sweep", ["--address", good, "--out", "out"]).address == good
+
+
+def test_address_where_nothing_answers_fails_at_once_before_any_work(tmp_path, monkeypatch):
+    """Ray retries an address where nothing answers for minutes, silently; the sweep tries a TCP
+    connection first (a few seconds at most), before the collection, and names the address."""
+    import experiments.sweep as cli
+    from experiments.sweep import SweepArgs
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli, "resolve_pipeline", _no_work)
+    address = f"127.0.0.1:{_free_loopback_port()}"
+    args = parse_args(SweepArgs, "sweep", ["--quick", "--address", address, "--out", "out", "--cache-dir", "cells"])
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=rf"^--address {re.escape(address)}: no Ray cluster answers there "
+                                          r"\(connection refused\)"):
+        cli.run(args)
+    assert time.perf_counter() - t0 < 15  # a refusal comes at once (the grid's imports included)
+    assert sorted(os.listdir(tmp_path)) == []
+
+    from downwash.sweep import check_address
+
+    with socket.socket() as listening:  # something answering there passes
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        check_address(f"127.0.0.1:{listening.getsockname()[1]}")
+    check_address("auto")  # looked up by Ray when it starts
+
+
+def test_a_grid_too_large_for_one_sweep_is_refused_naming_its_size(tmp_path, monkeypatch):
+    """Nothing bounded the seeds: a million of them planned millions of cells (and a bootstrap of a
+    million trials) after the collection. Each seed must also fit a generator's seed."""
+    import experiments.sweep as cli
+    from experiments.sweep import SweepArgs
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli, "resolve_pipeline", _no_work)
+    seeds = ",".join(map(str, range(1_000_000)))
+    args = parse_args(SweepArgs, "sweep", ["--seeds", seeds, "--out", "out", "--cache-dir", "cells"])
+    with pytest.raises(ConfigError, match="seeds: 1000000 seeds make 24000000 cells"):
+        cli.run(args)
+    assert sorted(os.listdir(tmp_path)) == []
+
+    from downwash.sweep_cells import MAX_CELLS, MAX_SEEDS, SEED_MAX
+
+    with pytest.raises(ConfigError, match=rf"seeds: {MAX_SEEDS + 1} seeds make {24 * (MAX_SEEDS + 1)} cells \(1 field "
+                                          rf"x 3 models x 8 minute points x {MAX_SEEDS + 1} seeds\)"):
+        SweepGrid(seeds=tuple(range(MAX_SEEDS + 1)))
+    with pytest.raises(ConfigError, match=rf"grid: 100800 cells \(1 field x 6 models x 21 minute points x 800 "
+                                          rf"seeds\); a sweep takes at most {MAX_SEEDS} seeds and {MAX_CELLS} cells"):
+        SweepGrid(models=PAIRWISE_KINDS, minutes=tuple(range(1, 21)), seeds=tuple(range(800)))
+    with pytest.raises(ConfigError, match=rf"seeds: expected integers in 0\.\.{SEED_MAX}"):
+        SweepGrid(seeds=(0, SEED_MAX + 1))
+    assert SweepGrid(seeds=tuple(range(MAX_SEEDS - 1)) + (SEED_MAX,)).seeds[-1] == SEED_MAX
 
 
 # -- statistics ---------------------------------------------------------------------------------
@@ -296,3 +408,54 @@ def test_command_line_on_a_cached_sweep(first, workdir):
     assert out["provenance"]["pipelines"][""]["pipeline_key"] == results["fields"][""]["collection_key"]
     assert "| equivariant |" in (workdir / "cli" / "results.md").read_text()
     assert (workdir / "cli" / "sweep.png").stat().st_size > 0
+
+
+def _alive(process) -> bool:
+    import psutil
+
+    try:
+        return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
+
+
+def test_sigterm_ends_the_sweep_and_its_local_ray(first, workdir):
+    """A sweep killed by SIGTERM (kill, a scheduler's time limit) must shut its local Ray down and say so:
+    Ray's core answered the signal by aborting the process, which left the cluster's processes (``ray::``
+    workers, children of no one) running in the project folder. A rerun resumes from the cached cells."""
+    import ray  # noqa: F401  (its copy of psutil comes on the path with it)
+    import psutil
+
+    seeds = ",".join(map(str, range(300)))  # far more cells than land in the few seconds before the signal
+    cmd = [sys.executable, "-m", "experiments.sweep", "--quick", "--models", ",".join(MODELS), "--minutes",
+           ",".join(map(str, MINUTES)), "--seeds", seeds, "--cache-dir", "sigterm_cells", "--out", "sigterm",
+           "--batch", "1"]
+    proc = subprocess.Popen(cmd, cwd=workdir, env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    driver, seen = psutil.Process(proc.pid), []
+    try:
+        deadline = time.monotonic() + 120
+        while not any((workdir / "sigterm_cells").rglob("*.json")):  # Ray is up and computing
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[1][-3000:]
+            time.sleep(0.2)
+        seen = driver.children(recursive=True)
+        assert any("ray::" in " ".join(p.cmdline()) for p in seen if _alive(p))
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+        assert "sweep stopped by SIGTERM" in err and "the same command computes the rest" in err
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in seen) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        left = [" ".join(p.cmdline())[:80] for p in seen if _alive(p)]
+        assert not left, left
+        strays = []  # ray:: processes of this run that began after the list was taken
+        for p in psutil.process_iter(["cmdline", "cwd"]):
+            if "ray::" in " ".join(p.info["cmdline"] or []) and p.info["cwd"] == str(workdir) and _alive(p):
+                strays.append(p.info["cmdline"][0])
+        assert not strays, strays
+    finally:  # a failing run leaves nothing behind either
+        for p in [driver, *seen]:
+            if _alive(p):
+                p.kill()
+        proc.communicate()
