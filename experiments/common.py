@@ -485,12 +485,18 @@ def run_main(main: Callable[[], Any]) -> None:
     """Run an experiment's `main` on the command line: the one path of `python -m experiments.X`
     and of the console scripts. An expected error (`TestbedError`: a bad option, a bad file)
     prints `error: <message>` to stderr and exits 2 (ConfigError) or 1 (DataError and the
-    rest), without a traceback, unless --debug was given; a bug keeps its traceback. Returns
-    None, so that a finished run exits 0."""
+    rest), without a traceback, unless --debug was given; a bug keeps its traceback. Ctrl-C
+    (or a SIGTERM that the run turned into one) prints one line and exits 130: what was written
+    is kept and a rerun resumes. Returns None, so that a finished run exits 0."""
     global _debug
     _debug = False  # parse_args sets it from this run's --debug
     try:
         main()
+    except KeyboardInterrupt:
+        if _debug or "--debug" in sys.argv[1:]:
+            raise
+        print("stopped: interrupted; what was written is kept, and the same command resumes", file=sys.stderr)
+        raise SystemExit(130) from None
     except TestbedError as e:
         if _debug or "--debug" in sys.argv[1:]:
             raise

@@ -424,6 +424,10 @@ def test_run_main_exit_status_by_kind():
     assert proc.returncode == 1 and "Traceback" in proc.stderr and "ZeroDivisionError" in proc.stderr
     proc = _run_main("return {'results': 1}")
     assert (proc.returncode, proc.stderr) == (0, "")
+    proc = _run_main("raise KeyboardInterrupt")  # Ctrl-C: one line, the shell's 128 + SIGINT
+    assert proc.returncode == 130 and proc.stderr.startswith("stopped: interrupted;") and proc.stderr.count("\n") == 1
+    proc = _run_main("raise KeyboardInterrupt", "--debug")
+    assert proc.returncode != 130 and "Traceback" in proc.stderr
 
 
 def test_every_experiment_runs_main_through_run_main():
