@@ -8,6 +8,8 @@ command line is parsed, before any work.
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import math
 import sys
 from typing import Any, Callable, Sequence
@@ -65,8 +67,9 @@ def registered_field_names() -> tuple[str, ...]:
 
 def field_check(spec: str) -> str | None:
     """A `check` for a `--field` spec: the grammar of `sim.fields.registry.parse_field_spec` and its
-    names, without loading the registry (numba). Parameters and import paths are checked when the
-    field is loaded (`load_field`), still before any work."""
+    names, without loading the registry (numba); for MODULE:FACTORY, that the module imports and the
+    factory is a callable that takes no arguments. Parameters and what the factory returns are
+    checked when the field is loaded (`load_field`), still before any work."""
     text = spec.strip()
     if not text:
         return None
@@ -83,6 +86,25 @@ def field_check(spec: str) -> str | None:
                 "no KEY=VALUE parameters)")
     if ":" in tail or not head or not tail:
         return f"expected a registered field ({registered}) or MODULE:FACTORY (e.g. mypkg.fields:make_field)"
+    return _factory_problem(head, tail)
+
+
+def _factory_problem(module: str, name: str) -> str | None:
+    """What is wrong with MODULE:FACTORY as a field factory that can be seen without calling it, else None."""
+    try:
+        factory = getattr(importlib.import_module(module), name)
+    except ImportError as e:
+        return f"cannot import {module!r} ({e})"
+    except AttributeError:
+        return f"module {module!r} has no {name!r}"
+    if not callable(factory):
+        return f"{module}:{name} is a {type(factory).__name__}, not a function that returns a field"
+    try:
+        inspect.signature(factory).bind()
+    except TypeError as e:  # it needs arguments the experiment cannot give
+        return f"{module}:{name} must take no arguments and return a field ({e})"
+    except ValueError:  # a builtin without a signature: its call tells
+        pass
     return None
 
 

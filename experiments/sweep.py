@@ -63,13 +63,14 @@ class SweepArgs(CommonArgs):
 
 def run(args: SweepArgs) -> dict:
     from downwash.sweep import check_address, check_execution, grid_from_text, run_sweep
+
+    check_address(args.address)  # a cluster that is not there shows now, before the stack is imported
     from downwash.sweep_report import claim_text, markdown, minute_labels, plot_field, table_rows
     from downwash_core.io import atomic_write_bytes
 
     t_start = time.perf_counter()
     grid = grid_from_text(args.field, args.models, args.minutes, args.seeds, args.quick)
     check_execution(args.workers, args.batch, args.address)
-    check_address(args.address)  # a cluster that is not there shows now, not after the collection
     pipelines = {spec: resolve_pipeline(PipelineArgs(seed=args.seed, quick=args.quick, field=spec))
                  for spec in grid.fields}
     results = run_sweep(grid, pipelines, args.cache_dir, workers=args.workers, address=args.address,
