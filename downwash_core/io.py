@@ -109,14 +109,15 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_bytes(path, (to_json(obj, indent=2) + "\n").encode())
 
 
-def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
-    """Remove the temporary files that killed writers left in `folder` and its subfolders (``.*.tmp``,
-    as `atomic_path` names them); returns them. Only under the folder's lock
-    (`downwash_core.locks.folder_lock`): a live writer in the folder would lose its file."""
+def remove_temporaries(folder: str | os.PathLike, recursive: bool = True) -> list[Path]:
+    """Remove the temporary files that killed writers left in `folder` (and, with `recursive`, its
+    subfolders): ``.*.tmp``, as `atomic_path` names them; returns them. Only under the lock of every
+    folder searched (`downwash_core.locks.folder_lock`): a live writer there would lose its file."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    stale = [p for p in folder.rglob(f".*{_TEMPORARY_SUFFIX}") if p.is_file() and not p.is_symlink()]
+    found = folder.rglob if recursive else folder.glob
+    stale = [p for p in found(f".*{_TEMPORARY_SUFFIX}") if p.is_file() and not p.is_symlink()]
     for p in stale:
         p.unlink(missing_ok=True)
     return stale

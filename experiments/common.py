@@ -431,8 +431,11 @@ def out_lock(args: Any, name: str) -> Iterator[None]:
     """Hold the lock of the run's --out folder (`args.out`) for the block, so that two runs on one
     folder never mix their files: the second waits for the first (logging once which process holds
     it), then runs, as a second collection on a pipeline folder does (`downwash_core.locks`). A killed
-    holder lets go at once. The lock file goes on release, and so do the folders the lock had to make
-    if the run left them empty (a run refused after parsing leaves nothing behind)."""
+    holder lets go at once. The temporary files a killed run left beside the results go first (the
+    folder itself, not its subfolders, which may be other runs' folders under locks of their own).
+    The lock file goes on release, and so do the folders the lock had to make if the run left them
+    empty (a run refused after parsing leaves nothing behind)."""
+    from downwash_core.io import remove_temporaries
     from downwash_core.locks import LOCK_NAME, file_lock
 
     out = Path(args.out)
@@ -442,6 +445,7 @@ def out_lock(args: Any, name: str) -> Iterator[None]:
         q = q.parent
     try:
         with file_lock(out / LOCK_NAME, label=f"python -m experiments.{name}", target=out, remove=True):
+            remove_temporaries(out, recursive=False)
             yield
     finally:
         for d in made:

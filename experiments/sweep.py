@@ -33,7 +33,7 @@ from pathlib import Path
 from downwash.sweep import ADDRESS_TIMEOUT, address_problem, workers_problem  # cheap: no torch, no Ray
 from experiments.common import (FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
                                 ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
-                                write_results, script)
+                                out_lock, write_results, script)
 
 __all__ = ["SweepArgs", "run", "main"]
 
@@ -104,7 +104,9 @@ def run(args: SweepArgs) -> dict:
 
 def main(argv=None) -> dict:
     setup_logging()
-    return run(parse_args(SweepArgs, "sweep", argv, __doc__))
+    args = parse_args(SweepArgs, "sweep", argv, __doc__)
+    with out_lock(args, "sweep"):
+        return run(args)
 
 
 cli = script(main)  # the console script (pyproject.toml)

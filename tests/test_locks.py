@@ -182,7 +182,7 @@ def test_a_waiter_makes_the_folder_again_when_the_holder_removed_it(tmp_path):
 RUNS = {"lemniscate": "tracking", "transect": "tracking", "outdoor": "outdoor", "swarm": "swarm",
         "sample_efficiency": "sample_efficiency", "staged_collection": "staged_collection",
         "force_maps": "force_maps", "train": "train", "fields": "fields", "vehicles": "vehicles",
-        "benchmark": "benchmark"}
+        "benchmark": "benchmark", "sweep": "sweep"}
 
 
 def _held_here(lock: Path) -> bool:
@@ -220,6 +220,21 @@ def test_every_experiment_holds_its_out_folder_for_the_whole_run(tmp_path, monke
     assert not (out / LOCK_NAME).exists()
     if name != "benchmark":  # its main writes results.json itself
         assert not (tmp_path / "a").exists()  # the folders the lock made, left empty, are gone again
+
+
+def test_a_run_removes_what_a_killed_run_left_half_written_in_its_out_folder(tmp_path, monkeypatch):
+    """A run killed while writing results.json leaves its temporary file; the next run on the folder
+    removes it under the lock, and leaves the subfolders (other runs' folders, their own locks) alone."""
+    import experiments.vehicles as vehicles
+
+    out = tmp_path / "out"
+    (out / "nested").mkdir(parents=True)
+    stale, other = out / ".results.json.x1y2z3.tmp", out / "nested" / ".log.npz.a1b2.tmp"
+    stale.write_text("{half")
+    other.write_text("another run's")
+    monkeypatch.setattr(vehicles, "run", lambda args: {})
+    vehicles.main(["--out", str(out)])
+    assert not stale.exists() and other.exists()
 
 
 def test_a_second_run_on_one_out_folder_waits_for_the_first(tmp_path):
