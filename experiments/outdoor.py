@@ -29,7 +29,7 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -69,26 +69,24 @@ def _speeds_check(text: str) -> str | None:
     return None
 
 
-def _winds_check(text: str) -> str | None:
-    winds = _items(text)
-    if len(set(winds)) != len(winds):
-        return f"duplicate winds in {winds}"
-    for spec in winds:
-        problem = wind_check(spec)
-        if problem:
-            return f"--wind: {problem}"  # each item is a --wind spec
-    return None
+def _each(check: Callable[[str], str | None], option: str, what: str) -> Callable[[str], str | None]:
+    """A `check` for a ;-list of distinct specs, each one that `option` takes (its `check`)."""
+
+    def items_check(text: str) -> str | None:
+        items = _items(text)
+        if len(set(items)) != len(items):
+            return f"duplicate {what} in {items}"
+        for spec in items:
+            problem = check(spec)
+            if problem:
+                return f"{option}: {problem}"
+        return None
+
+    return items_check
 
 
-def _fields_check(text: str) -> str | None:
-    fields = _items(text)
-    if len(set(fields)) != len(fields):
-        return f"duplicate truths in {fields}"
-    for spec in fields:
-        problem = field_check(spec)
-        if problem:
-            return f"--field: {problem}"  # each item is a --field spec
-    return None
+_winds_check = _each(wind_check, "--wind", "winds")
+_fields_check = _each(field_check, "--field", "truths")
 
 
 @dataclass(frozen=True)
