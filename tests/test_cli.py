@@ -27,7 +27,7 @@ from experiments.common import parse_args, read_config, script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
-           "outdoor", "swarm", "benchmark", "report", "vehicles")
+           "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
@@ -36,6 +36,7 @@ CHOICES = {
     "swarm": (*common.PRESETS, *common.AGGREGATIONS), "sweep": common.PAIRWISE_KINDS,
     "sample_efficiency": common.PAIRWISE_KINDS, "train": common.PAIRWISE_KINDS,
     "vehicles": ("paper_quad", "crazyflie_2_1", "x500"),
+    "real_flights": ("shallow", "deep", "equivariant", "equivariant_general"),
 }
 HELP = """
 import runpy, sys

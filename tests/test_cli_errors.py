@@ -28,7 +28,7 @@ from experiments.common import CommonArgs, arg, check_writable, parse_args
 ROOT = Path(__file__).resolve().parents[1]
 # every experiment built on the argument dataclasses (replay has its own positional parser)
 EXPERIMENTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train",
-               "fields", "outdoor", "swarm", "benchmark", "report", "vehicles")
+               "fields", "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 
 

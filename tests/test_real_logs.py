@@ -181,18 +181,18 @@ MASS = NEURAL_SWARM_VEHICLES["small"].mass
 MAP = NEURAL_SWARM_VEHICLES["small"].thrust_map
 
 
-def _pwm_for(grams: np.ndarray, vbat: np.ndarray) -> np.ndarray:
-    """The PWM (0-65535) at which one rotor of the small vehicle gives `grams` at battery `vbat` V."""
-    v = vbat / 4.2
-    a, b, c = MAP.c20, MAP.c10 + MAP.c11 * v, MAP.c00 + MAP.c01 * v - grams
+def _pwm_for(grams: np.ndarray, vbat: np.ndarray, frame: str = "small") -> np.ndarray:
+    """The PWM (0-65535) at which one rotor of a frame gives `grams` at battery `vbat` V."""
+    m, v = NEURAL_SWARM_VEHICLES[frame].thrust_map, vbat / 4.2
+    a, b, c = m.c20, m.c10 + m.c11 * v, m.c00 + m.c01 * v - grams
     return (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a) * 65536
 
 
 def _neural_swarm_columns(t: np.ndarray, z: np.ndarray, thrust: np.ndarray, vbat: np.ndarray,
-                          tick0: int = 123_456) -> dict:
-    """A level vehicle at (0.1, -0.2, z) m with total thrust `thrust` N, as the firmware logs it."""
+                          tick0: int = 123_456, frame: str = "small") -> dict:
+    """A level vehicle of a frame at (0.1, -0.2, z) m with total thrust `thrust` N, as the firmware logs it."""
     n = len(t)
-    pwm = np.round(_pwm_for(thrust / 4 / GRAVITY * 1e3, vbat)).astype(np.uint32)
+    pwm = np.round(_pwm_for(thrust / 4 / GRAVITY * 1e3, vbat, frame)).astype(np.uint32)
     cols = {"tick": ("I", (tick0 + np.round(t * 1e6)).astype(np.int64) % 2**32)}
     for axis, value in zip("xyz", (np.full(n, 100), np.full(n, -200), np.round(z * 1e3))):
         cols[f"stateEstimateZ.{axis}"] = ("h", value)
