@@ -7,7 +7,8 @@ PATH is a clone of the Neural-Swarm repository (github.com/aerorobotics/neural-s
 carries no licence, so the testbed holds none of its files: point at your own clone) or its
 ``data/training`` folder. `--train` and `--test` each take a comma list of globs of task
 folders relative to that folder, so a day, a task or a vehicle kind can be held out (the
-default trains on the days of 2019 and June 16-19 2020 and tests on June 23 2020).
+default tests on June 16 2020, the day whose flights hold every interaction type of two and
+three vehicles, and trains on the four other days).
 
 Every flight is read exactly (`downwash.real_logs`: a file that is not exactly its format is
 rejected, named, with the byte offset), its vehicles aligned at their first ticks (a swap
@@ -63,9 +64,10 @@ def _folder_check(text: str) -> str | None:
 class RealFlightsArgs(CommonArgs):
     data: str = arg("", "the Neural-Swarm data set: a clone of its repository or its data/training folder",
                     check=_folder_check)
-    train: str = arg("datacollection19*/*,datacollection20*/*,datacollection21*/*,datacollection22*/*",
+    train: str = arg("datacollection19*/*,datacollection20*/*,datacollection22*/*,datacollection23*/*",
                      "comma list of globs of the task folders to train on, relative to --data", check=_globs_check)
-    test: str = arg("datacollection23*/*", "comma list of globs of the task folders to test on", check=_globs_check)
+    test: str = arg("datacollection21*/*", "comma list of globs of the task folders to test on (default: the day "
+                    "whose flights hold every interaction type)", check=_globs_check)
     models: str = arg(DEFAULT_MODELS, f"comma list of the models to train, of {', '.join(_PAIR_KINDS)}",
                       check=names_check(_PAIR_KINDS))
     stride: int = arg(2, "keep every stride-th sample of the 100 Hz labels (2: the controller's 50 Hz)", ge=1, le=100)

@@ -94,7 +94,17 @@ def _fakes():
                      for law in ("linear", "velocity")}
     swarm = {"conditions": swarm_names, "seeds": [0, 1, 2], "summary": swarm_summary,
              "laws": {law: {"law": {"name": law}} for law in ("linear", "velocity")}}
+    real = {"data": "ns/data/training", "files": 512, "records": 1895894, "flights": {"train": 184, "test": 43},
+            "rejected": [], "read_seconds": 1.93, "samples": {"train": 470961, "test": 401096, "stride": 2},
+            "free_air_label": {"n": 270902, "mean": [0.00683, 0.00545, 0.000341], "scatter": [0.318, 0.372, 0.632]},
+            "no_model_rmse": 0.54, "wall_seconds": 61.0,
+            "models": {k: {"rmse": 0.47, "epochs": 30, "seconds": 9.5, "n_train_pairs": 573848}
+                       for k in ("shallow", "deep", "equivariant", "equivariant_general")},
+            "per_type": {"L2S": {"n_train": 23371, "n_test": 19360, "rmse": {"none": 0.9332, "shallow": 0.6443,
+                                                                         "deep": 0.611, "equivariant": 0.5954,
+                                                                         "equivariant_general": 0.5987}}}}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
+            "real_flights": ("experiments.real_flights", "RealFlightsArgs", real),
             "outdoor": ("experiments.outdoor", "OutdoorArgs", outdoor),
             "swarm": ("experiments.swarm", "SwarmArgs", swarm),
             "field_table": ("experiments.fields", "FieldsArgs", field_table),
@@ -182,6 +192,10 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
         assert f"| {st['stage']} | {st['separation'][0]:g}-{st['separation'][1]:g} | 5.70 | {st['samples']} |" in text
     assert "| 1 |" in text and "stage0 equivariant | 0.135 |" in text and "stage1 equivariant | 0.205 |" in text
     assert "| equivariant | 0.105 | 13.0 % | 8.04 |" in text and "| deep | 0.133 | 42.9 % | 21.7 |" in text
+    # real flights: the models in the order asked for, the lowest error of a row in bold
+    assert "| type | train | test | no model | shallow | deep | equivariant | equivariant_general |" in text
+    assert "| `L2S` | 23371 | 19360 | 0.933 | 0.644 | 0.611 | **0.595** | 0.599 |" in text
+    assert "512 files, 227 flights (0 rejected), 1895894 vehicle records" in text
     assert "0.0931 m/s^2" in text and "Failed flights (1): flight 7: ground collision" in text and "95.3 s" in text
     assert "17.1 min of training data, 17.1 min of validation" in text
 

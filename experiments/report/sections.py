@@ -17,7 +17,7 @@ from experiments.report.formatting import ORDER, _ordered, _table, fmt, pct, sho
 __all__ = [
     "TRACKED", "PAPER_RMSE", "RENDERERS", "render_machine", "render_provenance", "render_staged", "render_efficiency",
     "render_tracking", "render_outdoor", "render_swarm", "render_force_maps", "render_benchmark", "render_field_table",
-    "worst_cases", "render_worst_cases", "RENDER_ERRORS", "render_error",
+    "render_real_flights", "worst_cases", "render_worst_cases", "RENDER_ERRORS", "render_error",
 ]
 
 TRACKED = ("pos_err_3d_mean", "pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean")
@@ -449,10 +449,38 @@ def render_field_table(r: dict, label: str) -> str:
         _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate", "wall (s)"], rows)])
 
 
+def render_real_flights(r: dict, label: str) -> str:
+    """Real flights: what was read, and per interaction type each model's test error beside none."""
+    a = r["args"]
+    kinds = [k for k in a["models"].split(",") if k in r["models"]]  # in the order asked for
+    rejected = r["rejected"]
+    free = r["free_air_label"]
+    rows = []
+    for name, t in r["per_type"].items():
+        errs = [t["rmse"]["none"], *(t["rmse"][k] for k in kinds)]
+        best = min(range(len(errs)), key=lambda i: errs[i])
+        rows.append([f"`{name}`", str(t["n_train"]), str(t["n_test"])]
+                    + [f"**{fmt(e)}**" if i == best and len(set(errs)) > 1 else fmt(e) for i, e in enumerate(errs)])
+    return "\n\n".join([
+        "The paper's models trained and judged on real flights: the Neural-Swarm data set's onboard logs (Shi et al., "
+        "github.com/aerorobotics/neural-swarm; Crazyflie 2.x vehicles of a small and a large frame), read by "
+        f"`python -m experiments.real_flights` ([how](real-flights.md)): {r['files']} files, "
+        f"{sum(r['flights'].values())} flights ({len(rejected)} rejected), {r['records']} vehicle records at 100 Hz, "
+        f"read and converted in {r['read_seconds']:.1f} s. Trained on `{a['train']}` ({r['samples']['train']} samples, "
+        f"one in {r['samples']['stride']} of the labels), tested on `{a['test']}` ({r['samples']['test']}). The labels of vehicles "
+        f"with none above, away from the ground, scatter by {', '.join(fmt(x) for x in free['scatter'])} m/s^2 (x, y, "
+        f"z) about a mean of {', '.join(fmt(x) for x in free['mean'])}: each frame's thrust map and the neighbours "
+        "beside and below.",
+        "Test RMSE per interaction type (m/s^2, over the three axes; `S2L`: a small vehicle above a large one, `SL2S`: a "
+        "small and a large above a small one, `Ge2S`: near the ground with none above, `none2S`: free air). Pair models "
+        f"read the nearest other vehicle only; the lowest error of each row is in bold (`{label}`):",
+        _table(["type", "train", "test", "no model", *kinds], rows)])
+
+
 RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
              "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
              "swarm": render_swarm,
-             "field_table": render_field_table, "benchmark": render_benchmark}
+             "field_table": render_field_table, "real_flights": render_real_flights, "benchmark": render_benchmark}
 
 
 # What a results file of the right keys but wrong values raises in a renderer (a string where a number
