@@ -469,8 +469,7 @@ def render_real_flights(r: dict, label: str) -> str:
         f"read and converted in {r['read_seconds']:.1f} s. Trained on `{a['train']}` ({r['samples']['train']} samples, "
         f"one in {r['samples']['stride']} of the labels), tested on `{a['test']}` ({r['samples']['test']}). The labels of vehicles "
         f"with none above, away from the ground, scatter by {', '.join(fmt(x) for x in free['scatter'])} m/s^2 (x, y, "
-        f"z) about a mean of {', '.join(fmt(x) for x in free['mean'])}: each frame's thrust map and the neighbours "
-        "beside and below.",
+        f"z) about a mean of {', '.join(fmt(x) for x in free['mean'])}.",
         "Test RMSE per interaction type (m/s^2, over the three axes; `S2L`: a small vehicle above a large one, `SL2S`: a "
         "small and a large above a small one, `Ge2S`: near the ground with none above, `none2S`: free air). Pair models "
         f"read the nearest other vehicle only; the lowest error of each row is in bold (`{label}`):",
