@@ -24,6 +24,7 @@ from downwash.labels import label_noise_floor, labels_from_log, log_kinds, secon
 from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, compress_quaternions,
                                               decompress_quaternions, encode_usd_sync, read_usd_sync, write_usd_sync)
 from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, motor_lag, read_flight, setpoint_offset
+from downwash.real_logs.tabular import CSV_LAYOUT, TabularFormatError, read_csv_flight, write_csv_flight
 from sim.logs import TRUTH_ARRAYS, FlightLog, load_log, save_log
 
 
@@ -309,3 +310,68 @@ def test_the_motor_lag_is_a_first_order_response(tmp_path):
     np.testing.assert_allclose(slow["u_cmd"][-1], fast["u_cmd"][-1], atol=1e-6)
     with pytest.raises(ConfigError, match=r"motor_time_constant: allowed \(0, 1\] s or None"):
         read_flight([path], motor_time_constant=0.0)
+
+
+# ----------------------------------------------------------------------------- the documented CSV layout
+
+
+def _csv_vehicle(t, z, force, mass=0.05, kind=None, yaw=0.3):
+    """A vehicle hovering at (0.2, 0.1, z) with heading `yaw` while `force` (m/s^2, vertical) acts on it."""
+    n = len(t)
+    cols = {"t": t, "x": 0.2, "y": 0.1, "z": z, "vx": 0.0, "vy": 0.0, "vz": 0.0,
+            "qw": np.cos(yaw / 2), "qx": 0.0, "qy": 0.0, "qz": np.sin(yaw / 2),
+            "ref_x": 0.2, "ref_y": 0.1, "ref_z": z, "ref_vx": 0.0, "ref_vy": 0.0, "ref_vz": 0.0,
+            "thrust": np.full(n, mass * (GRAVITY - force)), "mass": mass}
+    return {**cols, **({"kind": kind} if kind else {})}
+
+
+def test_a_csv_flight_reads_back_and_labels_the_known_force(tmp_path):
+    """Two vehicles on one clock, sampled at other rates and times (120 Hz and 90 Hz, starting 0.1 s
+    apart): one grid from the later start, the heading and u from the thrust, and the labels the force."""
+    ta, tb = np.arange(0.0, 20.0, 1 / 120), np.arange(0.1, 19.0, 1 / 90)
+    path = tmp_path / "flight.csv"
+    write_csv_flight(path, {"top": _csv_vehicle(ta, 1.2, 0.0, kind="crazyflie_2_1"),
+                            "low": _csv_vehicle(tb, 0.7, -0.6, mass=0.07, kind="crazyflie_2_1")})
+    log = read_csv_flight(path)
+    assert log.real and log.meta["vehicles"] == ["top", "low"] and log.meta["kinds"] == ["crazyflie_2_1"] * 2
+    assert log.meta["source"]["files"][0]["format"] == CSV_LAYOUT and log.meta["config"]["start_s"] == 0.1
+    end = math.floor((min(ta[-1], tb[-1]) - 0.1) * 100 + 1e-9) / 100  # the earlier last sample, from the later start
+    assert log["t"][0] == 0.0 and log["t"][-1] == pytest.approx(end) and np.allclose(np.diff(log["t"]), 0.01)
+    np.testing.assert_allclose(log["yaw_est"], 0.3, atol=1e-12)
+    np.testing.assert_allclose(log["u_cmd"][:, 1], [[0.0, 0.0, 0.6]] * len(log), atol=1e-12)  # T/m - g = -f
+    lab = labels_from_log(log, targets="all")
+    np.testing.assert_allclose(lab["y"][lab["vehicle"] == 1], [[0.0, 0.0, -0.6]] * int(np.sum(lab["vehicle"] == 1)),
+                               atol=1e-9)
+    assert np.isfinite(lab["kind_b"]).all() and log_kinds(log) == ["crazyflie_2_1"] * 2
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda h, r: (h.replace("x[m]", "x[mm]"), r), r"line 1: unit mismatch: column 'x\[mm\]' is in mm; this layout takes x\[m\]"),
+    (lambda h, r: (h.replace(",thrust[N]", ",push[N]"), r), r"line 1: no column thrust\[N\]"),
+    (lambda h, r: (h, [r[0].replace("0.2,", "abc,", 1), *r[1:]]), r"line 2: column 'x\[m\]': not a finite number: 'abc'"),
+    (lambda h, r: (h, [r[0].replace("0.2,", "nan,", 1), *r[1:]]), r"line 2: column 'x\[m\]': not a finite number"),
+    (lambda h, r: (h, [r[1], r[0], *r[2:]]), r"line 3: vehicle 'a': time 0 s does not increase \(the last was 0.01 s\)"),
+    (lambda h, r: (h, [r[0].rsplit(",", 2)[0] + ",0.09,", *r[1:]]), r"line 3: vehicle 'a' changes its mass or kind \(\(0.09, None\) before"),
+    (lambda h, r: (h, [",".join(r[0].split(",")[:5]), *r[1:]]), r"line 2: 5 values, the header has"),
+])  # fmt: skip
+def test_a_csv_flight_that_is_not_the_layout_is_named(tmp_path, edit, message):
+    path = tmp_path / "f.csv"
+    write_csv_flight(path, {"a": _csv_vehicle(np.arange(0.0, 1.0, 0.01), 1.0, 0.0)})
+    header, *rows = path.read_text().splitlines()
+    header, rows = edit(header, rows)
+    path.write_text("\n".join([header, *rows]) + "\n")
+    with pytest.raises(TabularFormatError, match=rf"^{path}: {message}"):
+        read_csv_flight(path)
+
+
+def test_a_csv_flight_with_an_unknown_kind_or_no_overlap_is_named(tmp_path):
+    write_csv_flight(tmp_path / "k.csv", {"a": _csv_vehicle(np.arange(0.0, 1.0, 0.01), 1.0, 0.0, kind="blimp")})
+    with pytest.raises(TabularFormatError, match=r"vehicle 'a': unknown kind 'blimp' \(registered: paper_quad"):
+        read_csv_flight(tmp_path / "k.csv")
+    write_csv_flight(tmp_path / "o.csv", {"a": _csv_vehicle(np.arange(0.0, 1.0, 0.01), 1.0, 0.0),
+                                          "b": _csv_vehicle(np.arange(2.0, 3.0, 0.01), 1.0, 0.0)})
+    with pytest.raises(TabularFormatError, match="do not overlap in time"):
+        read_csv_flight(tmp_path / "o.csv")
+    (tmp_path / "bin.csv").write_bytes(b"\xff\xfe")
+    with pytest.raises(TabularFormatError, match=r"bin.csv: byte 0: not UTF-8 text"):
+        read_csv_flight(tmp_path / "bin.csv")

@@ -39,9 +39,8 @@ from typing import Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.geometry import quat_to_mat
 from downwash_core.params import GRAVITY
-from downwash_core.status import Status
+from downwash.real_logs.convert import real_flight, resample, vehicle_arrays
 from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_quaternions, read_usd_sync
 from sim.logs import FlightLog
 
@@ -145,11 +144,6 @@ def _seconds(log: UsdLog) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)]) * 1e-6
 
 
-def _resample(t: np.ndarray, grid: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """values (N, C) at times t (N,), linear at grid (G,)."""
-    return np.stack([np.interp(grid, t, values[:, c]) for c in range(values.shape[1])], axis=1)
-
-
 def motor_lag(thrust: np.ndarray, dt: float, time_constant: float | None) -> np.ndarray:
     """thrust (N,) sampled every dt s through a first-order lag of `time_constant` s (exact for a
     thrust held over each step), from rest at its first value; None: unchanged."""
@@ -166,27 +160,14 @@ def motor_lag(thrust: np.ndarray, dt: float, time_constant: float | None) -> np.
 def _vehicle_arrays(log: UsdLog, vehicle: LoggedVehicle, t: np.ndarray, grid: np.ndarray,
                     time_constant: float | None) -> dict[str, np.ndarray]:
     f = log.fields
-    col = lambda *names: np.stack([f[n].astype(np.float64) for n in names], axis=1)  # noqa: E731
-    quat = decompress_quaternions(f["stateEstimateZ.quat"])
-    quat *= np.where(np.cumsum(np.r_[0, np.sum(quat[1:] * quat[:-1], axis=1) < 0]) % 2 == 1, -1.0, 1.0)[:, None]
-    quat = _resample(t, grid, quat)  # one hemisphere, so that the components interpolate
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    pwm = _resample(t, grid, col(*(f"pwm.m{i}_pwm" for i in range(1, 5))))
+    col = lambda *names, scale=1e-3: np.stack([f[n].astype(np.float64) for n in names], axis=1) * scale  # noqa: E731
+    pwm = resample(t, grid, col(*(f"pwm.m{i}_pwm" for i in range(1, 5)), scale=1.0))
     vbat = np.interp(grid, t, f["pm.vbatMV"].astype(np.float64)) * 1e-3
     thrust = motor_lag(vehicle.thrust_map.thrust(pwm, vbat).sum(axis=1), float(grid[1] - grid[0]), time_constant)
-    body_z = quat_to_mat(quat)[..., 2]  # R e3, world frame
-    pos = _resample(t, grid, col(*(f"stateEstimateZ.{a}" for a in "xyz"))) * 1e-3
-    w, x, y, z = quat.T
-    return {
-        "pos_est": pos, "mocap_pos": pos,
-        "vel_est": _resample(t, grid, col(*(f"stateEstimateZ.v{a}" for a in "xyz"))) * 1e-3,
-        "quat_est": quat, "yaw_est": np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
-        "ref_pos": _resample(t, grid, col(*(f"ctrltargetZ.{a}" for a in "xyz"))) * 1e-3,
-        "ref_vel": _resample(t, grid, col(*(f"ctrltargetZ.v{a}" for a in "xyz"))) * 1e-3,
-        "ref_acc": np.zeros((grid.size, 3)),
-        "u_cmd": body_z * (thrust / vehicle.mass)[:, None] - np.array([0.0, 0.0, GRAVITY]),
-        "f_hat": np.full((grid.size, 3), np.nan),
-    }  # fmt: skip
+    return vehicle_arrays(
+        t, grid, pos=col(*(f"stateEstimateZ.{a}" for a in "xyz")), vel=col(*(f"stateEstimateZ.v{a}" for a in "xyz")),
+        quat=decompress_quaternions(f["stateEstimateZ.quat"]), ref_pos=col(*(f"ctrltargetZ.{a}" for a in "xyz")),
+        ref_vel=col(*(f"ctrltargetZ.v{a}" for a in "xyz")), thrust=thrust, mass=vehicle.mass)
 
 
 def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], names: Sequence[str],
@@ -206,15 +187,12 @@ def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], 
     end = min(t[-1] for t in times)
     grid = np.arange(int(math.floor(end * rate_hz)) + 1) / rate_hz
     per = [_vehicle_arrays(log, v, t, grid, motor_time_constant) for log, v, t in zip(logs, vehicles, times)]
-    arrays = {"t": grid, **{name: np.stack([p[name] for p in per], axis=1) for name in per[0]}}
-    meta = {
+    return real_flight(grid, per, {
         "source": {"format": logs[0].source.get("format"), "files": [dict(log.source) for log in logs]},
         "vehicles": list(names), "frames": [v.name for v in vehicles], "masses": [v.mass for v in vehicles],
-        "leader": -1, "status": Status.OK, "status_name": Status.OK.label, "message": "", "seed": None,
         "config": {"rate_hz": rate_hz, "motor_time_constant": motor_time_constant,
                    "thrust_maps": {v.name: v.thrust_map.source for v in vehicles}},
-    }  # fmt: skip
-    return FlightLog(arrays, meta)
+    })
 
 
 def read_flight(files: Sequence[str | os.PathLike], rate_hz: float = 100.0,
