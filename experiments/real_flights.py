@@ -21,7 +21,8 @@ Writes results.json (counts of files, flights, records and rejections, the readi
 label scatter in free air, per type the samples and each model's RMSE) and a table.
 
 ``decode FILE --csv OUT`` writes one onboard log's records with the log's own field names
-and raw values, for checking a reader against another decoder.
+and raw values, for checking a reader against another decoder (the synchronous format, or
+the current event-based one: one file per event, ``OUT``'s stem and the event's name).
 """
 
 from __future__ import annotations
@@ -160,29 +161,45 @@ def run(args: RealFlightsArgs) -> dict:
     return results
 
 
-def decode(file: str, out_csv: str) -> Path:
-    """Write the records of `file` (a uSD deck log) to `out_csv`: one column per field, raw values."""
-    from downwash.real_logs.crazyflie_usd import read_usd_sync
+def _write_csv(path: Path, log) -> None:
     from downwash_core.io import atomic_write_bytes
 
-    check_writable("--csv", out_csv, "file")
-    log = read_usd_sync(file)
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(log.fields)
     writer.writerows(zip(*(values.tolist() for values in log.fields.values())))
-    atomic_write_bytes(out_csv, text.getvalue().encode())
-    print(f"{file}: {len(log)} records of {len(log.fields)} fields in {log.blocks} blocks -> {out_csv}")
-    return Path(out_csv)
+    atomic_write_bytes(path, text.getvalue().encode())
 
 
-def main(argv: Sequence[str] | None = None) -> dict | Path:
+def decode(file: str, out_csv: str) -> list[Path]:
+    """Write the records of `file`, a uSD deck log, as CSV with the log's field names and raw values:
+    to `out_csv` for the synchronous format; for the event-based one, one file per event,
+    ``<out_csv stem>.<event>.csv``. Returns the files written."""
+    from downwash.real_logs.crazyflie_usd import read_usd_events, read_usd_sync
+
+    out = check_writable("--csv", out_csv, "file")
+    try:
+        with open(file, "rb") as f:
+            events = f.read(1) == b"\xbc"  # the event-based format's magic; the synchronous one starts with a count
+    except OSError:
+        events = False  # the reader names what is wrong
+    logs = read_usd_events(file) if events else {"": read_usd_sync(file)}
+    written = []
+    for event, log in logs.items():
+        path = out.with_name(f"{out.stem}.{event}{out.suffix}") if event else out
+        _write_csv(path, log)
+        written.append(path)
+        print(f"{file}{' event ' + event if event else ''}: {len(log)} records of {len(log.fields)} fields -> {path}")
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> dict | list[Path]:
     argv = list(sys.argv[1:] if argv is None else argv)
     setup_logging()
     if argv[:1] == ["decode"]:
         parser = OneLineParser(prog="python -m experiments.real_flights decode",
                                description="write one onboard log's records as CSV, with its field names and raw values")
-        parser.add_argument("file", help="the onboard log (Crazyflie uSD deck, synchronous mode)")
+        parser.add_argument("file", help="the onboard log (Crazyflie uSD deck: synchronous, or event-based version 2)")
         parser.add_argument("--csv", required=True, help="the CSV file to write")
         ns = parser.parse_args(argv[1:])
         return decode(ns.file, ns.csv)

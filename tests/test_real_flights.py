@@ -17,7 +17,7 @@ import pytest
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY
-from downwash.real_logs.crazyflie_usd import compress_quaternions, write_usd_sync
+from downwash.real_logs.crazyflie_usd import UsdFormatError, compress_quaternions, write_usd_sync
 from downwash.real_logs.flights import find_flights, labelled_samples, read_flights
 from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES
 from experiments.real_flights import main
@@ -124,3 +124,17 @@ def test_decode_writes_the_records_with_the_logs_own_names(data, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "experiments.real_flights", "decode", str(tmp_path / "none")],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "the following arguments are required: --csv" in proc.stderr
+
+
+def test_decode_writes_one_file_per_event_of_an_event_log(tmp_path):
+    from test_real_logs import EVENTS, _event_records
+    from downwash.real_logs.crazyflie_usd import encode_usd_events
+
+    log = tmp_path / "log07"
+    log.write_bytes(encode_usd_events(EVENTS, _event_records(9)))
+    written = main(["decode", str(log), "--csv", str(tmp_path / "out" / "log07.csv")])
+    assert [p.name for p in written] == ["log07.fixedFrequency.csv", "log07.estTDOA.csv"]
+    rows = written[1].read_text().splitlines()
+    assert rows[0] == "timestamp,idA,idB,distanceDiff,motor.m1" and rows[1] == "1000017,0,1,0.0,60000" and len(rows) == 4
+    with pytest.raises(UsdFormatError, match="missing: cannot read it"):
+        main(["decode", str(tmp_path / "missing"), "--csv", str(tmp_path / "m.csv")])

@@ -21,8 +21,9 @@ from hypothesis import strategies as st
 from downwash_core.errors import ConfigError, LogError
 from downwash_core.params import GRAVITY
 from downwash.labels import label_noise_floor, labels_from_log, log_kinds, second_derivative_coeffs
-from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_SYNC_FORMAT, UsdFormatError, compress_quaternions,
-                                              decompress_quaternions, encode_usd_sync, read_usd_sync, write_usd_sync)
+from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_EVENTS_FORMAT, USD_SYNC_FORMAT, UsdFormatError,
+                                              compress_quaternions, decompress_quaternions, encode_usd_events,
+                                              encode_usd_sync, read_usd_events, read_usd_sync, write_usd_sync)
 from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES, flight_files, motor_lag, read_flight, setpoint_offset
 from downwash.real_logs.tabular import CSV_LAYOUT, TabularFormatError, read_csv_flight, write_csv_flight
 from sim.logs import TRUTH_ARRAYS, FlightLog, load_log, save_log
@@ -375,3 +376,79 @@ def test_a_csv_flight_with_an_unknown_kind_or_no_overlap_is_named(tmp_path):
     (tmp_path / "bin.csv").write_bytes(b"\xff\xfe")
     with pytest.raises(TabularFormatError, match=r"bin.csv: byte 0: not UTF-8 text"):
         read_csv_flight(tmp_path / "bin.csv")
+
+
+# ----------------------------------------------------------------------------- the event-based format (v2)
+
+EVENTS = {"fixedFrequency": (0xFFFF, {"stateEstimate.x": "f", "stateEstimate.z": "f", "pm.vbatMV": "H"}),
+          "estTDOA": (7, {"idA": "B", "idB": "B", "distanceDiff": "e", "motor.m1": "I"})}
+
+
+def _event_records(n: int = 50) -> list:
+    rng = np.random.default_rng(4)
+    out = []
+    for k in range(n):
+        out.append(("fixedFrequency", 1_000_000 + 10_000 * k, (float(np.float32(rng.normal())),
+                                                               float(np.float32(0.5 + k / 100)), 3700 - k)))
+        if k % 3 == 0:
+            out.append(("estTDOA", 1_000_000 + 10_000 * k + 17, (k % 8, (k + 1) % 8, float(np.float16(0.25 * k)),
+                                                                 60_000 + k)))
+    return out
+
+
+def test_an_event_log_reads_back_exactly(tmp_path):
+    path = tmp_path / "log00"
+    records = _event_records()
+    path.write_bytes(encode_usd_events(EVENTS, records))
+    events = read_usd_events(path)
+    assert list(events) == ["fixedFrequency", "estTDOA"]
+    ff, tdoa = events["fixedFrequency"], events["estTDOA"]
+    assert list(ff.fields) == ["timestamp", "stateEstimate.x", "stateEstimate.z", "pm.vbatMV"] and len(ff) == 50
+    assert ff.fields["timestamp"].dtype == np.uint64 and ff.fields["pm.vbatMV"].dtype == np.uint16
+    assert ff.source["format"] == USD_EVENTS_FORMAT and ff.source["event"] == "fixedFrequency"
+    mine = [r for r in records if r[0] == "estTDOA"]
+    np.testing.assert_array_equal(tdoa.fields["timestamp"], [r[1] for r in mine])
+    np.testing.assert_array_equal(tdoa.fields["distanceDiff"], np.array([r[2][2] for r in mine], np.float16))
+    np.testing.assert_array_equal(ff.fields["stateEstimate.z"], np.array([r[2][1] for r in records
+                                                                          if r[0] == "fixedFrequency"], np.float32))
+
+
+def test_the_event_layout_by_hand():
+    raw = encode_usd_events({"fixedFrequency": (0xFFFF, {"a.b": "h"})}, [("fixedFrequency", 5, (-2,))])
+    assert raw[:5] == bytes([0xBC, 2, 0, 1, 0])  # magic, version 2, one event type
+    assert raw[5:7] == b"\xff\xff" and raw[7:22] == b"fixedFrequency\0" and raw[22:24] == b"\x01\x00"
+    assert raw[24:31] == b"a.b(h)\0"
+    assert raw[31:43] == struct.pack("<HQh", 0xFFFF, 5, -2)
+    assert raw[43:] == zlib.crc32(raw[:43]).to_bytes(4, "little") and len(raw) == 47
+
+
+def _restamped(body: bytes) -> bytes:
+    return body + zlib.crc32(body).to_bytes(4, "little")
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda raw: b"\xbb" + raw[1:], "not an event-based uSD log"),
+    (lambda raw: _restamped(raw[:1] + b"\x03\x00" + raw[3:-4]), "version 3, this reader reads 2"),
+    (lambda raw: raw[:-1], "CRC mismatch of the file"),
+    (lambda raw: _restamped(raw[:-4] + b"\x09\x00"), "event id 9 is not declared in the header"),
+    (lambda raw: _restamped(raw[:-4] + b"\x07\x00\x01"), "truncated record of event 'estTDOA'"),
+    (lambda raw: _restamped(raw[:24] + raw[24:60].replace(b"(f)", b"(Z)", 1) + raw[60:-4]), "unknown field type 'Z'"),
+])  # fmt: skip
+def test_a_malformed_event_log_is_named(tmp_path, make, message):
+    path = tmp_path / "log01"
+    path.write_bytes(make(encode_usd_events(EVENTS, _event_records(5))))
+    with pytest.raises(UsdFormatError, match=rf"^{path}: byte \d+: .*{message}"):
+        read_usd_events(path)
+
+
+@settings(max_examples=150, deadline=None)
+@given(at=st.floats(0.0, 1.0), bits=st.integers(1, 255), cut=st.booleans())
+def test_any_flipped_byte_or_cut_of_an_event_log_is_refused(tmp_path_factory, at, bits, cut):
+    """The file's CRC-32 covers every byte before it: any change or cut is refused, with an offset."""
+    raw = encode_usd_events(EVENTS, _event_records(12))
+    i = int(at * (len(raw) - 1))
+    data = raw[:i] if cut else raw[:i] + bytes([raw[i] ^ bits]) + raw[i + 1:]
+    path = tmp_path_factory.mktemp("ev") / "log"
+    path.write_bytes(data)
+    with pytest.raises(UsdFormatError, match=rf"^{path}: byte \d+: "):
+        read_usd_events(path)
