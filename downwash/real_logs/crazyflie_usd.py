@@ -20,7 +20,8 @@ field names and types. The format has no record count or end mark, so a file cut
 between two blocks (power lost while logging) reads as the shorter log it then is.
 `write_usd_sync` writes the same format, for tests and for tools that make such files.
 
-The current firmware's event-based format (version 2: written from its layout; all little-endian):
+The current firmware's event-based format (version 2, the layout the firmware's uSD deck driver
+writes, bitcraze/crazyflie-firmware `src/deck/drivers/src/usddeck.c` as of 2026-08; all little-endian):
 
     header   [0xBC: u8] [version 2: u16] [n event types: u16]
              per type: [id: u16] [name, NUL-terminated] [m: u16] m entries ``name(t)`` each NUL-terminated
