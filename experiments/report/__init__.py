@@ -23,6 +23,7 @@ not that its numbers are the ones the experiment wrote. The common options (--ou
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -153,6 +154,11 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
             parts.append(_outdoor_headline(found["outdoor"], link))
         except RENDER_ERRORS as e:
             raise render_error(_file(results_dir, "outdoor"), "the headline outdoor lines", e) from e
+    if "real_flights" in found:
+        try:
+            parts.append(_real_flights_headline(found["real_flights"], link))
+        except RENDER_ERRORS as e:
+            raise render_error(_file(results_dir, "real_flights"), "the headline real-flights line", e) from e
     try:
         worst = render_worst_cases(found)
     except RENDER_ERRORS as e:
@@ -182,6 +188,22 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
     if lines:
         parts.append(" ".join(lines))
     return "\n\n".join(parts) + "\n"
+
+
+def _real_flights_headline(r: dict, link: str) -> str:
+    """One line: over the test samples with a vehicle above, each model's RMSE beside none (sample-weighted)."""
+    kinds = [k for k in r["args"]["models"].split(",") if k in r["models"]]
+    wakes = [t for name, t in r["per_type"].items() if not name.startswith(("none2", "Ge2"))]
+    n = sum(t["n_test"] for t in wakes)
+
+    def pooled(k: str) -> float:
+        return math.sqrt(sum(t["n_test"] * t["rmse"][k] ** 2 for t in wakes) / n)
+
+    models = ", ".join(f"`{k}` {fmt(pooled(k))}" for k in kinds)
+    return (f"Real flights (the Neural-Swarm data set's onboard logs, {sum(r['flights'].values())} flights; "
+            f"[results page]({link}#real-flights-the-neural-swarm-data-set)): on the {n} test samples with a vehicle "
+            f"flying above, trained on other days, the pair models' RMSE is {models} m/s^2, against "
+            f"{fmt(pooled('none'))} with no model.")
 
 
 def _fails(fn, *args) -> bool:
