@@ -2,7 +2,7 @@
 
     python docs/make_figures.py            # writes docs/assets/flight.png
 
-Flies the main job's lemniscate (the follower 0.6 m beneath a hovering leader) for a few
+Flies the lemniscate experiment (the follower 0.6 m beneath a hovering leader) for a few
 seconds under two conditions on one seed, the LQR with no model (`baseline`) and the LQR
 compensating with the true mean field (`oracle`), as one batch of worlds, and renders
 one frame of both side by side with `downwash_envs.video.render_frames`: the leader in
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "assets" / "flight.png"
 
 CONDITIONS = ("baseline", "oracle")
-SEPARATION = 0.6  # m, the main job's
+SEPARATION = 0.6  # m, the lemniscate experiment's
 DURATION = 20.0  # s of flight: one period of the lemniscate, so its whole path is drawn
 SHOW_AT = 5.0  # s: the frame shown (the follower close to the point beneath the leader)
 TILE = (480, 360)  # pixels, width x height of one tile

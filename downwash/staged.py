@@ -7,7 +7,7 @@ closer with the stage-0 equivariant model compensating; stage 2 flies at about
 applies nothing where the closer stage leaves its training data's support until the forces
 felt there show it right, so collecting closer is no riskier than flying without a model
 (the paper's worry). Off by default:
-the paper deploys its stage models clamped only, and the main job reproduces it.
+the paper deploys its stage models clamped only, and the lemniscate experiment reproduces it.
 
 Each stage is ~5.7 minutes of varied flights
 (`downwash_trajectories.collection_reference`: randomised passes through and beside the

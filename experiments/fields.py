@@ -1,4 +1,4 @@
-"""List the registered ground-truth fields, or run the main job on every one of them.
+"""List the registered ground-truth fields, or run the lemniscate experiment on every one of them.
 
     python -m experiments.fields                 # the listing
     python -m experiments.fields --run [--quick] # the lemniscate from scratch on every field
@@ -9,7 +9,7 @@ values its preset fixes). `--field SPEC` also resolves and checks that spec and 
 its description, so a spec can be tried here before a long run. See docs/fields.md.
 
 `--run` answers "how does each model fare when the air is not what it assumes": for
-every registered field it runs the main job, `python -m experiments.lemniscate --field
+every registered field it runs the lemniscate experiment, `python -m experiments.lemniscate --field
 NAME` (its own process, so each field collects and trains from scratch into its own
 keyed pipeline folder unless that exists already; `--fresh` deletes nothing but points
 each run at a new pipeline folder under --out), and tabulates per field and condition the
@@ -50,7 +50,7 @@ def _only_check(only: str) -> str | None:
 class FieldsArgs(CommonArgs):
     """--seed and --quick apply to --run only (the listing flies nothing)."""
 
-    run: bool = arg(False, "run the main job (python -m experiments.lemniscate) on every registered field")
+    run: bool = arg(False, "run the lemniscate experiment (python -m experiments.lemniscate) on every registered field")
     only: str = arg("", f"with --run: a comma list of registered field names, of {', '.join(FIELD_NAMES)} "
                         "(default: all of them)", check=_only_check)
     fresh: bool = arg(False, "with --run: collect and train from scratch into <out>/pipeline/<field> "
@@ -110,7 +110,7 @@ def _cell(entry: dict) -> str:
 
 
 def run(args: FieldsArgs) -> dict:
-    """The listing (and the --field spec, resolved and checked); with --run the main job on every field."""
+    """The listing (and the --field spec, resolved and checked); with --run the lemniscate experiment on every field."""
     if args.run and args.field:
         raise ConfigError("--field: not with --run, which runs every registered field (choose some with --only)")
     if args.only and not args.run:

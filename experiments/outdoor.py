@@ -17,7 +17,7 @@ trained on the first run; `--trained` picks which). The models with memory
 
 Sweeps. `--sweep-speeds 0.5,1,2,3` flies every condition again at each speed (same seeds and
 wind) and plots its improvement against the leader's speed; `--sweep-winds` flies them in each of
-several winds at `--speed`; `--sweep-fields "so2;momentum;shed"` runs the whole job (collection,
+several winds at `--speed`; `--sweep-fields "so2;momentum;shed"` runs the whole experiment (collection,
 training, flights and these sweeps) on each of those ground truths as well, one Ray task per
 truth (`--workers`, `--address`; `--workers 1` runs them one after the other, without Ray).
 Writes results.json (with the leader's airspeed range and the sweeps), a table and the figures.
@@ -110,7 +110,7 @@ class OutdoorArgs(PipelineArgs):
                         check=_speeds_check)
     sweep_winds: str = arg("", "also fly every condition in each of these winds at --speed (';'-separated --wind specs, "
                                "e.g. 'off;light:mean=2,0,0;moderate:mean=2,0,0')", check=_winds_check)
-    sweep_fields: str = arg("", "also run the whole job, sweeps included, on each of these ground truths (';'-separated "
+    sweep_fields: str = arg("", "also run the whole experiment, sweeps included, on each of these ground truths (';'-separated "
                                 "--field specs, e.g. 'momentum;shed'), one Ray task each, into <out>/truths/",
                         check=_fields_check)
     workers: int = arg(0, "CPUs of the local Ray for --sweep-fields (0: all cores; 1: no Ray, one truth after the "
@@ -269,7 +269,7 @@ def _truth_summary(results: dict, out: str) -> dict:
 
 
 def _other_truths(args: OutdoorArgs) -> dict:
-    """The whole job on each truth of --sweep-fields (one Ray task each, or in turn with --workers 1)."""
+    """The whole experiment on each truth of --sweep-fields (one Ray task each, or in turn with --workers 1)."""
     from downwash.sweep import map_on_ray
 
     jobs = [dataclasses.replace(args, field=spec, out=str(Path(args.out) / "truths" / _slug(spec)), sweep_fields="")
@@ -280,7 +280,7 @@ def _other_truths(args: OutdoorArgs) -> dict:
 
 
 def _truth_task(args: OutdoorArgs) -> dict:
-    """One truth's whole job (a Ray task): its results."""
+    """One truth's whole experiment (a Ray task): its results."""
     setup_logging()
     return run(args)
 

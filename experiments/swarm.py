@@ -6,7 +6,7 @@
 The paper's section 6 asks how downwash models carry over to many vehicles. For each
 aggregation law of the ground truth (`sim.aggregation`: how the wakes of several
 vehicles combine) this experiment
-1. reuses the two-vehicle staged collection and its equivariant model (the main job's);
+1. reuses the two-vehicle staged collection and its equivariant model (the lemniscate experiment's);
 2. runs the swarm stages (`downwash.swarm_collection`: stacks of 3, then 4, vehicles,
    flown with the models so far) and the stages of other vehicle kinds, and trains the models
    of sets on the two-vehicle data only ("pair"), on all of it ("mixed"), and on all of it

@@ -1,4 +1,4 @@
-"""`python -m experiments.fields --run`: the main job on registered fields, tabulated for the README."""
+"""`python -m experiments.fields --run`: the lemniscate experiment on registered fields, tabulated for the README."""
 
 import json
 import subprocess

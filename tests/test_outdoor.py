@@ -96,7 +96,7 @@ def test_a_speed_sweep_flies_every_condition_at_each_speed(tmp_path):
 
 
 def test_wind_and_truth_sweeps_fly_every_condition_in_each_wind_and_on_each_truth(tmp_path):
-    """--sweep-winds flies the conditions in each wind at --speed; --sweep-fields runs the whole job on
+    """--sweep-winds flies the conditions in each wind at --speed; --sweep-fields runs the whole experiment on
     another truth into <out>/truths/ and the results compare the truths' speed sweeps."""
     _run(["--seeds", "1", "--duration", "3", "--conditions", "baseline,oracle", "--wind", "off", "--sweep-speeds",
           "0.5,3", "--sweep-winds", "off;calm:mean=3,0,0", "--sweep-fields", "momentum", "--workers", "1",

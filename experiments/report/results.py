@@ -38,7 +38,7 @@ EXPERIMENTS = {
     "force_maps": ("Force maps", ("maps",)),
     "outdoor": ("Outdoor: a moving leader in wind", ("conditions", "seeds", "leader", "leader_airspeed")),
     "swarm": ("Many vehicles: summed pairwise models against models of sets", ("summary", "conditions", "laws")),
-    "field_table": ("Field x model: the main job on every registered field", ("fields", "table")),
+    "field_table": ("Field x model: the lemniscate experiment on every registered field", ("fields", "table")),
     "real_flights": ("Real flights: the Neural-Swarm data set", ("per_type", "models", "files", "args")),
     "benchmark": ("Speed", ("cpu_count",)),
 }

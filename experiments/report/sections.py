@@ -184,7 +184,7 @@ def render_outdoor(r: dict, label: str) -> str:
         w = r["wind_sweep"]
         parts += [f"Improvement over the baseline in each wind, the leader at {short(r['speed'])} m/s:",
                   _table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"]))]
-    for truth, t in (r.get("truths") or {}).items():  # --sweep-fields: the whole job on each ground truth
+    for truth, t in (r.get("truths") or {}).items():  # --sweep-fields: the whole experiment on each ground truth
         if t.get("sweep"):
             parts += [f"On the `{truth}` truth, improvement over the baseline against the leader's speed:",
                       _table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
@@ -445,7 +445,7 @@ def render_field_table(r: dict, label: str) -> str:
         f"The lemniscate (`python -m experiments.lemniscate --field NAME`, {first['seeds']} seeds, {short(first['duration'])} s) "
         "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
         "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
-        f"oracle). The wall time is the whole main job, collection and training included (`{label}`):",
+        f"oracle). The wall time is the whole lemniscate experiment, collection and training included (`{label}`):",
         _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate", "wall (s)"], rows)])
 
 
