@@ -9,7 +9,12 @@ mixed kinds from it. The kinds:
 |---|---|---|---|
 | `paper_quad` | the paper's vehicle (the default) | 0.70 kg | `downwash_core.params.QUAD`, paper sec. 5.C |
 | `crazyflie_2_1` | Bitcraze Crazyflie 2.1, brushed (`cf2x_L250`) | 0.0319 kg | utiasDSL/drone-models 0.1.0 |
+| `crazyflie_large` | a Crazyflie 2.1 on a larger frame (the Neural-Swarm data set's "large") | 0.067 kg | Neural-Swarm data set; geometry estimated |
 | `x500` | Holybro X500 (PX4's Gazebo model) | 2.064 kg | PX4/PX4-gazebo-models `x500` |
+
+A kind may carry a `ThrustMap`, one rotor's thrust from its PWM and the battery voltage (a
+system identification's polynomial): what turns a lab's logged motor commands into the
+thrust that labels need (`downwash.real_logs`).
 
 `paper_quad` is `QUAD` itself, field for field (the same float objects): nothing moves.
 Its scene vehicle is `assets/quad.xml` as written; any other kind is that file with the
@@ -48,11 +53,14 @@ from dataclasses import dataclass, field, fields
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY, QUAD, QuadParams
 
 __all__ = [
-    "VehicleKind", "VEHICLES", "VEHICLE_NAMES", "DEFAULT_VEHICLE", "PAPER_QUAD", "CRAZYFLIE_2_1", "X500",
+    "VehicleKind", "ThrustMap", "VEHICLES", "VEHICLE_NAMES", "DEFAULT_VEHICLE", "PAPER_QUAD", "CRAZYFLIE_2_1",
+    "CRAZYFLIE_LARGE", "X500",
     "AIR_DENSITY", "N_ROTORS", "get_vehicle", "hover_induced_velocity", "so2_strength_scale",
     "momentum_wake_kwargs", "so2_pair_scale", "momentum_drag_area_scale", "airframe_area_scale", "size_scale",
     "as_params",
@@ -62,6 +70,30 @@ AIR_DENSITY = 1.225  # kg/m^3, ISA sea level (the same as sim.wind.AIR_DENSITY; 
 N_ROTORS = 4  # -, every kind is a quadrotor in an X (the scene's vehicle and the mixer have four rotors)
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _QUAD_FIELDS = tuple(f.name for f in fields(QuadParams))
+
+
+@dataclass(frozen=True)
+class ThrustMap:
+    """One rotor's thrust from its PWM and the battery voltage, a system identification's polynomial:
+    grams-force ``c00 + c10 p + c01 v + c20 p^2 + c11 p v`` with ``p = pwm / 65536`` and
+    ``v = vbat / 4.2 V``; `source` says where the coefficients come from."""
+
+    c00: float
+    c10: float
+    c01: float
+    c20: float
+    c11: float
+    source: str = ""
+
+    def thrust(self, pwm: Any, vbat: Any) -> np.ndarray:
+        """N per rotor: pwm (..., R) 0-65535, vbat (...) V."""
+        p, v = np.asarray(pwm, np.float64) / 65536.0, np.asarray(vbat, np.float64)[..., None] / 4.2
+        grams = self.c00 + self.c10 * p + self.c01 * v + self.c20 * p * p + self.c11 * p * v
+        return grams * 1e-3 * GRAVITY
+
+    def describe(self) -> dict[str, Any]:
+        return {"c00": self.c00, "c10": self.c10, "c01": self.c01, "c20": self.c20, "c11": self.c11,
+                "source": self.source}
 
 
 @dataclass(frozen=True)
@@ -84,12 +116,14 @@ class VehicleKind(QuadParams):
     source: where every number comes from, one line per number after a first summary line.
     description: one line, what the vehicle is.
     estimated: the names of the fields that are estimates rather than published values.
+    thrust_map: a rotor's thrust from PWM and battery voltage (`ThrustMap`), where one is known.
     """
 
     name: str = field(kw_only=True)
     source: str = field(kw_only=True)
     description: str = field(default="", kw_only=True)
     estimated: tuple[str, ...] = field(default=(), kw_only=True)
+    thrust_map: ThrustMap | None = field(default=None, kw_only=True)
 
     def __post_init__(self) -> None:
         label = f"vehicle {self.name!r}"
@@ -171,6 +205,7 @@ class VehicleKind(QuadParams):
             "hover_induced_velocity": self.hover_induced_velocity(),
             "so2_strength_scale": so2_strength_scale(self),
             "estimated": list(self.estimated), "source": self.source,
+            **({"thrust_map": self.thrust_map.describe()} if self.thrust_map is not None else {}),
         }
 
 
@@ -197,6 +232,8 @@ inertia, rotor_radius, thrust_to_weight, motor_time_constant, yaw_moment_coeff: 
   collision/visual size, smaller than the real vehicle's propellers (docs/fields.md)""",
 )
 
+_NEURAL_SWARM = "Neural-Swarm data set (github.com/aerorobotics/neural-swarm), data/training/"
+
 # utiasDSL/drone-models release 0.1.0 (commit 77f04ab13efbee1179322c9e22119e1d964113bd, MIT),
 # the parameters the crazyflow simulator validates against. Configuration cf2x_L250.
 _CF_L = 0.03253  # m, drone-models `L`: per-axis moment arm (the mixing matrix is +-1 on x and y)
@@ -214,6 +251,9 @@ CRAZYFLIE_2_1 = VehicleKind(
     yaw_moment_coeff=0.007350862856566459,
     description="Bitcraze Crazyflie 2.1, brushed motors, stock propellers, 250 mAh battery (drone-models cf2x_L250)",
     estimated=("inertia", "rotor_radius"),
+    thrust_map=ThrustMap(11.093358483549203, -39.08104165843915, -9.525647087583181, 20.573302305476638,
+                         38.42885066644033, source=_NEURAL_SWARM + "datacollection19_12_11_2019/defaultcf.txt "
+                         "(C_00 ... C_11, fit score 0.998): an unmodified Crazyflie 2.1"),
     source="""utiasDSL/drone-models 0.1.0 (commit 77f04ab, MIT), drone_models/data/params.toml [cf2x_L250]
 mass 0.0319 kg: params.toml [cf2x_L250] mass
 arm_length 0.0460 m: params.toml L = 0.03253 m is the per-axis moment arm (mixing matrix +-1 on x and y), x sqrt(2)
@@ -224,7 +264,44 @@ rotor_radius 0.02355 m: params.toml prop_radius (marked "TODO check" there)
 thrust_to_weight 1.53: params.toml thrust_max = 0.12 N per motor, 4 x 0.12 N / (0.0319 kg g)
 motor_time_constant 0.0859 s: drone_models/so_rpy_rotor/params.toml [cf2x_L250] thrust_time_coef (fitted
   first-order lag of the collective thrust, rotor_vel_dot = (cmd - rotor_vel) / thrust_time_coef)
-yaw_moment_coeff 0.00735 m: params.toml thrust2torque (Foerster 2015: 0.005964552)""",
+yaw_moment_coeff 0.00735 m: params.toml thrust2torque (Foerster 2015: 0.005964552)
+thrust_map: the Neural-Swarm data set's system identification of an unmodified Crazyflie 2.1""",
+)
+
+# The Neural-Swarm data set's "large" vehicle: a Crazyflie 2.1 on a larger (Parrot) frame with its
+# propellers. The data set gives its mass, its ground clearance and its thrust map; the geometry is
+# estimated (the data set states none): larger propellers on a frame that clears them.
+_LARGE_MAP = ThrustMap(44.10386631845999, -122.51151800146272, -36.18484254283743, 53.10772568607133,
+                       107.6819263349139, source=_NEURAL_SWARM + "datacollection19_12_11_2019/parrot_frame.txt "
+                       "(C_00 ... C_11, fit score 0.995): the large frame")
+_LARGE_MASS = 0.067  # kg, parrot_frame.txt ("mass: 67g")
+_LARGE_MAX_ROTOR_THRUST = float(_LARGE_MAP.thrust(65535.0, 4.2)[0])  # N, full PWM on a full battery
+_CF_ARM = _CF_L * math.sqrt(2.0)
+_LARGE_ARM, _LARGE_ROTOR = 0.06, 0.033  # m, estimated
+
+CRAZYFLIE_LARGE = VehicleKind(
+    name="crazyflie_large",
+    mass=_LARGE_MASS,
+    # the Crazyflie's inertia scaled as m l^2 (the same mass distribution on a larger frame)
+    inertia=tuple(i * (_LARGE_MASS / _CF_MASS) * (_LARGE_ARM / _CF_ARM) ** 2 for i in (16.8e-6, 16.8e-6, 29.8e-6)),
+    arm_length=_LARGE_ARM,
+    rotor_radius=_LARGE_ROTOR,
+    thrust_to_weight=4.0 * _LARGE_MAX_ROTOR_THRUST / (_LARGE_MASS * GRAVITY),
+    motor_time_constant=-0.01 / math.log(1.0 - 0.16),  # 0.057 s
+    yaw_moment_coeff=0.007350862856566459,
+    description="Crazyflie 2.1 on a larger (Parrot) frame and propellers: the Neural-Swarm data set's large vehicle",
+    estimated=("inertia", "arm_length", "rotor_radius", "motor_time_constant", "yaw_moment_coeff"),
+    thrust_map=_LARGE_MAP,
+    source="""Neural-Swarm data set (Shi et al., github.com/aerorobotics/neural-swarm, data/training), vehicles cf100-cf102
+mass 0.067 kg: data/training/datacollection19_12_11_2019/parrot_frame.txt ("mass: 67g")
+thrust_to_weight: its thrust map at full PWM and 4.2 V (4 rotors), over the weight
+thrust_map: parrot_frame.txt (C_00 ... C_11)
+arm_length 0.06 m, rotor_radius 0.033 m: estimated (the data set states no geometry): a larger propeller
+  than the Crazyflie's 23.5 mm, on a frame whose rotors do not overlap
+inertia: estimated, crazyflie_2_1's scaled by mass x arm length^2
+motor_time_constant 0.057 s: estimated from the data set's training code, which lags the thrust by a
+  first-order filter of 0.16 per 10 ms step (learning/utils.py), -0.01 s / ln(0.84)
+yaw_moment_coeff: estimated, crazyflie_2_1's""",
 )
 
 
@@ -277,7 +354,7 @@ motor_time_constant 0.01875 s: estimated, the mean of timeConstantUp 0.0125 s an
 yaw_moment_coeff 0.016 m: momentConstant (x500/model.sdf)""",
 )
 
-VEHICLES: MappingProxyType = MappingProxyType({k.name: k for k in (PAPER_QUAD, CRAZYFLIE_2_1, X500)})
+VEHICLES: MappingProxyType = MappingProxyType({k.name: k for k in (PAPER_QUAD, CRAZYFLIE_2_1, X500, CRAZYFLIE_LARGE)})
 VEHICLE_NAMES = tuple(VEHICLES)
 DEFAULT_VEHICLE = PAPER_QUAD.name
 

@@ -23,7 +23,7 @@ from experiments.common import (CommonArgs, arg, format_table, out_lock, parse_a
 __all__ = ["VehiclesArgs", "VEHICLE_NAMES", "listing", "run", "main"]
 
 # a static copy of downwash_core.vehicles.VEHICLE_NAMES for --help (tests/test_vehicles.py ties them)
-VEHICLE_NAMES = ("paper_quad", "crazyflie_2_1", "x500")
+VEHICLE_NAMES = ("paper_quad", "crazyflie_2_1", "x500", "crazyflie_large")
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ CHOICES = {
     "lemniscate": TRACKING, "transect": TRACKING, "outdoor": (*TRACKING, "circle", "line"),
     "swarm": (*common.PRESETS, *common.AGGREGATIONS), "sweep": common.PAIRWISE_KINDS,
     "sample_efficiency": common.PAIRWISE_KINDS, "train": common.PAIRWISE_KINDS,
-    "vehicles": ("paper_quad", "crazyflie_2_1", "x500"),
+    "vehicles": ("paper_quad", "crazyflie_2_1", "x500", "crazyflie_large"),
     "real_flights": ("shallow", "deep", "equivariant", "equivariant_general"),
 }
 HELP = """

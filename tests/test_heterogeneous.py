@@ -393,7 +393,7 @@ def test_a_mixed_flight_log_names_the_kinds_and_its_metrics_work_per_vehicle():
 
 
 def test_bad_kind_names_are_refused_naming_the_allowed_ones():
-    allowed = "allowed: paper_quad, crazyflie_2_1, x500"
+    allowed = "allowed: paper_quad, crazyflie_2_1, x500, crazyflie_large"
     with pytest.raises(ConfigError, match=f"vehicle: unknown 'hexa'; {allowed}"):
         build_scene(kinds=["x500", "hexa"])
     with pytest.raises(ConfigError, match=f"vehicle: unknown 'cf2'; {allowed}"):

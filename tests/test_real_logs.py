@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 
 from downwash_core.errors import ConfigError, LogError
 from downwash_core.params import GRAVITY
+from downwash.features import kind_descriptors
 from downwash.labels import label_noise_floor, labels_from_log, log_kinds, second_derivative_coeffs
 from downwash.real_logs.crazyflie_usd import (FIELD_TYPES, USD_EVENTS_FORMAT, USD_SYNC_FORMAT, UsdFormatError,
                                               compress_quaternions, decompress_quaternions, encode_usd_events,
@@ -227,7 +228,11 @@ def test_labels_of_a_known_thrust_and_motion_are_the_known_force(tmp_path):
     np.testing.assert_allclose(np.diff(log["t"]), 0.01, atol=1e-12)  # resampled onto 100 Hz from the start
     np.testing.assert_allclose(log["pos_est"][:, 0, :2], [[0.1, -0.2]] * len(log), atol=1e-12)
     lab = labels_from_log(log, targets="all")
-    assert len(lab["y"]) > 3500 and np.isnan(lab["field_mean"]).all() and np.isnan(lab["kind_b"]).all()
+    assert len(lab["y"]) > 3500 and np.isnan(lab["field_mean"]).all()
+    assert log_kinds(log) == ["crazyflie_2_1"]  # the registered kind of the small frame, its thrust map's
+    np.testing.assert_array_equal(lab["kind_b"], np.broadcast_to(kind_descriptors(["crazyflie_2_1"])[0], lab["kind_b"].shape))
+    del log.meta["kinds"]  # a lab's log that names no registered kind: no kind inputs, and models of kinds refuse it
+    assert np.isnan(labels_from_log(log, targets="all")["kind_b"]).all()
     with pytest.raises(ConfigError, match=r"names no registered vehicle kinds .*its frames: \['small'\]"):
         log_kinds(log)
     np.testing.assert_allclose(lab["y"][:, :2], 0.0, atol=1e-9)

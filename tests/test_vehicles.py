@@ -30,7 +30,7 @@ MIXED_PRESETS = ("heavy_over_light", "crazyflie_stack", "mixed_formation")
 
 
 def test_registry_names_and_lookups():
-    assert VEHICLE_NAMES == ("paper_quad", "crazyflie_2_1", "x500") == tuple(VEHICLES)
+    assert VEHICLE_NAMES == ("paper_quad", "crazyflie_2_1", "x500", "crazyflie_large") == tuple(VEHICLES)
     assert DEFAULT_VEHICLE == "paper_quad"
     for name, kind in VEHICLES.items():
         assert kind.name == name and get_vehicle(name) is kind and get_vehicle(kind) is kind
@@ -41,7 +41,7 @@ def test_registry_names_and_lookups():
 
 @pytest.mark.parametrize("bad", ["crazyflie", "", None, 3, "PAPER_QUAD"])
 def test_unknown_vehicle_names_the_allowed_ones(bad):
-    with pytest.raises(ConfigError, match=r"vehicle: unknown .*; allowed: paper_quad, crazyflie_2_1, x500"):
+    with pytest.raises(ConfigError, match=r"vehicle: unknown .*; allowed: paper_quad, crazyflie_2_1, x500, crazyflie_large"):
         get_vehicle(bad)
 
 
@@ -95,6 +95,21 @@ def test_crazyflie_numbers_from_drone_models():
     np.testing.assert_allclose(cf.inertia, (16.571710e-6, 16.655602e-6, 29.261652e-6), rtol=0.02)  # Foerster 2015
     assert cf.motor_time_constant == 0.0858607 and cf.yaw_moment_coeff == pytest.approx(0.00735, rel=1e-3)
     assert "drone-models" in cf.source and "cf2x_L250" in cf.source and "Foerster 2015" in cf.source
+
+
+def test_thrust_maps_of_the_logged_crazyflies():
+    """The Neural-Swarm data set's thrust maps: the polynomial by hand at one point, the large frame's
+    thrust-to-weight from its map at full PWM on a full battery, and only kinds with a map describe one."""
+    small, large = VEHICLES["crazyflie_2_1"], VEHICLES["crazyflie_large"]
+    m = small.thrust_map
+    p, v = 40000 / 65536, 3.9 / 4.2
+    grams = m.c00 + m.c10 * p + m.c01 * v + m.c20 * p * p + m.c11 * p * v
+    np.testing.assert_allclose(m.thrust(np.full((2, 4), 40000.0), np.full(2, 3.9)), grams * 1e-3 * GRAVITY, rtol=1e-14)
+    full = float(large.thrust_map.thrust(65535.0, 4.2)[0])
+    assert large.thrust_to_weight == pytest.approx(4 * full / (0.067 * GRAVITY), rel=1e-12) and large.mass == 0.067
+    assert {"arm_length", "rotor_radius", "inertia"} <= set(large.estimated)
+    assert large.describe()["thrust_map"]["source"].endswith("the large frame")
+    assert "thrust_map" not in PAPER_QUAD.describe() and "thrust_map" not in X500.describe()
 
 
 def test_x500_numbers_from_px4_model():

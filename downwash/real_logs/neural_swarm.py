@@ -21,8 +21,9 @@ The logged variables (the firmware's compressed state, integers):
 
 ``u_cmd`` is the acceleration of the rotors' thrust less gravity, ``R e3 T / m - g e3``, with T
 from each rotor's PWM and the battery voltage (optionally through a first-order motor lag,
-``motor_time_constant``: the PWM is what was asked of the motors): so the labels ``f = a - u`` (`downwash.labels`)
-are the paper's residual force per mass, ``a - R T / m + g e3``, whatever model flew. The
+``motor_time_constant``: the PWM is what was asked of the motors; the thrust maps are those of the
+vehicle kinds ``crazyflie_2_1`` and ``crazyflie_large`` of `downwash_core.vehicles`): so the labels
+``f = a - u`` (`downwash.labels`) are the paper's residual force per mass, ``a - R T / m + g e3``, whatever model flew. The
 reference's acceleration is not logged (``ref_acc`` 0) and neither is the prediction in use
 (``f_hat`` NaN).
 """
@@ -39,12 +40,12 @@ from typing import Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.params import GRAVITY
+from downwash_core.vehicles import ThrustMap, get_vehicle
 from downwash.real_logs.convert import real_flight, resample, vehicle_arrays
 from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_quaternions, read_usd_sync
 from sim.logs import FlightLog
 
-__all__ = ["ThrustMap", "LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
+__all__ = ["LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
            "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "TICK_WRAP"]
 
 TICK_WRAP = 2**32  # us: the tick is a uint32 (71.6 minutes)
@@ -53,50 +54,26 @@ _FILE = re.compile(r"^cf(\d+)_(\d+)$")
 
 
 @dataclass(frozen=True)
-class ThrustMap:
-    """One rotor's thrust from its PWM and the battery voltage, a system identification's polynomial:
-    grams-force ``c00 + c10 p + c01 v + c20 p^2 + c11 p v`` with ``p = pwm / 65536`` and
-    ``v = vbat / 4.2 V``; `source` says where the coefficients come from."""
-
-    c00: float
-    c10: float
-    c01: float
-    c20: float
-    c11: float
-    source: str = ""
-
-    def thrust(self, pwm: np.ndarray, vbat: np.ndarray) -> np.ndarray:
-        """N per rotor: pwm (..., R) 0-65535, vbat (...) V."""
-        p, v = np.asarray(pwm, np.float64) / 65536.0, np.asarray(vbat, np.float64)[..., None] / 4.2
-        grams = self.c00 + self.c10 * p + self.c01 * v + self.c20 * p * p + self.c11 * p * v
-        return grams * 1e-3 * GRAVITY
-
-
-@dataclass(frozen=True)
 class LoggedVehicle:
-    """What labels need of a logged vehicle: its mass (kg) and rotor thrust map, with their source."""
+    """A logged vehicle: its registered kind (`downwash_core.vehicles`, which holds its rotor thrust
+    map) and its mass as the lab weighed it (kg; labels use it), with the mass's source."""
 
     name: str
+    kind: str
     mass: float
-    thrust_map: ThrustMap
-    description: str
     source: str
+
+    @property
+    def thrust_map(self) -> ThrustMap:
+        return get_vehicle(self.kind).thrust_map
 
 
 _SOURCE = "Neural-Swarm data set (github.com/aerorobotics/neural-swarm), data/training/datacollection*/"
 NEURAL_SWARM_VEHICLES = {
-    "small": LoggedVehicle(
-        "small", 0.032,
-        ThrustMap(11.093358483549203, -39.08104165843915, -9.525647087583181, 20.573302305476638,
-                  38.42885066644033, source=_SOURCE + "defaultcf.txt (C_00 ... C_11; fit score 0.998)"),
-        "Crazyflie 2.1, unmodified (cf50, cf51, cf52)",
-        _SOURCE + "readme.txt; mass 32 g as the data set's training code uses it (learning/training.py)"),
-    "large": LoggedVehicle(
-        "large", 0.067,
-        ThrustMap(44.10386631845999, -122.51151800146272, -36.18484254283743, 53.10772568607133,
-                  107.6819263349139, source=_SOURCE + "parrot_frame.txt (C_00 ... C_11; fit score 0.995)"),
-        "Crazyflie 2.x on a larger (Parrot) frame and propellers (cf100, cf101, cf102)",
-        _SOURCE + "parrot_frame.txt (mass: 67g)"),
+    # 32 g as the data set's training code uses it (learning/training.py); the registry's crazyflie_2_1
+    # (drone-models) weighs 31.9 g
+    "small": LoggedVehicle("small", "crazyflie_2_1", 0.032, _SOURCE + "readme.txt; mass: learning/training.py"),
+    "large": LoggedVehicle("large", "crazyflie_large", 0.067, _SOURCE + "parrot_frame.txt (mass: 67g)"),
 }
 VEHICLE_IDS = {50: "small", 51: "small", 52: "small", 100: "large", 101: "large", 102: "large"}
 
@@ -189,7 +166,8 @@ def flight_from_logs(logs: Sequence[UsdLog], vehicles: Sequence[LoggedVehicle], 
     per = [_vehicle_arrays(log, v, t, grid, motor_time_constant) for log, v, t in zip(logs, vehicles, times)]
     return real_flight(grid, per, {
         "source": {"format": logs[0].source.get("format"), "files": [dict(log.source) for log in logs]},
-        "vehicles": list(names), "frames": [v.name for v in vehicles], "masses": [v.mass for v in vehicles],
+        "vehicles": list(names), "frames": [v.name for v in vehicles], "kinds": [v.kind for v in vehicles],
+        "masses": [v.mass for v in vehicles],
         "config": {"rate_hz": rate_hz, "motor_time_constant": motor_time_constant,
                    "thrust_maps": {v.name: v.thrust_map.source for v in vehicles}},
     })
