@@ -108,14 +108,14 @@ def _factory_problem(module: str, name: str) -> str | None:
     return None
 
 
-def names_check(allowed: Sequence[str]) -> Callable[[str], str | None]:
-    """A `check` for a comma list of names from `allowed` (at least one, each once), so that a bad
-    name is refused with the others, before any import of the registry it comes from."""
+def names_check(allowed: Sequence[str], empty: bool = False) -> Callable[[str], str | None]:
+    """A `check` for a comma list of names from `allowed` (at least one unless `empty`, each once), so
+    that a bad name is refused with the others, before any import of the registry it comes from."""
 
     def check(text: str) -> str | None:
         names = [n.strip() for n in text.split(",") if n.strip()]
         unknown = [n for n in names if n not in allowed]
-        if not names or unknown or len(set(names)) != len(names):
+        if (not names and not empty) or unknown or len(set(names)) != len(names):
             why = f"unknown {unknown}" if unknown else "duplicate names" if names else "no name"
             return f"{why}; allowed: a comma list of {', '.join(allowed)}, each at most once"
         return None

@@ -15,10 +15,17 @@ rejected, named, with the byte offset), its vehicles aligned at their first tick
 whose setpoints stay offset more than 0.05 s is rejected), labelled as the simulator's flights
 are (``f = a - u``, ``u`` from each rotor's PWM and the battery voltage) and typed by who
 flies above (``S2L``: a small vehicle above a large one; ``Ge2S``: near the ground; ``none2S``:
-free air). Each model kind is trained on the training flights' pairs (each vehicle with its
-nearest other vehicle) and judged on the test flights, per type, beside no model at all.
-Writes results.json (counts of files, flights, records and rejections, the reading time, the
-label scatter in free air, per type the samples and each model's RMSE) and a table.
+free air). Each per-neighbour model kind is trained on the training flights' pairs (each
+vehicle with its nearest other vehicle), each model of sets on every vehicle's two others,
+reading the vehicle kinds, and all are judged on the test flights, per type, beside no model
+at all and beside the data set's own per-type errors where the clone holds its
+``learning/log.txt``. Then two of the paper's questions on real data: per-neighbour models
+trained on the two-vehicle flights only, judged where two vehicles fly above (by the nearest,
+and summed over both); and learning curves (`--curve-fractions` of the training flights,
+`--curve-seeds` draws each), with the equivariant model on a third of the flights paired seed
+by seed against the best baseline on all of them. Writes results.json (counts of files,
+flights, records and rejections, the reading time, the label scatter in free air, per type
+the samples and each model's RMSE, the pairs-to-triples result, the curves) and a table.
 
 ``decode FILE --csv OUT`` writes one onboard log's records with the log's own field names
 and raw values, for checking a reader against another decoder (the synchronous format, or
@@ -45,7 +52,12 @@ from experiments.options import PAIRWISE_KINDS, names_check
 __all__ = ["RealFlightsArgs", "run", "decode", "main"]
 
 DEFAULT_MODELS = "shallow,deep,equivariant,equivariant_general"
+DEFAULT_SET_MODELS = "deepsets_equivariant,deepsets"
 _PAIR_KINDS = tuple(k for k in PAIRWISE_KINDS if "memory" not in k)  # the models with memory need a history
+_SET_KINDS = ("deepsets_equivariant", "deepsets")  # trained reading the vehicle kinds (downwash.set_models)
+PUBLISHED_UNITS = ("the data set's learning/log.txt: per type the mean squared error of the vertical force after "
+                   "training, on that script's training samples, in gram-force squared (mse_gf2); z_rmse is its "
+                   "root as the target's acceleration, m/s^2")
 
 
 def _globs_check(text: str) -> str | None:
@@ -61,6 +73,15 @@ def _folder_check(text: str) -> str | None:
     return None if not text or Path(text).is_dir() else "expected an existing folder"
 
 
+def _fractions_check(text: str) -> str | None:
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        return "expected a comma list of fractions in (0, 1]"
+    ok = values and all(0 < v <= 1 for v in values) and values == sorted(set(values))
+    return None if ok else "expected an increasing comma list of fractions in (0, 1], e.g. 0.04,0.11,0.33,1"
+
+
 @dataclass(frozen=True)
 class RealFlightsArgs(CommonArgs):
     data: str = arg("", "the Neural-Swarm data set: a clone of its repository or its data/training folder",
@@ -69,10 +90,16 @@ class RealFlightsArgs(CommonArgs):
                      "comma list of globs of the task folders to train on, relative to --data", check=_globs_check)
     test: str = arg("datacollection21*/*", "comma list of globs of the task folders to test on (default: the day "
                     "whose flights hold every interaction type)", check=_globs_check)
-    models: str = arg(DEFAULT_MODELS, f"comma list of the models to train, of {', '.join(_PAIR_KINDS)}",
+    models: str = arg(DEFAULT_MODELS, f"comma list of the per-neighbour models to train, of {', '.join(_PAIR_KINDS)}",
                       check=names_check(_PAIR_KINDS))
+    set_models: str = arg(DEFAULT_SET_MODELS, "comma list of the models of sets to train reading the vehicle kinds, "
+                          f"of {', '.join(_SET_KINDS)} (empty: none)", check=names_check(_SET_KINDS, empty=True))
     stride: int = arg(2, "keep every stride-th sample of the 100 Hz labels (2: the controller's 50 Hz)", ge=1, le=100)
     motor_lag: float = arg(0.0, "s, a first-order lag from each rotor's PWM to its thrust (0: none)", ge=0.0, le=1.0)
+    curve_fractions: str = arg("0.04,0.11,0.33,1", "the shares of the training flights of the learning curves",
+                               check=_fractions_check)
+    curve_seeds: int = arg(3, "seeds per point of the learning curves (each a draw of flights and a training; "
+                           "0: no curves)", ge=0, le=20)
 
 
 def _root(data: str) -> Path:
@@ -89,7 +116,16 @@ def _split(text: str) -> list[str]:
     return [g.strip() for g in text.split(",") if g.strip()]
 
 
-def _predictions(model, data) -> np.ndarray:
+def _rmse(err: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+
+
+def _wake(types: np.ndarray) -> np.ndarray:
+    """The samples with a vehicle above (not free air, not the ground alone)."""
+    return ~(np.char.startswith(types, "none2") | np.char.startswith(types, "Ge2"))
+
+
+def _pair_predictions(model, data) -> np.ndarray:
     """(N, 3) m/s^2: a per-neighbour model's prediction for every sample, 0 where it has no neighbour."""
     from downwash.train import predict
 
@@ -98,14 +134,106 @@ def _predictions(model, data) -> np.ndarray:
     return out
 
 
-def _rmse(err: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+def _summed_predictions(model, sets) -> np.ndarray:
+    """(N, 3): a per-neighbour model summed over each sample's neighbours (the paper's naive law)."""
+    from downwash.checkpoint import wrap_pairwise
+    from downwash.train import predict
+
+    return predict(wrap_pairwise(model, sets.neighbours).model, sets)
+
+
+def _train_pairs(kinds, train, config, seed=None) -> dict:
+    from downwash.train import train_model
+
+    return {kind: train_model(kind, train, None, config, seed=seed) for kind in kinds}
+
+
+def _per_type(test_y, types, predictions: dict[str, np.ndarray], published: dict) -> dict:
+    out = {}
+    for t in sorted(set(types)):
+        sel = types == t
+        out[t] = {"n_test": int(sel.sum()), "rmse": {"none": _rmse(test_y[sel])},
+                  "z_rmse": {"none": _rmse(test_y[sel, 2])}}
+        for name, pred in predictions.items():
+            out[t]["rmse"][name] = _rmse((test_y - pred)[sel])
+            out[t]["z_rmse"][name] = _rmse((test_y - pred)[sel, 2])
+        if t in published:
+            out[t]["published"] = published[t]
+    return out
+
+
+def _published(root: Path) -> tuple[dict, str | None]:
+    from downwash.real_logs.neural_swarm import published_errors
+
+    for path in (root.parent.parent / "learning" / "log.txt", root / "learning" / "log.txt"):
+        if path.is_file():
+            return published_errors(path), str(path)
+    return {}, None
+
+
+def _pairs_to_triples(kinds, flights, data, sets, config) -> dict:
+    """Per-neighbour models trained on the two-vehicle training flights only, judged on the test samples
+    with two vehicles above: by the nearest one, and summed over both; beside the same kinds trained
+    on every training flight."""
+    from downwash.real_logs.flights import labelled_samples
+
+    pairs = [(ref, f) for ref, f in flights["train"] if f.n_vehicles == 2]
+    if not pairs:
+        return {"skipped": "no two-vehicle training flights"}
+    train_pairs, _ = labelled_samples(pairs, data["stride"])
+    test, types = data["test"]
+    triple = np.array([len(t.split("2")[0]) == 2 for t in types])
+    if not triple.any():
+        return {"skipped": "no test samples with two vehicles above"}
+    out = {"n_train": len(train_pairs), "n_test": int(triple.sum()), "none": _rmse(test.y[triple]), "models": {}}
+    for kind, (model, _) in _train_pairs(kinds, train_pairs, config).items():
+        out["models"][kind] = {"nearest": _rmse((test.y - _pair_predictions(model, test))[triple]),
+                               "summed": _rmse((test.y - _summed_predictions(model, sets))[triple])}
+    return out
+
+
+def _n_flights(fraction: float, n: int) -> int:
+    return min(n, max(2, round(fraction * n)))  # two at least: one is held out for early stopping
+
+
+def _learning_curves(args, kinds, flights, test, types, config) -> dict:
+    """RMSE on the test samples with a vehicle above, each model trained on a share of the training
+    flights of two or three vehicles (a per-neighbour model learns from pairs only; drawn per seed, the
+    same draw for every model), and the paper's claim paired by seed:
+    the equivariant model on a third of the flights against the best baseline on all of them."""
+    from downwash.real_logs.flights import labelled_samples
+    from downwash.sweep_stats import paired_comparison
+
+    wake = _wake(types)
+    fractions = [float(x) for x in _split(args.curve_fractions)]
+    train = [(ref, f) for ref, f in flights["train"] if f.n_vehicles > 1]
+    if len(train) < 2:
+        return {"skipped": "fewer than two training flights of two or more vehicles"}
+    points = {kind: {f: {} for f in fractions} for kind in kinds}
+    for seed in range(args.curve_seeds):
+        order = np.random.default_rng([args.seed, seed]).permutation(len(train))
+        for f in fractions:
+            chosen = [train[i] for i in order[:_n_flights(f, len(train))]]
+            samples, _ = labelled_samples(chosen, args.stride)
+            for kind, (model, _) in _train_pairs(kinds, samples, config, seed=args.seed + seed).items():
+                points[kind][f][seed] = _rmse((test.y - _pair_predictions(model, test))[wake])
+    curves = {kind: [{"fraction": f, "flights": _n_flights(f, len(train)), "rmse": list(v.values()),
+                      "mean": float(np.mean(list(v.values())))} for f, v in per.items()] for kind, per in points.items()}
+    out = {"n_test": int(wake.sum()), "none": _rmse(test.y[wake]), "curves": curves}
+    small = min(fractions, key=lambda f: abs(f - 1 / 3))
+    baselines = [k for k in ("shallow", "deep") if k in kinds]
+    if "equivariant" in kinds and baselines and args.curve_seeds >= 2:
+        out["claim"] = {"model": "equivariant", "fraction": small, "baselines": baselines, "baseline_fraction": 1.0,
+                        **paired_comparison(points["equivariant"][small],
+                                            [points[b][max(fractions)] for b in baselines], seed=args.seed)}
+    return out
 
 
 def run(args: RealFlightsArgs) -> dict:
     from downwash.real_logs.flights import find_flights, labelled_samples, read_flights
     from downwash.staged import train_config
-    from downwash.train import train_model
+    from downwash.train import predict, train_model
+    from sim.neighbours import NeighbourSet
 
     t0 = time.perf_counter()
     root = _root(args.data)
@@ -122,43 +250,59 @@ def run(args: RealFlightsArgs) -> dict:
     files = sum(len(r.files) for chosen in refs.values() for r in chosen)
     records = sum(len(f["t"]) * f.n_vehicles for role in flights for _, f in flights[role])
     data = {role: labelled_samples(flights[role], args.stride) for role in flights}
+    sets = {role: labelled_samples(flights[role], args.stride, NeighbourSet(max_neighbours=2))[0]
+            for role in flights}  # a flight holds at most three vehicles
+    data["stride"] = args.stride
 
     train, types_train = data["train"]
     test, types_test = data["test"]
     free = train.y[np.char.startswith(types_train, "none2")]
-    kinds = _split(args.models)
+    kinds, set_kinds = _split(args.models), _split(args.set_models)
     config = train_config(args.seed, args.quick)
-    types = sorted(set(types_test))
-    per_type = {t: {"n_train": int(np.sum(types_train == t)), "n_test": int(np.sum(types_test == t)),
-                    "rmse": {"none": _rmse(test.y[types_test == t])}} for t in types}
-    models = {}
-    for kind in kinds:
-        model, history = train_model(kind, train, None, config)
-        pred = _predictions(model, test)
-        models[kind] = {"rmse": _rmse(test.y - pred), "epochs": history["epochs"], "seconds": history["seconds"],
-                        "n_train_pairs": history["n_train"]}
-        for t in types:
-            per_type[t]["rmse"][kind] = _rmse((test.y - pred)[types_test == t])
+    predictions, models = {}, {}
+    for kind, (model, history) in _train_pairs(kinds, train, config).items():
+        predictions[kind] = _pair_predictions(model, test)
+        models[kind] = {"epochs": history["epochs"], "seconds": history["seconds"], "n_train": history["n_train"]}
+    for kind in set_kinds:
+        model, history = train_model(kind, sets["train"], None, config, kinds=True)
+        predictions[f"{kind}_kinds"] = predict(model, sets["test"])
+        models[f"{kind}_kinds"] = {"epochs": history["epochs"], "seconds": history["seconds"],
+                                   "n_train": history["n_train"]}
+    for name, pred in predictions.items():
+        models[name]["rmse"] = _rmse(test.y - pred)
+        models[name]["rmse_wake"] = _rmse((test.y - pred)[_wake(types_test)])
+    published, published_file = _published(root)
+    per_type = _per_type(test.y, types_test, predictions, published)
+    for t, row in per_type.items():
+        row["n_train"] = int(np.sum(types_train == t))
     results = {
         "data": str(root), "files": files, "records": records,
-        "flights": {role: len(flights[role]) for role in flights}, "rejected": rejected,
+        "flights": {role: len(flights[role]) for role in ("train", "test")}, "rejected": rejected,
         "read_seconds": read_seconds,
         "samples": {"train": len(train), "test": len(test), "stride": args.stride},
         "free_air_label": {"n": int(len(free)), "mean": free.mean(axis=0).tolist() if len(free) else None,
                            "scatter": free.std(axis=0).tolist() if len(free) else None},
-        "no_model_rmse": _rmse(test.y), "models": models, "per_type": per_type,
-        "wall_seconds": time.perf_counter() - t0,
+        "no_model_rmse": _rmse(test.y), "no_model_rmse_wake": _rmse(test.y[_wake(types_test)]),
+        "models": models, "per_type": per_type,
+        "published": {"file": published_file, "units": PUBLISHED_UNITS} if published else None,
+        "pairs_to_triples": _pairs_to_triples(kinds, flights, data, sets["test"], config),
+        "learning_curves": (_learning_curves(args, kinds, flights, test, types_test, config)
+                            if args.curve_seeds else None),
     }  # fmt: skip
+    results["wall_seconds"] = time.perf_counter() - t0
     path = write_results(args.out, results, args, {"source": "Neural-Swarm data set (aerorobotics/neural-swarm)"})
-    header = ["type", "n train", "n test", "no model", *kinds]
-    rows = [[t, v["n_train"], v["n_test"], v["rmse"]["none"], *(v["rmse"][k] for k in kinds)]
-            for t, v in per_type.items()]
-    print(f"{files} files, {sum(results['flights'].values())} flights read ({len(rejected)} rejected), "
-          f"{records} vehicle records in {read_seconds:.1f} s")
-    print("test RMSE per interaction type, m/s^2 (3 axes):")
-    print(format_table(rows, header))
-    print(f"wrote {path}")
+    _print(results, list(predictions), path)
     return results
+
+
+def _print(results: dict, names: list[str], path: Path) -> None:
+    print(f"{results['files']} files, {sum(results['flights'].values())} flights read ({len(results['rejected'])} "
+          f"rejected), {results['records']} vehicle records in {results['read_seconds']:.1f} s")
+    rows = [[t, v["n_train"], v["n_test"], v["rmse"]["none"], *(v["rmse"][k] for k in names)]
+            for t, v in results["per_type"].items()]
+    print("test RMSE per interaction type, m/s^2 (3 axes):")
+    print(format_table(rows, ["type", "n train", "n test", "no model", *names]))
+    print(f"wrote {path}")
 
 
 def _write_csv(path: Path, log) -> None:

@@ -57,7 +57,8 @@ def data(tmp_path_factory) -> Path:
 
 def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path):
     results = main(["--data", str(data), "--train", "datacollection90*/*", "--test", "datacollection91*/*",
-                    "--models", "shallow,equivariant", "--quick", "--out", str(tmp_path / "rf")])
+                    "--models", "shallow,equivariant", "--curve-fractions", "0.5,1", "--curve-seeds", "2", "--quick",
+                    "--out", str(tmp_path / "rf")])
     written = json.loads((tmp_path / "rf" / "results.json").read_text())
     assert {k: written[k] for k in results} == json.loads(json.dumps(results)) and written["args"]["quick"]
     assert results["files"] == 5 + 7 and results["flights"] == {"train": 3, "test": 3}
@@ -70,8 +71,15 @@ def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path
     # no model: the push on the large vehicle, to the floor of 1 mm position steps; none in free air
     assert per["S2L"]["rmse"]["none"] == pytest.approx(abs(PUSH) / np.sqrt(3), abs=0.1)
     assert per["none2S"]["rmse"]["none"] < 0.2
-    assert set(results["models"]) == {"shallow", "equivariant"}
-    assert all(np.isfinite(per["S2L"]["rmse"][k]) for k in ("shallow", "equivariant"))
+    names = {"shallow", "equivariant", "deepsets_equivariant_kinds", "deepsets_kinds"}  # the models of sets read kinds
+    assert set(results["models"]) == names and all(np.isfinite(per["S2L"]["rmse"][k]) for k in names)
+    assert results["pairs_to_triples"] == {"skipped": "no test samples with two vehicles above"}
+    curves = results["learning_curves"]
+    assert [p["flights"] for p in curves["curves"]["equivariant"]] == [2, 2]  # of the two swaps (one flight: 2)
+    assert all(len(p["rmse"]) == 2 for k in ("shallow", "equivariant") for p in curves["curves"][k])
+    claim = curves["claim"]  # equivariant on the share nearest a third against shallow on all, seed by seed
+    assert claim["fraction"] == 0.5 and claim["baselines"] == ["shallow"] and claim["n"] == 2
+    assert results["published"] is None  # the clone holds no learning/log.txt
     # the upper vehicle of a swap has a neighbour (below it) and feels nothing: a model must learn that too
     assert per["none2S"]["n_test"] > 1200
     free = results["free_air_label"]

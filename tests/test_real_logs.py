@@ -457,3 +457,19 @@ def test_any_flipped_byte_or_cut_of_an_event_log_is_refused(tmp_path_factory, at
     path.write_bytes(data)
     with pytest.raises(UsdFormatError, match=rf"^{path}: byte \d+: "):
         read_usd_events(path)
+
+
+def test_published_errors_are_read_with_their_units(tmp_path):
+    """The data set's per-type errors, a training log's lines: gram-force squared of the vertical force,
+    as the target's vertical acceleration (the large frame 67 g, the small 32 g); other lines ignored."""
+    from downwash.real_logs.neural_swarm import published_errors
+
+    path = tmp_path / "log.txt"
+    path.write_text("S2L loss b4 training 9.0\nS2L loss after training 4.0\nGe2S loss after training 0.25\n"
+                    "[3] loss: 27767.791\nmean:\n6.5\n")
+    got = published_errors(path)
+    assert set(got) == {"S2L", "Ge2S"} and got["S2L"]["mse_gf2"] == 4.0
+    assert got["S2L"]["z_rmse"] == pytest.approx(2.0e-3 * GRAVITY / 0.067, rel=1e-12)
+    assert got["Ge2S"]["z_rmse"] == pytest.approx(0.5e-3 * GRAVITY / 0.032, rel=1e-12)
+    path.write_text("nothing here\n")
+    assert published_errors(path) == {}

@@ -11,7 +11,7 @@ what no wake model explains (resting on or touching the ground, vehicles within
 each) and keeps every `stride`-th sample.
 
 Interaction types (`interaction_types`), in the data set's own naming: ``S2L`` is a small
-vehicle above a large one, ``SL2S`` a small and a large above a small one (the vehicles above
+vehicle above a large one, ``SL2S`` a small and a large above a small one (small first) (the vehicles above
 within `WAKE_RADIUS` laterally and `WAKE_DEPTH` below them), ``Ge2S`` a small one with none
 above and within `GROUND_HEIGHT` of the ground, ``none2S`` one in free air.
 """
@@ -33,6 +33,7 @@ from downwash.datasets import Dataset, concatenate
 from downwash.labels import PAIR, labels_from_log
 from downwash.real_logs.neural_swarm import flight_files, read_flight, setpoint_offset
 from sim.logs import FlightLog
+from sim.neighbours import NeighbourSet
 
 __all__ = ["FlightRef", "find_flights", "read_flights", "interaction_types", "labelled_samples",
            "MAX_SETPOINT_OFFSET_S", "COORDINATED_TASKS", "WAKE_RADIUS", "WAKE_DEPTH", "GROUND_HEIGHT",
@@ -50,6 +51,7 @@ CONTACT_DISTANCE = 0.1  # m between two vehicles' centres: they touch
 CONTACT_MARGIN_S = 0.3  # s around a contact or crash also dropped: the label filter's window (0.19 s) and the impact
 ROOM_SIZE = 5.0  # m, any coordinate: an estimate beyond it has diverged (the log's int16 mm end at 32.7 m)
 _MAX_TILT_COS = np.cos(np.radians(45.0))
+_TYPE_ORDER = lambda letter: ("SL".find(letter) % 3, letter)  # noqa: E731  S before L (the data set's SL2S), others after
 
 
 @dataclass(frozen=True)
@@ -115,7 +117,7 @@ def interaction_types(flight: FlightLog, rows: np.ndarray, vehicles: np.ndarray)
              & (rel[..., 2] < WAKE_DEPTH[1]))
     above[np.arange(len(rows)), vehicles] = False
     for i, (r, v) in enumerate(zip(rows, vehicles)):
-        over = "".join(sorted(letters[j] for j in np.flatnonzero(above[i])))
+        over = "".join(sorted((letters[j] for j in np.flatnonzero(above[i])), key=_TYPE_ORDER))
         if not over:
             over = "Ge" if pos[r, v, 2] < GROUND_HEIGHT else "none"
         out[i] = f"{over}2{letters[v]}"
@@ -140,21 +142,22 @@ def _unexplained(flight: FlightLog, margin_s: float = CONTACT_MARGIN_S) -> np.nd
     return np.stack([np.convolve(bad[:, v], kernel, mode="same") > 0 for v in range(V)], axis=1)
 
 
-def labelled_samples(flights: Sequence[tuple[FlightRef, FlightLog]], stride: int = 2
-                     ) -> tuple[Dataset, np.ndarray]:
-    """(the pair samples of every vehicle of every flight, their interaction types): each vehicle with
-    its nearest other vehicle (or, flying alone, none: its inputs padded), the samples no wake model
-    explains dropped, every `stride`-th kept (labels at 100 Hz are strongly correlated)."""
+def labelled_samples(flights: Sequence[tuple[FlightRef, FlightLog]], stride: int = 2,
+                     neighbours: NeighbourSet = PAIR) -> tuple[Dataset, np.ndarray]:
+    """(the samples of every vehicle of every flight, their interaction types): each vehicle with
+    its `neighbours` (default its nearest other vehicle, the paper's pair; flying alone, none: its
+    inputs padded), the samples no wake model explains dropped, every `stride`-th kept (labels at
+    100 Hz are strongly correlated). The samples and their order do not depend on `neighbours`."""
     if not isinstance(stride, int) or isinstance(stride, bool) or not 1 <= stride <= 100:
         raise ConfigError(f"stride: expected an integer in 1-100, got {stride!r}")
     parts, types = [], []
     for k, (ref, flight) in enumerate(flights):
-        labels = labels_from_log(flight, PAIR, targets="all", source=ref.name)
+        labels = labels_from_log(flight, neighbours, targets="all", source=ref.name)
         keep = ~_unexplained(flight)[labels["row"], labels["vehicle"]] & (labels["row"] % stride == 0)
         labels = {name: value[keep] for name, value in labels.items()}
         if len(labels["y"]) == 0:
             continue
-        parts.append(Dataset.from_labels(labels, PAIR, flight=k, stage=0, source=ref.name))
+        parts.append(Dataset.from_labels(labels, neighbours, flight=k, stage=0, source=ref.name))
         types.append(interaction_types(flight, labels["row"], labels["vehicle"]))
     if not parts:
         raise DataError("no labelled samples in the flights read")

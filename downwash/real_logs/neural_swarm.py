@@ -40,13 +40,14 @@ from typing import Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
+from downwash_core.params import GRAVITY
 from downwash_core.vehicles import ThrustMap, get_vehicle
 from downwash.real_logs.convert import real_flight, resample, vehicle_arrays
 from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_quaternions, read_usd_sync
 from sim.logs import FlightLog
 
 __all__ = ["LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
-           "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "TICK_WRAP"]
+           "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "published_errors", "TICK_WRAP"]
 
 TICK_WRAP = 2**32  # us: the tick is a uint32 (71.6 minutes)
 _TICK_STEP_US = (2_000, 50_000)  # a log at 20-500 Hz: its tick steps by 2-50 ms in microseconds
@@ -194,3 +195,23 @@ def setpoint_offset(log: FlightLog, a: int, b: int, max_lag_s: float = 1.0) -> f
     n = len(x)
     score = [np.sum(x[max(0, -k):n - max(0, k)] * y[max(0, k):n - max(0, -k)]) for k in lags]
     return float(lags[int(np.argmax(score))] * dt)
+
+
+_PUBLISHED = re.compile(r"^(\w+2[SL]) loss after training ([0-9.eE+-]+)\s*$")
+
+
+def published_errors(log_file: str | os.PathLike) -> dict[str, dict[str, float]]:
+    """The data set's own per-type errors (its ``learning/log.txt``, the training run the repository
+    reports): interaction type -> ``mse_gf2``, the mean squared error of the vertical force as that
+    script computes it (gram-force squared, on its training samples after training), and ``z_rmse``,
+    its root as an acceleration of the target vehicle (m/s^2: gram-force x 1e-3 g / the target's mass),
+    comparable with a vertical RMSE here. Empty when the file holds no such line."""
+    out = {}
+    for line in Path(log_file).read_text(errors="replace").splitlines():
+        m = _PUBLISHED.match(line.strip())
+        if m:
+            frame = "small" if m.group(1).endswith("S") else "large"
+            mse = float(m.group(2))
+            out[m.group(1)] = {"mse_gf2": mse,
+                               "z_rmse": math.sqrt(mse) * 1e-3 * GRAVITY / NEURAL_SWARM_VEHICLES[frame].mass}
+    return out
