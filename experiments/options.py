@@ -29,7 +29,7 @@ PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equi
 CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS,
               *(k + "_guarded" for k in PAIRWISE_KINDS))  # downwash.conditions.CONDITIONS
 DEFAULT_CONDITIONS = (*CONDITIONS[:7], *(k + "_guarded" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
-FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed")  # sim.fields.registry.FIELDS
+FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed", "jet", "pybullet")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS
 AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS

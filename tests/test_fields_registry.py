@@ -27,7 +27,7 @@ from sim.fields import registry as registry_module
 # A field registered without a line here fails test_every_field_has_a_symmetry_test.
 # "memory": a field with memory, not a law of the instant: its symmetries (vehicle order, batched = serial,
 # the steady hover wake equal to momentum's) are tested in tests/test_shed_wake.py
-SYMMETRY = {"so2": "so2", "so2-swirl": "so2", "momentum": "so2", "so2-c4": "c4", "so2-skew": "skew", "shed": "memory"}
+SYMMETRY = {"so2": "so2", "so2-swirl": "so2", "momentum": "so2", "so2-c4": "c4", "so2-skew": "skew", "shed": "memory", "jet": "so2", "pybullet": "so2"}
 NAMES = [name for name, law in SYMMETRY.items() if law != "memory"]
 POS, VEL = 1e3, 100.0  # m, m/s: wide bounds of the random inputs
 
@@ -173,7 +173,7 @@ def test_parameters_are_type_converted():
 
 
 @pytest.mark.parametrize("spec, match", [
-    ("nope", r"unknown field 'nope'; registered: so2, so2-c4, so2-swirl, so2-skew, momentum, shed; or a MODULE:FACTORY"),
+    ("nope", r"unknown field 'nope'; registered: so2, so2-c4, so2-swirl, so2-skew, momentum, shed, jet, pybullet; or a MODULE:FACTORY"),
     ("so2:colour=1", r"field 'so2' has no parameter 'colour'; allowed: strength, .*skew"),
     ("momentum:thrust=2", r"no parameter 'thrust'; allowed: air_density, .*thrust_scale, .*drag"),
     ("momentum:ring_points=2.5", "ring_points.*expected an integer"),

@@ -36,7 +36,9 @@ from typing import Any, Callable, Mapping
 
 from downwash_core.errors import ConfigError
 from sim.field import DownwashField
+from sim.fields.jet import JetWake
 from sim.fields.momentum import MomentumWake
+from sim.fields.pybullet_law import PybulletDownwash
 from sim.fields.shed import ShedWake
 
 __all__ = ["FieldEntry", "FIELDS", "DEFAULT_FIELD", "register_field", "make_field", "parse_field_spec",
@@ -236,3 +238,11 @@ register_field(
     "a wake with memory: the momentum jet shed by the rotors, carried down by its own speed and the wind",
     "as momentum below a leader hovering in still air; none once its wake trails (it moves, tilts or the wind blows)",
     {**field_parameters(MomentumWake), **_SHED_OWN})
+register_field(
+    "jet", JetWake,
+    "Bauersfeld et al.'s turbulent jet (RA-L 2024: B_d 10.11, S 0.0767, s0 -5.8 l), acting on the follower as momentum",
+    _SO2_SYMMETRY, field_parameters(JetWake))
+register_field(
+    "pybullet", PybulletDownwash,
+    "gym-pybullet-drones' law (BaseAviary._downwash, cf2x constants): a Gaussian push ~1/dz^2, per 0.027 kg",
+    _SO2_SYMMETRY, field_parameters(PybulletDownwash))
