@@ -6,6 +6,9 @@ A field spec (the experiments' `--field`, the envs' `field=` string) is one of::
     NAME                     a registered field:              so2, momentum
     NAME:KEY=VALUE[,...]     a registered field with parameters: so2:strength=8,
                              momentum:thrust_scale=1.2,drag=false
+    fitted:PATH              a registered field with the constants fitted to real flights,
+                             the JSON `downwash.field_fit.write_fitted` writes (with the
+                             digest of the data it was fitted to; sim.fields.fitted)
     MODULE:FACTORY           an import path: MODULE.FACTORY() returns the field
                              object (no parameters):          mypkg.fields:make
 
@@ -91,8 +94,9 @@ def register_field(name: str, factory: Callable[..., Any], description: str, sym
     """Register `factory` under `name` (lowercase letters, digits, '-', '_'; not yet taken)."""
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"field name {name!r}: use lowercase letters, digits, '-' and '_' (no '.' or ':')")
-    if name in _REGISTRY:
-        raise ConfigError(f"field name {name!r} is already registered")
+    if name in _REGISTRY or name == "fitted":
+        raise ConfigError(f"field name {name!r} is already registered" if name in _REGISTRY else
+                          "field name 'fitted' is the spec grammar's (fitted:PATH)")
     if not callable(factory):
         raise ConfigError(f"field {name!r}: factory must be callable, got {type(factory).__name__}")
     entry = FieldEntry(name, factory, description, symmetry, MappingProxyType(dict(params or {})),
@@ -129,7 +133,8 @@ def _convert(label: str, entry: FieldEntry, key: str, text: str) -> Any:
 
 
 def parse_field_spec(spec: str, label: str = "field") -> tuple[str, str, Any]:
-    """("name", NAME, {typed params}) for a registered field, or ("import", MODULE, FACTORY).
+    """("name", NAME, {typed params}) for a registered field, ("fitted", PATH, None) for a fitted
+    one, or ("import", MODULE, FACTORY).
 
     ConfigError (prefixed with `label`) for an unknown name or parameter, a malformed
     parameter list, or a malformed import path; nothing is imported or built here.
@@ -138,6 +143,10 @@ def parse_field_spec(spec: str, label: str = "field") -> tuple[str, str, Any]:
         raise ConfigError(f"{label}: expected a field spec string, got {type(spec).__name__}")
     spec = spec.strip() or DEFAULT_FIELD
     head, colon, tail = spec.partition(":")
+    if head == "fitted" and colon:  # fitted:PATH, a fitted field's JSON (sim.fields.fitted)
+        if not tail.strip():
+            raise ConfigError(f"{label}: {spec!r}: expected fitted:PATH, the JSON of downwash.field_fit.write_fitted")
+        return "fitted", tail.strip(), None
     if head in _REGISTRY:
         entry, params = _REGISTRY[head], {}
         for item in filter(None, (x.strip() for x in tail.split(","))) if colon else ():
@@ -173,6 +182,10 @@ def resolve_field_spec(spec: str, label: str = "field") -> Any:
     (`sim.field.check_field`) and provenance.
     """
     kind, target, detail = parse_field_spec(spec, label)
+    if kind == "fitted":
+        from sim.fields.fitted import resolve_fitted_spec  # it builds on this registry
+
+        return resolve_fitted_spec(target, label)
     if kind == "name":
         try:
             return _REGISTRY[target].make(**detail)
