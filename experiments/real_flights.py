@@ -55,6 +55,8 @@ DEFAULT_MODELS = "shallow,deep,equivariant,equivariant_general"
 DEFAULT_SET_MODELS = "deepsets_equivariant,deepsets"
 _PAIR_KINDS = tuple(k for k in PAIRWISE_KINDS if "memory" not in k)  # the models with memory need a history
 _SET_KINDS = ("deepsets_equivariant", "deepsets")  # trained reading the vehicle kinds (downwash.set_models)
+DEFAULT_FIT_FIELDS = "so2,momentum,jet,pybullet"
+_FIT_FIELDS = ("so2", "momentum", "jet", "pybullet")  # downwash.field_fit.DEFAULT_FIT
 PUBLISHED_UNITS = ("the data set's learning/log.txt: per type the mean squared error of the vertical force after "
                    "training, on that script's training samples, in gram-force squared (mse_gf2); z_rmse is its "
                    "root as the target's acceleration, m/s^2")
@@ -97,9 +99,13 @@ class RealFlightsArgs(CommonArgs):
     stride: int = arg(2, "keep every stride-th sample of the 100 Hz labels (2: the controller's 50 Hz)", ge=1, le=100)
     motor_lag: float = arg(0.0, "s, a first-order lag from each rotor's PWM to its thrust (0: none)", ge=0.0, le=1.0)
     curve_fractions: str = arg("0.04,0.11,0.33,1", "the shares of the training flights of the learning curves",
-                               check=_fractions_check)
+                               check=_fractions_check, quick="0.33,1")
+    fit_fields: str = arg(DEFAULT_FIT_FIELDS, "comma list of the registered fields to fit to the training flights, "
+                          f"of {', '.join(_FIT_FIELDS)} (empty: none)", check=names_check(_FIT_FIELDS, empty=True))
+    boot: int = arg(100, "bootstrap refits per fitted field (whole flights resampled; 0: no intervals, else 10-2000)",
+                    check=lambda v: None if v == 0 or 10 <= v <= 2000 else "expected 0 or 10-2000", quick=10)
     curve_seeds: int = arg(3, "seeds per point of the learning curves (each a draw of flights and a training; "
-                           "0: no curves)", ge=0, le=20)
+                           "0: no curves)", ge=0, le=20, quick=2)
 
 
 def _root(data: str) -> Path:
@@ -229,6 +235,29 @@ def _learning_curves(args, kinds, flights, test, types, config) -> dict:
     return out
 
 
+def _fitted_fields(args, flights) -> dict:
+    """Each field of --fit-fields fitted to the training flights (bootstrap intervals over flights,
+    written to <out>/fitted/<field>.json for ``--field fitted:PATH``), and the default and fitted
+    constants' forces against the test flights' measured ones."""
+    from downwash.field_fit import (bootstrap_fit, compare_forces, fit_field, pair_states, randomization_ranges,
+                                    write_fitted)
+    from sim.fields.registry import make_field
+
+    names = _split(args.fit_fields)
+    if not names:
+        return {}
+    train, test = pair_states(flights["train"], args.stride), pair_states(flights["test"], args.stride)
+    out = {}
+    for name in names:
+        t0 = time.perf_counter()
+        fit = bootstrap_fit(name, train, n_boot=args.boot, seed=args.seed) if args.boot else fit_field(name, train)
+        path = write_fitted(Path(args.out) / "fitted" / f"{name}.json", fit)
+        out[name] = {"fit": fit.describe(), "file": str(path), "seconds": time.perf_counter() - t0,
+                     "ranges": randomization_ranges(fit, f"fitted:{path}") if args.boot else None,
+                     "test": {"default": compare_forces(make_field(name), test), "fitted": compare_forces(fit, test)}}
+    return out
+
+
 def run(args: RealFlightsArgs) -> dict:
     from downwash.real_logs.flights import find_flights, labelled_samples, read_flights
     from downwash.staged import train_config
@@ -286,6 +315,7 @@ def run(args: RealFlightsArgs) -> dict:
         "models": models, "per_type": per_type,
         "published": {"file": published_file, "units": PUBLISHED_UNITS} if published else None,
         "pairs_to_triples": _pairs_to_triples(kinds, flights, data, sets["test"], config),
+        "fitted_fields": _fitted_fields(args, flights),
         "learning_curves": (_learning_curves(args, kinds, flights, test, types_test, config)
                             if args.curve_seeds else None),
     }  # fmt: skip

@@ -17,10 +17,12 @@ import pytest
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY
+from downwash_core.provenance import describe
 from downwash.real_logs.crazyflie_usd import UsdFormatError, compress_quaternions, write_usd_sync
 from downwash.real_logs.flights import find_flights, labelled_samples, read_flights
 from downwash.real_logs.neural_swarm import NEURAL_SWARM_VEHICLES
 from experiments.real_flights import main
+from sim.fields.registry import resolve_field_spec
 from test_real_logs import _neural_swarm_columns  # tests/ is on sys.path under pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -57,8 +59,8 @@ def data(tmp_path_factory) -> Path:
 
 def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path):
     results = main(["--data", str(data), "--train", "datacollection90*/*", "--test", "datacollection91*/*",
-                    "--models", "shallow,equivariant", "--curve-fractions", "0.5,1", "--curve-seeds", "2", "--quick",
-                    "--out", str(tmp_path / "rf")])
+                    "--models", "shallow,equivariant", "--curve-fractions", "0.5,1", "--fit-fields", "so2,pybullet",
+                    "--quick", "--out", str(tmp_path / "rf")])
     written = json.loads((tmp_path / "rf" / "results.json").read_text())
     assert {k: written[k] for k in results} == json.loads(json.dumps(results)) and written["args"]["quick"]
     assert results["files"] == 5 + 7 and results["flights"] == {"train": 3, "test": 3}
@@ -80,6 +82,16 @@ def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path
     claim = curves["claim"]  # equivariant on the share nearest a third against shallow on all, seed by seed
     assert claim["fraction"] == 0.5 and claim["baselines"] == ["shallow"] and claim["n"] == 2
     assert results["published"] is None  # the clone holds no learning/log.txt
+    # the wakes fitted on one day and judged on the other (the same geometry): the fit does no worse than
+    # the default constants, its intervals hold the fitted value, and fitted:PATH flies it
+    for name, f in results["fitted_fields"].items():
+        test, fit = f["test"], f["fit"]
+        assert test["fitted"]["rmse"] <= test["default"]["rmse"] + 1e-9 and fit["bootstrap"]["n_boot"] == 10
+        # (both training flights are one flight's copies: every refit lands on the fit, within its tolerance)
+        assert all(lo * (1 - 1e-6) <= fit["params"][p] <= hi * (1 + 1e-6) for p, (lo, hi) in fit["intervals"].items())
+        field = resolve_field_spec(f"fitted:{f['file']}")
+        assert describe(field)["fitted"]["data_digest"] == fit["data_digest"] == test["fitted"]["data_digest"]
+        assert f["ranges"]["absolute"] == {p: list(v) for p, v in fit["intervals"].items()}
     # the upper vehicle of a swap has a neighbour (below it) and feels nothing: a model must learn that too
     assert per["none2S"]["n_test"] > 1200
     free = results["free_air_label"]

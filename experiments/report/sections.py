@@ -461,6 +461,35 @@ def _bold_min(errs: list) -> list[str]:
     return [f"**{fmt(e)}**" if i == best and len(set(errs)) > 1 else fmt(e) for i, e in enumerate(errs)]
 
 
+def _render_fitted(fitted: dict) -> list[str]:
+    """The registered wakes fitted to the training flights: constants with their intervals beside the
+    published ones, the test error of each, and the wake's mean vertical push by separation."""
+    rows = []
+    for name, f in fitted.items():
+        fit, test = f["fit"], f["test"]
+        ci = fit.get("intervals") or {}
+        consts = "; ".join(f"{p} {fmt(v)}" + (f" [{fmt(ci[p][0])}, {fmt(ci[p][1])}]" if p in ci else "")
+                           + f" ({fmt(test['default']['field'].get(p))})" for p, v in fit["params"].items())
+        rows.append([f"`{name}`", consts, fmt(test["default"]["rmse"]), fmt(test["fitted"]["rmse"]),
+                     fmt(test["fitted"]["rmse_zero"])])
+    first = next(iter(fitted.values()))["test"]["fitted"]
+    profile = [[f"{fmt(b['lo'])}-{fmt(b['hi'])}", str(b["n"]), fmt(b["z_measured"])]
+               + [fmt(f["test"]["fitted"]["vertical"][i]["z_predicted"]) for f in fitted.values()]
+               for i, b in enumerate(first["vertical"]) if b["n"]]
+    boots = {f["fit"]["bootstrap"]["n_boot"] for f in fitted.values() if f["fit"].get("bootstrap")}
+    return [
+        "The registered wakes fitted to the training flights' labels (least squares of two constants each, every "
+        "pair scaled for its vehicles' kinds; samples with one vehicle above or none; 95 % intervals from "
+        f"{'/'.join(str(b) for b in sorted(boots)) or 'no'} bootstrap refits over whole flights; the default, "
+        "published constant in parentheses), and each field's RMSE on the test flights' samples with its default "
+        "and its fitted constants (m/s^2, three axes). Each fit is written with its data's digest; "
+        "`--field fitted:PATH` flies it:",
+        _table(["field", "fitted constants [95 % CI] (default)", "default", "fitted", "no field"], rows),
+        f"The wake's mean vertical push on the test samples within {fmt(first['lateral_max'])} m laterally of the "
+        "vehicle above, by its height above them (m; m/s^2), measured and as each fitted field predicts it:",
+        _table(["height", "samples", "measured", *(f"`{n}`" for n in fitted)], profile)]
+
+
 def render_real_flights(r: dict, label: str) -> str:
     """Real flights: what was read, per interaction type each model's test error beside none and the
     data set's own, the pairs-to-triples question and the learning curves."""
@@ -500,6 +529,9 @@ def render_real_flights(r: dict, label: str) -> str:
                   f"({triples['n_train']} samples), judged on the {triples['n_test']} test samples with two vehicles "
                   f"above (no model: {fmt(triples['none'])} m/s^2), reading the nearest vehicle above, and summed over "
                   "both (the paper's naive multi-vehicle law):", _table(["model", "nearest", "summed"], trow)]
+    fitted = r.get("fitted_fields") or {}
+    if fitted:
+        parts += _render_fitted(fitted)
     curves = r.get("learning_curves") or {}
     if "curves" in curves:
         names = list(curves["curves"])
