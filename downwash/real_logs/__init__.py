@@ -11,9 +11,10 @@
 - `downwash.real_logs.mapping`: the TOML mappings of logged signals to a flight log's fields, and their unit checks
 - `downwash.real_logs.flights`: a data set of real flights, chosen by globs, checked, labelled and typed
 - `downwash.real_logs.convert`: what the readers share (resampling, ``u`` from the measured thrust)
+- `downwash.real_logs.replay`: real flights' setpoints flown in the simulator, tracking side by side
 
 A real flight is a `sim.logs.FlightLog` with a ``source`` in its metadata and no truth arrays.
 """
 
 __all__ = ["crazyflie_usd", "neural_swarm", "tabular", "flights", "convert",
-           "ros2_bag", "crazyflie_events", "mapping"]
+           "ros2_bag", "crazyflie_events", "mapping", "replay"]

@@ -17,7 +17,7 @@ r = 0.127 m on 0.830 kg: the same acceleration within 2 %.)
 Here, as every field, the law returns the follower's acceleration: F / m with m = `follower_mass`
 = 0.027 kg, the vehicle the law was written for: 2.81 m/s^2 / dz^2 (dz in m) on the axis, 2.81
 m/s^2 at 1 m. The geometry is measured along the leader's thrust axis n (dz = s = -dp . n, dxy = r the
-distance from the axis) and the push is along -n: the project's convention (DESIGN section 5), the
+distance from the axis) and the push is along -n: the convention of `sim.field`, the
 same for a level leader and a level follower as gym-pybullet-drones' world-z geometry and body-z push.
 
 Where the law is not defined, and how it is defined here (all parameters, so a fit can move them):
