@@ -447,16 +447,20 @@ def load_fitted(path: str | Path, data_digest: str | None = None) -> FittedField
 def randomization_ranges(fitted: FittedField, spec: str | None = None) -> dict[str, Any]:
     """The 95 % intervals as domain-randomisation ranges: "field", the envs' `field` option that flies the fit
     (`spec`, e.g. ``fitted:PATH``, else the base spec with the fitted parameters); "field_randomization",
-    {constant: (low, high)} factors on the fitted values as `downwash_envs.config.FollowerConfig` takes them
-    (in ENV_FACTOR_RANGE; None unless a DownwashField's ENV_SCALABLE constants: the envs scale nothing
-    else); "absolute", {param: [low, high]} in the parameter's unit, any field. ConfigError without intervals."""
+    {constant: (low, high)} factors on the fitted values as `downwash_envs.config.FollowerConfig` takes them for
+    any field (so2, momentum, jet, pybullet): low/high the interval's ends over the fitted value, ordered, clipped
+    to ENV_FACTOR_RANGE (None only where a factor cannot say it: a fitted value of 0, or a `DownwashField`
+    constant outside ENV_SCALABLE, which the envs do not scale); "absolute", {param: [low, high]} in the
+    parameter's unit. ConfigError without intervals."""
     if not fitted.intervals:
         raise ConfigError(f"randomization_ranges: the fit of {fitted.base!r} has no intervals (use bootstrap_fit)")
     absolute = {p: [float(lo), float(hi)] for p, (lo, hi) in fitted.intervals.items()}
     factors = None
-    if isinstance(fitted.make(), DownwashField) and all(p in ENV_SCALABLE for p in absolute):
+    so2 = isinstance(fitted.make(), DownwashField)
+    if all(fitted.params[p] != 0 and (p in ENV_SCALABLE or not so2) for p in absolute):
         clip = lambda x: float(min(max(x, ENV_FACTOR_RANGE[0]), ENV_FACTOR_RANGE[1]))  # noqa: E731
-        factors = {p: (clip(lo / fitted.params[p]), clip(hi / fitted.params[p])) for p, (lo, hi) in absolute.items()}
+        factors = {p: tuple(sorted((clip(lo / fitted.params[p]), clip(hi / fitted.params[p]))))
+                   for p, (lo, hi) in absolute.items()}
     field = spec or f"{fitted.base}:" + ",".join(f"{p}={v!r}" for p, v in fitted.params.items())
     return {"field": field, "field_randomization": factors, "absolute": absolute, "base": fitted.base,
             "data_digest": fitted.data_digest}

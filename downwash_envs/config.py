@@ -23,8 +23,9 @@ from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash_core.validate import choice, count, number, pair
 from sim.field import DownwashField, check_field
+from sim.field_memory import is_stateful
 from sim.predictor import ZeroPredictor
-from sim.fields.registry import FIELDS, resolve_field_spec
+from sim.fields.registry import FIELDS, field_parameters, resolve_field_spec
 from sim.simulator import SimConfig
 from sim.turbulence import OUTurbulence
 from downwash_trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
@@ -35,7 +36,7 @@ __all__ = [
     "DEFAULT_ACTION_BOUND", "MAX_ACTION_BOUND", "MIN_FOLLOWER_HEIGHT", "DEFAULT_MAX_EPISODE_STEPS",
     "FIELD_RANDOMIZABLE", "DEFAULT_FIELD_RANDOMIZATION", "MASS_SCALE_RANGE", "FIELD_SCALE_RANGE",
     "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "VEHICLE_RANDOMIZABLE", "VEHICLE_SPREAD_MAX",
-    "FollowerConfig", "make_config", "build_field",
+    "FollowerConfig", "make_config", "build_field", "randomizable_constants",
 ]  # fmt: skip
 
 ACTION_MODES = ("residual", "acceleration")
@@ -119,11 +120,11 @@ class FollowerConfig:
         field: a field object with `DownwashField`'s call signature, or a field spec
             string: a registered name ("so2", "so2-c4", "so2-swirl", "so2-skew",
             "momentum"), optionally with parameters ("momentum:thrust_scale=1.5"), or
-            "MODULE:FACTORY" (see docs/fields.md). Knobs and field randomisation need
-            a `DownwashField` (the so2 names give one).
-        field_randomization: None, "default" (strength x U(0.7, 1.3), width0 and
+            "MODULE:FACTORY" (see docs/fields.md). The knobs need a `DownwashField`.
+        field_randomization: None, "default" (so2: strength x U(0.7, 1.3), width0 and
             width_slope x U(0.8, 1.2)) or {constant: (low, high)} factors drawn per
-            episode, factors in 0.1-5, constants from FIELD_RANDOMIZABLE.
+            episode per world, in 0.1-5, on constants of `randomizable_constants(field)`
+            (so2's FIELD_RANDOMIZABLE; the float constants of momentum, jet, pybullet, fitted:).
         mass_randomization: None or (low, high): the follower's true mass (and
             inertia) scaled by a factor drawn per episode, within 0.5-1.5. The
             controller keeps the nominal mass.
@@ -373,6 +374,18 @@ def _validate_geometry(c: FollowerConfig) -> None:
         )
 
 
+def randomizable_constants(field: Any) -> tuple[str, ...]:
+    """The constants `field_randomization` may scale: FIELD_RANDOMIZABLE for a `DownwashField` (`fitted:` ones
+    too), the float constants of any other stateless dataclass field (momentum, jet, pybullet, `fitted:`), else ()."""
+    if isinstance(field, DownwashField):
+        return FIELD_RANDOMIZABLE
+    if not dataclasses.is_dataclass(field) or isinstance(field, type) or is_stateful(field):
+        return ()
+    kinds, names = field_parameters(type(field)), [f.name for f in dataclasses.fields(field) if f.init]
+    return tuple(k for k in names if kinds[k] is float and type(getattr(field, k)) is not bool
+                 and isinstance(getattr(field, k), (float, int, np.floating)))
+
+
 def _validate_field(c: FollowerConfig) -> None:
     """The field knobs, field randomisation, and a custom field."""
     number_option("c4_amplitude", c.c4_amplitude, "-", -0.99, 0.99)
@@ -380,30 +393,45 @@ def _validate_field(c: FollowerConfig) -> None:
     number_option("skew", c.skew, "s/m", 0.0, 10.0)
     knobs = any(float(getattr(c, k)) != 0.0 for k in FIELD_KNOBS)
     fr = c.field_randomization
-    if fr is not None:
-        if isinstance(fr, str):
-            if fr != "default":
-                raise ConfigError(
-                    f"field_randomization: got {fr!r}; allowed: None, 'default' or {{constant: (low, high)}}"
-                )
-        elif isinstance(fr, Mapping):
-            unknown = sorted(set(fr) - set(FIELD_RANDOMIZABLE))
-            if unknown:
-                raise ConfigError(
-                    f"field_randomization: unknown constant(s) {unknown}; allowed: {', '.join(FIELD_RANDOMIZABLE)}"
-                )
-            for k, v in fr.items():
-                pair_option(f"field_randomization[{k!r}]", v, "(factor)", *FIELD_SCALE_RANGE)
-        else:
-            raise ConfigError(f"field_randomization: expected None, 'default' or a dict, got {type(fr).__name__}")
+    if fr is not None and not (isinstance(fr, Mapping) or (isinstance(fr, str) and fr == "default")):
+        raise ConfigError(f"field_randomization: got {fr!r} (a {type(fr).__name__}); allowed: None, 'default' or "
+                          "a dict {constant: (low, high)}")
+    field = build_field(c.field)  # (None: the default DownwashField)
     if c.field is not None:
-        field = build_field(c.field)
         check_field(field, name="field")  # shape and finiteness, once, before any episode
-        if (knobs or fr is not None) and not isinstance(field, DownwashField):
-            raise ConfigError(
-                "field: c4_amplitude/swirl/skew and field_randomization need a sim.field.DownwashField, "
-                f"got {type(field).__name__}"
-            )
+    if knobs and not isinstance(field, DownwashField):
+        raise ConfigError(f"field: c4_amplitude/swirl/skew need a sim.field.DownwashField, got {type(field).__name__}")
+    if fr is None:
+        return
+    what, allowed = type(field).__name__, randomizable_constants(field)
+    if not allowed:
+        raise ConfigError(f"field_randomization: needs a field of float dataclass constants (so2, momentum, jet, "
+                          f"pybullet, fitted:PATH of one), got {what}")
+    if isinstance(fr, str) and not isinstance(field, DownwashField):
+        raise ConfigError(f"field_randomization: 'default' scales so2's constants; for a {what} give "
+                          f"{{constant: (low, high)}} factors of: {', '.join(allowed)}")
+    fr = DEFAULT_FIELD_RANDOMIZATION if isinstance(fr, str) else fr
+    unknown = sorted(set(fr) - set(allowed), key=str)
+    if unknown:
+        raise ConfigError(f"field_randomization: {unknown}: not among {what}'s randomizable float constants; "
+                          f"allowed: {', '.join(allowed)}")
+    for k, v in fr.items():
+        pair_option(f"field_randomization[{k!r}]", v, "(factor)", *FIELD_SCALE_RANGE)
+    scaled = {k: (float(getattr(field, k)), r) for k, r in c.field_scales.items()}
+    for k, (value, r) in scaled.items():  # the field's own checks, at both ends of every range
+        if value == 0.0:
+            raise ConfigError(f"field_randomization[{k!r}]: {what}.{k} is 0, which no factor changes; allowed: "
+                              f"nonzero constants of {', '.join(allowed)}")
+        for factor in r:
+            try:
+                dataclasses.replace(field, **{k: value * factor})
+            except ConfigError as e:
+                raise ConfigError(f"field_randomization[{k!r}]: factor {factor:g} makes {k} = {value * factor:g}, "
+                                  f"which {what} refuses: {e}") from None
+    if not isinstance(field, DownwashField):  # every constant at its low, then its high factor: finite forces
+        for end in (0, 1):
+            check_field(dataclasses.replace(field, **{k: v * r[end] for k, (v, r) in scaled.items()}),
+                        name=f"field_randomization ({('low', 'high')[end]} factors)")
 
 
 def build_field(field: Any) -> Any:

@@ -30,6 +30,8 @@ from downwash_envs.observation import OBS_DIM, OBS_SLICES, OBSERVATION, obs_boun
 from downwash_envs.reward import (  # noqa: F401  (the follower task's reward, defined once for both tasks)
     ERROR_CAP, INFO_KEYS, REWARD_TERMS, squared_norm, task_constants, task_kernel, task_terms,
 )
+from sim.field import DownwashField
+from sim.fields.per_world import PerWorldFields
 from sim.predictor import OraclePredictor
 from sim.scene import Scene, build_scene
 from downwash_trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
@@ -155,13 +157,21 @@ class FollowerWorlds(TaskWorlds):
 
     # ---------------------------------------------------------------- per-world parameters
     def _field(self, episodes: Sequence[Episode]) -> Any:
+        """The worlds' field: the base field, or with each world's constants scaled by its episode's factors.
+
+        A `DownwashField` takes them as (W, 1, 1) array constants; any other field of float constants
+        (`config.randomizable_constants`) is rebuilt per world and flown as `sim.fields.per_world.PerWorldFields`.
+        """
         if not self.scale_names:
             return self.base_field
+        base = {name: float(getattr(self.base_field, name)) for name in self.scale_names}
+        if not isinstance(self.base_field, DownwashField):
+            return PerWorldFields([
+                dataclasses.replace(self.base_field, **{name: base[name] * s for name, s in zip(base, ep.field_scales)})
+                for ep in episodes
+            ])
         scales = np.array([ep.field_scales for ep in episodes])  # (W, n)
-        values = {
-            name: (float(getattr(self.base_field, name)) * scales[:, i]).reshape(len(episodes), 1, 1)
-            for i, name in enumerate(self.scale_names)
-        }
+        values = {name: (base[name] * scales[:, i]).reshape(len(episodes), 1, 1) for i, name in enumerate(base)}
         return dataclasses.replace(self.base_field, **values)
 
     def _predictor(self, field: Any) -> Any:

@@ -170,8 +170,18 @@ def test_randomization_ranges():
         assert ENV_FACTOR_RANGE[0] <= lo < 1.0 < hi <= ENV_FACTOR_RANGE[1]
         assert lo * fit.params[p] == pytest.approx(out["absolute"][p][0])
     momentum = bootstrap_fit("momentum", synthetic_states("momentum", seed=9, n_flights=4, per_flight=80), n_boot=10)
-    ranges = randomization_ranges(momentum)
-    assert ranges["field_randomization"] is None and set(ranges["absolute"]) == set(momentum.params)
+    ranges = randomization_ranges(momentum)  # factors for every field now, not only so2's
+    assert set(ranges["field_randomization"]) == set(ranges["absolute"]) == set(momentum.params)
+    for p, (lo, hi) in ranges["field_randomization"].items():
+        assert ENV_FACTOR_RANGE[0] <= lo <= hi <= ENV_FACTOR_RANGE[1]
+        assert (lo * momentum.params[p], hi * momentum.params[p]) == pytest.approx(tuple(ranges["absolute"][p]))
+    def with_origin(value, interval):  # a fitted parameter that may be negative or 0: the virtual origin, m
+        return dataclasses.replace(momentum, params={**momentum.params, "virtual_origin": value},
+                                   intervals={**momentum.intervals, "virtual_origin": interval})
+
+    negative = randomization_ranges(with_origin(-0.5, (-0.6, -0.45)))["field_randomization"]
+    assert negative["virtual_origin"] == pytest.approx((0.9, 1.2))  # ordered low, high
+    assert randomization_ranges(with_origin(0.0, (-0.1, 0.1)))["field_randomization"] is None  # no factor says it
     with pytest.raises(ConfigError, match="no intervals"):
         randomization_ranges(fit_field("so2", synthetic_states("so2", seed=9, n_flights=2)))
 
