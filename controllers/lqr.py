@@ -1,4 +1,4 @@
-"""Feedback-linearised LQR outer loop (paper eq. 2; DESIGN section 4).
+"""Feedback-linearised LQR outer loop (paper eq. 2).
 
 State x = [p (3), v (3), psi], input u = [a (3), psi_dot], world frame z up.
 The gain comes from python-control; the command is
@@ -41,7 +41,7 @@ __all__ = [
     "wrap_angle",
 ]
 
-# Weights like the Freyja LQG controller of the paper (DESIGN section 4).
+# Weights like the Freyja LQG controller of the paper.
 DEFAULT_Q = np.diag([1.0, 1.0, 8.0, 0.01, 0.01, 0.1, 1.0])
 DEFAULT_R = np.diag([0.8, 0.8, 0.8, 1.0])
 MAX_TILT_DEG = 35.0  # deg, tilt limit of feedback linearisation
@@ -67,6 +67,21 @@ class LQRConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    @classmethod
+    def from_pd(cls, kp: tuple[float, float, float], kd: tuple[float, float, float], r: float = 0.8,
+                **limits: Any) -> "LQRConfig":
+        """The weights whose gain on each axis of the double integrator is the PD law (kp s^-2, kd s^-1):
+        with R = r, the LQR gain is K_p = sqrt(q_p / r) and K_v = sqrt(q_v / r + 2 K_p), so
+        q_p = kp^2 r and q_v = (kd^2 - 2 kp) r, which needs kd^2 >= 2 kp (an LQR gain on a double
+        integrator is at least that damped). The yaw weights are the default's. For comparing with a lab's PD controller."""
+        kp, kd = tuple(float(x) for x in kp), tuple(float(x) for x in kd)
+        if len(kp) != 3 or len(kd) != 3 or not all(math.isfinite(x) and x > 0 for x in (*kp, *kd, r)):
+            raise ConfigError(f"LQRConfig.from_pd: expected 3 finite kp > 0 and 3 kd > 0 and r > 0, got {kp}, {kd}, {r}")
+        if any(d * d < 2.0 * p * (1.0 - 1e-12) for p, d in zip(kp, kd)):  # (the boundary within rounding)
+            raise ConfigError(f"LQRConfig.from_pd: kd^2 >= 2 kp on every axis for an LQR gain, got kp {kp}, kd {kd}")
+        q = (*(p * p * r for p in kp), *(max(d * d - 2.0 * p, 0.0) * r for p, d in zip(kp, kd)), float(DEFAULT_Q[6, 6]))
+        return cls(q=q, r=(r, r, r, float(DEFAULT_R[3, 3])), **limits)
 
 
 class ControllerState(NamedTuple):

@@ -56,6 +56,7 @@ DEFAULT_SET_MODELS = "deepsets_equivariant,deepsets"
 _PAIR_KINDS = tuple(k for k in PAIRWISE_KINDS if "memory" not in k)  # the models with memory need a history
 _SET_KINDS = ("deepsets_equivariant", "deepsets")  # trained reading the vehicle kinds (downwash.set_models)
 DEFAULT_FIT_FIELDS = "so2,momentum,jet,pybullet"
+_GAINS = ("default", "crazyflie")
 _FIT_FIELDS = ("so2", "momentum", "jet", "pybullet")  # downwash.field_fit.DEFAULT_FIT
 PUBLISHED_UNITS = ("the data set's learning/log.txt: per type the mean squared error of the vertical force after "
                    "training, on that script's training samples, in gram-force squared (mse_gf2); z_rmse is its "
@@ -84,6 +85,13 @@ def _fractions_check(text: str) -> str | None:
     return None if ok else "expected an increasing comma list of fractions in (0, 1], e.g. 0.04,0.11,0.33,1"
 
 
+def _replay_check(text: str) -> str | None:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    allowed = (*_FIT_FIELDS, *(f"fitted-{f}" for f in _FIT_FIELDS))
+    bad = [n for n in names if n not in allowed]
+    return f"unknown {bad}; allowed: a comma list of {', '.join(allowed)}" if bad or len(set(names)) != len(names) else None
+
+
 @dataclass(frozen=True)
 class RealFlightsArgs(CommonArgs):
     data: str = arg("", "the Neural-Swarm data set: a clone of its repository or its data/training folder",
@@ -104,6 +112,15 @@ class RealFlightsArgs(CommonArgs):
                           f"of {', '.join(_FIT_FIELDS)} (empty: none)", check=names_check(_FIT_FIELDS, empty=True))
     boot: int = arg(100, "bootstrap refits per fitted field (whole flights resampled; 0: no intervals, else 10-2000)",
                     check=lambda v: None if v == 0 or 10 <= v <= 2000 else "expected 0 or 10-2000", quick=10)
+    replay_tasks: str = arg("swap_*", "glob of the test flights' task folders whose setpoints are flown in the simulator "
+                            "(sim and real side by side, and the real-trained model in the loop; empty: none)")
+    replay_fields: str = arg("so2,fitted-so2,fitted-momentum", "comma list of the fields the replays fly: a "
+                             "registered field's default constants (so2) or its fit (fitted-so2)", check=_replay_check,
+                             quick="fitted-so2")
+    replay_gains: str = arg("default,crazyflie", "comma list of the controller gains the replays fly with: the "
+                            "LQR's default weights, or weights whose gain is the Crazyflie firmware's default "
+                            "position PD (as stiff as the real vehicles flew)", check=names_check(_GAINS))
+    replay_seeds: int = arg(1, "simulated worlds per replayed flight", ge=1, le=20)
     curve_seeds: int = arg(3, "seeds per point of the learning curves (each a draw of flights and a training; "
                            "0: no curves)", ge=0, le=20, quick=2)
 
@@ -258,14 +275,48 @@ def _fitted_fields(args, flights) -> dict:
     return out
 
 
+def _replays(args, flights, fitted: dict, model_path: Path | None) -> dict:
+    """The test flights of --replay-tasks flown in the simulator against each field of --replay-fields:
+    their tracking beside the real one, and (with an equivariant model trained here) that model in
+    the loop beside no model and the field's oracle."""
+    import fnmatch
+
+    from downwash.real_logs.replay import compare_tracking, crazyflie_stiff_lqr, fly_real_model
+    from sim.fields.registry import make_field
+
+    chosen = [(ref, f) for ref, f in flights["test"] if fnmatch.fnmatch(ref.folder.name, args.replay_tasks)]
+    names = _split(args.replay_fields)
+    if not args.replay_tasks or not chosen or not names:
+        return {"skipped": "no test flight matches --replay-tasks" if names else "no --replay-fields"}
+    seeds = [args.seed + k for k in range(args.replay_seeds)]
+    out: dict = {"flights": len(chosen), "tasks": args.replay_tasks, "tracking": {}, "in_loop": {}}
+    for gains in _split(args.replay_gains):
+        controller = {"controller": crazyflie_stiff_lqr()} if gains == "crazyflie" else {}
+        for name in names:
+            base = name.removeprefix("fitted-")
+            field = f"fitted:{fitted[base]['file']}" if name != base else make_field(base)
+            key = f"{name}|{gains}"
+            t0 = time.perf_counter()
+            out["tracking"][key] = {**compare_tracking(chosen, field, seeds=seeds, **controller),
+                                    "seconds": time.perf_counter() - t0}
+            if model_path is not None:
+                t0 = time.perf_counter()
+                out["in_loop"][key] = {**fly_real_model(chosen, field, model_path, seeds=seeds, **controller),
+                                       "seconds": time.perf_counter() - t0}
+    return out
+
+
 def run(args: RealFlightsArgs) -> dict:
     from downwash.real_logs.flights import find_flights, labelled_samples, read_flights
     from downwash.staged import train_config
-    from downwash.train import predict, train_model
+    from downwash.train import predict, save_trained, train_model
     from sim.neighbours import NeighbourSet
 
     t0 = time.perf_counter()
     root = _root(args.data)
+    unfitted = [n for n in _split(args.replay_fields) if n.startswith("fitted-") and n[7:] not in _split(args.fit_fields)]
+    if args.replay_tasks and unfitted:
+        raise ConfigError(f"--replay-fields: {unfitted[0]} needs {unfitted[0][7:]} in --fit-fields")
     refs = {role: find_flights(root, _split(text)) for role, text in (("train", args.train), ("test", args.test))}
     both = sorted({r.name for r in refs["train"]} & {r.name for r in refs["test"]})
     if both:
@@ -288,9 +339,12 @@ def run(args: RealFlightsArgs) -> dict:
     free = train.y[np.char.startswith(types_train, "none2")]
     kinds, set_kinds = _split(args.models), _split(args.set_models)
     config = train_config(args.seed, args.quick)
-    predictions, models = {}, {}
+    predictions, models, model_path = {}, {}, None
     for kind, (model, history) in _train_pairs(kinds, train, config).items():
         predictions[kind] = _pair_predictions(model, test)
+        if kind == "equivariant":  # flown in the loop by the replays, and kept for the user
+            model_path = Path(args.out) / "models" / "equivariant.pt"
+            save_trained(model_path, model, history, train)
         models[kind] = {"epochs": history["epochs"], "seconds": history["seconds"], "n_train": history["n_train"]}
     for kind in set_kinds:
         model, history = train_model(kind, sets["train"], None, config, kinds=True)
@@ -304,6 +358,7 @@ def run(args: RealFlightsArgs) -> dict:
     per_type = _per_type(test.y, types_test, predictions, published)
     for t, row in per_type.items():
         row["n_train"] = int(np.sum(types_train == t))
+    fitted = _fitted_fields(args, flights)
     results = {
         "data": str(root), "files": files, "records": records,
         "flights": {role: len(flights[role]) for role in ("train", "test")}, "rejected": rejected,
@@ -315,7 +370,7 @@ def run(args: RealFlightsArgs) -> dict:
         "models": models, "per_type": per_type,
         "published": {"file": published_file, "units": PUBLISHED_UNITS} if published else None,
         "pairs_to_triples": _pairs_to_triples(kinds, flights, data, sets["test"], config),
-        "fitted_fields": _fitted_fields(args, flights),
+        "fitted_fields": fitted, "replays": _replays(args, flights, fitted, model_path),
         "learning_curves": (_learning_curves(args, kinds, flights, test, types_test, config)
                             if args.curve_seeds else None),
     }  # fmt: skip

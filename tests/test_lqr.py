@@ -4,11 +4,14 @@ import control
 import numpy as np
 import pytest
 import scipy.linalg
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from controllers.lqr import (
-    DEFAULT_Q, DEFAULT_R, ControllerState, FeedbackLinearisedLQR, Setpoint, attitude_setpoint, double_integrator,
-    lqr_gain, wrap_angle,
+    DEFAULT_Q, DEFAULT_R, ControllerState, FeedbackLinearisedLQR, LQRConfig, Setpoint, attitude_setpoint,
+    double_integrator, lqr_gain, wrap_angle,
 )
+from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY
 from downwash_core.state import RefSample
 
@@ -150,3 +153,24 @@ def test_compiled_command_setpoint_equals_command_then_setpoint(extra):
     if override is not None:
         finite = np.isfinite(override)
         assert np.array_equal(out[0][finite], override[finite])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0.5, 80.0), min_size=3, max_size=3), st.lists(st.floats(1.0, 3.0), min_size=3, max_size=3))
+def test_pd_matched_weights_give_that_pd_gain(kp, damping):
+    """LQRConfig.from_pd: python-control's gain of the weights is the PD law asked for, on every axis
+    (kd = damping * sqrt(2 kp), at least the least damping an LQR gain can have)."""
+    kd = [z * np.sqrt(2.0 * p) for p, z in zip(kp, damping)]
+    cfg = LQRConfig.from_pd(kp, kd)
+    K = lqr_gain(np.diag(cfg.q), np.diag(cfg.r))
+    # 1e-6: the Riccati solve's accuracy (measured 2e-8 relative on these weights), on any CPU's LAPACK
+    np.testing.assert_allclose(np.diag(K[:3, :3]), kp, rtol=1e-6)
+    np.testing.assert_allclose(np.diag(K[:3, 3:6]), kd, rtol=1e-6)
+    assert K[3, 6] == pytest.approx(lqr_gain()[3, 6])  # yaw as the default's
+
+
+def test_pd_matched_weights_refuse_what_no_lqr_gives():
+    with pytest.raises(ConfigError, match=r"kd\^2 >= 2 kp"):
+        LQRConfig.from_pd((10.0, 10.0, 10.0), (1.0, 10.0, 10.0))
+    with pytest.raises(ConfigError, match="expected 3 finite kp > 0"):
+        LQRConfig.from_pd((10.0, 10.0), (5.0, 5.0))

@@ -92,6 +92,19 @@ def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path
         field = resolve_field_spec(f"fitted:{f['file']}")
         assert describe(field)["fitted"]["data_digest"] == fit["data_digest"] == test["fitted"]["data_digest"]
         assert f["ranges"]["absolute"] == {p: list(v) for p, v in fit["intervals"].items()}
+    # the test day's swaps flown in the simulator under the fitted so2 field, with both gains: the real side is
+    # the same read of the same flights; the equivariant model trained here flies in the loop
+    replays = results["replays"]
+    assert replays["flights"] == 2 and set(replays["tracking"]) == {"fitted-so2|default", "fitted-so2|crazyflie"}
+    real = [t["pooled"]["under"]["real"] for t in replays["tracking"].values()]
+    assert real[0] == real[1] and real[0]["rows"] > 0
+    for key, loop in replays["in_loop"].items():
+        assert loop["conditions"] == ["baseline", "oracle", "equivariant"] and key in replays["tracking"]
+        assert loop["under_rms"]["baseline"] == pytest.approx(replays["tracking"][key]["pooled"]["under"]["sim"]["pos"]["rms"])
+    assert (tmp_path / "rf" / "models" / "equivariant.pt").is_file()
+    with pytest.raises(ConfigError, match="--replay-fields: fitted-momentum needs momentum in --fit-fields"):
+        main(["--data", str(data), "--train", "datacollection90*/*", "--test", "datacollection91*/*", "--fit-fields",
+              "so2", "--replay-fields", "fitted-momentum", "--quick", "--out", str(tmp_path / "rf2")])
     # the upper vehicle of a swap has a neighbour (below it) and feels nothing: a model must learn that too
     assert per["none2S"]["n_test"] > 1200
     free = results["free_air_label"]

@@ -202,7 +202,9 @@ def _neural_swarm_columns(t: np.ndarray, z: np.ndarray, thrust: np.ndarray, vbat
     for axis in ("vx", "vy", "vz"):
         cols[f"stateEstimateZ.{axis}"] = ("h", np.zeros(n))
     cols["stateEstimateZ.quat"] = ("I", compress_quaternions(np.tile([1.0, 0, 0, 0], (n, 1))))
-    for axis in ("x", "y", "z", "vx", "vy", "vz"):
+    for axis in ("x", "y", "z"):  # the setpoint: where it is
+        cols[f"ctrltargetZ.{axis}"] = cols[f"stateEstimateZ.{axis}"]
+    for axis in ("vx", "vy", "vz"):
         cols[f"ctrltargetZ.{axis}"] = ("h", np.zeros(n))
     for i in range(1, 5):
         cols[f"pwm.m{i}_pwm"] = ("I", pwm)

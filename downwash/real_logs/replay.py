@@ -57,8 +57,24 @@ from sim.logs import FlightLog
 from sim.metrics import CRASH_PENALTY, planned_ticks
 from sim.scene import Scene, build_scene
 
-__all__ = ["DIFFERENCES", "flight_reference", "replay_in_sim", "under_another", "tracking_errors", "error_stats",
+__all__ = ["DIFFERENCES", "CRAZYFLIE_PD", "crazyflie_stiff_lqr", "flight_reference", "replay_in_sim", "under_another", "tracking_errors", "error_stats",
            "compare_tracking", "fly_real_model"]
+
+# The Crazyflie firmware's Mellinger controller's default position gains (bitcraze/crazyflie-firmware,
+# src/modules/src/controller/controller_mellinger.c: kp_xy 0.4, kd_xy 0.2, kp_z 1.25, kd_z 0.4, in N per m
+# and per m/s, for its 0.032 kg vehicle; the Neural-Swarm flights flew these, without the integral terms)
+# as the accelerations of a PD law: s^-2, s^-1 per axis.
+CRAZYFLIE_PD = {"kp": (0.4 / 0.032, 0.4 / 0.032, 1.25 / 0.032), "kd": (0.2 / 0.032, 0.2 / 0.032, 0.4 / 0.032)}
+
+
+def crazyflie_stiff_lqr() -> Any:
+    """The project's LQR with the weights whose gain is the Crazyflie firmware's default position PD
+    (`CRAZYFLIE_PD`; `controllers.lqr.LQRConfig.from_pd`): as stiff as the real vehicles flew, without
+    Mellinger's attitude loop or integral terms."""
+    from controllers.lqr import FeedbackLinearisedLQR, LQRConfig
+
+    return FeedbackLinearisedLQR(LQRConfig.from_pd(CRAZYFLIE_PD["kp"], CRAZYFLIE_PD["kd"]))
+
 
 DIFFERENCES = (
     "real: the Crazyflie firmware's Mellinger controller with the lab's gains, onboard at 500 Hz; simulated: this "

@@ -490,6 +490,54 @@ def _render_fitted(fitted: dict) -> list[str]:
         _table(["height", "samples", "measured", *(f"`{n}`" for n in fitted)], profile)]
 
 
+def _cm(x) -> str:
+    return "-" if x is None else fmt(100.0 * x)
+
+
+def _field_gains(key: str) -> list[str]:
+    field, _, gains = key.partition("|")
+    return [f"`{field}`", gains]
+
+
+def _render_replays(rp: dict) -> list[str]:
+    """The test flights' setpoints flown in the simulator: tracking beside the real flights', and the
+    model trained on real flights in the loop."""
+    first = next(iter(rp["tracking"].values()))
+    worlds = rp["flights"] * len(first["seeds"])
+    rows = []
+    for key, t in rp["tracking"].items():
+        under, alone = t["pooled"]["under"], t["pooled"]["alone"]
+        rows.append([*_field_gains(key), f"{len(t['ended_early'])} of {worlds}", _cm(under["real"]["pos"]["rms"]),
+                     _cm(under["sim"]["pos"]["rms"]), _cm(under["real"]["z"]["mean"]), _cm(under["sim"]["z"]["mean"]),
+                     _cm(alone["real"]["pos"]["rms"]), _cm(alone["sim"]["pos"]["rms"])])
+    parts = [f"Sim and real side by side: the setpoints of the {rp['flights']} test flights of `{rp['tasks']}` flown in "
+             "the simulator (each vehicle its registered kind, from its logged start) against each field, with the "
+             "default constants or the fit above (`fitted-...`); position error RMS and mean vertical error (cm) of "
+             "the vehicles with another above them and of those alone, real and simulated, over the rows flown. "
+             f"What differs: {first['differences']}",
+             "The gains are the LQR's default weights, or weights whose gain is the Crazyflie firmware's default "
+             "position PD (`crazyflie`: as stiff as the real vehicles flew; the default LQR is about 12 times softer "
+             "in height).",
+             _table(["field", "gains", "worlds ended early", "under: real", "sim", "z mean: real", "sim", "alone: real",
+                     "sim"], rows)]
+    loop = rp.get("in_loop") or {}
+    if loop:
+        lrows = []
+        for key, v in loop.items():
+            pen, flown, kept = v["under_rms_penalised"], v["under_rms"], v["oracle_gain_kept"]
+            ended = {c: sum(1 for e in v["ended_early"] if e.get("condition") == c) for c in v["conditions"]}
+            lrows.append([*_field_gains(key), *(f"{_cm(pen[c])} ({_cm(flown[c])})" for c in v["conditions"]),
+                          " / ".join(str(ended[c]) for c in v["conditions"]), fmt(kept["penalised"])])
+        conds = next(iter(loop.values()))["conditions"]
+        parts += ["The model trained on the real training flights (`equivariant`, its checkpoint in "
+                  "`<out>/models/equivariant.pt`) flown in the loop on the same setpoints, beside no model and the "
+                  "field's own prediction (`oracle`): position error RMS (cm) of the vehicles with another above, the "
+                  "ticks a crashed world did not fly counted at the crash penalty (in parentheses: over the rows "
+                  "flown), the worlds that ended early, and the share of the oracle's gain the model keeps:",
+                  _table(["field", "gains", *conds, "ended early", "oracle gain kept"], lrows)]
+    return parts
+
+
 def render_real_flights(r: dict, label: str) -> str:
     """Real flights: what was read, per interaction type each model's test error beside none and the
     data set's own, the pairs-to-triples question and the learning curves."""
@@ -532,6 +580,9 @@ def render_real_flights(r: dict, label: str) -> str:
     fitted = r.get("fitted_fields") or {}
     if fitted:
         parts += _render_fitted(fitted)
+    replays = r.get("replays") or {}
+    if replays.get("tracking"):
+        parts += _render_replays(replays)
     curves = r.get("learning_curves") or {}
     if "curves" in curves:
         names = list(curves["curves"])
