@@ -104,6 +104,8 @@ class RealFlightsArgs(CommonArgs):
                       check=names_check(_PAIR_KINDS))
     set_models: str = arg(DEFAULT_SET_MODELS, "comma list of the models of sets to train reading the vehicle kinds, "
                           f"of {', '.join(_SET_KINDS)} (empty: none)", check=names_check(_SET_KINDS, empty=True))
+    all_flights: bool = arg(False, "keep the flights the data set's summaries (learning/datacollection*_summary "
+                            "in the clone) leave out")
     stride: int = arg(2, "keep every stride-th sample of the 100 Hz labels (2: the controller's 50 Hz)", ge=1, le=100)
     motor_lag: float = arg(0.0, "s, a first-order lag from each rotor's PWM to its thrust (0: none)", ge=0.0, le=1.0)
     curve_fractions: str = arg("0.04,0.11,0.33,1", "the shares of the training flights of the learning curves",
@@ -192,6 +194,17 @@ def _published(root: Path) -> tuple[dict, str | None]:
         if path.is_file():
             return published_errors(path), str(path)
     return {}, None
+
+
+def _summaries(root: Path) -> dict[str, dict[str, set[str]]]:
+    """The data set's summaries of its days, where the clone holds them: day -> task -> flights kept."""
+    from downwash.real_logs.neural_swarm import summary_flights
+
+    for folder in (root.parent.parent / "learning", root / "learning"):
+        if folder.is_dir():
+            return {p.name.removesuffix("_summary"): summary_flights(p)
+                    for p in sorted(folder.glob("datacollection*_summary")) if p.is_file()}
+    return {}
 
 
 def _pairs_to_triples(kinds, flights, data, sets, config) -> dict:
@@ -322,9 +335,10 @@ def run(args: RealFlightsArgs) -> dict:
     if both:
         raise ConfigError(f"--train and --test share {len(both)} flights (e.g. {both[0]}): hold out whole folders")
     lag = args.motor_lag or None
+    listed = {} if args.all_flights else _summaries(root)
     flights, rejected = {}, []
     for role, chosen in refs.items():
-        flights[role], bad = read_flights(chosen, motor_time_constant=lag)
+        flights[role], bad = read_flights(chosen, motor_time_constant=lag, listed=listed)
         rejected += [{**b, "role": role} for b in bad]
     read_seconds = time.perf_counter() - t0
     files = sum(len(r.files) for chosen in refs.values() for r in chosen)
@@ -360,7 +374,7 @@ def run(args: RealFlightsArgs) -> dict:
         row["n_train"] = int(np.sum(types_train == t))
     fitted = _fitted_fields(args, flights)
     results = {
-        "data": str(root), "files": files, "records": records,
+        "data": str(root), "files": files, "records": records, "summaries": sorted(listed),
         "flights": {role: len(flights[role]) for role in ("train", "test")}, "rejected": rejected,
         "read_seconds": read_seconds,
         "samples": {"train": len(train), "test": len(test), "stride": args.stride},

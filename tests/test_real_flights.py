@@ -99,7 +99,7 @@ def test_the_experiment_trains_on_one_day_and_judges_on_the_other(data, tmp_path
     real = [t["pooled"]["under"]["real"] for t in replays["tracking"].values()]
     assert real[0] == real[1] and real[0]["rows"] > 0
     for key, loop in replays["in_loop"].items():
-        assert loop["conditions"] == ["baseline", "oracle", "equivariant"] and key in replays["tracking"]
+        assert loop["conditions"] == ["baseline", "oracle", "equivariant-real"] and key in replays["tracking"]
         assert loop["under_rms"]["baseline"] == pytest.approx(replays["tracking"][key]["pooled"]["under"]["sim"]["pos"]["rms"])
     assert (tmp_path / "rf" / "models" / "equivariant.pt").is_file()
     with pytest.raises(ConfigError, match="--replay-fields: fitted-momentum needs momentum in --fit-fields"):
@@ -171,3 +171,21 @@ def test_decode_writes_one_file_per_event_of_an_event_log(tmp_path):
     assert rows[0] == "timestamp,idA,idB,distanceDiff,motor.m1" and rows[1] == "1000017,0,1,0.0,60000" and len(rows) == 4
     with pytest.raises(UsdFormatError, match="missing: cannot read it"):
         main(["decode", str(tmp_path / "missing"), "--csv", str(tmp_path / "m.csv")])
+
+
+def test_flights_a_days_summary_leaves_out_are_rejected(data, tmp_path):
+    """The data set's summary of a day lists the flights it keeps per task: the others are rejected by name,
+    a task it does not name is kept whole; both of its line styles parse."""
+    from downwash.real_logs.neural_swarm import summary_flights
+
+    summary = tmp_path / "datacollection90_summary"
+    summary.write_text("Experiment ...\n# (1) ./swap_sl; cf 50 & 101\n# ['01']\n\n# L-S swap; cf102 & cf50\n"
+                       "# ./swap_ls/\n# 00(LS) 01(SL)\n# 59.79s 59.80s\n")
+    listed = summary_flights(summary)
+    assert listed == {"swap_sl": {"01"}, "swap_ls": {"00", "01"}}
+    flights, rejected = read_flights(find_flights(data / "data" / "training", ["datacollection90*/*"]),
+                                     listed={"datacollection90": listed})
+    assert [ref.name for ref, _ in flights] == ["datacollection90_01_01_2020/randomwalk_s/00",
+                                                "datacollection90_01_01_2020/swap_sl/01"]
+    assert [r["flight"] for r in rejected] == ["datacollection90_01_01_2020/swap_sl/00"]
+    assert "left out by the data set's summary of the day (it keeps 01 of swap_sl)" in rejected[0]["reason"]

@@ -163,12 +163,12 @@ def _zero_model():
 
 def test_in_the_loop_the_oracle_beats_no_model_and_a_zero_model_is_the_baseline():
     out = fly_real_model([SWAP], "so2:strength=2", _zero_model(), seeds=[0])
-    assert out["conditions"] == ["baseline", "oracle", "equivariant"]
+    assert out["conditions"] == ["baseline", "oracle", "equivariant-real"]
     rms, under = out["under_rms"], {c: out["pooled"][c]["under"] for c in out["conditions"]}
     assert rms["oracle"] < rms["baseline"]  # the swap's lateral lag is in both: the gain is in the vertical
     assert under["oracle"]["z"]["rms"] < 0.5 * under["baseline"]["z"]["rms"]
-    assert rms["equivariant"] == rms["baseline"]
-    assert out["pooled"]["equivariant"] == out["pooled"]["baseline"]
+    assert rms["equivariant-real"] == rms["baseline"]
+    assert out["pooled"]["equivariant-real"] == out["pooled"]["baseline"]
     assert out["oracle_gain_kept"] == {"flown": 0.0, "penalised": 0.0} and out["ended_early"] == []
     assert out["under_rms_penalised"] == rms  # nothing crashed: nothing to penalise
     assert out["flights"][0]["baseline"] == rms["baseline"] and out["model"]["kind"] == "equivariant"
@@ -182,7 +182,7 @@ def test_in_the_loop_a_crash_counts_at_the_penalty_for_the_ticks_not_flown():
     flight = _flight([_hover([0.0, 0.0, 0.75]), _hover([0.0, 0.0, 0.35])], 3.0)
     out = fly_real_model([flight], "so2", _zero_model(), seeds=[0])
     crashed = {e["condition"]: e for e in out["ended_early"]}
-    assert set(crashed) == {"baseline", "equivariant"} and crashed["baseline"]["status"] == "ground_collision"
+    assert set(crashed) == {"baseline", "equivariant-real"} and crashed["baseline"]["status"] == "ground_collision"
     under = out["pooled"]["baseline"]["under"]
     n, missing = under["rows"], 150 - under["rows"]  # 3 s at 50 Hz planned
     assert 0 < n < 150 and out["under_rms"]["baseline"] == under["pos"]["rms"]

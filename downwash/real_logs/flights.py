@@ -23,7 +23,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -84,12 +84,20 @@ def find_flights(root: str | os.PathLike, patterns: Sequence[str]) -> list[Fligh
     return [unique[k] for k in sorted(unique)]
 
 
-def read_flights(refs: Sequence[FlightRef], motor_time_constant: float | None = None
+def read_flights(refs: Sequence[FlightRef], motor_time_constant: float | None = None,
+                 listed: Mapping[str, Mapping[str, set[str]]] | None = None
                  ) -> tuple[list[tuple[FlightRef, FlightLog]], list[dict]]:
-    """(the flights read, the rejected ones as {flight, reason}): a file not exactly its format, or a
-    coordinated flight whose setpoints stay offset by more than MAX_SETPOINT_OFFSET_S."""
+    """(the flights read, the rejected ones as {flight, reason}): a file not exactly its format, a
+    coordinated flight whose setpoints stay offset by more than MAX_SETPOINT_OFFSET_S, or a flight its
+    day's summary leaves out (`listed`: day, e.g. ``datacollection21``, -> task -> the flight numbers
+    kept, `downwash.real_logs.neural_swarm.summary_flights`; a task a summary does not name is kept)."""
     read, rejected = [], []
     for ref in refs:
+        kept = (listed or {}).get(ref.folder.parent.name.split("_")[0], {}).get(ref.folder.name)
+        if kept is not None and ref.number not in kept:
+            rejected.append({"flight": ref.name, "reason": f"left out by the data set's summary of the day (it keeps "
+                             f"{', '.join(sorted(kept))} of {ref.folder.name})"})
+            continue
         try:
             flight = read_flight(ref.files, motor_time_constant=motor_time_constant)
         except (DataError, ConfigError) as e:

@@ -47,7 +47,8 @@ from downwash.real_logs.crazyflie_usd import UsdFormatError, UsdLog, decompress_
 from sim.logs import FlightLog
 
 __all__ = ["LoggedVehicle", "NEURAL_SWARM_VEHICLES", "VEHICLE_IDS", "REQUIRED_FIELDS", "flight_files",
-           "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "published_errors", "TICK_WRAP"]
+           "read_flight", "flight_from_logs", "motor_lag", "setpoint_offset", "published_errors", "summary_flights",
+           "TICK_WRAP"]
 
 TICK_WRAP = 2**32  # us: the tick is a uint32 (71.6 minutes)
 _TICK_STEP_US = (2_000, 50_000)  # a log at 20-500 Hz: its tick steps by 2-50 ms in microseconds
@@ -214,4 +215,21 @@ def published_errors(log_file: str | os.PathLike) -> dict[str, dict[str, float]]
             mse = float(m.group(2))
             out[m.group(1)] = {"mse_gf2": mse,
                                "z_rmse": math.sqrt(mse) * 1e-3 * GRAVITY / NEURAL_SWARM_VEHICLES[frame].mass}
+    return out
+
+
+_SUMMARY_TASK = re.compile(r"^#\s*(?:\(\d+\)\s*)?\./([\w-]+)/?\s*(?:;.*)?$")
+_SUMMARY_NUMBERS = re.compile(r"^#\s*(\[[^\]]*\]|(?:\d+\s*(?:\(\w+\))?\s*)+)$")
+
+
+def summary_flights(summary_file: str | os.PathLike) -> dict[str, set[str]]:
+    """The flights the data set's summary of a day (its ``learning/datacollection<NN>_summary``) lists
+    per task folder: task -> the flight numbers ``NN`` it keeps. A task line (``# ./swap_sl; cf 51 & 101``
+    or ``# (11) ./swap_sl; ...``) followed by a line of numbers (``# ['00', '01']`` or ``# 00(LS) 01(SL)``)."""
+    out: dict[str, set[str]] = {}
+    lines = [line.strip() for line in Path(summary_file).read_text(errors="replace").splitlines()]
+    for task_line, numbers_line in zip(lines, lines[1:]):
+        task, numbers = _SUMMARY_TASK.match(task_line), _SUMMARY_NUMBERS.match(numbers_line)
+        if task and numbers:
+            out[task.group(1)] = set(re.findall(r"\d+", re.sub(r"\(\w+\)", "", numbers.group(1))))
     return out

@@ -326,7 +326,7 @@ def fly_real_model(flights: Sequence[Any], field: Any, model_or_checkpoint: Any,
     """Held-out real flights' setpoints flown in the simulator against `field` under three conditions of
     `downwash.conditions` on the same seeds: ``baseline`` (no prediction), ``oracle`` (the field's own
     mean force) and the model (a trained per-neighbour model, e.g. ``equivariant`` trained on
-    `labelled_samples` of other flights, or its checkpoint path; the condition is its kind). Holding
+    `labelled_samples` of other flights, or its checkpoint path; the condition is ``<kind>-real``). Holding
     the flights out of the model's training is the caller's part.
 
     Returns per condition the pooled `error_stats` of the rows flown under another and alone
@@ -344,11 +344,12 @@ def fly_real_model(flights: Sequence[Any], field: Any, model_or_checkpoint: Any,
         record = read_metadata(path)
         about = {"kind": kind, "checkpoint": str(path) if isinstance(model_or_checkpoint, (str, os.PathLike)) else None,
                  **{k: record[k] for k in ("model", "data") if k in record}}
-        conditions = ["baseline", "oracle", kind]
+        model = f"{kind}-real"  # the kind trained on other data, as the conditions name it (equivariant-real)
+        conditions = ["baseline", "oracle", model]
         for name, flight in _named(flights):
             window = _duration(flight, duration)
             reference = flight_reference(flight, len(conditions) * len(seeds))
-            logs = fly_conditions(_scene(flight), conditions, reference, list(seeds), window, field, {kind: path},
+            logs = fly_conditions(_scene(flight), conditions, reference, list(seeds), window, field, {model: path},
                                   meta={"replay_of": {"flight": name, "source": flight.meta.get("source")}},
                                   **extra, **components)
             per_flight.append(_score(name, flight, window, logs, seeds, pools, ended))

@@ -529,7 +529,7 @@ def _render_replays(rp: dict) -> list[str]:
             lrows.append([*_field_gains(key), *(f"{_cm(pen[c])} ({_cm(flown[c])})" for c in v["conditions"]),
                           " / ".join(str(ended[c]) for c in v["conditions"]), fmt(kept["penalised"])])
         conds = next(iter(loop.values()))["conditions"]
-        parts += ["The model trained on the real training flights (`equivariant`, its checkpoint in "
+        parts += ["The model trained on the real training flights (`equivariant-real`, its checkpoint in "
                   "`<out>/models/equivariant.pt`) flown in the loop on the same setpoints, beside no model and the "
                   "field's own prediction (`oracle`): position error RMS (cm) of the vehicles with another above, the "
                   "ticks a crashed world did not fly counted at the crash penalty (in parentheses: over the rows "
