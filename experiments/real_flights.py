@@ -85,6 +85,11 @@ def _fractions_check(text: str) -> str | None:
     return None if ok else "expected an increasing comma list of fractions in (0, 1], e.g. 0.04,0.11,0.33,1"
 
 
+def _task_glob_check(text: str) -> str | None:
+    ok = not text or ("/" not in text and ".." not in text and text.strip() == text)
+    return None if ok else "expected a glob of task folder names (e.g. swap_*), no '/', or empty for none"
+
+
 def _replay_check(text: str) -> str | None:
     names = [n.strip() for n in text.split(",") if n.strip()]
     allowed = (*_FIT_FIELDS, *(f"fitted-{f}" for f in _FIT_FIELDS))
@@ -115,7 +120,8 @@ class RealFlightsArgs(CommonArgs):
     boot: int = arg(100, "bootstrap refits per fitted field (whole flights resampled; 0: no intervals, else 10-2000)",
                     check=lambda v: None if v == 0 or 10 <= v <= 2000 else "expected 0 or 10-2000", quick=10)
     replay_tasks: str = arg("swap_*", "glob of the test flights' task folders whose setpoints are flown in the simulator "
-                            "(sim and real side by side, and the real-trained model in the loop; empty: none)")
+                            "(sim and real side by side, and the real-trained model in the loop; empty: none)",
+                            check=_task_glob_check)
     replay_fields: str = arg("so2,fitted-so2,fitted-momentum", "comma list of the fields the replays fly: a "
                              "registered field's default constants (so2) or its fit (fitted-so2)", check=_replay_check,
                              quick="fitted-so2")

@@ -35,7 +35,8 @@ from experiments.common import CommonArgs, arg, parse_args, script
 from experiments.report.formatting import _ordered, _table, fmt, pct, short
 from experiments.report.results import (EXPERIMENTS, copy_results, load_results, machine, read_runs, stale_results,
                                         write_copies, write_path)
-from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _real_model_names, _equivariance_verdict, _memory_verdict,
+from experiments.report.real_flights import real_model_names
+from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _equivariance_verdict, _memory_verdict,
                                          _render_one, render_benchmark, render_efficiency, render_error,
                                          render_force_maps, render_machine, render_provenance, render_staged,
                                          render_tracking, render_worst_cases, worst_cases)
@@ -192,7 +193,7 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
 
 def _real_flights_headline(r: dict, link: str) -> str:
     """One line: over the test samples with a vehicle above, each model's RMSE beside none (sample-weighted)."""
-    kinds = _real_model_names(r)
+    kinds = real_model_names(r)
     wakes = [t for name, t in r["per_type"].items() if not name.startswith(("none2", "Ge2"))]
     n = sum(t["n_test"] for t in wakes)
 
