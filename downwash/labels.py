@@ -1,4 +1,4 @@
-"""Force labels ``f = a - u`` from flight logs (paper section 4.C, DESIGN section 6).
+"""Force labels ``f = a - u`` from flight logs (paper section 4.C).
 
 Every target vehicle's acceleration ``a`` (the pair's follower; every vehicle but the
 leader of a swarm) comes from its motion-capture positions through an offline Savitzky-Golay second-derivative filter; ``u`` is the commanded

@@ -50,7 +50,7 @@ __all__ = [
     "check_writer", "check_video_output", "write_video", "write_conditions_video", "logs_video",
 ]
 
-WAKE_DEPTH = 1.5  # m below the leader along its axis: the on-axis push is down to ~0.8 m/s^2 there (DESIGN 5)
+WAKE_DEPTH = 1.5  # m below the leader along its axis: the on-axis push is down to ~0.8 m/s^2 there
 _WAKE_START = 0.05  # m, where the field's fade-in w(s) begins
 _WAKE_SEGMENTS = 12  # cylinders per wake: a stepped cone
 _WAKE_RGB = (0.35, 0.6, 1.0)

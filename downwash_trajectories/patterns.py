@@ -23,7 +23,7 @@ from downwash_trajectories.primitives import MIN_JERK_PEAK, Hover, Lemniscate, W
 
 __all__ = ["SPEED_RANGE", "LEMNISCATE_SHARE", "random_passes", "collection_reference"]
 
-SPEED_RANGE = (0.1, 1.0)  # m/s, allowed peak speeds of data-collection moves (DESIGN section 8)
+SPEED_RANGE = (0.1, 1.0)  # m/s, allowed peak speeds of data-collection moves
 LEMNISCATE_SHARE = 0.2  # share of a stage's flights that are lemniscates (the rest: random passes and hovers)
 
 
@@ -45,7 +45,7 @@ def random_passes(
     min_move_time: float = 1.0,
     start: ArrayLike | None = None,
 ) -> Waypoints:
-    """Randomised passes through and beside the leader's wake (DESIGN section 8).
+    """Randomised passes through and beside the leader's wake.
 
     Each world flies a sequence of items, each a straight pass (probability
     1 - hover_prob) or a hover (probability hover_prob), joined by

@@ -1,4 +1,4 @@
-"""Speed of the simulation stack, as ratios measured in one run (DESIGN section 10).
+"""Speed of the simulation stack, as ratios measured in one run.
 
     python -m experiments.benchmark [--quick]
 

@@ -87,7 +87,7 @@ def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = 
 
 @dataclass(frozen=True)
 class CommonArgs:
-    """Options every experiment takes (DESIGN section 10)."""
+    """Options every experiment takes."""
 
     out: str = arg("", "output folder (default runs/<experiment>)", output="dir")
     seed: int = arg(0, "base seed; world k of a run uses seed + k", ge=0, le=SEED_MAX)

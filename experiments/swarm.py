@@ -204,7 +204,7 @@ def run(args: SwarmArgs) -> dict:
     results["force_mean"] = {law: {preset: by_law[law]["force_mean"] for preset, by_law in results["presets"].items()}
                              for law in results["summary"]}  # law -> preset -> m/s^2 (baseline flights)
     results["wall_seconds"] = time.perf_counter() - t_start
-    for name, by_law in results["presets"].items():  # one results.json per preset (DESIGN section 10)
+    for name, by_law in results["presets"].items():  # one results.json per preset
         write_results(out / name.replace(":", "_"), {"experiment": "swarm", "preset": name, "laws": by_law}, args,
                       p.provenance())
         _figure(out / name.replace(":", "_"), name, by_law)

@@ -6,8 +6,8 @@
 
 Paper section 5: Alpha hovers at 2.5 m; Bravo flies beneath it. `TRACKS` holds each
 experiment's reference and its shape options (each becomes a command-line flag);
-the conditions are those of `downwash.conditions`. Writes results.json (DESIGN
-section 10), prints a table and saves the figures beside it. `--video PATH` also writes
+the conditions are those of `downwash.conditions`. Writes results.json,
+prints a table and saves the figures beside it. `--video PATH` also writes
 an mp4 of every condition's first seed side by side, the leader's wake drawn
 (`downwash_envs.video`; needs `pip install -e ".[video]"` and an OpenGL backend, checked before
 any flight).

@@ -17,7 +17,7 @@ same way) and depends on the vehicles' geometry, never on their indices.
 
 The default is `linear`, deliberately:
 
-1. it is the assumption of the paper and of DESIGN section 5 (the field is "a pairwise
+1. it is the assumption of the paper and of `sim.field` (the field is "a pairwise
    sum over all leaders"); the learned models are pairwise, and every stored result and
    golden log was made with it, so it stays bit for bit what it was;
 2. it is the neutral middle of what the physics gives if the wakes' velocities

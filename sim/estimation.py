@@ -1,7 +1,7 @@
 """The Kalman filter that turns a sensor's positions into position/velocity estimates.
 
 The sensor (`sim.sensors`: motion capture, `SimConfig.mocap`) measures every vehicle's
-position and attitude at the autopilot rate (100 Hz, DESIGN: 100-120 Hz). The
+position and attitude at the autopilot rate (100 Hz). The
 controller's heading, the learned models and the labels use the measured attitude; the
 true one is for the field, the oracle and diagnostics only (the autopilot flies on its
 own onboard attitude, which we take as exact).

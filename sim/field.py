@@ -1,4 +1,4 @@
-"""The ground-truth downwash field (DESIGN section 5): a pure, batched force law.
+"""The ground-truth downwash field: a pure, batched force law.
 
 `DownwashField()(p_a, v_a, R_a, p_b, v_b)` is the mean acceleration (m/s^2, world
 frame, z up) that the wake of a leader `a` exerts on a follower `b`; turbulence is
@@ -57,7 +57,7 @@ def _is_off(value: Any) -> bool:
 
 @dataclass(frozen=True)
 class DownwashField:
-    """Mean downwash acceleration of a leader's wake on a follower (DESIGN section 5).
+    """Mean downwash acceleration of a leader's wake on a follower.
 
     Every constant may be a float or a NumPy array that broadcasts against the batch
     shape `...` of the inputs (per-world domain randomisation: shape (W,) for inputs

@@ -1,4 +1,4 @@
-"""Tracking metrics of a flight (DESIGN section 10), in SI units, and their aggregation over conditions.
+"""Tracking metrics of a flight, in SI units, and their aggregation over conditions.
 
 Crashed flights. A flight that ends early (collision, divergence) must not make its
 condition look better by being averaged over its shorter life. The rule: a metric is

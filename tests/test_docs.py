@@ -22,7 +22,14 @@ INTERNAL = {
     "this machine": re.compile(r"\bthis\s+(\S+\s+)?machine\b", re.IGNORECASE),
     "DESIGN.md": re.compile(r"DESIGN\.md"),
     "a DESIGN section": re.compile(r"\bDESIGN\b"),
+    "the main job": re.compile(r"\bmain job\b", re.IGNORECASE),
+    "golden records": re.compile(r"\bgolden records?\b", re.IGNORECASE),
 }
+# What a user reads besides the pages: the docstrings the API reference renders, the comments of the
+# files they open, the CHANGELOG
+CODE_INTERNAL = {k: INTERNAL[k] for k in ("DESIGN.md", "a DESIGN section", "the main job", "golden records")}
+PACKAGES = ("downwash_core", "downwash_trajectories", "controllers", "sim", "downwash", "downwash_envs", "experiments",
+            "examples")
 
 
 def _pages():
@@ -54,6 +61,22 @@ def test_no_internal_words(page):
     found = [f"{what}: {m.group(0)!r} (line {text.count(chr(10), 0, m.start()) + 1})"
              for what, rx in INTERNAL.items() for m in rx.finditer(text)]
     assert not found, f"{page.relative_to(ROOT)}: " + "; ".join(found)
+
+
+def _code_files():
+    return sorted([*(p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")), ROOT / "pyproject.toml",
+                   ROOT / ".ci" / "constraints.txt", ROOT / "CHANGELOG.md"])
+
+
+def test_no_internal_words_in_code():
+    """The API reference renders the docstrings: they cite no private document (``DESIGN section N``)
+    and no bookkeeping word, and neither do the comments or the CHANGELOG."""
+    found = []
+    for path in _code_files():
+        text = path.read_text()
+        found += [f"{path.relative_to(ROOT)} line {text.count(chr(10), 0, m.start()) + 1}: {what} {m.group(0)!r}"
+                  for what, rx in CODE_INTERNAL.items() for m in rx.finditer(text)]
+    assert not found, "\n".join(found)
 
 
 def test_readme_is_a_newcomers_page():

@@ -1,4 +1,4 @@
-"""Tests of the ground-truth downwash field (sim/field.py, DESIGN section 5)."""
+"""Tests of the ground-truth downwash field (sim/field.py)."""
 
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ def _dot(a, b) -> float:
 
 
 def _reference(field: DownwashField, p_a, v_a, R_a, p_b, v_b) -> list[float]:
-    """The law of DESIGN section 5 for one pair, in plain Python floats."""
+    """The law of sim.field for one pair, in plain Python floats."""
     c = field
     n = [R_a[i][2] for i in range(3)]
     x_a = [R_a[i][0] for i in range(3)]

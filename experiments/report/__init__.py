@@ -426,7 +426,7 @@ def main(argv=None) -> str:
             raise SystemExit(1)
         old = stale_results(load_results(args.results)[0])
         if old:
-            print("results made by code older than the golden records: " + "; ".join(old)
+            print("results made by code older than the last change to the reference records (tests/golden): " + "; ".join(old)
                   + ". Rerun those experiments and `python -m experiments.report`", file=sys.stderr)
             raise SystemExit(1)
         print(f"{args.docs} and {args.readme}: the results match {args.results}/")

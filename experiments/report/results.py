@@ -91,7 +91,7 @@ def write_path(path: str | Path, option: str) -> Path:
     return Path(os.path.realpath(path))
 
 
-# The golden records (tests/golden/): the commit that last changed one moved a number of the
+# The reference records (tests/golden/): the commit that last changed one moved a number of the
 # pipeline on purpose, and results made by older code no longer describe this code.
 GOLDEN_FILES = ("tests/golden/pipeline.json", "tests/golden/env_digests.json")
 REPO = Path(__file__).resolve().parents[2]

@@ -218,7 +218,7 @@ _SO2_SYMMETRY = "SO(2) and reflections about the leader axis; translation"
 # 1 m down trails by 0.35 m, 1.6 sigma of its width.
 register_field(
     "so2", DownwashField,
-    "the paper's synthetic downwash (sim.field.DownwashField, DESIGN section 5); the default",
+    "the paper's synthetic downwash (sim.field.DownwashField); the default",
     _SO2_SYMMETRY, _SO2_PARAMS)
 register_field(
     "so2-c4", DownwashField,
