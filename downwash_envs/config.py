@@ -14,7 +14,7 @@ import dataclasses
 import inspect
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -36,7 +36,7 @@ __all__ = [
     "DEFAULT_ACTION_BOUND", "MAX_ACTION_BOUND", "MIN_FOLLOWER_HEIGHT", "DEFAULT_MAX_EPISODE_STEPS",
     "FIELD_RANDOMIZABLE", "DEFAULT_FIELD_RANDOMIZATION", "MASS_SCALE_RANGE", "FIELD_SCALE_RANGE",
     "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "VEHICLE_RANDOMIZABLE", "VEHICLE_SPREAD_MAX",
-    "FollowerConfig", "make_config", "build_field", "randomizable_constants",
+    "FollowerConfig", "make_config", "build_field", "randomizable_constants", "unknown_options_error",
 ]  # fmt: skip
 
 ACTION_MODES = ("residual", "acceleration")
@@ -223,8 +223,16 @@ def make_config(options: Mapping[str, Any] | None = None) -> FollowerConfig:
     allowed = tuple(f.name for f in dataclasses.fields(FollowerConfig))
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise TypeError(f"unknown option(s) {unknown}; allowed: {', '.join(allowed)}")
+        raise unknown_options_error("the env", unknown, allowed)
     return FollowerConfig(**options)
+
+
+def unknown_options_error(who: str, unknown: Sequence[str], allowed: Sequence[str]) -> TypeError:
+    """TypeError for unknown keyword options, worded as Python's own (``got an unexpected keyword
+    argument 'x'``): wrappers that probe an optional keyword (TorchRL's ``GymEnv`` passes ``frameskip``)
+    look for that wording and retry without it."""
+    return TypeError(f"{who} got an unexpected keyword argument {unknown[0]!r} (unknown option(s) {list(unknown)}; "
+                     f"allowed: {', '.join(allowed)})")
 
 
 def _text_or_bool(value: Any) -> tuple[bool, Any]:

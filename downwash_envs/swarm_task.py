@@ -30,7 +30,7 @@ from downwash_core.provenance import describe
 from downwash_core.roles import MAX_VEHICLES, Role
 from downwash_core.validate import count
 from downwash_envs.config import (
-    REWARD_WEIGHTS, FollowerConfig, build_field, make_config, number_option, predictor_of,
+    REWARD_WEIGHTS, FollowerConfig, build_field, make_config, number_option, predictor_of, unknown_options_error,
 )
 from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
 from downwash_envs.observation import OBSERVATION, ObsEntry, format_table, layout_bounds, layout_slices, table_row
@@ -287,7 +287,7 @@ def make_swarm_config(
     unknown = sorted(set(options) - set(SHARED_OPTIONS))
     if unknown:
         allowed = ("preset", "field", "aggregation", "max_neighbours", "duration", "random_phase", *SHARED_OPTIONS)
-        raise TypeError(f"unknown option(s) {unknown}; allowed: {', '.join(allowed)}")
+        raise unknown_options_error("the swarm env", unknown, allowed)
     if isinstance(preset, str):
         preset = make_preset(preset)
     elif not isinstance(preset, Preset):

@@ -340,6 +340,10 @@ def test_invalid_actions_raise_before_stepping():
 def test_bad_options_name_the_allowed_values():
     with pytest.raises(TypeError, match="allowed: .*separation"):
         gym.make("downwash/Follower-v1", sepration=0.5)
+    # worded as Python's own, so that a wrapper probing an optional keyword retries without it, as
+    # TorchRL's GymEnv does with frameskip (it looks for exactly this text)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
+        gym.make("downwash/Follower-v1", frameskip=1)
     cases = [
         (dict(separation=0.1), "separation.*0.3"),
         (dict(separation=(0.5, 2.5)), "separation"),

@@ -417,6 +417,8 @@ def test_bad_options_raise_config_error_before_any_simulation(kwargs, match, mon
 def test_bad_names_and_actions():
     with pytest.raises(TypeError, match="separation.*allowed: preset"):
         parallel_env(separation=0.5)  # a single-env option that does not apply to a preset
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):  # Python's wording
+        parallel_env(frameskip=2)
     with pytest.raises(ValueError, match="render_mode"):
         parallel_env(render_mode="human")
     env = parallel_env(preset="stack3")
