@@ -103,3 +103,12 @@ def test_python_version_claims_are_what_the_code_needs():
     for page in (ROOT / "README.md", ROOT / "docs" / "install.md"):
         text = page.read_text()
         assert "3.11" in text and "3.10" not in text, page.name
+
+
+def test_every_package_ships_its_type_hints():
+    """PEP 561: a py.typed marker in every library package, and in the wheel's package data."""
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    for pkg in PACKAGES[:6]:
+        assert (ROOT / pkg / "py.typed").is_file() and "py.typed" in data.get(pkg, []), pkg
