@@ -197,7 +197,7 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
     assert "| `L2S` | 23371 | 19360 | 0.933 | 0.644 | 0.611 | **0.595** | 0.599 |" in text
     assert "512 files, 227 flights (0 rejected), 1895894 vehicle records" in text
     # the README's line: the wake types pooled by their test samples (one type here)
-    assert ("on the 19360 test samples with a vehicle flying above, trained on other days, the pair models' RMSE is "
+    assert ("on the 19360 test samples with a vehicle flying above, trained on other days, the models' RMSE is "
             "`shallow` 0.644, `deep` 0.611, `equivariant` 0.595, `equivariant_general` 0.599 m/s^2, against 0.933 "
             "with no model") in headline
     assert "0.0931 m/s^2" in text and "Failed flights (1): flight 7: ground collision" in text and "95.3 s" in text

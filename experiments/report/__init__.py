@@ -203,7 +203,7 @@ def _real_flights_headline(r: dict, link: str) -> str:
     models = ", ".join(f"`{k}` {fmt(pooled(k))}" for k in kinds)
     return (f"Real flights (the Neural-Swarm data set's onboard logs, {sum(r['flights'].values())} flights; "
             f"[results page]({link}#real-flights-the-neural-swarm-data-set)): on the {n} test samples with a vehicle "
-            f"flying above, trained on other days, the pair models' RMSE is {models} m/s^2, against "
+            f"flying above, trained on other days, the models' RMSE is {models} m/s^2, against "
             f"{fmt(pooled('none'))} with no model.")
 
 

@@ -87,7 +87,8 @@ def _render_replays(rp: dict) -> list[str]:
             pen, flown, kept = v["under_rms_penalised"], v["under_rms"], v["oracle_gain_kept"]
             ended = {c: sum(1 for e in v["ended_early"] if e.get("condition") == c) for c in v["conditions"]}
             lrows.append([*_field_gains(key), *(f"{_cm(pen[c])} ({_cm(flown[c])})" for c in v["conditions"]),
-                          " / ".join(str(ended[c]) for c in v["conditions"]), fmt(kept["penalised"])])
+                          " / ".join(str(ended[c]) for c in v["conditions"]),
+                          fmt(kept["penalised"]) if not ended["oracle"] else "- (the oracle crashed)"])
         conds = next(iter(loop.values()))["conditions"]
         parts += ["The model trained on the real training flights (`equivariant-real`, its checkpoint in "
                   "`<out>/models/equivariant.pt`) flown in the loop on the same setpoints, beside no model and the "
