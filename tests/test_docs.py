@@ -112,3 +112,15 @@ def test_every_package_ships_its_type_hints():
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     for pkg in PACKAGES[:6]:
         assert (ROOT / pkg / "py.typed").is_file() and "py.typed" in data.get(pkg, []), pkg
+
+
+def test_package_metadata_matches_the_citation():
+    """pyproject's licence (an SPDX expression), authors and version are the CITATION.cff's."""
+    import tomllib
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    cff = (ROOT / "CITATION.cff").read_text()
+    assert meta["license"] == "MIT" and "license: MIT" in cff and (ROOT / "LICENSE").read_text().startswith("MIT")
+    assert f"version: {meta['version']}" in cff
+    assert all(f"name: {a['name']}" in cff for a in meta["authors"])
+    assert "Typing :: Typed" in meta["classifiers"] and meta["keywords"]
