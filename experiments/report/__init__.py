@@ -107,7 +107,20 @@ def _render_found(found: dict[str, dict], record: dict, results_dir: str | Path)
                              _file(results_dir, name))
         if name == "transect" or (name == "lemniscate" and "transect" not in found):
             parts.append(PAPER_TRACKING)
+    worst = _worst(found, results_dir)
+    if worst:
+        parts += ["## Worst cases", worst]
     return "\n\n".join(parts) + "\n"
+
+
+def _worst(found: dict[str, dict], results_dir: str | Path) -> str | None:
+    """The worst-case table over every results file, or None; an error names the file it fails on."""
+    try:
+        return render_worst_cases(found)
+    except RENDER_ERRORS as e:
+        # the table spans every file: name the one that fails on its own, else them all
+        culprit = [n for n in found if _fails(worst_cases, {n: found[n]})][:1] or list(found)
+        raise render_error(_file(results_dir, *culprit), "the worst-case table", e) from e
 
 
 HEADLINE_CONDITIONS = {"no_downwash": "the field off", "baseline": "the LQR, no model",
@@ -160,14 +173,9 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
             parts.append(_real_flights_headline(found["real_flights"], link))
         except RENDER_ERRORS as e:
             raise render_error(_file(results_dir, "real_flights"), "the headline real-flights line", e) from e
-    try:
-        worst = render_worst_cases(found)
-    except RENDER_ERRORS as e:
-        # the table spans every file: name the one that fails on its own, else them all
-        culprit = [n for n in found if _fails(worst_cases, {n: found[n]})][:1] or list(found)
-        raise render_error(_file(results_dir, *culprit), "the worst-case table", e) from e
-    if worst:
-        parts.append(worst)
+    if _worst(found, results_dir):
+        parts.append(f"Each model's worst setting over every experiment, unguarded and behind the guard, is on the "
+                     f"[results page]({link}#worst-cases).")
     lines = []
     if "staged_collection" in found:
         r = found["staged_collection"]
