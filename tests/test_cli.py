@@ -28,6 +28,8 @@ from experiments.common import parse_args, read_config, script
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
            "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights")
+# experiments with a parser of their own (positional files; no --config/--quick/--field): a console script each
+TOOLS = ("export",)
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
@@ -275,7 +277,7 @@ def _scripts() -> dict[str, str]:
 
 def test_one_console_script_per_experiment():
     scripts = _scripts()
-    assert sorted(v.split(":")[0] for v in scripts.values()) == sorted(f"experiments.{n}" for n in SCRIPTS)
+    assert sorted(v.split(":")[0] for v in scripts.values()) == sorted(f"experiments.{n}" for n in (*SCRIPTS, *TOOLS))
     for name, value in scripts.items():
         module = value.split(":")[0].split(".")[1]
         assert name == "downwash-" + module.replace("_", "-")
