@@ -1,6 +1,7 @@
 """What the examples share: record each finished episode's return during training, measure
 the trained policy and the plain LQR (action 0) on the same evaluation episodes, and plot
-and save the learning curve with both as lines (`learning_curve.png`, `learning_curve.json`)."""
+and save the learning curve with both as lines (`learning_curve.png`, `learning_curve.json`).
+Writing and loading the trained policy is `policy_file.py`."""
 
 from __future__ import annotations
 

@@ -3,15 +3,20 @@ that compensates the leader's downwash.
 
     python examples/ppo_follower.py                  # 100k steps, a few minutes on 2 cores
     python examples/ppo_follower.py --quick          # a smoke run
+    python examples/ppo_follower.py --load runs/examples/ppo_follower/policy.zip   # evaluate it
 
-Writes `learning_curve.png` and `learning_curve.json` into --out. The same task on the
-native batched env, several times faster: examples/ppo_follower_vector.py.
+Writes `learning_curve.png` and `learning_curve.json` into --out, and the trained policy to
+--save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH` skips
+training and evaluates that policy against the plain LQR (mean return and its spread). The
+same task on the native batched env, several times faster: examples/ppo_follower_vector.py.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from policy_file import add_policy_arguments, refuse_missing
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -20,9 +25,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_follower"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
+    add_policy_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0:
         p.error(f"--timesteps: expected a positive number of steps, got {args.timesteps}")
+    refuse_missing(p.prog, args.load)
 
     import torch
 
@@ -32,6 +39,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     import downwash_envs  # noqa: F401  (registers the ids)
     from learning_curve import EpisodeReturns, against_the_lqr, follower_returns, save
+    from policy_file import evaluation, load_policy, save_policy
 
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
     # torch's threads take the cores the simulator's threads step the worlds on.
@@ -39,11 +47,17 @@ def main(argv: list[str] | None = None) -> dict:
     timesteps = 256 if args.quick else args.timesteps
     max_steps = 50 if args.quick else 250  # 5 s episodes: several per PPO rollout
     env = Monitor(gym.make("downwash/Follower-v1", max_episode_steps=max_steps))
+    episodes = 2 if args.quick else 10
+    if args.load is not None:
+        model = load_policy(p.prog, PPO, args.load, env)
+        lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
+        return evaluation(args.load, "PPO, single env", lines)
     model = PPO("MlpPolicy", env, n_steps=128 if args.quick else 2048, batch_size=64, seed=args.seed,
                 device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
-    lines = against_the_lqr(follower_returns, model, 2 if args.quick else 10, max_episode_steps=max_steps)
+    save_policy(model, args.save or args.out / "policy.zip")
+    lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
     return save(args.out, "PPO, single env", curve, {"timesteps": timesteps, "num_envs": 1, "seed": args.seed}, lines)
 
 

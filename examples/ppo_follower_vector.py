@@ -3,14 +3,19 @@ every world steps in one MuJoCo batch with compiled control.
 
     python examples/ppo_follower_vector.py           # 300k steps on 16 worlds
     python examples/ppo_follower_vector.py --quick   # a smoke run
+    python examples/ppo_follower_vector.py --load runs/examples/ppo_follower_vector/policy.zip
 
-Writes `learning_curve.png` and `learning_curve.json` into --out.
+Writes `learning_curve.png` and `learning_curve.json` into --out, and the trained policy to
+--save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH` skips
+training and evaluates that policy against the plain LQR (mean return and its spread).
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from policy_file import add_policy_arguments, refuse_missing
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -20,9 +25,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_follower_vector"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
+    add_policy_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0 or args.num_envs <= 0:
         p.error(f"--timesteps and --num-envs: expected positive numbers, got {args.timesteps}, {args.num_envs}")
+    refuse_missing(p.prog, args.load)
 
     import torch
 
@@ -31,6 +38,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from downwash_envs.sb3 import make_vec_env
     from learning_curve import EpisodeReturns, against_the_lqr, follower_returns, save
+    from policy_file import evaluation, load_policy, save_policy
 
     n = 4 if args.quick else args.num_envs
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
@@ -39,11 +47,17 @@ def main(argv: list[str] | None = None) -> dict:
     timesteps = 256 if args.quick else args.timesteps
     max_steps = 50 if args.quick else 250
     venv = VecMonitor(make_vec_env("downwash/Follower-v1", num_envs=n, seed=args.seed, max_episode_steps=max_steps))
+    episodes = 2 if args.quick else 10
+    if args.load is not None:
+        model = load_policy(p.prog, PPO, args.load, venv)
+        lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
+        return evaluation(args.load, "PPO, native vector env", lines)
     model = PPO("MlpPolicy", venv, n_steps=32 if args.quick else 256, batch_size=64 if args.quick else 512,
                 seed=args.seed, device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
-    lines = against_the_lqr(follower_returns, model, 2 if args.quick else 10, max_episode_steps=max_steps)
+    save_policy(model, args.save or args.out / "policy.zip")
+    lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
     return save(args.out, f"PPO, native vector env ({n} worlds)", curve,
                 {"timesteps": timesteps, "num_envs": n, "seed": args.seed}, lines)
 

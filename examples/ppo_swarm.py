@@ -3,16 +3,22 @@ stack, through SuperSuit (each agent becomes a row of an SB3 vector env).
 
     python examples/ppo_swarm.py                     # 200k agent steps on the stack3 preset
     python examples/ppo_swarm.py --quick             # a smoke run
+    python examples/ppo_swarm.py --load runs/examples/ppo_swarm/policy.zip   # evaluate it
 
 The agents are named by role (follower_0, follower_1, ...), so the same env also groups
 them as one team in TorchRL or BenchMARL. Writes `learning_curve.png` and
-`learning_curve.json` into --out.
+`learning_curve.json` into --out, and the shared policy to --save (default
+`<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH` skips training and
+evaluates that policy on every follower against the plain LQR (mean return and its spread);
+give it the --preset it was trained on.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from policy_file import add_policy_arguments, refuse_missing
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -23,9 +29,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_swarm"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
+    add_policy_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0 or args.copies <= 0:
         p.error(f"--timesteps and --copies: expected positive numbers, got {args.timesteps}, {args.copies}")
+    refuse_missing(p.prog, args.load)
 
     import torch
 
@@ -36,6 +44,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from downwash_envs.swarm import parallel_env
     from learning_curve import EpisodeReturns, against_the_lqr, save, swarm_returns
+    from policy_file import evaluation, load_policy, save_policy
 
     copies = 1 if args.quick else args.copies
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
@@ -50,11 +59,17 @@ def main(argv: list[str] | None = None) -> dict:
     venv = VecMonitor(venv)
     # SuperSuit's vector env has no seed(): seed the libraries here, not through PPO(seed=...)
     set_random_seed(args.seed)
+    episodes = 2 if args.quick else 10
+    if args.load is not None:
+        model = load_policy(p.prog, PPO, args.load, venv)
+        lines = against_the_lqr(swarm_returns, model, episodes, **options)
+        return evaluation(args.load, f"PPO, shared policy, {args.preset}", lines)
     model = PPO("MlpPolicy", venv, n_steps=64 if args.quick else 512, batch_size=64 if args.quick else 256,
                 device="cpu", verbose=0)
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
-    lines = against_the_lqr(swarm_returns, model, 2 if args.quick else 10, **options)
+    save_policy(model, args.save or args.out / "policy.zip")
+    lines = against_the_lqr(swarm_returns, model, episodes, **options)
     return save(args.out, f"PPO, shared policy, {args.preset}", curve,
                 {"timesteps": timesteps, "agents": list(env.possible_agents), "copies": copies, "seed": args.seed}, lines)
 
