@@ -23,9 +23,15 @@ at all and beside the data set's own per-type errors where the clone holds its
 trained on the two-vehicle flights only, judged where two vehicles fly above (by the nearest,
 and summed over both); and learning curves (`--curve-fractions` of the training flights,
 `--curve-seeds` draws each), with the equivariant model on a third of the flights paired seed
-by seed against the best baseline on all of them. Writes results.json (counts of files,
-flights, records and rejections, the reading time, the label scatter in free air, per type
-the samples and each model's RMSE, the pairs-to-triples result, the curves) and a table.
+by seed against the best baseline on all of them. The registered wakes are fitted to the
+training flights (`--fit-fields`, bootstrap intervals over flights, each fit written to
+``<out>/fitted/<field>.json`` for ``--field fitted:PATH``) and judged on the test flights'
+forces; the test flights of `--replay-tasks` are flown in the simulator against default and
+fitted fields (`--replay-fields`, `--replay-gains`), their tracking beside the real one, and
+the equivariant model trained here (kept in ``<out>/models``) flies them in the loop as
+``equivariant-real``. Writes results.json (counts of files, flights, records and
+rejections, the reading time, the label scatter in free air, per type the samples and each
+model's RMSE, the pairs-to-triples result, the fits, the replays, the curves) and a table.
 
 ``decode FILE --csv OUT`` writes one onboard log's records with the log's own field names
 and raw values, for checking a reader against another decoder (the synchronous format, or
