@@ -8,11 +8,11 @@ acceleration once per controller period.
 
 Importing `downwash_envs` registers the ids with gymnasium and imports nothing else (no
 MuJoCo, no torch: the entry points are strings). Without a prior import, use the
-module-qualified id ``gymnasium.make("downwash_envs:downwash/Follower-v1")``.
+module-qualified id ``gymnasium.make("downwash_envs:downwash/Follower-v2")``.
 
-- ``downwash/Follower-v1``: the paper's lemniscate beneath the leader, 0.6 m below
+- ``downwash/Follower-v2``: the paper's lemniscate beneath the leader, 0.6 m below
   it, 500 steps (10 s at 50 Hz).
-- ``downwash/FollowerPasses-v1``: randomised passes and hovers through and beside
+- ``downwash/FollowerPasses-v2``: randomised passes and hovers through and beside
   the wake (the staged data collection's patterns), 0.5-1.2 m below, 1000 steps.
 
 Every option of `downwash_envs.config.FollowerConfig` is a `make` keyword; `action_mode` is
@@ -21,7 +21,7 @@ Every option of `downwash_envs.config.FollowerConfig` is a `make` keyword; `acti
     import gymnasium as gym
     import downwash_envs  # registers the ids
 
-    env = gym.make("downwash/Follower-v1", action_mode="residual", separation=0.5)
+    env = gym.make("downwash/Follower-v2", action_mode="residual", separation=0.5)
     obs, info = env.reset(seed=0)
     for _ in range(500):
         action = env.action_space.sample()  # (3,) in [-1, 1]: times action_bound m/s^2, added to the LQR command
@@ -29,7 +29,7 @@ Every option of `downwash_envs.config.FollowerConfig` is a `make` keyword; `acti
         if terminated or truncated:
             obs, info = env.reset()
 
-    vec = gym.make_vec("downwash/Follower-v1", num_envs=64)   # native batched env
+    vec = gym.make_vec("downwash/Follower-v2", num_envs=64)   # native batched env
     obs, infos = vec.reset(seed=0)                           # (64, 30)
     obs, rewards, terminations, truncations, infos = vec.step(vec.action_space.sample())
 
@@ -68,12 +68,12 @@ from gymnasium.envs.registration import register as _register
 from gymnasium.envs.registration import registry as _registry
 
 NAMESPACE = "downwash"  # gymnasium's namespace/Name-vN: the ids cannot collide with another package's
-ENV_IDS = (f"{NAMESPACE}/Follower-v1", f"{NAMESPACE}/FollowerPasses-v1")
+ENV_IDS = (f"{NAMESPACE}/Follower-v2", f"{NAMESPACE}/FollowerPasses-v2")
 
 # id -> (make kwargs, max_episode_steps)
 _SPECS = {
-    f"{NAMESPACE}/Follower-v1": ({}, 500),
-    f"{NAMESPACE}/FollowerPasses-v1": ({"reference": "passes", "separation": (0.5, 1.2)}, 1000),
+    f"{NAMESPACE}/Follower-v2": ({}, 500),
+    f"{NAMESPACE}/FollowerPasses-v2": ({"reference": "passes", "separation": (0.5, 1.2)}, 1000),
 }
 
 for _id, (_kwargs, _steps) in _SPECS.items():

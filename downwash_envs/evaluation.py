@@ -95,11 +95,11 @@ def _random_steps_per_s(env: Any, n_steps: int, repeats: int, seed: int, num_env
 
 
 def env_steps_per_s_single(n_steps: int = 2000, *, repeats: int = 3, seed: int = 0, **options: Any) -> float:
-    """Env steps per wall second of one `gymnasium.make("downwash/Follower-v1")` (with its
+    """Env steps per wall second of one `gymnasium.make("downwash/Follower-v2")` (with its
     wrappers), random actions, resets included; the best of `repeats` runs. The actions are
     drawn from the action space before the clock starts: the env's cost, not the sampler's
     (`Box.sample` alone costs about a third of an env step)."""
-    return _random_steps_per_s(gym.make("downwash/Follower-v1", **options), n_steps, repeats, seed)
+    return _random_steps_per_s(gym.make("downwash/Follower-v2", **options), n_steps, repeats, seed)
 
 
 def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: int = 3, seed: int = 0,
@@ -107,7 +107,7 @@ def env_steps_per_s_vector(num_envs: int = 64, n_steps: int = 200, *, repeats: i
     """Env steps (summed over worlds) per wall second of the native vector env
     (`gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`), random actions drawn
     before the clock starts, autoresets included; the best of `repeats` runs."""
-    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
+    envs = gym.make_vec("downwash/Follower-v2", num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
     return _random_steps_per_s(envs, n_steps, repeats, seed, num_envs)
 
 
@@ -134,9 +134,9 @@ def sb3_rollout_steps_per_s(num_envs: int = 16, n_steps: int = 256, *, backend: 
 
     if backend not in SB3_BACKENDS:
         raise ValueError(f"backend: expected one of {list(SB3_BACKENDS)}, got {backend!r}")
-    fns = [lambda: gym.make("downwash/Follower-v1", **options) for _ in range(num_envs)]
+    fns = [lambda: gym.make("downwash/Follower-v2", **options) for _ in range(num_envs)]
     if backend == "native":
-        venv = make_vec_env("downwash/Follower-v1", num_envs=num_envs, **options)
+        venv = make_vec_env("downwash/Follower-v2", num_envs=num_envs, **options)
     elif backend == "sync":
         venv = SB3VecEnv(gym.vector.SyncVectorEnv(fns))
     else:
@@ -170,7 +170,7 @@ def env_learner_loops_per_s(num_envs: int = 16, *, n_threads: int = 0, seconds: 
     helpers stay out of the learner's way (n_threads: the env's option; 1, no helpers)."""
     import torch
 
-    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point",
+    envs = gym.make_vec("downwash/Follower-v2", num_envs=num_envs, vectorization_mode="vector_entry_point",
                         n_threads=n_threads)
     envs.reset(seed=seed)
     envs.action_space.seed(seed)
@@ -202,7 +202,7 @@ def env_learner_loops_per_s(num_envs: int = 16, *, n_threads: int = 0, seconds: 
 
 def _env_steps_in_process(num_envs: int, n_threads: int, seconds: float, seed: int, ready: Any, start: Any,
                           rates: Any) -> None:
-    envs = gym.make_vec("downwash/Follower-v1", num_envs=num_envs, vectorization_mode="vector_entry_point",
+    envs = gym.make_vec("downwash/Follower-v2", num_envs=num_envs, vectorization_mode="vector_entry_point",
                         n_threads=n_threads)
     envs.reset(seed=seed)
     envs.action_space.seed(seed)

@@ -118,8 +118,12 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     display it fails at construction, saying what to do.
 
     ## Version history
-    - v1: ids in the ``downwash`` namespace (``downwash/Follower-v1``,
-      ``downwash/FollowerPasses-v1``); observations float32; actions normalised to
+    See docs/envs.md, "Versions": an id's version moves whenever the same seed and actions
+    can give other observations, rewards or terminations, or a space changes.
+
+    - v2: rotor saturation keeps attitude first (an episode whose actions saturate the
+      rotors flies differently from v1); `step()` before `reset()` raises `ResetNeeded`.
+    - v1: ids in the ``downwash`` namespace; observations float32; actions normalised to
       [-1, 1] (x `action_bound` m/s^2); flights bit-identical on every CPU.
     - v0 (``DownwashFollower-v0``, ``DownwashFollowerPasses-v0``): float64 observations,
       actions in m/s^2.

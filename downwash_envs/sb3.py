@@ -15,7 +15,7 @@ Example::
     from stable_baselines3 import PPO
     from downwash_envs.sb3 import make_vec_env
 
-    venv = make_vec_env("downwash/Follower-v1", num_envs=16, seed=0)
+    venv = make_vec_env("downwash/Follower-v2", num_envs=16, seed=0)
     PPO("MlpPolicy", venv).learn(100_000)
 
 World i of ``make_vec_env(..., seed=s)`` is the single env ``reset(seed=s + i)``, as in
@@ -113,7 +113,7 @@ def _split_infos(infos: dict[str, Any], n: int) -> list[dict[str, Any]]:
     return out
 
 
-def make_vec_env(env_id: str = "downwash/Follower-v1", num_envs: int = 16, seed: int | None = None,
+def make_vec_env(env_id: str = "downwash/Follower-v2", num_envs: int = 16, seed: int | None = None,
                  **options: Any) -> SB3VecEnv:
     """`gymnasium.make_vec(env_id, num_envs, **options)` (the native batched env) for SB3;
     `seed` seeds the first reset (world i: seed + i)."""

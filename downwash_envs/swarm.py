@@ -188,7 +188,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
     and the same actions give the same trajectory, bit for bit.
     """
 
-    metadata = {"name": "downwash_swarm_v0", "render_modes": list(RENDER_MODES), "render_fps": 50,
+    metadata = {"name": "downwash_swarm_v1", "render_modes": list(RENDER_MODES), "render_fps": 50,
                 "is_parallelizable": True}  # fmt: skip
 
     def __init__(self, render_mode: str | None = None, **options: Any):
@@ -256,7 +256,7 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
     torch threads: the helper threads wait for work by spinning.
     """
 
-    metadata = {"name": "downwash_swarm_vector_v0", "render_modes": list(RENDER_MODES), "render_fps": 50}
+    metadata = {"name": "downwash_swarm_vector_v1", "render_modes": list(RENDER_MODES), "render_fps": 50}
 
     def __init__(self, n_worlds: int = 8, render_mode: str | None = None, n_threads: int = 0, **options: Any):
         N = count("n_worlds", n_worlds, 1)

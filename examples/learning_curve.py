@@ -37,7 +37,7 @@ def follower_returns(policy, episodes: int = 10, seed: int = 1000, **options) ->
 
     import downwash_envs  # noqa: F401  (registers the ids)
 
-    env = gym.make("downwash/Follower-v1", **options)
+    env = gym.make("downwash/Follower-v2", **options)
     out = []
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)

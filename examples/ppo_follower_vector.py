@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     timesteps = 256 if args.quick else args.timesteps
     max_steps = 50 if args.quick else 250
-    venv = VecMonitor(make_vec_env("downwash/Follower-v1", num_envs=n, seed=args.seed, max_episode_steps=max_steps))
+    venv = VecMonitor(make_vec_env("downwash/Follower-v2", num_envs=n, seed=args.seed, max_episode_steps=max_steps))
     episodes = 2 if args.quick else 10
     if args.load is not None:
         model = load_policy(p.prog, PPO, args.load, venv)

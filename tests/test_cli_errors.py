@@ -479,7 +479,7 @@ def test_huge_num_envs_is_refused_before_allocating():
     t0 = time.perf_counter()
     try:
         with pytest.raises(ConfigError, match=r"num_envs: 1000000000 worlds .* bound .*; use num_envs <= \d+"):
-            gym.make_vec("downwash/Follower-v1", num_envs=10**9, vectorization_mode="vector_entry_point")
+            gym.make_vec("downwash/Follower-v2", num_envs=10**9, vectorization_mode="vector_entry_point")
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()

@@ -20,7 +20,7 @@ def test_main_entry_points_run_beside_decoy_packages(tmp_path):
     code = textwrap.dedent("""
         import json, sys
         import gymnasium as gym
-        env = gym.make("downwash_envs:downwash/Follower-v1")
+        env = gym.make("downwash_envs:downwash/Follower-v2")
         obs, _ = env.reset(seed=0)
         env.step(env.action_space.sample())
         from downwash_envs.swarm import parallel_env

@@ -58,6 +58,23 @@ def _same_info(a: dict, b: dict) -> None:
 # ----------------------------------------------------------------------------- registration
 
 
+def test_every_id_is_in_the_version_history_and_old_versions_name_the_current_one():
+    """docs/envs.md's version table lists every current id; an old version points to it."""
+    from downwash_envs.swarm import SwarmEnv, SwarmVectorEnv
+
+    table = (Path(__file__).resolve().parents[1] / "docs" / "envs.md").read_text().split("### Versions", 1)[1].split("\n## ", 1)[0]
+    current = "| `" + table.split("\n| `", 1)[1].split("\n", 1)[0]  # the table's first row
+    names = [i.split("/", 1)[1] for i in downwash_envs.ENV_IDS] + [SwarmEnv.metadata["name"]]
+    for name in names:
+        assert f"`{name}`" in current, (name, current)
+    assert SwarmVectorEnv.metadata["name"].replace("_vector", "") == SwarmEnv.metadata["name"]
+    for env_id in downwash_envs.ENV_IDS:
+        namespace_name, version = env_id.rsplit("-v", 1)
+        older = f"{namespace_name}-v{int(version) - 1}"
+        with pytest.raises(gym.error.DeprecatedEnv, match=env_id):
+            gym.make(older)
+
+
 def test_import_is_light_and_module_qualified_ids_work():
     out = _run_python("""
         import json, sys
@@ -70,12 +87,12 @@ def test_import_is_light_and_module_qualified_ids_work():
     sim_pulls_gym, heavy, ids = json.loads(out)
     assert not sim_pulls_gym  # `import sim` does not import gymnasium
     assert heavy == []  # registration imports gymnasium's registry only
-    assert ids == sorted(downwash_envs.ENV_IDS) == ["downwash/Follower-v1", "downwash/FollowerPasses-v1"]
+    assert ids == sorted(downwash_envs.ENV_IDS) == ["downwash/Follower-v2", "downwash/FollowerPasses-v2"]
     for module in ("downwash_envs",):
         out = _run_python(f"""
             import sys, gymnasium as gym
             assert "{module}" not in sys.modules
-            env = gym.make("{module}:downwash/Follower-v1")
+            env = gym.make("{module}:downwash/Follower-v2")
             obs, _ = env.reset(seed=0)
             print(obs.shape, env.spec.max_episode_steps, type(env.unwrapped).__module__, "torch" in sys.modules)
         """)
@@ -83,7 +100,7 @@ def test_import_is_light_and_module_qualified_ids_work():
 
 
 def test_make_and_make_vec_give_the_documented_spaces():
-    env = gym.make("downwash/Follower-v1")
+    env = gym.make("downwash/Follower-v2")
     assert isinstance(env.unwrapped, DownwashFollowerEnv)
     assert env.observation_space.shape == (OBS_DIM,) == (30,)
     # float32 throughout (no check_env warning); actions normalised, the bound is physical
@@ -91,17 +108,17 @@ def test_make_and_make_vec_give_the_documented_spaces():
     assert env.action_space.shape == (3,) and env.action_space.high.tolist() == [1.0] * 3
     assert env.action_space.low.tolist() == [-1.0] * 3
     assert env.unwrapped.config.bound == 5.0
-    assert gym.make("downwash/Follower-v1", action_mode="acceleration").unwrapped.config.bound == 10.0
+    assert gym.make("downwash/Follower-v2", action_mode="acceleration").unwrapped.config.bound == 10.0
     obs, _ = env.reset(seed=0)
     assert obs.dtype == np.float32 and env.step(env.action_space.sample())[0].dtype == np.float32
-    envs = gym.make_vec("downwash/Follower-v1", num_envs=2)  # the vector entry point by default
+    envs = gym.make_vec("downwash/Follower-v2", num_envs=2)  # the vector entry point by default
     assert isinstance(envs, DownwashFollowerVectorEnv)
     assert envs.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
     assert envs.observation_space.shape == (2, 30) and envs.action_space.shape == (2, 3)
     assert envs.single_observation_space == env.observation_space
     assert envs.single_action_space == env.action_space
     assert envs.max_episode_steps == 500
-    assert gym.spec("downwash/FollowerPasses-v1").max_episode_steps == 1000
+    assert gym.spec("downwash/FollowerPasses-v2").max_episode_steps == 1000
 
 
 @pytest.mark.parametrize("env_id", downwash_envs.ENV_IDS)
@@ -132,9 +149,9 @@ def test_vector_env_equals_sync_vector_env(case):
     across autoresets after both termination and truncation."""
     n, horizon = 3, 25
     opts = VECTOR_CASES[case]
-    vec = gym.make_vec("downwash/Follower-v1", num_envs=n, vectorization_mode="vector_entry_point",
+    vec = gym.make_vec("downwash/Follower-v2", num_envs=n, vectorization_mode="vector_entry_point",
                        max_episode_steps=horizon, **opts)
-    syn = gym.make_vec("downwash/Follower-v1", num_envs=n, vectorization_mode="sync",
+    syn = gym.make_vec("downwash/Follower-v2", num_envs=n, vectorization_mode="sync",
                        max_episode_steps=horizon, **opts)
     assert isinstance(vec, DownwashFollowerVectorEnv) and isinstance(syn, SyncVectorEnv)
     o1, i1 = vec.reset(seed=11)
@@ -202,10 +219,10 @@ def _rollout(env, seed, n, action_seed=0):
 def test_same_seed_same_actions_bit_identical():
     opts = dict(reference="passes", separation=(0.5, 1.0), field_randomization="default",
                 mass_randomization=(0.9, 1.1), max_episode_steps=15)
-    a = _rollout(gym.make("downwash/Follower-v1", **opts), 3, 40)
-    b = _rollout(gym.make("downwash/Follower-v1", **opts), 3, 40)
+    a = _rollout(gym.make("downwash/Follower-v2", **opts), 3, 40)
+    b = _rollout(gym.make("downwash/Follower-v2", **opts), 3, 40)
     assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
-    c = _rollout(gym.make("downwash/Follower-v1", **opts), 4, 40)
+    c = _rollout(gym.make("downwash/Follower-v2", **opts), 4, 40)
     assert not all(np.array_equal(x, y) for x, y in zip(a, c))
 
 
@@ -246,7 +263,7 @@ def test_env_digests_do_not_depend_on_numpys_simd_loops(masked):
 
 @pytest.mark.parametrize("mode", ["residual", "acceleration"])
 def test_reward_is_the_sum_of_its_terms_and_obs_stay_in_space(mode):
-    env = gym.make("downwash/Follower-v1", action_mode=mode, reference="lemniscate", separation=0.4,
+    env = gym.make("downwash/Follower-v2", action_mode=mode, reference="lemniscate", separation=0.4,
                    max_tracking_error=0.5, max_episode_steps=40)
     env.action_space.seed(1)
     obs, _ = env.reset(seed=1)
@@ -339,11 +356,11 @@ def test_invalid_actions_raise_before_stepping():
 
 def test_bad_options_name_the_allowed_values():
     with pytest.raises(TypeError, match="allowed: .*separation"):
-        gym.make("downwash/Follower-v1", sepration=0.5)
+        gym.make("downwash/Follower-v2", sepration=0.5)
     # worded as Python's own, so that a wrapper probing an optional keyword retries without it, as
     # TorchRL's GymEnv does with frameskip (it looks for exactly this text)
     with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
-        gym.make("downwash/Follower-v1", frameskip=1)
+        gym.make("downwash/Follower-v2", frameskip=1)
     cases = [
         (dict(separation=0.1), "separation.*0.3"),
         (dict(separation=(0.5, 2.5)), "separation"),
@@ -430,10 +447,10 @@ def test_numeric_options_still_take_numpy_numbers():
     env = DownwashFollowerEnv(separation=np.float64(0.7), action_bound=np.float32(4.0),
                               leader_position=np.array([0.0, 0.0, 2.0]), reference="hover")
     assert env.config.separation_range == (0.7, 0.7) and env.config.bound == 4.0
-    env = gym.make("downwash/FollowerPasses-v1", separation=np.array([0.5, 1.0]))
+    env = gym.make("downwash/FollowerPasses-v2", separation=np.array([0.5, 1.0]))
     assert env.unwrapped.config.separation_range == (0.5, 1.0)
     with pytest.raises(ConfigError, match="separation: expected a number, got '0.6'"):
-        gym.make("downwash/Follower-v1", separation="0.6")
+        gym.make("downwash/Follower-v2", separation="0.6")
 
 
 def test_step_before_the_first_reset_raises_reset_needed():
@@ -456,7 +473,7 @@ def test_step_before_the_first_reset_raises_reset_needed():
     envs.reset(seed=0, options={"reset_mask": np.array([False, True, False])})
     envs.step(np.zeros((3, 3), np.float32))
     assert np.all(envs.simulator.t > 0.0)
-    vec = gym.make_vec("downwash/Follower-v1", num_envs=2, reference="hover")  # the native env, unwrapped
+    vec = gym.make_vec("downwash/Follower-v2", num_envs=2, reference="hover")  # the native env, unwrapped
     with pytest.raises(gym.error.ResetNeeded):
         vec.step(np.zeros((2, 3), np.float32))
 
@@ -465,7 +482,7 @@ def test_step_before_the_first_reset_raises_reset_needed():
                                           ((10.0, 0.0, 0.0), Status.LEFT_BOX)])
 def test_termination_on_collision_and_leaving_the_box(push, status):
     box = 1.0 if status == Status.LEFT_BOX else 5.0
-    env = gym.make("downwash/Follower-v1", action_mode="acceleration", reference="hover", separation=0.4,
+    env = gym.make("downwash/Follower-v2", action_mode="acceleration", reference="hover", separation=0.4,
                    max_tracking_error=box)
     env.reset(seed=0)
     for _ in range(150):
@@ -477,11 +494,11 @@ def test_termination_on_collision_and_leaving_the_box(push, status):
 
 
 def test_truncation_at_the_horizon_and_next_step_autoreset():
-    env = gym.make("downwash/Follower-v1", max_episode_steps=5)
+    env = gym.make("downwash/Follower-v2", max_episode_steps=5)
     env.reset(seed=0)
     truncs = [env.step(np.zeros(3, np.float32))[3] for _ in range(5)]
     assert truncs == [False] * 4 + [True]
-    envs = gym.make_vec("downwash/Follower-v1", num_envs=2, max_episode_steps=5)
+    envs = gym.make_vec("downwash/Follower-v2", num_envs=2, max_episode_steps=5)
     first, _ = envs.reset(seed=0)
     for k in range(5):
         obs, rew, term, trunc, info = envs.step(np.zeros((2, 3), np.float32))
@@ -542,7 +559,7 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         import numpy as np, gymnasium as gym
         from gymnasium.utils.env_checker import check_env
         import downwash_envs
-        env = gym.make("downwash/Follower-v1", render_mode="rgb_array", reference="transect", random_phase=False)
+        env = gym.make("downwash/Follower-v2", render_mode="rgb_array", reference="transect", random_phase=False)
         env.reset(seed=0)
         for _ in range(5):
             env.step(np.zeros(3, np.float32))
@@ -550,14 +567,14 @@ def test_rendering_gives_a_frame_with_both_vehicles():
         r, g, b = (f[..., i].astype(int) for i in range(3))
         orange = int(((r > 150) & (g > 60) & (g < 170) & (b < 70)).sum())  # leader hull
         cyan = int(((r < 80) & (g > 120) & (b > 130)).sum())  # follower hull
-        envs = gym.make_vec("downwash/Follower-v1", num_envs=2, render_mode="rgb_array")
+        envs = gym.make_vec("downwash/Follower-v2", num_envs=2, render_mode="rgb_array")
         envs.reset(seed=0)
         frames = envs.render()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             # gymnasium's render checks, for rgb_array ("human" needs a display: tests/test_viewer.py)
             from gymnasium.utils.passive_env_checker import env_render_passive_checker
-            rgb = gym.make("downwash/Follower-v1", render_mode="rgb_array").unwrapped
+            rgb = gym.make("downwash/Follower-v2", render_mode="rgb_array").unwrapped
             check_env(rgb, skip_render_check=True)
             rgb.reset(seed=0)
             env_render_passive_checker(rgb)
@@ -661,7 +678,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
 
 
 def test_actions_are_clipped_as_numpy_clips_and_bad_ones_refused_before_stepping():
-    env = gym.make("downwash/Follower-v1").unwrapped
+    env = gym.make("downwash/Follower-v2").unwrapped
     env.reset(seed=0)
     worlds = env._worlds
     a = np.array([7.5, -0.0, -12.0], np.float32)

@@ -116,7 +116,7 @@ def test_an_unpickled_made_env_needs_a_reset_and_then_runs_a_whole_episode():
     """Through gym.make the wrappers pickle their own state (OrderEnforcing: reset done; TimeLimit: 100 steps
     elapsed) around a new inner env: the copy used to fly that unreset env and truncate after 400 steps. It
     now refuses to step until reset(), and then runs the registered 500."""
-    env = gym.make("downwash/Follower-v1", reference="hover")
+    env = gym.make("downwash/Follower-v2", reference="hover")
     env.reset(seed=0)
     for _ in range(100):
         env.step(np.zeros(3, np.float32))

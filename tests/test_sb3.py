@@ -23,8 +23,8 @@ OPTIONS = dict(max_episode_steps=20, max_tracking_error=0.25, action_mode="accel
 
 def test_adapter_gives_the_episodes_of_dummy_vec_env():
     n, seed = 3, 11
-    native = make_vec_env("downwash/Follower-v1", num_envs=n, seed=seed, **OPTIONS)
-    dummy = DummyVecEnv([lambda: gym.make("downwash/Follower-v1", **OPTIONS) for _ in range(n)])
+    native = make_vec_env("downwash/Follower-v2", num_envs=n, seed=seed, **OPTIONS)
+    dummy = DummyVecEnv([lambda: gym.make("downwash/Follower-v2", **OPTIONS) for _ in range(n)])
     dummy.seed(seed)
     a, b = native.reset(), dummy.reset()
     np.testing.assert_array_equal(a, b)
@@ -53,8 +53,8 @@ def test_adapter_over_sync_vector_env_gives_the_same_episodes():
     """The adapter serves any next-step-autoreset vector env: Gymnasium's SyncVectorEnv of the
     single envs gives the native env's episodes through it."""
     n, seed = 2, 5
-    native = make_vec_env("downwash/Follower-v1", num_envs=n, seed=seed, **OPTIONS)
-    sync = SB3VecEnv(gym.vector.SyncVectorEnv([lambda: gym.make("downwash/Follower-v1", **OPTIONS)] * n))
+    native = make_vec_env("downwash/Follower-v2", num_envs=n, seed=seed, **OPTIONS)
+    sync = SB3VecEnv(gym.vector.SyncVectorEnv([lambda: gym.make("downwash/Follower-v2", **OPTIONS)] * n))
     sync.seed(seed)
     np.testing.assert_array_equal(native.reset(), sync.reset())
     rng = np.random.default_rng(1)
@@ -72,7 +72,7 @@ def test_adapter_over_sync_vector_env_gives_the_same_episodes():
 def test_sb3_checker_passes_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_env(gym.make("downwash/Follower-v1"), warn=True)
+        check_env(gym.make("downwash/Follower-v2"), warn=True)
 
 
 def test_ppo_trains_through_the_adapter():

@@ -20,11 +20,11 @@ CASE = textwrap.dedent("""
 
     kind, n_threads = sys.argv[1], int(sys.argv[2])
     if kind == "vector":
-        env = gym.make_vec("downwash/Follower-v1", num_envs=8, vectorization_mode="vector_entry_point",
+        env = gym.make_vec("downwash/Follower-v2", num_envs=8, vectorization_mode="vector_entry_point",
                            n_threads=n_threads)
         action = np.zeros((8, 3), np.float32)
     else:
-        env = gym.make("downwash/Follower-v1")
+        env = gym.make("downwash/Follower-v2")
         action = np.zeros(3, np.float32)
     env.reset(seed=0)
     errors, others = [], []
@@ -68,7 +68,7 @@ def test_one_env_per_thread_is_fine():
         import numpy as np
         import gymnasium as gym
         import downwash_envs
-        envs = [gym.make_vec("downwash/Follower-v1", num_envs=4, vectorization_mode="vector_entry_point")
+        envs = [gym.make_vec("downwash/Follower-v2", num_envs=4, vectorization_mode="vector_entry_point")
                 for _ in range(2)]
         for e in envs:
             e.reset(seed=0)
@@ -98,7 +98,7 @@ def test_thread_counts_are_checked_and_default_to_the_usable_cores():
 
         import downwash_envs  # noqa: F401
 
-        gym.make_vec("downwash/Follower-v1", num_envs=4, vectorization_mode="vector_entry_point", n_threads=1000)
+        gym.make_vec("downwash/Follower-v2", num_envs=4, vectorization_mode="vector_entry_point", n_threads=1000)
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="CPU affinity is Linux's")

@@ -28,12 +28,12 @@ _spec.loader.exec_module(machine)
 GOLDEN = Path(__file__).resolve().parent / "env_digests.json"
 
 CASES = {  # name: (env id, options, vector)
-    "lemniscate": ("downwash/Follower-v1", {}, False),
-    "passes": ("downwash/FollowerPasses-v1", {}, False),
-    "acceleration_hover_randomised": ("downwash/Follower-v1", dict(
+    "lemniscate": ("downwash/Follower-v2", {}, False),
+    "passes": ("downwash/FollowerPasses-v2", {}, False),
+    "acceleration_hover_randomised": ("downwash/Follower-v2", dict(
         action_mode="acceleration", reference="hover", separation=(0.4, 0.8), max_tracking_error=0.5,
         field_randomization="default", mass_randomization=(0.8, 1.2)), False),
-    "vector_transect_oracle_25hz": ("downwash/Follower-v1", dict(
+    "vector_transect_oracle_25hz": ("downwash/Follower-v2", dict(
         reference="transect", predictor="oracle", control_hz=25, max_episode_steps=20), True),
 }
 
