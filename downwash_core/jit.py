@@ -17,17 +17,28 @@ those packages therefore recompiles every kernel on its next use (a minute or so
 The stamp is installed as a cache locator (`install_locator`, at import); with a numba
 whose caching internals differ it is left out, numba's own stamp applies, and the caches
 must be deleted by hand after such an edit (``find . -name '*.nbi' -delete``).
+
+Compiling takes about half a minute to a few minutes on two cores. So that a first flight or a
+first env `reset()` does not look hung, the simulator calls `announce_first_compile` when it is
+built: where no flight has run yet with this source, numba and CPU (`first_use_marker`), it logs
+one warning saying so, once per process; `mark_compiled` (after the first tick) records that
+one has. ``python -m experiments.warmup`` (``downwash-warmup``) compiles every kernel ahead.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
 from functools import lru_cache
 from pathlib import Path
 
 import numba
 
-__all__ = ["njit", "source_stamp", "install_locator", "KERNEL_PACKAGES"]
+__all__ = ["njit", "source_stamp", "install_locator", "KERNEL_PACKAGES", "first_use_marker", "announce_first_compile",
+           "mark_compiled"]
+
+log = logging.getLogger(__name__)
 
 KERNEL_PACKAGES = ("downwash_core", "sim", "controllers", "downwash", "downwash_envs", "downwash_trajectories")
 _ROOT = Path(__file__).resolve().parents[1]
@@ -82,6 +93,42 @@ def install_locator() -> bool:
         }))
     impl._locator_classes[:0] = stamped  # (tried first, in numba's order: a user's cache dir, in-tree, user-wide)
     return True
+
+
+def first_use_marker() -> Path:
+    """The file whose presence says kernels of this source, numba and CPU have compiled here:
+    under ``$XDG_CACHE_HOME`` (default ``~/.cache``), ``downwash-testbed/``."""
+    from llvmlite import binding
+
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "downwash-testbed"
+    return root / f"kernels-{source_stamp()[:16]}-numba{numba.__version__}-{binding.get_host_cpu_name()}.compiled"
+
+
+_pending: bool | None = None  # None: not asked yet in this process
+
+
+def announce_first_compile() -> None:
+    """Log one warning, once per process, when no flight has compiled the kernels here (module doc)."""
+    global _pending
+    if _pending is None:
+        _pending = not first_use_marker().exists()
+        if _pending:
+            log.warning("compiling the simulator's kernels: the first flight after an install or an update takes "
+                        "about half a minute to a few minutes, once (python -m experiments.warmup compiles them ahead)")
+
+
+def mark_compiled() -> None:
+    """Record that a flight ran (its kernels are compiled and cached); no-op when already recorded."""
+    global _pending
+    if _pending is False:
+        return
+    _pending = False
+    marker = first_use_marker()
+    try:  # a read-only home only means the notice shows again next time
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.touch()
+    except OSError:
+        pass
 
 
 install_locator()

@@ -7,19 +7,16 @@ evaluated at the first autopilot tick after each 1/45 s and held in between.
 Everything is batched over worlds W and vehicles V. Each world draws its noise
 (motion capture, turbulence) from its own generator, and its wind gusts from a second
 one of its own (`default_rng([seed, WIND_STREAM])`), so a world's flight does not
-depend on which other worlds share its batch: the batched loop equals a loop of
-single flights bit for bit, which a test checks; and a flight without wind draws
-exactly the numbers it drew before wind existed.
+depend on which other worlds share its batch: the batched loop equals a loop of single
+flights bit for bit (a test), and a flight without wind draws what it drew before wind existed.
 
-The loop is assembled from components, each injected and each with its config in
-its own module: the sensor (`SimConfig.mocap`, `sim.sensors`: motion capture and its
-per-episode offsets, drawn at reset from a third stream of the world's, `SENSOR_STREAM`),
-the outer-loop `controller` (`controllers.lqr.FeedbackLinearisedLQR`),
-the `autopilot` (`controllers.autopilot.Autopilot`), the `turbulence`
-(`sim.turbulence.OUTurbulence`), the downwash `field` (`sim.field.DownwashField` or
-any object with its call signature), how several wakes combine (`aggregation`,
-`sim.aggregation`), the ambient `wind` (`sim.wind.DrydenWind`) and the `predictor`
-(`sim.predictor`).
+The loop is assembled from components, each injected and each with its config in its own
+module: the sensor (`SimConfig.mocap`, `sim.sensors`: motion capture and its per-episode
+offsets, drawn at reset from a third stream of the world's, `SENSOR_STREAM`), the `controller`
+(`controllers.lqr.FeedbackLinearisedLQR`), the `autopilot` (`controllers.autopilot.Autopilot`),
+the `turbulence` (`sim.turbulence.OUTurbulence`), the downwash `field` (`sim.field.DownwashField`
+or any object with its call signature), how wakes combine (`aggregation`, `sim.aggregation`),
+the ambient `wind` (`sim.wind.DrydenWind`) and the `predictor` (`sim.predictor`).
 
 Ambient wind (`wind=DrydenWind(...)`; None or an `off` wind leave the loop and its
 logs bit for bit as without it): u_air = mean + gust, ONE gust state (3, 2) per world,
@@ -59,6 +56,7 @@ import numpy as np
 from controllers.autopilot import Autopilot
 from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint
 from downwash_core.errors import ConcurrentUseError, ConfigError
+from downwash_core.jit import announce_first_compile, mark_compiled
 from downwash_core.params import QUAD, RATES, QuadParams, Rates
 from downwash_core.provenance import describe
 from downwash_core.state import VehicleStates
@@ -254,6 +252,7 @@ class Simulator:
         self._status_new = np.zeros(W, np.int64)
         self.row: Mapping[str, np.ndarray] = {}
         self.wind = wind
+        announce_first_compile()
         self._bind()
         self.reset(np.arange(W), seeds)
         if field is not None:  # once, before any step: a bad field is named, not found mid-batch
@@ -429,6 +428,7 @@ class Simulator:
             if self._observe is not None:  # (after each tick, sim.predictor; None where the plan's kernel runs it)
                 self._observe(row["t"], row["vel_est"], row["u_cmd"])
             self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)
+            mark_compiled()
         finally:
             lock.release()
         return row

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
            "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights")
 # experiments with a parser of their own (positional files; no --config/--quick/--field): a console script each
-TOOLS = ("export",)
+TOOLS = ("export", "warmup")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
