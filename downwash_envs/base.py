@@ -5,11 +5,12 @@
 `downwash_envs.engine.TaskWorlds`), the render mode and the lazily made renderer.
 `VectorAutoreset` adds what the two vector envs share: a generator per world (world i of
 `reset(seed=s)` seeded with s + i, as a `SyncVectorEnv`'s envs are) and Gymnasium's
-next-step autoreset, written once. `FollowerEnvBase` binds the follower task to them (the
-swarm's binding is in `downwash_envs.swarm`).
+autoreset modes (next step, same step, disabled), written once. `FollowerEnvBase` binds the
+follower task to them (the swarm's binding is in `downwash_envs.swarm`).
 
-Also here: the spaces, the reset-option checks, a vector env's reset plan, pickling
-an env as the call that made it, and `ResetNeededError` (step() before the first reset()).
+Also here: the spaces, the reset-option checks, a vector env's reset plan, the autoreset
+mode's check, pickling an env as the call that made it, `ResetNeededError` (step() before
+the first reset()) and `EpisodeEndedError` (step() on an ended world with autoreset disabled).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode
 
 from downwash_envs.config import FollowerConfig, make_config
 from downwash_envs.engine import TaskWorlds
@@ -30,8 +32,9 @@ from downwash_envs.task import FollowerWorlds
 from sim.simulator import Simulator
 
 __all__ = [
-    "TaskEnv", "VectorAutoreset", "AutoresetStep", "FollowerEnvBase", "ResetNeededError", "agent_spaces",
-    "make_spaces", "check_reset_options", "vector_reset_plan", "pickled_as_constructed",
+    "TaskEnv", "VectorAutoreset", "AutoresetStep", "FollowerEnvBase", "ResetNeededError", "EpisodeEndedError",
+    "agent_spaces", "make_spaces", "check_reset_options", "vector_reset_plan", "check_autoreset_mode",
+    "pickled_as_constructed",
 ]  # fmt: skip
 
 RENDER_MODES = ("rgb_array",)
@@ -42,6 +45,24 @@ class ResetNeededError(gym.error.ResetNeeded, RuntimeError):
     copy, which is a new env), or a PettingZoo env whose episode has ended. Gymnasium's
     `ResetNeeded` (what its OrderEnforcing wrapper raises), so that envs made directly, not
     through `gym.make`, refuse alike; also a RuntimeError, as the swarm env raised before."""
+
+
+class EpisodeEndedError(ResetNeededError, AssertionError):
+    """step() with autoreset disabled while a world's episode has ended and it was not reset.
+    `SyncVectorEnv` refuses this with an assertion, so code written against it catches an
+    AssertionError; it is also a `ResetNeeded`, which is what it means."""
+
+
+def check_autoreset_mode(mode: Any) -> AutoresetMode:
+    """`mode` (an `AutoresetMode` or its string value, as `SyncVectorEnv` takes) as the enum;
+    ValueError naming the allowed ones."""
+    if isinstance(mode, AutoresetMode):
+        return mode
+    for member in AutoresetMode:
+        if isinstance(mode, str) and mode == member.value:
+            return member
+    allowed = ", ".join(f"AutoresetMode.{m.name} ({m.value!r})" for m in AutoresetMode)
+    raise ValueError(f"autoreset_mode: got {mode!r}; allowed: {allowed}")
 
 
 def agent_spaces(low: np.ndarray, high: np.ndarray) -> tuple[spaces.Box, spaces.Box]:
@@ -215,27 +236,42 @@ class TaskEnv:
 
 
 class AutoresetStep(NamedTuple):
-    """A vector step with next-step autoreset (`VectorAutoreset._autoreset_step`)."""
+    """A vector step under the env's autoreset mode (`VectorAutoreset._autoreset_step`)."""
 
-    outcome: Any  # the task's step outcome (with `terminated`); zero for the resetting worlds
-    terminated: np.ndarray  # (W,) bool; False for the resetting worlds
-    truncated: np.ndarray  # (W,) bool: at the horizon; False for the resetting worlds
-    resetting: np.ndarray  # (W,) bool: the worlds that started a new episode instead of stepping
+    outcome: Any  # the task's step outcome (with `terminated`); next step: zero for the resetting worlds
+    terminated: np.ndarray  # (W,) bool; next step: False for the resetting worlds
+    truncated: np.ndarray  # (W,) bool: at the horizon; next step: False for the resetting worlds
+    # (W,) bool: the worlds that started a new episode at this step; next step: instead of stepping
+    # (their actions ignored), same step: after the step that ended their episode; disabled: none
+    resetting: np.ndarray
     reset_indices: np.ndarray  # (n,) their indices, ascending
     episodes: list  # (n,) their new episodes
     obs: np.ndarray  # (W, ...) float32: the new episodes' first for the resetting worlds
+    final_obs: np.ndarray | None = None  # same step: (W, ...) float32 at the step's end, before the resets
 
 
 class VectorAutoreset:
     """The vector envs' worlds bookkeeping: a generator and an episode clock per world, the
-    seeded reset, and next-step autoreset (Gymnasium's default): the step after a world
-    terminates or truncates resets it; its actions are ignored and its outcome is zero."""
+    seeded reset, and Gymnasium's autoreset modes (`autoreset_mode`), step for step as
+    `SyncVectorEnv` runs them:
+
+    - next step (Gymnasium's default): the step after a world terminates or truncates resets
+      it; its actions are ignored and its outcome is zero.
+    - same step: a world that terminates or truncates is reset within that step; the step
+      returns the new episode's first observation, and the ended one's last observation
+      (`AutoresetStep.final_obs`) for the env to report.
+    - disabled: nothing resets by itself; stepping while a world's episode has ended raises
+      `EpisodeEndedError` (reset it with ``reset(options={"reset_mask": mask})``).
+    """
 
     _worlds: TaskWorlds
 
-    def _init_autoreset(self, n_worlds: int) -> None:
+    def _init_autoreset(self, n_worlds: int, mode: AutoresetMode = AutoresetMode.NEXT_STEP) -> None:
+        self.autoreset_mode = mode  # as SyncVectorEnv's attribute of the same name
         self._rngs: list[np.random.Generator | None] = [None] * n_worlds  # one per world, as SyncVectorEnv's envs
-        self._autoreset = np.zeros(n_worlds, bool)
+        # the worlds whose episode ended at the last step: next step resets them at the next;
+        # disabled refuses to step until they are reset; same step never leaves one
+        self._ended = np.zeros(n_worlds, bool)
         self._elapsed = np.zeros(n_worlds, np.int64)
 
     def _start_episodes(self, worlds: np.ndarray) -> list:
@@ -252,25 +288,55 @@ class VectorAutoreset:
 
     def _seeded_reset(self, seed: Any, options: Mapping[str, Any] | None) -> tuple[np.ndarray, np.ndarray, list]:
         """`reset(seed, options)` of the worlds: (the worlds reset, their mask (W,) bool, their episodes)."""
-        seeds, mask = vector_reset_plan(self._autoreset.size, seed, options)
+        seeds, mask = vector_reset_plan(self._ended.size, seed, options)
         worlds = np.flatnonzero(mask)
         for w in worlds:
             if seeds[w] is not None:
                 self._rngs[w], _ = seeding.np_random(int(seeds[w]))
         episodes = self._start_episodes(worlds)
-        self._autoreset[worlds] = False
+        self._ended[worlds] = False
         return worlds, mask, episodes
 
+    def _horizon_reached(self, max_steps: int | None) -> np.ndarray:
+        """(W,) bool: the worlds whose episode clock reached `max_steps` (None: no horizon)."""
+        return self._elapsed >= max_steps if max_steps is not None else np.zeros(self._elapsed.size, bool)
+
     def _autoreset_step(self, actions: np.ndarray, max_steps: int | None) -> AutoresetStep:
-        """Step the worlds with checked `actions`; those that ended at the last step start anew
-        instead. max_steps: the truncation horizon (None: none). The caller checks `_check_reset` first."""
-        resetting = self._autoreset
+        """Step the worlds with checked `actions` under `autoreset_mode`. max_steps: the truncation
+        horizon (None: none). The caller checks `_check_reset` first."""
+        if self.autoreset_mode is AutoresetMode.NEXT_STEP:
+            return self._next_step_autoreset(actions, max_steps)
+        if self.autoreset_mode is AutoresetMode.DISABLED and self._ended.any():  # before anything steps
+            ended = np.flatnonzero(self._ended).tolist()
+            raise EpisodeEndedError(
+                f"step() with autoreset_mode={AutoresetMode.DISABLED.value!r}: the episode of world(s) {ended} has "
+                "ended; reset them first with reset(options={'reset_mask': mask})"
+            )
+        outcome = self._worlds.step(actions, None)
+        self._elapsed += 1
+        obs = self._worlds.observe(fresh=False)
+        terminated, truncated = outcome.terminated, self._horizon_reached(max_steps)
+        ended = terminated | truncated
+        disabled = self.autoreset_mode is AutoresetMode.DISABLED
+        if disabled:
+            self._ended = ended
+        if disabled or not ended.any():
+            none = np.zeros_like(ended)
+            return AutoresetStep(outcome, terminated, truncated, none, np.flatnonzero(none), [], obs)
+        reset_indices = np.flatnonzero(ended)  # same step: the ended worlds start anew now
+        episodes = self._start_episodes(reset_indices)
+        final_obs, obs = obs, obs.copy()
+        obs[ended] = self._worlds.observe()[ended]
+        return AutoresetStep(outcome, terminated, truncated, ended, reset_indices, episodes, obs, final_obs)
+
+    def _next_step_autoreset(self, actions: np.ndarray, max_steps: int | None) -> AutoresetStep:
+        """Step the worlds with `actions`; those that ended at the last step start anew instead."""
+        resetting = self._ended
         stepping = ~resetting
         any_reset = bool(resetting.any())
         outcome = self._worlds.step(actions, stepping if any_reset else None)
         self._elapsed += stepping
-        n = resetting.size
-        truncated = self._elapsed >= max_steps if max_steps is not None else np.zeros(n, bool)
+        truncated = self._horizon_reached(max_steps)
         reset_indices, episodes = np.flatnonzero(resetting), []
         if any_reset:
             episodes = self._start_episodes(reset_indices)
@@ -279,7 +345,7 @@ class VectorAutoreset:
         else:
             obs = self._worlds.observe(fresh=False)
         terminated = outcome.terminated
-        self._autoreset = terminated | truncated
+        self._ended = terminated | truncated
         return AutoresetStep(outcome, terminated, truncated, resetting, reset_indices, episodes, obs)
 
 

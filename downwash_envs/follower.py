@@ -6,9 +6,10 @@ the vector env's autoreset is `downwash_envs.base.VectorAutoreset`, shared with 
 
 - `DownwashFollowerEnv`: a `gymnasium.Env` (one world, plain `MjData`).
 - `DownwashFollowerVectorEnv`: a native `gymnasium.vector.VectorEnv` whose worlds
-  share one `mujoco.batch.Batch` (next-step autoreset, Gymnasium 1.x's default).
-  Step for step it equals `gymnasium.vector.SyncVectorEnv` of single envs made
-  with the same options and seeds (world i of `reset(seed=s)` uses seed s + i).
+  share one `mujoco.batch.Batch` (each of Gymnasium 1.x's autoreset modes; next step,
+  its default, unless asked). Step for step it equals `gymnasium.vector.SyncVectorEnv`
+  of single envs made with the same options, seeds and autoreset mode (world i of
+  `reset(seed=s)` uses seed s + i).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from gymnasium.vector.utils import batch_space
 
 from downwash_core.validate import count
 from downwash_envs.base import (
-    RENDER_MODES, FollowerEnvBase, VectorAutoreset, check_reset_options, make_spaces, pickled_as_constructed,
+    RENDER_MODES, FollowerEnvBase, VectorAutoreset, check_autoreset_mode, check_reset_options, make_spaces,
+    pickled_as_constructed,
 )
 from downwash_envs.config import DEFAULT_MAX_EPISODE_STEPS
 from downwash_envs.task import Episode, episode_info
@@ -132,6 +134,11 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     metadata = {"render_modes": [*RENDER_MODES, "human"], "render_fps": 50}
 
     def __init__(self, render_mode: str | None = None, **options: Any):
+        if "autoreset_mode" in options:  # make_vec(..., vectorization_mode="sync") passes its keywords here
+            raise TypeError(
+                "autoreset_mode: an option of the vector env, not of the single env; for "
+                "gym.make_vec(..., vectorization_mode='sync') pass vector_kwargs={'autoreset_mode': ...}"
+            )
         self._setup(options, render_mode, n_worlds=1)
         self.observation_space, self.action_space = make_spaces(self.config)
 
@@ -164,11 +171,25 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
 
     Observations (num_envs, 30), actions (num_envs, 3), rewards/terminations/
     truncations (num_envs,), infos a dict of arrays with ``_key`` masks, as
-    `SyncVectorEnv` builds them. Autoreset: next step (`metadata["autoreset_mode"]`):
-    the step after a world terminates or truncates resets it (its action is
-    ignored, reward 0, the reset's observation and info). Step for step identical
-    to `SyncVectorEnv` of `DownwashFollowerEnv`s with the same options and seeds:
-    world i of `reset(seed=s)` uses seed s + i; `reset(seed=[...])` one per world.
+    `SyncVectorEnv` builds them. Step for step identical to `SyncVectorEnv` of
+    `DownwashFollowerEnv`s with the same options, seeds and autoreset mode: world i of
+    `reset(seed=s)` uses seed s + i; `reset(seed=[...])` one per world.
+
+    autoreset_mode: a `gymnasium.vector.AutoresetMode` or its value (also
+    `metadata["autoreset_mode"]` and the attribute `autoreset_mode`), as `SyncVectorEnv`:
+
+    - ``NextStep`` (default): the step after a world terminates or truncates resets it
+      (its action is ignored, reward 0, terminated and truncated False, the reset's
+      observation and info).
+    - ``SameStep``: the step on which a world ends resets it at once: its reward and flags
+      are the ending step's, its observation and info the new episode's;
+      ``infos["final_obs"]`` (an object array, None elsewhere) and ``infos["final_info"]``
+      (a vector info dict) hold the ended episode's last ones, masked by ``_final_obs``
+      and ``_final_info``.
+    - ``Disabled``: no world resets by itself; `reset(options={"reset_mask": mask})`
+      resets the ended ones, and `step()` while one has not been raises
+      `downwash_envs.base.EpisodeEndedError` (an AssertionError, as `SyncVectorEnv`'s
+      refusal, and a `gymnasium.error.ResetNeeded`) before any world steps.
 
     num_envs: worlds. max_episode_steps: truncation horizon (None or -1: none;
     `make_vec` passes the registered one). n_threads: the threads that step the worlds: 0 (default) one per
@@ -179,6 +200,9 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
     reward and termination). `reset(options={"reset_mask": mask})` resets only
     the masked worlds; `step()` raises `gymnasium.error.ResetNeeded` while any world has never
     been reset. `render()` returns one frame per world.
+
+    `gym.make_vec(id, num_envs, autoreset_mode=...)` passes the mode here (the vector
+    entry point takes keywords, not `vector_kwargs`).
     """
 
     metadata = {"render_modes": [*RENDER_MODES, "human"], "render_fps": 50, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -189,8 +213,10 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
         render_mode: str | None = None,
         max_episode_steps: int | None = DEFAULT_MAX_EPISODE_STEPS,
         n_threads: int = 0,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         **options: Any,
     ):
+        mode = check_autoreset_mode(autoreset_mode)
         N = count("num_envs", num_envs, 1)
         check_world_memory(N, 2, name="num_envs")  # the leader and the follower; before anything is allocated
         if max_episode_steps is not None and (
@@ -201,12 +227,13 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
                 f"max_episode_steps: expected None, -1 (no limit) or an integer >= 1, got {max_episode_steps!r}"
             )
         self._setup(options, render_mode, n_worlds=N, n_threads=n_threads)
+        self.metadata["autoreset_mode"] = mode  # this instance's (the class's is the default)
         self.num_envs = N
         self.max_episode_steps = None if max_episode_steps in (None, -1) else int(max_episode_steps)
         self.single_observation_space, self.single_action_space = make_spaces(self.config)
         self.observation_space = batch_space(self.single_observation_space, N)
         self.action_space = batch_space(self.single_action_space, N)
-        self._init_autoreset(N)
+        self._init_autoreset(N, mode)
 
     def _reset_info(self, worlds: np.ndarray, episodes: list[Episode]) -> dict[str, np.ndarray]:
         """The reset infos of `worlds` (their episodes' parameters) as (num_envs,) arrays, 0 elsewhere."""
@@ -223,7 +250,7 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
         worlds, mask, episodes = self._seeded_reset(seed, options)
         if isinstance(seed, (int, np.integer)):
             super().reset(seed=int(seed))
-        infos = _vector_infos(N, {}, np.zeros(N, bool), self._reset_info(worlds, episodes), mask)
+        infos = _vector_infos(N, (self._reset_info(worlds, episodes), mask))
         return self._worlds.observe(), infos
 
     def step(self, actions: Any):
@@ -232,7 +259,15 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
         a = self._worlds.check_actions(actions, (N, 3))
         result = self._autoreset_step(a, self.max_episode_steps)
         reset_info = self._reset_info(result.reset_indices, result.episodes) if result.episodes else {}
-        infos = _vector_infos(N, result.outcome.info(), ~result.resetting, reset_info, result.resetting)
+        step_info = result.outcome.info()
+        infos = _vector_infos(N, (step_info, ~result.resetting), (reset_info, result.resetting))
+        if result.final_obs is not None:  # same step: the ended episodes' last observation and info
+            ended = result.resetting
+            final_obs = np.full(N, None, dtype=object)
+            for w in result.reset_indices:
+                final_obs[w] = result.final_obs[w]
+            infos.update(final_obs=final_obs, _final_obs=ended.copy(),
+                         final_info=_vector_infos(N, (step_info, ended)), _final_info=ended.copy())
         return result.obs, result.outcome.reward, result.terminated, result.truncated, infos
 
     def render(self):
@@ -243,13 +278,11 @@ class DownwashFollowerVectorEnv(FollowerEnvBase, VectorAutoreset, VectorEnv):
         self._close_renderer()
 
 
-def _vector_infos(
-    n: int, step_info: dict[str, np.ndarray], step_mask: np.ndarray,
-    reset_info: dict[str, np.ndarray], reset_mask: np.ndarray,
-) -> dict[str, np.ndarray]:
-    """Infos as SyncVectorEnv assembles them: per key the values (0 where absent) and a `_key` mask."""
+def _vector_infos(n: int, *parts: tuple[dict[str, np.ndarray], np.ndarray]) -> dict[str, np.ndarray]:
+    """Infos as SyncVectorEnv assembles them from (info, mask) parts, each info's (n,) arrays standing for
+    the worlds its (n,) bool mask marks: per key the values (0 where absent) and a `_key` mask."""
     out: dict[str, np.ndarray] = {}
-    for info, mask in ((step_info, step_mask), (reset_info, reset_mask)):
+    for info, mask in parts:
         if not mask.any():
             continue
         for key, value in info.items():
