@@ -30,7 +30,8 @@ __all__ = ["EXPERIMENTS", "GOLDEN_FILES", "load_results", "code_commit", "stale_
            "read_runs", "write_copies", "write_path"]
 
 # name -> (title, keys its results.json must hold)
-EXPERIMENTS = {
+EXPERIMENTS = {  # (in the results page's order: speed first, what users ask first)
+    "benchmark": ("Speed", ("cpu_count",)),
     "staged_collection": ("Staged collection", ("stages", "models", "noise_floor")),
     "sample_efficiency": ("Validation RMSE against minutes of training data", ("minutes", "models", "noise_floor")),
     "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
@@ -40,7 +41,6 @@ EXPERIMENTS = {
     "swarm": ("Many vehicles: summed pairwise models against models of sets", ("summary", "conditions", "laws")),
     "field_table": ("Field x model: the lemniscate experiment on every registered field", ("fields", "table")),
     "real_flights": ("Real flights: the Neural-Swarm data set", ("per_type", "models", "files", "args")),
-    "benchmark": ("Speed", ("cpu_count",)),
 }
 
 
