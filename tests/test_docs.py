@@ -83,8 +83,8 @@ def test_readme_is_a_newcomers_page():
     """The picture, the two commands, pointers into the docs, licence and citation."""
     text = (ROOT / "README.md").read_text()
     assert "(docs/assets/flight.png)" in text and (ROOT / "docs" / "assets" / "flight.png").is_file()
-    first = ("pip install -c .ci/constraints.txt -e . --extra-index-url https://download.pytorch.org/whl/cpu "
-             "&& python -m experiments.lemniscate")
+    first = ("pip install -c .ci/constraints.txt torch --index-url https://download.pytorch.org/whl/cpu "
+             "&& pip install -c .ci/constraints.txt -e . && python -m experiments.lemniscate")
     assert first in text  # the CPU build of torch, before anything pulls the CUDA one
     assert "bash .ci/run" in text and 'pip install -c .ci/constraints.txt -e ".[test]" && pytest' in text
     assert 'pip install -c .ci/constraints.txt -e ".[test]" && pytest' in (ROOT / ".ci" / "run").read_text()
