@@ -108,6 +108,12 @@ ended, raises `downwash_envs.base.ResetNeededError`, a `gymnasium.error.ResetNee
 ``render_mode="rgb_array"``: one (render_height, render_width, 3) uint8 frame per
 world (`downwash_envs.rendering`, EGL picked when headless), the camera framing the leader and
 the vehicle farthest from it; the leader is tinted orange, bravo cyan.
+``render_mode="human"``: MuJoCo's passive viewer (`downwash_envs.viewer`, as the follower
+env's), opened at the first `reset()` and synced after every `step()`, paced to real time;
+the leader orange, the followers cyan, every vehicle's wake drawn (each acts on the
+others), every follower's current reference marked; `render()` returns None, `close()`
+closes the window; the vector env shows world 0. Without a display the constructor
+raises ConfigError saying what to do (``xvfb-run -a``, or "rgb_array").
 
 Not provided: a global `state()` for centralised critics, and an AEC (`env()`) form.
 """
@@ -179,6 +185,15 @@ class _SwarmBase(TaskEnv):
     def close(self) -> None:
         self._close_renderer()
 
+    def _open_viewer(self) -> None:
+        """In human mode, open the window with every vehicle's wake drawn (not only the leader's, the
+        follower env's default): here every vehicle's wake acts on the others."""
+        if self.render_mode == "human" and self._renderer is None:
+            from downwash_envs.viewer import Viewer
+
+            sim = self._worlds.sim
+            self._renderer = Viewer.of_simulator(sim, wake_vehicles=range(sim.V), what="render_mode='human'")
+
 
 @pickled_as_constructed
 class SwarmEnv(_SwarmBase, ParallelEnv):
@@ -188,7 +203,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
     and the same actions give the same trajectory, bit for bit.
     """
 
-    metadata = {"name": "downwash_swarm_v1", "render_modes": list(RENDER_MODES), "render_fps": 50,
+    metadata = {"name": "downwash_swarm_v1", "render_modes": [*RENDER_MODES, "human"], "render_fps": 50,
                 "is_parallelizable": True}  # fmt: skip
 
     def __init__(self, render_mode: str | None = None, **options: Any):
@@ -235,6 +250,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
         return observations, rewards, terms, truncs, infos
 
     def render(self):
+        self._open_viewer()
         frames = self._frames((0,))
         return None if frames is None else frames[0]
 
@@ -256,7 +272,7 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
     torch threads: the helper threads wait for work by spinning.
     """
 
-    metadata = {"name": "downwash_swarm_vector_v1", "render_modes": list(RENDER_MODES), "render_fps": 50}
+    metadata = {"name": "downwash_swarm_vector_v1", "render_modes": [*RENDER_MODES, "human"], "render_fps": 50}
 
     def __init__(self, n_worlds: int = 8, render_mode: str | None = None, n_threads: int = 0, **options: Any):
         N = count("n_worlds", n_worlds, 1)
@@ -303,6 +319,7 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
         return {a: obs[:, i] for i, a in enumerate(self.possible_agents)}
 
     def render(self):
+        self._open_viewer()
         frames = self._frames(range(self.n_worlds))
         return None if frames is None else tuple(frames)
 

@@ -14,6 +14,8 @@ condition's name and the time in a corner. Leaders are orange, followers cyan.
 
 Timing: log rows are `dt` apart (the 50 Hz controller ticks); a video of `fps` frames per
 second has ceil(T dt fps) frames, frame j showing the last row at or before time j / fps.
+At a playback `speed` other than 1 (a slow-motion or fast replay) frame j shows flight time
+j speed / fps instead: ceil(T dt fps / speed) frames, the labels in flight time.
 A condition whose log is shorter (a flight that ended early) holds its last row and is
 labelled "(ended)"; a trajectory ends at its first non-finite row.
 
@@ -389,15 +391,18 @@ def _label(img: np.ndarray, text: str, font: Any) -> np.ndarray:
 def render_frames(scene: Scene, trajectories: Sequence[Trajectory], reference: np.ndarray | None = None,
                   dt: float = RATES.control_dt, fps: float = 25.0, width: int = 320, height: int = 240,
                   columns: int | None = None, wake_vehicles: Sequence[int] | None = None,
-                  wake: tuple[float, float] | None = None) -> Iterator[np.ndarray]:
+                  wake: tuple[float, float] | None = None, speed: float = 1.0) -> Iterator[np.ndarray]:
     """The video's frames, one at a time: (H, W, 3) uint8, tiles in the order of `downwash_trajectories`.
 
     reference: (T_ref, V, 3) m, the vehicles' references on the same `dt` rows (e.g. a log's
     `ref_pos`), or None. The path of every vehicle whose reference moves is drawn, with its
-    current point. Everything is checked before the first frame (ConfigError).
+    current point. speed: flight seconds per video second (module docstring). Everything is
+    checked before the first frame (ConfigError).
     """
     trajectories = _check_trajectories(scene, trajectories)
-    rows = frame_rows(max(len(t.pos) for t in trajectories), dt, fps)
+    speed = positive_float("speed", speed, "-")
+    dt = positive_float("dt", dt, "s")
+    rows = frame_rows(max(len(t.pos) for t in trajectories), dt / speed, fps)  # rows dt / speed apart in video time
     ref, moving = None, np.zeros(0, int)
     if reference is not None:
         ref = np.asarray(reference, float)
@@ -407,11 +412,11 @@ def render_frames(scene: Scene, trajectories: Sequence[Trajectory], reference: n
             raise ConfigError(f"reference: expected one or more rows, all finite ({len(ref)} rows given)")
         moving = np.flatnonzero(np.ptp(ref, axis=0).max(axis=-1) > 0.01)  # a hover's reference is not drawn
     renderer = TiledRenderer(scene, len(trajectories), width, height, columns, wake_vehicles, wake)
-    return _frames(renderer, trajectories, rows, dt, ref, moving)
+    return _frames(renderer, trajectories, rows, dt, ref, moving, f"  x{speed:g}" if speed != 1.0 else "")
 
 
 def _frames(renderer: TiledRenderer, trajectories: list[Trajectory], rows: np.ndarray, dt: float,
-            ref: np.ndarray | None, moving: np.ndarray) -> Iterator[np.ndarray]:
+            ref: np.ndarray | None, moving: np.ndarray, rate: str = "") -> Iterator[np.ndarray]:
     points = [t.pos.reshape(-1, 3) for t in trajectories]
     paths: list[np.ndarray] = []
     if ref is not None:
@@ -427,7 +432,7 @@ def _frames(renderer: TiledRenderer, trajectories: list[Trajectory], rows: np.nd
                 i = min(int(k), len(tr.pos) - 1)
                 ended = " (ended)" if k >= len(tr.pos) else ""
                 tiles.append(renderer.tile(tr.pos[i], tr.quat[i], ref_now, paths,
-                                           f"{tr.label}{ended}  t = {k * dt:.2f} s", tr.wake_on))
+                                           f"{tr.label}{ended}  t = {k * dt:.2f} s{rate}", tr.wake_on))
             yield renderer.frame(tiles)
 
 
@@ -471,14 +476,15 @@ def write_conditions_video(path: str | os.PathLike, scene: Scene, trajectories: 
                            reference: np.ndarray | None = None, dt: float = RATES.control_dt, fps: float = 25.0,
                            width: int = 320, height: int = 240, columns: int | None = None,
                            wake_vehicles: Sequence[int] | None = None, wake: tuple[float, float] | None = None,
-                           quality: int = 7) -> int:
+                           quality: int = 7, speed: float = 1.0) -> int:
     """Render the conditions side by side (see `render_frames`) into an mp4 at `path`; returns the
     number of frames. Every argument, the writer and the OpenGL backend are checked first."""
     path = _check_path(path)
     _check_fps(fps)
     count("quality", quality, lo=0, hi=10)
     check_writer()
-    frames = render_frames(scene, trajectories, reference, dt, fps, width, height, columns, wake_vehicles, wake)
+    frames = render_frames(scene, trajectories, reference, dt, fps, width, height, columns, wake_vehicles, wake,
+                           speed)
     return write_video(path, frames, fps, quality)
 
 

@@ -1,4 +1,4 @@
-"""MuJoCo's interactive viewer: the follower env's ``render_mode="human"`` and flight replays.
+"""MuJoCo's interactive viewer: the envs' ``render_mode="human"`` and flight replays.
 
 `Viewer` opens MuJoCo's passive viewer (`mujoco.viewer.launch_passive`) on a tinted copy of
 a scene's model (leaders orange, followers cyan, as in the videos) with a state of its own:
@@ -10,7 +10,10 @@ mouse perturbation in the window moves nothing in the simulation.
 In the env (``render_mode="human"``, see `downwash_envs.base`) the window is opened at the
 first `render()`, synced after every `reset()` and `step()` as Gymnasium's MuJoCo envs do,
 paced to real time (one env step per control period; no waiting once the window is
-closed) and closed by `env.close()`. A vector env shows its world 0.
+closed) and closed by `env.close()`. A vector env shows its world 0. The window first
+frames the leader and the vehicle farthest from it (as the offscreen camera) and marks every
+follower's current reference; the follower env draws the leader's wake, the swarm env
+(`downwash_envs.swarm`) every vehicle's, since there every vehicle's wake acts on the others.
 
 A window needs a display. On Linux without one (``DISPLAY`` and ``WAYLAND_DISPLAY`` unset)
 `check_display` raises ConfigError before any work, saying what to do instead: run where
@@ -33,6 +36,7 @@ import mujoco
 import numpy as np
 
 from downwash_core.errors import ConfigError
+from downwash_core.roles import Role
 from downwash_envs.rendering import _REF_RGBA
 from downwash_envs.video import (  # add_wake: the viewer draws the wake as the videos do
     _PATH_RGBA, _REF_RADIUS, CameraView, _add_geom, _add_line, add_wake, decorated, wake_width,
@@ -85,9 +89,11 @@ class Viewer:
         self._handle, self._threads = _launch(model, self.data, what)
 
     @classmethod
-    def of_simulator(cls, sim: Simulator, what: str = "the viewer") -> "Viewer":
-        """A viewer of `sim`'s scene whose wakes have the width of `sim`'s field (`wake_width`)."""
-        return cls(sim.scene, wake=wake_width(sim.field), what=what)
+    def of_simulator(cls, sim: Simulator, wake_vehicles: Sequence[int] | None = None,
+                     what: str = "the viewer") -> "Viewer":
+        """A viewer of `sim`'s scene whose wakes have the width of `sim`'s field (`wake_width`);
+        wake_vehicles as in the constructor (default: the leaders)."""
+        return cls(sim.scene, wake=wake_width(sim.field), wake_vehicles=wake_vehicles, what=what)
 
     def is_running(self) -> bool:
         """False once the window is closed (by the user or by `close`)."""
@@ -122,19 +128,16 @@ class Viewer:
         return self._sync(ref_now, paths, draw_wake, text)
 
     def show_world(self, sim: Simulator, w: int, pace: float = 0.0) -> bool:
-        """Show world `w` of `sim` (true state, the follower's current reference, the wake when the world
-        flies with downwash), at most one sync per `pace` s (0: no waiting). Returns `is_running()`."""
+        """Show world `w` of `sim` (true state, every follower's current reference, the wakes when the
+        world flies with downwash), at most one sync per `pace` s (0: no waiting). Returns `is_running()`."""
         scene = self.scene
-        ref = sim.reference(sim.t).pos[w, scene.follower]
-        if self._last_sync is None and self.is_running():  # first view: both vehicles, as the offscreen camera
-            pos = sim.true_states().pos[w]
-            p_l, p_f = pos[scene.leader], pos[scene.follower]
-            dist = float(np.linalg.norm(p_f - p_l))
-            mid = 0.5 * (p_l + p_f)
-            self.set_view(CameraView(tuple(float(x) for x in (mid if np.all(np.isfinite(mid)) else np.zeros(3))),
-                                     0.6 + 1.3 * (dist if math.isfinite(dist) else 1.0), *_ENV_CAMERA))
+        followers = [v for v, r in enumerate(scene.roles) if r == Role.FOLLOWER]
+        ref = sim.reference(sim.t).pos[w, followers]  # (F, 3) m
+        if self._last_sync is None and self.is_running():
+            self.set_view(_first_view(sim.true_states().pos[w], scene.leader))
         self.wait(pace)
-        ref_now = ref[None] if np.all(np.isfinite(ref)) else None
+        ref = ref[np.all(np.isfinite(ref), axis=-1)]
+        ref_now = ref if len(ref) else None
         return self.show_data(sim.physics.mjdata(w), ref_now, (), bool(sim.field_enabled[w]), f"t = {sim.t[w]:.2f} s")
 
     def wait(self, period: float) -> None:
@@ -185,6 +188,17 @@ class Viewer:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _first_view(pos: np.ndarray, leader: int) -> CameraView:
+    """The env's first view, as its offscreen camera: the midpoint of the leader and the vehicle farthest
+    from it (pos (V, 3) m), from a distance that grows with their separation."""
+    p_l = pos[leader]
+    dist = np.linalg.norm(pos - p_l, axis=-1)
+    far = int(np.nanargmax(dist)) if np.isfinite(dist).any() else leader
+    mid, d = 0.5 * (p_l + pos[far]), float(dist[far])
+    return CameraView(tuple(float(x) for x in (mid if np.all(np.isfinite(mid)) else np.zeros(3))),
+                      0.6 + 1.3 * (d if math.isfinite(d) else 1.0), *_ENV_CAMERA)
 
 
 def _launch(model: mujoco.MjModel, data: mujoco.MjData, what: str) -> tuple[Any, list[threading.Thread]]:

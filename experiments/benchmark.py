@@ -34,6 +34,11 @@ SyncVectorEnv of single envs (the same adapter) and through SB3's own DummyVecEn
 worlds each, alternated: sb3_rollout_steps_per_s_{native,sync,dummy},
 sb3_native_over_sync and sb3_native_over_dummy (medians of the paired ratios; torch at
 one thread, as the examples run it), and the same under *_torch_default_threads.
+The multi-agent swarm (`swarm_rollouts`): agent steps per second of random actions through the
+native SB3 adapter (`downwash_envs.swarm_sb3`, every world on one batched simulator) and through
+SuperSuit's vector env of ParallelEnv copies (one simulator each, stepped in turn), the same
+preset and worlds, alternated: swarm_agent_steps_per_s_{native,native_one_thread,supersuit},
+swarm_native_over_supersuit and swarm_native_one_thread_over_supersuit (medians of the paired ratios).
 Sharing the cores (`contention`): env_learner_loops_per_s (16 worlds and an Adam update of a
 small MLP per step, torch at its default threads) with the env's default threads over
 n_threads=1 (env_learner_threads_over_one_thread), and two processes of 64 worlds at once:
@@ -78,7 +83,8 @@ class BenchmarkArgs(CommonArgs):
 TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "formation5_serial_over_bare": 0.5,
            "formation5_batched_over_bare": 1.5, "env_single_physics_over_bare": 0.3, "sb3_native_over_sync": 2.0,
            "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
-           "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9}
+           "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9,
+           "swarm_native_over_supersuit": 3.0}
 
 
 def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
@@ -238,6 +244,7 @@ def run(args: BenchmarkArgs) -> dict:
     r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
     r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
     r.update(sb3_rollouts(4 if args.quick else 16, 16 if args.quick else 256, 1 if args.quick else 3))
+    r.update(swarm_rollouts(4 if args.quick else 16, 16 if args.quick else 200, 1 if args.quick else 5))
     r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
     r["targets"] = dict(TARGETS)
     return r
@@ -293,6 +300,63 @@ def sb3_rollouts(num_envs: int, n_steps: int, rounds: int) -> dict[str, Any]:
         for b in ("sync", "dummy"):
             out[f"sb3_native_over_{b}{suffix}"] = float(np.median(np.array(rates["native"]) / np.array(rates[b])))
         out[f"sb3_torch_threads{suffix}"] = threads
+    return out
+
+
+def swarm_rollouts(n_worlds: int, n_steps: int, rounds: int, preset: str = "stack3") -> dict[str, Any]:
+    """Agent steps per wall second of `preset`'s swarm (the swarm env's default) under random actions, through
+    the native SB3 adapter (its default threads, and n_threads=1: what batching alone gains) and through
+    SuperSuit's `concat_vec_envs_v1` of `n_worlds` ParallelEnv copies (num_cpus=0, as examples/ppo_swarm.py
+    ran it), the same worlds and agents and seeds; windows of `n_steps` steps, resets included, alternated
+    `rounds` times (median rates, median paired ratios). Actions are drawn before the clock starts.
+    Empty without the `rl` extra (stable-baselines3, SuperSuit)."""
+    try:
+        import stable_baselines3  # noqa: F401
+        import supersuit as ss
+    except ImportError:
+        return {}
+    from downwash_envs.swarm import parallel_env
+    from downwash_envs.swarm_sb3 import make_vec_env
+
+    backends = {
+        "native": make_vec_env(n_worlds, preset=preset),
+        "native_one_thread": make_vec_env(n_worlds, preset=preset, n_threads=1),
+        "supersuit": ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(parallel_env(preset=preset)), n_worlds,
+                                           num_cpus=0, base_class="stable_baselines3"),
+    }
+    num_envs = backends["native"].num_envs
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.0, 1.0, (n_steps, num_envs, 3)).astype(np.float32)
+    for name, venv in backends.items():
+        assert venv.num_envs == num_envs, (name, venv.num_envs, num_envs)
+        if name == "supersuit":
+            # copy w: SwarmEnv.reset(seed=w), as world w of the adapter seeded 0 (SuperSuit's SB3 wrapper
+            # cannot pass a seed on: its reset(seed) calls the ConcatVecEnv's seed(), which it lacks)
+            venv.venv.reset(seed=0)
+        else:
+            venv.seed(0)
+            venv.reset()
+        venv.step(actions[0])  # warm-up (first-call costs)
+
+    def window(venv: Any) -> float:
+        t0 = time.perf_counter()
+        for a in actions:
+            venv.step(a)
+        return n_steps * num_envs / (time.perf_counter() - t0)
+
+    rates: dict[str, list[float]] = {name: [] for name in backends}
+    for _ in range(rounds):
+        for name, venv in backends.items():
+            rates[name].append(window(venv))
+    for venv in backends.values():
+        venv.close()
+    out: dict[str, Any] = {"swarm_preset": preset, "swarm_worlds": n_worlds, "swarm_agents": num_envs,
+                           "swarm_rounds": rounds}
+    for name in backends:
+        out[f"swarm_agent_steps_per_s_{name}"] = float(np.median(rates[name]))
+    supersuit = np.array(rates["supersuit"])
+    out["swarm_native_over_supersuit"] = float(np.median(np.array(rates["native"]) / supersuit))
+    out["swarm_native_one_thread_over_supersuit"] = float(np.median(np.array(rates["native_one_thread"]) / supersuit))
     return out
 
 

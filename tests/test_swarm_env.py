@@ -420,7 +420,7 @@ def test_bad_names_and_actions():
     with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):  # Python's wording
         parallel_env(frameskip=2)
     with pytest.raises(ValueError, match="render_mode"):
-        parallel_env(render_mode="human")
+        parallel_env(render_mode="bogus")
     env = parallel_env(preset="stack3")
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"missing \['follower_1'\]"):

@@ -1,9 +1,10 @@
-"""MuJoCo's interactive viewer: render_mode="human" and `python -m experiments.replay`.
+"""MuJoCo's interactive viewer: render_mode="human" (the follower and swarm envs) and `python -m experiments.replay`.
 
 Headless: asking for a window without a display fails before any work with a ConfigError
-that says what to do, and bad replay arguments fail before any window. Under Xvfb (when
-`xvfb-run` is installed) a subprocess opens the passive viewer for a few env steps and a
-short replay.
+that says what to do, and bad replay arguments fail before any window. A stand-in for the
+passive viewer's handle (`FakeWindow`) checks what the envs draw and sync without a display.
+Under Xvfb (when `xvfb-run` is installed) a subprocess opens the passive viewer for a few
+env steps, of the follower env and of the swarm env, and a short replay.
 """
 
 import os
@@ -73,6 +74,52 @@ def human_env(monkeypatch):
     return DownwashFollowerEnv, DownwashFollowerVectorEnv
 
 
+class FakeWindow:
+    """What `Viewer` uses of `mujoco.viewer.launch_passive`'s handle, without a window: the camera, the
+    user scene the decorations go into, and a count of syncs."""
+
+    def __init__(self, model):
+        import threading
+
+        import mujoco
+
+        self.cam = mujoco.MjvCamera()
+        self.user_scn = mujoco.MjvScene(model, maxgeom=1000)
+        self.syncs, self.texts, self.running = 0, None, True
+        self._lock = threading.Lock()
+
+    def is_running(self):
+        return self.running
+
+    def lock(self):
+        return self._lock
+
+    def set_texts(self, texts):
+        self.texts = texts
+
+    def sync(self):
+        self.syncs += 1
+
+    def close(self):
+        self.running = False
+
+
+@pytest.fixture
+def fake_window(monkeypatch):
+    """The viewer opens a `FakeWindow` (a display is pretended); returns the windows opened."""
+    import downwash_envs.viewer as viewer
+
+    monkeypatch.setenv("DISPLAY", ":12345")
+    opened = []
+
+    def launch(model, data, what):
+        opened.append(FakeWindow(model))
+        return opened[-1], []
+
+    monkeypatch.setattr(viewer, "_launch", launch)
+    return opened
+
+
 # ----------------------------------------------------------------------------- headless
 
 
@@ -104,6 +151,85 @@ def test_env_human_without_display_fails_before_any_work(headless, human_env, mo
         gym.make(downwash_envs.ENV_IDS[0], render_mode="human")
     with pytest.raises(ConfigError, match="render_mode='human'.*xvfb-run"):
         vector(2, render_mode="human")
+
+
+def test_swarm_envs_list_human():
+    from downwash_envs.swarm import SwarmEnv, SwarmVectorEnv
+
+    for cls in (SwarmEnv, SwarmVectorEnv):
+        assert cls.metadata["render_modes"] == ["rgb_array", "human"]
+
+
+@pytest.mark.skipif(not LINUX, reason="the display variables are Linux's")
+def test_swarm_human_without_display_fails_before_any_work(headless, monkeypatch):
+    import downwash_envs.swarm as swarm
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the task was built before the display was checked")
+
+    monkeypatch.setattr(swarm, "SwarmWorlds", no_work)
+    monkeypatch.setattr(swarm, "make_swarm_config", no_work)
+    with pytest.raises(ConfigError, match="render_mode='human'.*xvfb-run.*render_mode='rgb_array'"):
+        swarm.parallel_env(preset="stack3", render_mode="human")
+    with pytest.raises(ConfigError, match="render_mode='human'.*xvfb-run"):
+        swarm.SwarmVectorEnv(2, preset="stack3", render_mode="human")
+
+
+def test_swarm_human_draws_every_wake_and_syncs_each_step(fake_window):
+    """The window opens at reset and syncs after it and after every step, paced to real time; every
+    vehicle's wake is drawn (12 segments each) and every follower's reference marked; close closes it."""
+    import time
+
+    from downwash_envs.swarm import SwarmVectorEnv, parallel_env
+    from downwash_envs.viewer import Viewer
+
+    env = parallel_env(preset="stack3", render_mode="human")
+    assert not fake_window  # no window before the first reset
+    env.reset(seed=0)
+    viewer = env._renderer
+    assert isinstance(viewer, Viewer) and len(fake_window) == 1
+    window = fake_window[0]
+    assert window.syncs == 1 and sorted(viewer.wake_vehicles) == [0, 1, 2]
+    start = time.perf_counter()
+    for _ in range(3):
+        env.step({a: np.zeros(3, np.float32) for a in env.agents})
+    assert time.perf_counter() - start >= 3 * env.dt * 0.9  # paced: one control period per step
+    assert window.syncs == 4 and env.render() is None and window.syncs == 5
+    assert window.user_scn.ngeom == 3 * 12 + 2  # three wakes, two followers' references
+    assert window.texts[2].startswith("t = ")
+    sim = env.simulator
+    leader, bottom = sim.true_states().pos[0, 0], sim.true_states().pos[0, 2]
+    np.testing.assert_allclose(window.cam.lookat, 0.5 * (leader + bottom), atol=0.05)  # frames the whole stack
+    np.testing.assert_allclose(viewer.data.qpos, sim.physics.mjdata(0).qpos)  # the world as it is
+    env.close()
+    assert env._renderer is None and not window.is_running()
+
+    vec = SwarmVectorEnv(2, preset="stack3", render_mode="human")
+    vec.reset(seed=0)
+    vec.step({a: np.zeros((2, 3), np.float32) for a in vec.agents})
+    assert vec.render() is None
+    window = fake_window[1]
+    assert window.syncs == 3 and window.user_scn.ngeom == 3 * 12 + 2
+    np.testing.assert_allclose(vec._renderer.data.qpos, vec.simulator.physics.mjdata(0).qpos)  # world 0
+    vec.close()
+    assert not window.is_running()
+
+
+def test_follower_human_draws_the_leaders_wake(fake_window, human_env):
+    """The follower env's window, through the viewer the swarm shares: the leader's wake, the
+    follower's reference, the camera on the midpoint of the two."""
+    single, _ = human_env
+    env = single(render_mode="human")
+    env.reset(seed=0)
+    window = fake_window[0]
+    p_leader, p_follower = env.simulator.true_states().pos[0]
+    np.testing.assert_allclose(window.cam.lookat, 0.5 * (p_leader + p_follower))
+    assert window.cam.distance == pytest.approx(0.6 + 1.3 * np.linalg.norm(p_follower - p_leader))
+    env.step(np.zeros(3, np.float32))
+    assert window.syncs == 2 and window.user_scn.ngeom == 13  # 12 wake segments, the reference
+    assert env._renderer.wake_vehicles == [0]
+    env.close()
+    assert not window.is_running()
 
 
 def test_render_mode_is_checked_against_the_class_metadata():
@@ -201,8 +327,9 @@ def test_the_viewers_wake_is_the_videos():
 @pytest.mark.skipif(not LINUX or shutil.which("xvfb-run") is None,
                     reason="needs xvfb-run (apt-get install xvfb) for a virtual display")
 def test_passive_viewer_under_xvfb(tmp_path):
-    """The env opens the passive viewer at reset, syncs it every step with the wake and the reference
-    drawn, and closes it; the replay plays a short log and returns. Software OpenGL is slow, so few steps."""
+    """The follower env and the swarm env open the passive viewer at reset, sync it every step with the
+    wakes and the references drawn, and close it; the replay plays a short log and returns. Software
+    OpenGL is slow, so few steps."""
     save_log(tmp_path / "flight.npz", _synthetic_log(T=20))
     script = textwrap.dedent(f"""
         import sys
@@ -224,6 +351,15 @@ def test_passive_viewer_under_xvfb(tmp_path):
         assert viewer._handle.user_scn.ngeom == 13, viewer._handle.user_scn.ngeom  # 12 wake segments, the reference
         env.close()
         assert env.unwrapped._renderer is None and not viewer.is_running()
+        from downwash_envs.swarm import parallel_env
+        swarm = parallel_env(preset="stack3", render_mode="human")
+        swarm.reset(seed=0)
+        window = swarm._renderer
+        assert isinstance(window, Viewer) and window.is_running()
+        swarm.step({{a: np.zeros(3, np.float32) for a in swarm.agents}})
+        assert window._handle.user_scn.ngeom == 38, window._handle.user_scn.ngeom  # 3 wakes, 2 references
+        swarm.close()
+        assert swarm._renderer is None and not window.is_running()
         from experiments.replay import main
         syncs = main([{str(tmp_path / "flight.npz")!r}, "--speed", "4"])
         assert syncs >= 1, syncs

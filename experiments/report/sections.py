@@ -425,8 +425,9 @@ def _speed_summary(r: dict) -> list[list[str]]:
     add(f"the native vector env, {worlds} worlds, steps/s", "env_steps_per_s_vector64_solo")
     add(f"stable-baselines3 PPO's rollout through the native vector env, {r.get('sb3_worlds')} worlds, steps/s",
         "sb3_rollout_steps_per_s_native", f"{fmt(r.get('sb3_native_over_sync'), 3)}x through Gymnasium's `SyncVectorEnv`")
-    add("the swarm env's native stable-baselines3 adapter, agent-steps/s", "swarm_sb3_agent_steps_per_s_native",
-        f"{fmt(r.get('swarm_sb3_native_over_supersuit'), 3)}x SuperSuit's vectorised env")
+    add(f"the swarm env as a stable-baselines3 `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds), "
+        "agent-steps/s", "swarm_agent_steps_per_s_native",
+        f"{fmt(r.get('swarm_native_over_supersuit'), 3)}x SuperSuit's vectorised env")
     add("training the equivariant model on the staged collection's data, s", "train_seconds_equivariant_full")
     return rows
 
