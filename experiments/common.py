@@ -7,7 +7,11 @@ keys are the long option names); a flag on the command line overrides the file.
 
 Every numeric option states its range once, in its `arg(..., ge=, gt=, le=, lt=)`, and
 every option of names states them in its `check=`; `parse_args` checks each number (finite, within its
-range), each name and each output folder (writable) before any work, naming the flag.
+range), each name and each output folder (writable) before any work, naming the flag. The file may also
+hold tables of library settings ([lqr], [sim], [training], [guard]) for the experiments that apply them
+(`config_tables`); `experiments.config_file` reads it and writes the resolved `config.toml` beside each
+results.json, and the builders below (`lqr_config`, `sim_config`, `training_config`, `guard_settings`)
+are the one place an experiment turns the tables into the library's settings.
 `--quick` gives the options with an `arg(..., quick=)` that value unless they are given.
 `out_lock` holds the --out folder for the run, so two runs on one folder take turns.
 `run_main` runs an experiment from the command line: an expected error (`TestbedError`)
@@ -26,27 +30,26 @@ import argparse
 import contextlib
 import dataclasses
 import logging
-import math
 import os
 import sys
 import tempfile
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, NoReturn, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Iterator, NoReturn, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError, TestbedError
 from experiments.options import (AGGREGATIONS, CONDITIONS, DEFAULT_CONDITIONS, DEFAULT_FIELD, FIELD_CHOICES,
                                  FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, PRESETS, SEED_COUNT_MAX,
-                                 WIND_HELP, WIND_SEVERITIES, field_check, load_wind, names_check, one_of,
-                                 registered_field_names, seed_count_check, wind_check)
+                                 WIND_HELP, WIND_SEVERITIES, field_check, in_range, load_wind, names_check, one_of,
+                                 range_words, registered_field_names, seed_count_check, wind_check)
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
     "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
     "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check", "wind_check",
     "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging", "CONDITIONS", "SEED_COUNT_MAX",
-    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS",
+    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "table", "lqr_config", "sim_config", "flight_components",
+    "training_config", "guard_settings",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
@@ -54,7 +57,6 @@ A = TypeVar("A")
 
 SEED_MAX = 2**32 - 1  # seeds go to NumPy's and torch's generators; seed + k stays far inside int64
 FLIGHT_SECONDS_MAX = 3600.0  # s, one flight: its log rows are allocated up front, so a huge length is refused
-CONFIG_BYTES_MAX = 1 << 20  # an options file is a few lines; reading a huge or endless one is refused
 _NO_QUICK = object()  # arg(quick=...) not given: --quick leaves the option alone
 
 
@@ -87,12 +89,17 @@ def arg(default: Any, help: str, *, ge: float | None = None, gt: float | None = 
 
 @dataclass(frozen=True)
 class CommonArgs:
-    """Options every experiment takes."""
+    """Options every experiment takes, and the config file's tables (no flags: they come from --config)."""
+
+    # the tables of the config file the experiment applies; any other table is refused, never ignored
+    config_tables: ClassVar[tuple[str, ...]] = ()
 
     out: str = arg("", "output folder (default runs/<experiment>)", output="dir")
     seed: int = arg(0, "base seed; world k of a run uses seed + k", ge=0, le=SEED_MAX)
     quick: bool = arg(False, "tiny budget for smoke tests")
     field: str = arg("", f"the ground-truth field (default {DEFAULT_FIELD}): {FIELD_CHOICES}", check=field_check)
+    tables: dict = dataclasses.field(default_factory=dict, hash=False,  # ("field" is the option above)
+                                     metadata={"help": "the config file's tables: {table: {key: value}}"})
 
 
 @dataclass(frozen=True)
@@ -194,59 +201,49 @@ def check_writable(option: str, path: str | Path, kind: str = "dir") -> Path:
     return target
 
 
-_KINDS = {"int": int, "float": float, "str": str, "bool": bool}
+_KINDS = {"int": int, "float": float, "str": str, "bool": bool, "dict": dict}
 
 
 def _kind(f: dataclasses.Field) -> type:
-    """The option's type (int, float, str or bool), from its annotation (a type or its name)."""
+    """The option's type (int, float, str or bool; dict: the tables), from its annotation (a type or its name)."""
     return _KINDS.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+
+
+def option_fields(cls: Any) -> list[dataclasses.Field]:
+    """The fields of an options class (or instance) that are command-line options: all but the tables."""
+    return [f for f in dataclasses.fields(cls) if _kind(f) is not dict]
 
 
 def _option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _num(x: float) -> str:
-    return str(x) if isinstance(x, int) else f"{x:g}"
-
-
 def allowed_range(f: dataclasses.Field) -> str:
     """What a numeric option takes, in words: '>= 1' (an integer: argparse and the TOML reader
     check the type), 'an integer in [5, 301]', 'a finite number in (0, 3600]'."""
-    b = f.metadata.get("bounds", {})
-    integer = _kind(f) is int
-    lo = ("[", b["ge"]) if "ge" in b else ("(", b["gt"]) if "gt" in b else None
-    hi = ("]", b["le"]) if "le" in b else (")", b["lt"]) if "lt" in b else None
-    if lo and hi:
-        return f"{'an integer' if integer else 'a finite number'} in {lo[0]}{_num(lo[1])}, {_num(hi[1])}{hi[0]}"
-    side = (f"{'>=' if lo[0] == '[' else '>'} {_num(lo[1])}" if lo else
-            f"{'<=' if hi[0] == ']' else '<'} {_num(hi[1])}" if hi else "")
-    if integer:
-        return side or "an integer"
-    return f"a finite number {side}".rstrip()
+    return range_words(_kind(f) is int, f.metadata.get("bounds", {}))
 
 
 def _out_of_range(f: dataclasses.Field, value: Any) -> str | None:
     """What an option expects when `value` is bad (a number not finite or outside its range, or
     refused by the field's `check`), else None."""
-    if _kind(f) in (int, float) and not isinstance(value, bool):
-        b = f.metadata.get("bounds", {})
-        finite = isinstance(value, int) or math.isfinite(value)  # isfinite cannot take an int beyond a float
-        ok = (finite and ("ge" not in b or value >= b["ge"]) and ("gt" not in b or value > b["gt"])
-              and ("le" not in b or value <= b["le"]) and ("lt" not in b or value < b["lt"]))
-        if not ok:
-            return f"expected {allowed_range(f)}"
+    if _kind(f) in (int, float) and not isinstance(value, bool) and not in_range(value, f.metadata.get("bounds", {})):
+        return f"expected {allowed_range(f)}"
     check = f.metadata.get("check")
     return check(value) if check is not None else None
 
 
 def check_options(args: Any) -> None:
     """ConfigError naming the first option of the dataclass `args` whose value is out of its range or
-    refused by its check: what parse_args checks, for options built in Python (`run(args)`)."""
-    for f in dataclasses.fields(args):
+    refused by its check, or the first bad table: what parse_args checks, for options built in Python
+    (`run(args)`)."""
+    from experiments.config_file import check_tables
+
+    for f in option_fields(args):
         problem = _out_of_range(f, getattr(args, f.name))
         if problem:
             raise ConfigError(f"{_option(f.name)}: {problem}, got {getattr(args, f.name)!r}")
+    check_tables(getattr(args, "tables", {}), type(args))
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -262,7 +259,7 @@ def build_parser(cls: type, name: str, description: str = "") -> argparse.Argume
     # allow_abbrev=False: otherwise `--models x` is silently `--models-dir x` where no --models exists
     parser = OneLineParser(prog=f"python -m experiments.{name}", description=description,
                            formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
-    for f in dataclasses.fields(cls):
+    for f in option_fields(cls):
         help_text = f.metadata.get("help", "")
         if _kind(f) is bool:  # --no-X undoes an X = true of the config file
             parser.add_argument(_option(f.name), action=argparse.BooleanOptionalAction, default=f.default,
@@ -275,66 +272,29 @@ def build_parser(cls: type, name: str, description: str = "") -> argparse.Argume
                 notes.append(f"--quick: {f.metadata['quick']}")
             parser.add_argument(_option(f.name), type=_kind(f), default=f.default,
                                 help=f"{help_text} ({'; '.join(notes)})" if notes else help_text)
+    taken = ", ".join(f"[{t}]" for t in getattr(cls, "config_tables", ()))
     parser.add_argument("--config", metavar="FILE.toml", default=None,
-                        help="read options from this TOML file (keys: the long option names, with - or _); "
-                             "flags on the command line override it")
+                        help="read options from this TOML file (keys: the long option names, with - or _; a list "
+                             "option also takes an array" + (f"; tables: {taken}" if taken else "") + "); flags on "
+                             "the command line override it; each run writes its resolved config.toml beside its "
+                             "results")
     parser.add_argument("--debug", action="store_true",
                         help="show the traceback of an expected error (a bad option or file) instead of one line")
     return parser
 
 
 def read_config(path: str | Path, cls: type) -> dict[str, Any]:
-    """{field name: value} from the TOML file `path`, each key an option of `cls` and each value
-    of its type; ConfigError naming the file, the key and the allowed options otherwise."""
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    allowed = ", ".join(f.name.replace("_", "-") for f in fields.values())
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read(CONFIG_BYTES_MAX + 1)
-    except FileNotFoundError:
-        raise ConfigError(f"--config {path}: no such file") from None
-    except OSError as e:
-        raise ConfigError(f"--config {path}: cannot read it ({e.strerror or e})") from None
-    if len(data) > CONFIG_BYTES_MAX:
-        raise ConfigError(f"--config {path}: larger than {CONFIG_BYTES_MAX >> 20} MiB; expected a short TOML file")
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"--config {path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
-    except (ValueError, RecursionError) as e:  # TOMLDecodeError; an integer of thousands of digits; deep nesting
-        raise ConfigError(f"--config {path}: not valid TOML ({_one_line(e)})") from None
-    values: dict[str, Any] = {}
-    for key, value in raw.items():
-        name = key.replace("-", "_")
-        if name not in fields:
-            raise ConfigError(f"--config {path}: unknown key {key!r}; allowed: {allowed}")
-        if name in values:
-            raise ConfigError(f"--config {path}: key {key!r} given twice (with - and with _)")
-        kind = _kind(fields[name])
-        ok = (isinstance(value, bool) if kind is bool else
-              isinstance(value, (int, float)) and not isinstance(value, bool) if kind is float else
-              isinstance(value, int) and not isinstance(value, bool) if kind is int else isinstance(value, str))
-        if not ok:
-            raise ConfigError(f"--config {path}: {key} = {value!r}: expected {_EXPECTED[kind]}, got a TOML "
-                              f"{_toml_type(value)} ({_option(name)}: {fields[name].metadata.get('help', '')})")
-        try:
-            values[name] = float(value) if kind is float else value
-        except OverflowError:  # an integer beyond any float
-            raise ConfigError(f"--config {path}: {key}: expected a finite number, got an integer of "
-                              f"{len(str(abs(value)))} digits") from None
-    return values
+    """{field name: value} from the TOML file `path` (its tables, when it has any, under "tables"),
+    each key an option of `cls` and each value of its type; ConfigError naming the file, the key and
+    the allowed options otherwise (`experiments.config_file.read_file`)."""
+    from experiments.config_file import read_file
+
+    values, tables = read_file(path, cls)
+    return {**values, **({"tables": tables} if tables else {})}
 
 
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split())
-
-
-_EXPECTED = {bool: "a boolean (true or false)", int: "an integer", float: "a number", str: "a string"}
-
-
-def _toml_type(value: Any) -> str:
-    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
-            dict: "table"}.get(type(value), type(value).__name__)
 
 
 _debug = False  # the last parse_args saw --debug: run_main then re-raises expected errors
@@ -344,28 +304,32 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
     """Parse the command line into the dataclass `cls`, fill the default --out, check every option.
 
     With `--config FILE.toml`, the file's values replace the defaults and the flags given
-    override the file. A bad file, an unknown key, a value of the wrong type, a number that
-    is not finite or outside its field's range (from a flag or the file), an empty --out or
-    --config is a usage error (exit 2, one line) naming the option, before any work. With
-    --quick, each option with a `quick` value that was not given takes it. Then each output
-    path (`--out`, any field with `output=`) is checked for writing: ConfigError naming it.
+    override the file; its tables (those `cls.config_tables` names) go to `tables`. A bad file,
+    an unknown key or table, a value of the wrong type, a number that is not finite or outside
+    its field's range (from a flag or the file), an empty --out or --config is a usage error
+    (exit 2, one line) naming the option, before any work. With --quick, each option with a
+    `quick` value that was not given takes it. Then each output path (`--out`, any field with
+    `output=`) is checked for writing: ConfigError naming it.
     """
+    from experiments.config_file import read_file, unwritable
+
     global _debug
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(cls, name, description)
     ns = parser.parse_args(argv)
     _debug = ns.debug
     from_file: dict[str, Any] = {}
+    tables: dict[str, dict[str, Any]] = {}
     if ns.config is not None:
         if not ns.config.strip():  # else it would silently mean "no file"
             parser.error(f"--config: expected the path of a TOML file, got {ns.config!r}")
         try:
-            from_file = read_config(ns.config, cls)
+            from_file, tables = read_file(ns.config, cls)
         except ConfigError as e:
             parser.error(str(e))
         parser.set_defaults(**from_file)
         ns = parser.parse_args(argv)
-    fields = dataclasses.fields(cls)
+    fields = option_fields(cls)
     values = {f.name: getattr(ns, f.name) for f in fields}
     given = _given_on_command_line(cls, name, argv) | set(from_file)
     if values.get("quick"):
@@ -381,19 +345,22 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
             parser.error(f"--out: expected a folder path (without --out: runs/{name}), got {values['out']!r}{where}")
     if not values.get("out"):
         values["out"] = str(Path("runs") / name)
+    problem = unwritable(values)  # config.toml must hold every value, so that it reruns the run
+    if problem:
+        parser.error(problem)
     for f in fields:
         if f.metadata.get("output") and values[f.name]:
             check_writable(_option(f.name), values[f.name], f.metadata["output"])
-    return cls(**values)
+    return cls(**values, **({"tables": tables} if tables else {}))
 
 
 def _given_on_command_line(cls: type, name: str, argv: list[str]) -> set[str]:
     """The options of `cls` that `argv` gives (so that --quick keeps them)."""
     unset = object()  # not a string: argparse would convert a string default with the option's type
     probe = build_parser(cls, name)
-    probe.set_defaults(**{f.name: unset for f in dataclasses.fields(cls)})
+    probe.set_defaults(**{f.name: unset for f in option_fields(cls)})
     ns = probe.parse_args(argv)
-    return {f.name for f in dataclasses.fields(cls) if getattr(ns, f.name) is not unset}
+    return {f.name for f in option_fields(cls) if getattr(ns, f.name) is not unset}
 
 
 def load_field(spec: str) -> Any:
@@ -456,18 +423,81 @@ def out_lock(args: Any, name: str) -> Iterator[None]:
 
 
 def write_results(out: str | Path, results: dict, args: Any, provenance: dict | None = None) -> Path:
-    """Atomically write results.json into `out`: the parsed arguments, the provenance (code
-    version, field, seed base, plus `provenance`) and the results."""
+    """Atomically write results.json into `out`: the parsed arguments (with the tables the experiment
+    applies, resolved), the provenance (code version, field, seed base, plus `provenance`) and the
+    results. Into the run's own --out, first its resolved config.toml, with which `--config` reruns it."""
     from downwash_core.io import atomic_write_json
     from downwash_core.provenance import code_version
+    from experiments.config_file import CONFIG_NAME, resolved_tables, write_config
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    tables = resolved_tables(args)
+    if out == Path(args.out):  # not the folders an experiment writes per part (swarm: one per preset)
+        write_config(out / CONFIG_NAME, args, tables)
+    options = {f.name: getattr(args, f.name) for f in option_fields(args)}
     record = {"code": code_version(), "seed": args.seed, "field_spec": args.field or "built-in", **(provenance or {})}
-    payload = {"args": dataclasses.asdict(args), **results, "provenance": {**results.get("provenance", {}), **record}}
+    payload = {"args": {**options, **({"tables": tables} if tables else {})}, **results,
+               "provenance": {**results.get("provenance", {}), **record}}
     path = out / "results.json"
     atomic_write_json(path, payload)
     return path
+
+
+def table(args: Any, name: str) -> dict[str, Any]:
+    """The checked values of the config file's [name] table for the run `args` ({} when it gives none);
+    ConfigError when its experiment does not apply that table: a table is never silently ignored."""
+    from experiments.config_file import check_table, refuse_table
+
+    if name not in type(args).config_tables:
+        raise ConfigError(refuse_table(name, type(args)))
+    return check_table(name, args.tables.get(name, {}))
+
+
+def _built(name: str, make: Callable[..., A], *args: Any, **values: Any) -> A:
+    """`make(*args, **values)`, its refusal of a table's values a ConfigError naming the table."""
+    try:
+        return make(*args, **values)
+    except (ConfigError, ValueError, ArithmeticError) as e:  # (a LinAlgError is a ValueError)
+        raise ConfigError(f"[{name}]: {_one_line(e)}") from e
+
+
+def lqr_config(args: Any) -> Any:
+    """The outer loop of the experiment's flights: `controllers.lqr.LQRConfig` with the [lqr] table's values."""
+    from controllers.lqr import LQRConfig
+
+    return _built("lqr", LQRConfig, **table(args, "lqr"))
+
+
+def sim_config(args: Any) -> Any:
+    """The experiment's `sim.simulator.SimConfig`, with the [sim] table's values."""
+    from sim.simulator import SimConfig
+
+    return _built("sim", SimConfig, **table(args, "sim"))
+
+
+def flight_components(args: Any) -> dict[str, Any]:
+    """The `Simulator` keywords of the experiment's own flights: the controller ([lqr]) and the config
+    ([sim]). The staged collection behind its models flies the defaults (part of its provenance)."""
+    from controllers.lqr import FeedbackLinearisedLQR
+
+    return {"controller": _built("lqr", FeedbackLinearisedLQR, lqr_config(args)), "config": sim_config(args)}
+
+
+def training_config(args: Any) -> Any:
+    """The experiment's training settings: `downwash.staged.train_config` (the defaults, or a few steps
+    with --quick) with the [training] table's values; the seed is --seed."""
+    from downwash.staged import train_config
+
+    return _built("training", dataclasses.replace, train_config(args.seed, args.quick), **table(args, "training"))
+
+
+def guard_settings(args: Any) -> dict[str, float]:
+    """The keywords of the experiment's `downwash.guard.GuardedPredictor`s: `GUARD_DEFAULTS` with the
+    [guard] table's values."""
+    from downwash.guard import GUARD_DEFAULTS
+
+    return {**GUARD_DEFAULTS, **table(args, "guard")}
 
 
 def format_table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:

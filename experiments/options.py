@@ -20,6 +20,7 @@ __all__ = [
     "PAIRWISE_KINDS", "CONDITIONS", "DEFAULT_CONDITIONS", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS",
     "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "FIELD_CHOICES", "SEED_COUNT_MAX", "WIND_HELP",
     "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
+    "in_range", "range_words",
 ]
 
 # The names the options take, copied from their registries so that `--help` needs none of
@@ -42,6 +43,31 @@ FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)
 # flights per condition (or trials per point): they fly as one batch of worlds, so a count beyond any sensible
 # study is refused while parsing, not by the memory check after the collection and training
 SEED_COUNT_MAX = 1000
+
+
+def _num(x: float) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+def in_range(value: float, b: dict[str, float]) -> bool:
+    """Whether a number is finite and within the bounds `b` (ge/gt/le/lt)."""
+    finite = isinstance(value, int) or math.isfinite(value)  # isfinite cannot take an int beyond a float
+    return (finite and ("ge" not in b or value >= b["ge"]) and ("gt" not in b or value > b["gt"])
+            and ("le" not in b or value <= b["le"]) and ("lt" not in b or value < b["lt"]))
+
+
+def range_words(integer: bool, b: dict[str, float]) -> str:
+    """What a number with the bounds `b` (ge/gt/le/lt) takes, in words: '>= 1' (an integer: the parsers
+    check the type), 'an integer in [5, 301]', 'a finite number in (0, 3600]'."""
+    lo = ("[", b["ge"]) if "ge" in b else ("(", b["gt"]) if "gt" in b else None
+    hi = ("]", b["le"]) if "le" in b else (")", b["lt"]) if "lt" in b else None
+    if lo and hi:
+        return f"{'an integer' if integer else 'a finite number'} in {lo[0]}{_num(lo[1])}, {_num(hi[1])}{hi[0]}"
+    side = (f"{'>=' if lo[0] == '[' else '>'} {_num(lo[1])}" if lo else
+            f"{'<=' if hi[0] == ']' else '<'} {_num(hi[1])}" if hi else "")
+    if integer:
+        return side or "an integer"
+    return f"a finite number {side}".rstrip()
 
 
 def seed_count_check(n: int) -> str | None:

@@ -28,12 +28,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from typing import Any
+from typing import Any, ClassVar
 
 from downwash_core.errors import ConfigError
 from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
                                 arg, format_table, names_check, out_lock, parse_args, resolve_pipeline, run_main,
-                                seed_count_check, setup_logging, write_results, script)
+                                seed_count_check, setup_logging, training_config, write_results, script)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]
 
@@ -51,6 +51,8 @@ def _minutes_check(text: str) -> str | None:
 
 @dataclass(frozen=True)
 class EfficiencyArgs(PipelineArgs):
+    config_tables: ClassVar[tuple[str, ...]] = ("training",)  # the training of every cell (its seed is the cell's)
+
     trials: int = arg(10, f"trials per point (different data subsets and seeds; at most {SEED_COUNT_MAX}; --quick: "
                           "at most 2)", ge=1, check=seed_count_check)
     minutes: str = arg(",".join(f"{m:g}" for m in MINUTES),
@@ -74,7 +76,7 @@ def grid_of(args: EfficiencyArgs) -> Any:
     seeds = ",".join(str(s) for s in range(args.seed, args.seed + trials))
     grid = grid_from_text("", args.models, args.minutes, seeds, args.quick)
     return SweepGrid(fields=(args.field,), models=grid.models, minutes=grid.minutes, seeds=grid.seeds,
-                     quick=args.quick)
+                     quick=args.quick, training=training_config(args))
 
 
 def run(args: EfficiencyArgs) -> dict:

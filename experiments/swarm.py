@@ -31,14 +31,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
 from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
-                                arg, check_options, format_table, out_lock, parse_args, resolve_pipeline, run_main,
-                                seed_count_check, setup_logging, write_results, script)
+                                arg, check_options, flight_components, format_table, guard_settings, out_lock,
+                                parse_args, resolve_pipeline, run_main, seed_count_check, setup_logging, write_results,
+                                script)
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -72,6 +73,10 @@ def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
 
 @dataclass(frozen=True)
 class SwarmArgs(PipelineArgs):
+    # the flights' controller, simulator and guard settings (the swarm stages, like the staged collection,
+    # fly the defaults)
+    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
+
     presets: str = arg(DEFAULT_PRESETS, f"comma list of presets: {', '.join(PRESETS)} (stack:n=N takes N = 2-8, "
                                         "and spacing=)",
                        check=_specs_check("preset", PRESETS, f"{', '.join(PRESETS)} (stack takes n=2-8, spacing=; "
@@ -123,7 +128,7 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
 
 
 def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, pair_models_dir: Path,
-                neighbours) -> list:
+                neighbours, guard: dict[str, float]) -> list:
     from downwash.swarm_collection import swarm_model_path
     from downwash.checkpoint import wrap_pairwise
     from downwash.conditions import GUARDED
@@ -146,7 +151,7 @@ def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models
                                         expect_neighbours=neighbours,
                                         expect_aggregation=None if mix == "pair" else law))
         if c.endswith(GUARDED):
-            out[-1] = GuardedPredictor(out[-1])
+            out[-1] = GuardedPredictor(out[-1], **guard)
     return out
 
 
@@ -160,6 +165,7 @@ def run(args: SwarmArgs) -> dict:
     from sim.predictor import PerWorldPredictor
 
     presets, laws = _validate(args)
+    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
     if args.video:
         from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
 
@@ -173,8 +179,9 @@ def run(args: SwarmArgs) -> dict:
     K = args.seeds
     seeds = list(range(args.seed, args.seed + K))
     out = Path(args.out)
+    guarded = guard_record(names)  # the guard's settings, as flown
     results: dict[str, Any] = {"experiment": "swarm", "seeds": seeds, "conditions": names, "laws": {}, "presets": {},
-                               "guard": guard_record(names)}
+                               "guard": None if guarded is None else {**guarded, **guard}}
     first_logs = None
     pair_models_dir = p.collection_dir.parent / f"swarm-pair-{pair_models_key(cfg, p.record)}"  # shared by every law
     for law_name, law in laws:
@@ -185,12 +192,12 @@ def run(args: SwarmArgs) -> dict:
         results["laws"][law_name] = {"law": describe(law), "collection_dir": str(swarm_dir),
                                      "models": collected["models"], "stages": collected["stages"]}
         predictors = _predictors(names, p.field, law, pair_model, swarm_dir / "models", pair_models_dir,
-                                 cfg.neighbours)
+                                 cfg.neighbours, guard)
         for preset in presets:
             duration = args.duration or (2.0 if args.quick else max(preset.duration, 10.0))
             W = len(names) * K
             logs = fly(preset.scene(), preset.reference(W), [s for _ in names for s in seeds], duration,
-                       field=p.field, aggregation=law,
+                       field=p.field, aggregation=law, **components,
                        predictor=PerWorldPredictor(predictors, np.repeat(np.arange(len(names)), K)),
                        meta=[{"experiment": "swarm", "preset": preset.name, "condition": c} for c in names for _ in seeds],
                        progress=ProgressBar(f"{preset.name}, {law_name}"))

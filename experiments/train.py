@@ -14,18 +14,21 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
 from experiments.common import (PAIRWISE_KINDS, CommonArgs, arg, format_table, load_field, one_of, out_lock,
-                                parse_args, run_main, setup_logging, write_results, script)
+                                parse_args, run_main, setup_logging, training_config, write_results, script)
 
 __all__ = ["TrainArgs", "run", "main"]
 
 
 @dataclass(frozen=True)
 class TrainArgs(CommonArgs):
+    config_tables: ClassVar[tuple[str, ...]] = ("training",)  # the training's settings
+
     model: str = arg("equivariant", "model kind: " + ", ".join(PAIRWISE_KINDS), check=one_of(PAIRWISE_KINDS))
     logs: str = arg("", "folder of training flight logs (.npz), searched recursively")
     val_logs: str = arg("", "folder of validation flight logs (.npz), searched recursively")
@@ -40,7 +43,6 @@ def run(args: TrainArgs) -> dict:
     from downwash.datasets import find_logs, load_dataset, shorten_per_stage
     from downwash.labels import label_noise_floor
     from downwash.models import PAIRWISE_KINDS, count_parameters
-    from downwash.staged import train_config
     from downwash.train import rmse, train_model
     from downwash_core.provenance import describe, differences
 
@@ -53,6 +55,7 @@ def run(args: TrainArgs) -> dict:
             raise ConfigError(f"{option}: {location}: no such file or folder")
     if args.minutes < 0:
         raise ConfigError(f"--minutes: expected >= 0, got {args.minutes}")
+    config = training_config(args)  # with the [training] table, checked before the logs are read
     train = load_dataset(args.logs, recursive=True)  # raises naming the folder or file when empty/foreign
     val_files = find_logs(args.val_logs, recursive=True)
     val = load_dataset(val_files)
@@ -67,7 +70,6 @@ def run(args: TrainArgs) -> dict:
                             + "\n  ".join(differences(have, want)))
     if args.minutes:
         train = shorten_per_stage(train, args.minutes, np.random.default_rng(args.seed))
-    config = train_config(args.seed, args.quick)
     t0 = time.perf_counter()
     model, history = train_model(args.model, train, None, config, progress=True, feature_set=args.feature_set or None)
     seconds = time.perf_counter() - t0

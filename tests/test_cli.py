@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
            "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights")
 # experiments with a parser of their own (positional files; no --config/--quick/--field): a console script each
-TOOLS = ("export", "warmup")
+TOOLS = ("export", "replay", "warmup")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
 TRACKING = (*common.CONDITIONS, *common.WIND_SEVERITIES)
 # per script, the choices its --help lists (besides the field names, which every script lists)
@@ -130,7 +130,7 @@ def test_config_values_apply_and_flags_override_them(tmp_path):
     ("seeds = 2.5\n", ["expected an integer"]),
     ("separation = true\n", ["expected a number", "--separation"]),
     ("quick = 1\n", ["expected a boolean", "--quick"]),
-    ("conditions = ['baseline']\n", ["expected a string", "TOML array", "--conditions"]),
+    ("separation = [0.5]\n", ["expected a number", "TOML array", "--separation"]),
     ("seeds = 1\nseeds = 2\n", ["not valid TOML"]),
     ("seeds = \n", ["not valid TOML"]),
     ("seeds = 1\n[lemniscate]\nseeds = 2\n", ["unknown key 'lemniscate'; allowed:"]),
