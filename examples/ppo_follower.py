@@ -5,9 +5,10 @@ that compensates the leader's downwash.
     python examples/ppo_follower.py --quick          # a smoke run
     python examples/ppo_follower.py --load runs/examples/ppo_follower/policy.zip   # evaluate it
 
-Writes `learning_curve.png` and `learning_curve.json` into --out, and the trained policy to
---save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH` skips
-training and evaluates that policy against the plain LQR (mean return and its spread). The
+Writes `learning_curve.png` and `learning_curve.json` into --out, SB3's TensorBoard logs into
+--tensorboard (default `<--out>/tensorboard`, one PPO_<n> folder per run), and the trained
+policy to --save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH`
+skips training and evaluates that policy against the plain LQR (mean return and its spread). The
 same task on the native batched env, several times faster: examples/ppo_follower_vector.py.
 """
 
@@ -16,7 +17,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from policy_file import add_policy_arguments, refuse_missing
+from policy_file import add_policy_arguments, add_tensorboard_arguments, refuse_missing
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -26,6 +27,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_follower"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
     add_policy_arguments(p)
+    add_tensorboard_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0:
         p.error(f"--timesteps: expected a positive number of steps, got {args.timesteps}")
@@ -39,7 +41,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     import downwash_envs  # noqa: F401  (registers the ids)
     from learning_curve import EpisodeReturns, against_the_lqr, follower_returns, save
-    from policy_file import evaluation, load_policy, save_policy
+    from policy_file import evaluation, load_policy, save_policy, tensorboard_dir
 
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
     # torch's threads take the cores the simulator's threads step the worlds on.
@@ -53,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
         lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
         return evaluation(args.load, "PPO, single env", lines)
     model = PPO("MlpPolicy", env, n_steps=128 if args.quick else 2048, batch_size=64, seed=args.seed,
-                device="cpu", verbose=0)
+                device="cpu", verbose=0, tensorboard_log=tensorboard_dir(p.prog, args))
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
     save_policy(model, args.save or args.out / "policy.zip")

@@ -5,9 +5,10 @@ every world steps in one MuJoCo batch with compiled control.
     python examples/ppo_follower_vector.py --quick   # a smoke run
     python examples/ppo_follower_vector.py --load runs/examples/ppo_follower_vector/policy.zip
 
-Writes `learning_curve.png` and `learning_curve.json` into --out, and the trained policy to
---save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH` skips
-training and evaluates that policy against the plain LQR (mean return and its spread).
+Writes `learning_curve.png` and `learning_curve.json` into --out, SB3's TensorBoard logs into
+--tensorboard (default `<--out>/tensorboard`, one PPO_<n> folder per run), and the trained
+policy to --save (default `<--out>/policy.zip`, an SB3 zip: `PPO.load(path)`). `--load PATH`
+skips training and evaluates that policy against the plain LQR (mean return and its spread).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from policy_file import add_policy_arguments, refuse_missing
+from policy_file import add_policy_arguments, add_tensorboard_arguments, refuse_missing
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -26,6 +27,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_follower_vector"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
     add_policy_arguments(p)
+    add_tensorboard_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0 or args.num_envs <= 0:
         p.error(f"--timesteps and --num-envs: expected positive numbers, got {args.timesteps}, {args.num_envs}")
@@ -38,7 +40,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from downwash_envs.sb3 import make_vec_env
     from learning_curve import EpisodeReturns, against_the_lqr, follower_returns, save
-    from policy_file import evaluation, load_policy, save_policy
+    from policy_file import evaluation, load_policy, save_policy, tensorboard_dir
 
     n = 4 if args.quick else args.num_envs
     # A 64-unit MLP policy gains nothing from a second torch thread, and on a small machine
@@ -53,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
         lines = against_the_lqr(follower_returns, model, episodes, max_episode_steps=max_steps)
         return evaluation(args.load, "PPO, native vector env", lines)
     model = PPO("MlpPolicy", venv, n_steps=32 if args.quick else 256, batch_size=64 if args.quick else 512,
-                seed=args.seed, device="cpu", verbose=0)
+                seed=args.seed, device="cpu", verbose=0, tensorboard_log=tensorboard_dir(p.prog, args))
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
     save_policy(model, args.save or args.out / "policy.zip")

@@ -1,9 +1,15 @@
 """Multi-agent: one shared PPO policy (stable-baselines3) for every follower of a vehicle
-stack, through SuperSuit (each agent becomes a row of an SB3 vector env).
+stack, each agent of each world a row of an SB3 vector env.
 
     python examples/ppo_swarm.py                     # 200k agent steps on the stack3 preset
     python examples/ppo_swarm.py --quick             # a smoke run
+    python examples/ppo_swarm.py --vec supersuit     # the same through SuperSuit
     python examples/ppo_swarm.py --load runs/examples/ppo_swarm/policy.zip   # evaluate it
+
+`--vec native` (the default) steps every world in one batched simulator through the adapter
+`downwash_envs.swarm_sb3`; `--vec supersuit` builds the same rows from copies of the
+ParallelEnv with SuperSuit, one simulator each, stepped one after the other (slower; the
+rows, their order and, for the same seed, their numbers are the same).
 
 The agents are named by role (follower_0, follower_1, ...), so the same env also groups
 them as one team in TorchRL or BenchMARL. Writes `learning_curve.png` and
@@ -18,18 +24,21 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from policy_file import add_policy_arguments, refuse_missing
+from policy_file import add_policy_arguments, add_tensorboard_arguments, refuse_missing, tensorboard_dir
 
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--timesteps", type=int, default=200_000, help="agent steps to train (default 200000)")
     p.add_argument("--preset", default="stack3", help="the vehicle stack (default stack3: a leader, two followers)")
-    p.add_argument("--copies", type=int, default=4, help="copies of the env stepped together (default 4)")
+    p.add_argument("--copies", type=int, default=4, help="worlds (copies of the env) stepped together (default 4)")
+    p.add_argument("--vec", choices=("native", "supersuit"), default="native",
+                   help="the vector env: native (one batched simulator, the default) or supersuit")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/examples/ppo_swarm"))
     p.add_argument("--quick", action="store_true", help="a tiny budget, for smoke tests")
     add_policy_arguments(p)
+    add_tensorboard_arguments(p)
     args = p.parse_args(argv)
     if args.timesteps <= 0 or args.copies <= 0:
         p.error(f"--timesteps and --copies: expected positive numbers, got {args.timesteps}, {args.copies}")
@@ -37,7 +46,6 @@ def main(argv: list[str] | None = None) -> dict:
 
     import torch
 
-    import supersuit as ss
     from stable_baselines3 import PPO
     from stable_baselines3.common.utils import set_random_seed
     from stable_baselines3.common.vec_env import VecMonitor
@@ -52,12 +60,22 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     timesteps = 256 if args.quick else args.timesteps
     options = dict(preset=args.preset, duration=1.0 if args.quick else 5.0)
-    env = parallel_env(**options)
-    env.reset(seed=args.seed)  # later resets (SuperSuit's, unseeded) continue this generator
-    venv = ss.pettingzoo_env_to_vec_env_v1(env)  # one row per agent: the policy is shared
-    venv = ss.concat_vec_envs_v1(venv, copies, num_cpus=0, base_class="stable_baselines3")
+    if args.vec == "native":
+        from downwash_envs.swarm_sb3 import make_vec_env
+
+        venv = make_vec_env(copies, seed=args.seed, **options)  # one row per agent per world; world w: seed + w
+        agents = venv.agents
+    else:
+        import supersuit as ss
+
+        env = parallel_env(**options)
+        env.reset(seed=args.seed)  # later resets (SuperSuit's, unseeded) continue this generator
+        venv = ss.pettingzoo_env_to_vec_env_v1(env)  # one row per agent: the policy is shared
+        venv = ss.concat_vec_envs_v1(venv, copies, num_cpus=0, base_class="stable_baselines3")
+        agents = list(env.possible_agents)
     venv = VecMonitor(venv)
-    # SuperSuit's vector env has no seed(): seed the libraries here, not through PPO(seed=...)
+    # the envs are seeded above (SuperSuit's vector env has no seed()): seed the libraries here, not
+    # through PPO(seed=...), so that both --vec choices train from the same initial policy
     set_random_seed(args.seed)
     episodes = 2 if args.quick else 10
     if args.load is not None:
@@ -65,13 +83,13 @@ def main(argv: list[str] | None = None) -> dict:
         lines = against_the_lqr(swarm_returns, model, episodes, **options)
         return evaluation(args.load, f"PPO, shared policy, {args.preset}", lines)
     model = PPO("MlpPolicy", venv, n_steps=64 if args.quick else 512, batch_size=64 if args.quick else 256,
-                device="cpu", verbose=0)
+                device="cpu", verbose=0, tensorboard_log=tensorboard_dir(p.prog, args))
     curve = EpisodeReturns()
     model.learn(timesteps, callback=curve)
     save_policy(model, args.save or args.out / "policy.zip")
     lines = against_the_lqr(swarm_returns, model, episodes, **options)
     return save(args.out, f"PPO, shared policy, {args.preset}", curve,
-                {"timesteps": timesteps, "agents": list(env.possible_agents), "copies": copies, "seed": args.seed}, lines)
+                {"timesteps": timesteps, "agents": agents, "copies": copies, "vec": args.vec, "seed": args.seed}, lines)
 
 
 if __name__ == "__main__":
