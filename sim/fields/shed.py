@@ -297,7 +297,8 @@ class ShedWake:
         Args:
             state: from `initial_state`, (W, V, N).
             dt: s, > 0.
-            pos, vel: (W, V, 3) m, m/s, world frame: the vehicles' positions (rotor planes) and velocities.
+            pos: (W, V, 3) m, world frame: the vehicles' positions (rotor planes).
+            vel: (W, V, 3) m/s, world frame: the vehicles' velocities.
             rot: (W, V, 3, 3) body-to-world attitudes; the thrust axis is rot[..., :, 2].
             thrust: optional (W, V) N; default `MomentumWake.leader_thrust(rot)` of each vehicle's kind.
             wind: optional (W, 3) m/s, world frame: the air's velocity, uniform over each world.
@@ -427,7 +428,9 @@ class ShedWake:
 
         Args:
             state: the wake (W, V, N) after `step`.
-            pos, vel: (W, V, 3) m, m/s, world frame; rot (W, V, 3, 3) body-to-world.
+            pos: (W, V, 3) m, world frame.
+            vel: (W, V, 3) m/s, world frame.
+            rot: (W, V, 3, 3) body-to-world.
             wind: optional (W, 3) m/s: the ambient air, so that each target's rotors and airframe see
                 its velocity relative to the air (the wake's share is the same in still air otherwise).
             compiled: the compiled pass (`sim.fields.shed_kernels.forces`); False: the NumPy reference.
