@@ -125,5 +125,10 @@ def test_package_metadata_matches_the_citation():
     cff = (ROOT / "CITATION.cff").read_text()
     assert meta["license"] == "MIT" and "license: MIT" in cff and (ROOT / "LICENSE").read_text().startswith("MIT")
     assert f"version: {meta['version']}" in cff
+    # the newest release in the CHANGELOG is this version, with the CITATION's date, and is written for users
+    newest = re.search(r"^## (\S+) \((\d{4}-\d\d-\d\d)\)$", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert newest and newest.groups() == (meta["version"], re.search(r"date-released: (\S+)", cff).group(1))
+    assert "## Unreleased" not in (ROOT / "CHANGELOG.md").read_text().split(newest.group(0))[0]
+    assert "### Upgrading from" in (ROOT / "CHANGELOG.md").read_text().split(newest.group(0))[1].split("\n## ")[0]
     assert all(f"name: {a['name']}" in cff for a in meta["authors"])
     assert "Typing :: Typed" in meta["classifiers"] and meta["keywords"]
