@@ -36,6 +36,7 @@ __all__ = [
     "LQRCommand",
     "double_integrator",
     "lqr_gain",
+    "check_weight",
     "FeedbackLinearisedLQR",
     "attitude_setpoint",
     "wrap_angle",
@@ -124,7 +125,8 @@ def double_integrator() -> tuple[np.ndarray, np.ndarray]:
     return A, B
 
 
-def _check_weight(M: np.ndarray, n: int, name: str, definite: bool) -> np.ndarray:
+def check_weight(M: np.ndarray, n: int, name: str, definite: bool) -> np.ndarray:
+    """M as a symmetric (n, n) weight, positive (semi-)definite; ConfigError naming `name` otherwise."""
     M = np.asarray(M, dtype=float)
     if M.shape != (n, n):
         raise ConfigError(f"{name}: expected ({n}, {n}) but found {M.shape}")
@@ -143,8 +145,8 @@ def lqr_gain(Q: np.ndarray = DEFAULT_Q, R: np.ndarray = DEFAULT_R) -> np.ndarray
 
     Rounded to float32 precision (`downwash_core.numerics.cpu_independent`): LAPACK's last bits
     differ between CPUs, and flights must not."""
-    Q = _check_weight(Q, 7, "Q", definite=False)
-    R = _check_weight(R, 4, "R", definite=True)
+    Q = check_weight(Q, 7, "Q", definite=False)
+    R = check_weight(R, 4, "R", definite=True)
     A, B = double_integrator()
     K, _, _ = control.lqr(A, B, Q, R)
     return cpu_independent(K)
@@ -169,9 +171,13 @@ class FeedbackLinearisedLQR:
     simulator's 50 Hz path), tested against them.
     """
 
-    def __init__(self, config: LQRConfig | None = None):
+    def __init__(self, config: LQRConfig | None = None, gain: np.ndarray | None = None):
+        """gain: (4, 7) K in place of the LQR gain of `config`'s weights (e.g. the state part of an
+        augmented system's gain, `controllers.integral`); the limits are still `config`'s."""
         self.config = config if config is not None else LQRConfig()
-        self.K = lqr_gain(np.diag(self.config.q), np.diag(self.config.r))
+        self.K = lqr_gain(np.diag(self.config.q), np.diag(self.config.r)) if gain is None else np.array(gain, float)
+        if self.K.shape != (4, 7):
+            raise ConfigError(f"gain: expected a (4, 7) matrix, got {self.K.shape}")
         # The gain is block diagonal for diagonal weights; keep the full matrix anyway.
         self._Kt = self.K.T.copy()
         self.max_tilt = float(np.deg2rad(self.config.max_tilt_deg))  # rad
