@@ -130,3 +130,30 @@ def test_in_the_loop_it_removes_the_steady_sag_the_lqr_keeps():
     tail = slice(-100, None)  # the last 2 s
     sag = [np.mean(L["pos"][tail, 1, 2] - L["ref_pos"][tail, 1, 2]) for L in (plain, integral)]
     assert sag[0] < -0.05 and abs(sag[1]) < 0.1 * abs(sag[0])
+
+
+def test_per_world_controllers_fly_each_group_as_alone():
+    """PerWorldController of the LQR and the integral LQR: each group's commands and state are what
+    its controller gives its worlds alone, bit for bit; resets reach the right rows."""
+    from controllers.per_world import PerWorldController
+
+    rng = np.random.default_rng(3)
+    W, V = 5, 2
+    assignment = np.array([1, 0, 1, 1, 0])
+    routed = PerWorldController([FeedbackLinearisedLQR(), IntegralLQR()], assignment)
+    alone = [FeedbackLinearisedLQR(), IntegralLQR()]
+    for _ in range(4):
+        state = ControllerState(rng.normal(size=(W, V, 3)) * 0.1, rng.normal(size=(W, V, 3)) * 0.1,
+                                rng.normal(size=(W, V)) * 0.1)
+        ref, f_hat = _ref(W, V), rng.normal(size=(W, V, 3))
+        out = _command(routed, state, ref, f_hat)
+        for i, ctl in enumerate(alone):
+            w = np.flatnonzero(assignment == i)
+            part = _command(ctl, ControllerState(*(a[w] for a in state)), RefSample(*(a[w] for a in ref)), f_hat[w])
+            for a, b in zip(out, part):
+                assert np.array_equal(a[w], b)
+    np.testing.assert_array_equal(routed.controllers[1].integral, alone[1].integral)
+    routed.reset([2])  # world 2 is row 1 of the integral LQR's group
+    assert np.all(routed.controllers[1].integral[1] == 0) and np.any(routed.controllers[1].integral[[0, 2]] != 0)
+    with pytest.raises(ConfigError, match="assignment"):
+        PerWorldController([FeedbackLinearisedLQR()], [0, 1])
