@@ -12,6 +12,10 @@ the field being off).
                   <model kind>-<data>: the same kind trained on other data (`experiments.outdoor`)
     <learned>_guarded  the same model behind the guard (`downwash.guard.GuardedPredictor`): scaled
                   toward no model where its inputs leave its training data's support
+
+`guard` ({setting: value}, the keywords of `GuardedPredictor`; None: `GUARD_DEFAULTS`) lets an
+experiment fly its guarded conditions with other settings (its config file's [guard] table);
+`guard_record` records the settings flown.
 """
 
 from __future__ import annotations
@@ -72,13 +76,15 @@ def data_variant(condition: str, data: str) -> str:
     return f"{_kind(condition)}-{data}" + (GUARDED if guarded else "")
 
 
-def guard_record(conditions: Sequence[str]) -> dict | None:
-    """The guard's settings (`downwash.guard.guard_settings`) when a condition flies guarded, else None."""
-    return guard_settings() if any(c.endswith(GUARDED) for c in conditions) else None
+def guard_record(conditions: Sequence[str], guard: dict | None = None) -> dict | None:
+    """The guard's settings as flown (`downwash.guard.guard_settings`, with `guard`'s values) when a
+    condition flies guarded, else None."""
+    return {**guard_settings(), **(guard or {})} if any(c.endswith(GUARDED) for c in conditions) else None
 
 
-def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> Predictor:
-    """The predictor a condition flies with; learned ones load from `checkpoints["<kind>[-<data>]"]`."""
+def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path], guard: dict | None = None) -> Predictor:
+    """The predictor a condition flies with; learned ones load from `checkpoints["<kind>[-<data>]"]`, and
+    guarded ones take the `GuardedPredictor` keywords `guard` (None: its defaults)."""
     if condition in ("no_downwash", "baseline"):
         return ZeroPredictor()
     if condition == "oracle":
@@ -86,7 +92,7 @@ def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path]) -> 
     # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
     model = condition.removesuffix(GUARDED)
     predictor = LearnedPredictor.from_checkpoint(checkpoints[model], expect_kind=_kind(condition))
-    return GuardedPredictor(predictor) if condition.endswith(GUARDED) else predictor
+    return GuardedPredictor(predictor, **(guard or {})) if condition.endswith(GUARDED) else predictor
 
 
 def fly_conditions(
@@ -98,16 +104,18 @@ def fly_conditions(
     field: Any,
     checkpoints: dict[str, Path],
     meta: dict | None = None,
+    guard: dict | None = None,
     **components: Any,
 ) -> dict[str, list[FlightLog]]:
     """Fly every condition on every seed as one batch of worlds; returns the logs per condition.
 
     reference: a stacked reference (one per vehicle of `scene`) over len(conditions) x
     len(seeds) worlds, condition-major (world i * K + k is condition i, seed k).
+    guard: the guarded conditions' `GuardedPredictor` keywords (None: its defaults).
     components: further `Simulator` keywords shared by every world (e.g. wind, aggregation).
     """
     K = len(seeds)
-    predictor = PerWorldPredictor([make_predictor(c, field, checkpoints) for c in conditions],
+    predictor = PerWorldPredictor([make_predictor(c, field, checkpoints, guard) for c in conditions],
                                   np.repeat(np.arange(len(conditions)), K))
     field_enabled = np.array([c != "no_downwash" for c in conditions for _ in range(K)])
     world_meta = [{"condition": c, **(meta or {})} for c in conditions for _ in range(K)]

@@ -37,8 +37,9 @@ from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
 from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, PipelineArgs,
                                 ProgressBar, arg, check_options, field_check, flight_components, format_table,
-                                load_field, load_wind, names_check, one_of, out_lock, parse_args, resolve_pipeline,
-                                run_main, seed_count_check, setup_logging, wind_check, write_results, script)
+                                guard_settings, load_field, load_wind, names_check, one_of, out_lock, parse_args,
+                                resolve_pipeline, run_main, seed_count_check, setup_logging, wind_check, write_results,
+                                script)
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -91,9 +92,9 @@ _fields_check = _each(field_check, "--field", "truths")
 
 @dataclass(frozen=True)
 class OutdoorArgs(PipelineArgs):
-    # the flights' controller and simulator settings (the outdoor stages, like the staged collection, fly
-    # the defaults); the guarded conditions take the guard's defaults, so [guard] is refused
-    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim")
+    # the flights' controller and simulator settings, and the guard's of the guarded conditions (the outdoor
+    # stages, like the staged collection, fly the defaults)
+    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
 
     conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
     seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
@@ -196,7 +197,7 @@ def run(args: OutdoorArgs) -> dict:
     from sim.scene import build_scene
 
     conditions = _validate(args)
-    components = flight_components(args)  # the [lqr] and [sim] tables, checked before any flight
+    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
     trained = _trained(args)
     wind = load_wind(args.wind)
     p = resolve_pipeline(args, models=learned(conditions))
@@ -215,14 +216,14 @@ def run(args: OutdoorArgs) -> dict:
 
     def fly_at(a: OutdoorArgs, air: Any = wind) -> dict:
         return fly_conditions(build_scene(), conditions, _references(a, W), seeds, a.duration, p.field, checkpoints,
-                              meta={"experiment": "outdoor"}, wind=air, **components)
+                              meta={"experiment": "outdoor"}, guard=guard, wind=air, **components)
 
     per_condition = fly_at(args)
     results: dict[str, Any] = {
         "experiment": "outdoor", "leader": args.leader, "speed": args.speed, "separation": args.separation,
         "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
         "wind": None if wind is None else describe(wind), "leader_airspeed": _airspeed(per_condition),
-        "conditions": aggregate_conditions(per_condition), "guard": guard_record(conditions),
+        "conditions": aggregate_conditions(per_condition), "guard": guard_record(conditions, guard),
         "trained": trained,
         "outdoor_collection": None if outdoor is None else {
             **{k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},

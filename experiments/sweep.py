@@ -27,19 +27,22 @@ results.md (tables) and sweep.png in --out.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any, ClassVar
 
 from downwash.sweep import ADDRESS_TIMEOUT, address_problem, workers_problem  # cheap: no torch, no Ray
 from experiments.common import (FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
                                 ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
-                                out_lock, write_results, script)
+                                out_lock, training_config, write_results, script)
 
-__all__ = ["SweepArgs", "run", "main"]
+__all__ = ["SweepArgs", "grid_of", "run", "main"]
 
 
 @dataclass(frozen=True)
 class SweepArgs(CommonArgs):
+    config_tables: ClassVar[tuple[str, ...]] = ("training",)  # the training of every cell (its seed is the cell's)
+
     field: str = arg("", "the fields, separated by ';': each NAME[:KEY=VALUE,...] with NAME one of "
                          f"{', '.join(FIELD_NAMES)} (python -m experiments.fields lists their parameters; '' is "
                          "so2) or MODULE:FACTORY")
@@ -61,15 +64,24 @@ class SweepArgs(CommonArgs):
                         "fastest per model on 2 cores)", ge=1)
 
 
+def grid_of(args: SweepArgs) -> Any:
+    """The sweep's `downwash.sweep_cells.SweepGrid`, its training from the [training] table (the defaults,
+    and so the cells' cache keys, unchanged without it); ConfigError before any work."""
+    from downwash.sweep import grid_from_text
+
+    grid = grid_from_text(args.field, args.models, args.minutes, args.seeds, args.quick)
+    return replace(grid, training=training_config(args))
+
+
 def run(args: SweepArgs) -> dict:
-    from downwash.sweep import check_address, check_execution, grid_from_text, run_sweep
+    from downwash.sweep import check_address, check_execution, run_sweep
 
     check_address(args.address)  # a cluster that is not there shows now, before the stack is imported
     from downwash.sweep_report import claim_text, markdown, minute_labels, plot_field, table_rows
     from downwash_core.io import atomic_write_bytes
 
     t_start = time.perf_counter()
-    grid = grid_from_text(args.field, args.models, args.minutes, args.seeds, args.quick)
+    grid = grid_of(args)
     check_execution(args.workers, args.batch, args.address)
     pipelines = {spec: resolve_pipeline(PipelineArgs(seed=args.seed, quick=args.quick, field=spec))
                  for spec in grid.fields}

@@ -26,8 +26,8 @@ import numpy as np
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP,
                                 PipelineArgs, ProgressBar, arg, check_options, flight_components, format_table,
-                                load_wind, names_check, out_lock, parse_args, resolve_pipeline, seed_count_check,
-                                setup_logging, wind_check, write_results)
+                                guard_settings, load_wind, names_check, out_lock, parse_args, resolve_pipeline,
+                                seed_count_check, setup_logging, wind_check, write_results)
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -64,9 +64,9 @@ TRACKS = {
 
 @dataclass(frozen=True)
 class TrackingArgs(PipelineArgs):
-    # the flights' controller and simulator settings; the guarded conditions take the guard's defaults
-    # (downwash.conditions builds them), so [guard] is refused
-    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim")
+    # the flights' controller and simulator settings, and the guard's of the guarded conditions (the staged
+    # collection behind the models flies the defaults)
+    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
 
     conditions: str = arg(",".join(DEFAULT_CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
     seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
@@ -105,7 +105,7 @@ def run(track: str, args: Any) -> dict:
 
     spec = TRACKS[track]
     conditions = _validate(args)
-    components = flight_components(args)  # the [lqr] and [sim] tables, checked before any flight
+    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
     wind = load_wind(args.wind)
     scene = build_scene()
     if args.video:
@@ -125,12 +125,12 @@ def run(track: str, args: Any) -> dict:
     reference = stack([Hover(LEADER, n_worlds=W), follower])
     seeds = list(range(args.seed, args.seed + K))
     per_condition = fly_conditions(scene, conditions, reference, seeds, duration, field, checkpoints,
-                                   meta={"experiment": track}, wind=wind, **components)
+                                   meta={"experiment": track}, guard=guard, wind=wind, **components)
     flight_seconds = time.perf_counter() - t_start
 
     results: dict[str, Any] = {"experiment": track, "separation": args.separation, "duration": duration,
                                "seeds": seeds, "conditions": aggregate_conditions(per_condition),
-                               "guard": guard_record(conditions)}
+                               "guard": guard_record(conditions, guard)}  # the settings flown
     results["wall_seconds"] = time.perf_counter() - t_start
     results["flight_wall_seconds"] = flight_seconds
     out = Path(args.out)

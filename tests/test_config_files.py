@@ -159,11 +159,12 @@ def test_tables_are_read_checked_and_normalised(tmp_path):
     ("[lqr]\nmax_tilt_deg = 30\nmax-tilt-deg = 31\n", ["[lqr] key 'max-tilt-deg' given twice"]),
     ("lqr = 3\n", ["lqr = 3: expected a table [lqr] of controllers.lqr.LQRConfig settings, got a TOML integer"]),
     ("[lqr]\n[lqr.inner]\nx = 1\n", ["[lqr] unknown key 'inner'"]),
-    ("[guard]\nbound = 5\n", ["[guard]: this experiment does not apply downwash.guard.GuardedPredictor settings",
-                              "refused rather than ignored", "the tables it applies: [lqr], [sim]"]),
-    ("[training]\nmax_epochs = 5\n", ["[training]: this experiment does not apply downwash.train.TrainConfig"]),
+    ("[guard]\nbound = 0\n", ["[guard] bound = 0: expected a finite number > 0"]),
+    ("[guard]\nrecover = 2\n", ["[guard] unknown key 'recover'", "allowed: recovery, bound"]),
+    ("[training]\nmax_epochs = 5\n", ["[training]: this experiment does not apply downwash.train.TrainConfig",
+                                     "refused rather than ignored", "the tables it applies: [lqr], [sim], [guard]"]),
     ("[safety]\nmin_separation = 0.3\n", ["[safety]: no safety layer is configurable yet"]),
-    ("[controller]\nq = 1\n", ["unknown key 'controller'; allowed:", "tables: [lqr], [sim]"]),
+    ("[controller]\nq = 1\n", ["unknown key 'controller'; allowed:", "tables: [lqr], [sim], [guard]"]),
 ])
 def test_a_bad_table_is_one_line_naming_the_table_the_key_and_what_is_allowed(tmp_path, capsys, text, expected):
     path = _toml(tmp_path, text)
@@ -178,10 +179,10 @@ def test_a_bad_table_is_one_line_naming_the_table_the_key_and_what_is_allowed(tm
     ("staged_collection", "StagedArgs", "[lqr]\nmax_tilt_deg = 30\n", "none"),
     ("staged_collection", "StagedArgs", "[training]\nmax_epochs = 5\n", "none"),
     ("fields", "FieldsArgs", "[sim]\nnoise_block = 64\n", "none"),
-    ("sweep", "SweepArgs", "[training]\nmax_epochs = 5\n", "none"),
+    ("sweep", "SweepArgs", "[guard]\nbound = 5\n", "[training]"),
     ("train", "TrainArgs", "[lqr]\nmax_tilt_deg = 30\n", "[training]"),
     ("sample_efficiency", "EfficiencyArgs", "[guard]\nbound = 5\n", "[training]"),
-    ("outdoor", "OutdoorArgs", "[guard]\nbound = 5\n", "[lqr], [sim]"),
+    ("outdoor", "OutdoorArgs", "[training]\nmax_epochs = 5\n", "[lqr], [sim], [guard]"),
     ("swarm", "SwarmArgs", "[training]\nlr = 0.001\n", "[lqr], [sim], [guard]"),
     ("swarm", "SwarmArgs", "[safety]\nx = 1\n", None),
 ])
@@ -216,8 +217,8 @@ def test_tables_built_in_python_are_checked_and_a_table_not_applied_is_refused()
     cls = _lemniscate_args()
     with pytest.raises(ConfigError, match=r"\[lqr\] max_tilt_deg = 95: expected a finite number in \(0, 90\)"):
         common.check_options(cls(tables={"lqr": {"max_tilt_deg": 95}}))
-    with pytest.raises(ConfigError, match=r"\[guard\]: this experiment does not apply"):
-        common.check_options(cls(tables={"guard": {"bound": 5.0}}))
+    with pytest.raises(ConfigError, match=r"\[training\]: this experiment does not apply"):
+        common.check_options(cls(tables={"training": {"max_epochs": 5}}))
     with pytest.raises(ConfigError, match="unknown table 'lqrs'"):
         common.check_options(cls(tables={"lqrs": {}}))
     with pytest.raises(ConfigError, match=r"\[lqr\]: this experiment does not apply"):
@@ -281,6 +282,89 @@ def test_swarm_guards_its_conditions_with_the_guard_table(monkeypatch):
     out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None, Path("p.pt"),
                       Path("m"), Path("pm"), None, guard)
     assert out[2] == ("guarded", ("learned", "pairwise")) and made == [guard] and guard["recovery"] == 2.0
+
+
+# what a tracking run wrote before it applied [guard]: a default run keeps these keys
+TRACKING_KEYS = {"args", "experiment", "separation", "duration", "seeds", "conditions", "guard", "wall_seconds",
+                 "flight_wall_seconds", "provenance"}
+
+
+def test_the_lemniscate_guards_its_conditions_with_the_guard_table(tmp_path, monkeypatch):
+    """[guard] reaches every GuardedPredictor of a lemniscate run and its results; without the table the
+    guard flies its defaults, and the results keep their keys, record and pipeline key (the model and
+    the guard stubbed out: no collection, no training)."""
+    import downwash.conditions
+    import downwash.staged
+    from downwash.guard import GUARD_DEFAULTS, GuardedPredictor, guard_settings
+    from experiments.lemniscate import main
+    from sim.predictor import ZeroPredictor
+
+    made: list[dict] = []
+    monkeypatch.setattr(downwash.staged, "ensure_models", lambda d, kinds, *a, **k: {c: Path(f"{c}.pt") for c in kinds})
+    monkeypatch.setattr(downwash.conditions, "LearnedPredictor",
+                        SimpleNamespace(from_checkpoint=lambda path, **k: ("learned", path)))
+    monkeypatch.setattr(downwash.conditions, "GuardedPredictor", lambda p, **kw: made.append(kw) or ZeroPredictor())
+    monkeypatch.chdir(tmp_path)
+    flight = ["--quick", "--conditions", "baseline,equivariant_guarded"]
+    main([*flight, "--out", "default"])
+    assert made == [GUARD_DEFAULTS]  # the GuardedPredictor's own defaults: default runs fly the same bits
+    defaults = inspect.signature(GuardedPredictor).parameters
+    assert all(defaults[k].default == v for k, v in GUARD_DEFAULTS.items())
+    made.clear()
+    _toml(tmp_path, "[guard]\nrecovery = 2.0\nbound = 4\n", "guard.toml")
+    main(["--config", "guard.toml", *flight, "--out", "guarded"])
+    assert made == [{**GUARD_DEFAULTS, "recovery": 2.0, "bound": 4.0}]
+    default, guarded = (json.loads(Path(f"{d}/results.json").read_text()) for d in ("default", "guarded"))
+    assert set(default) == set(guarded) == TRACKING_KEYS
+    assert default["guard"] == guard_settings()  # the record as before
+    assert guarded["guard"] == {**guard_settings(), "recovery": 2.0, "bound": 4.0}
+    assert default["args"]["tables"]["guard"] == GUARD_DEFAULTS  # resolved, as every applied table
+    assert guarded["args"]["tables"]["guard"] == {**GUARD_DEFAULTS, "recovery": 2.0, "bound": 4.0}
+    assert tomllib.loads(Path("guarded/config.toml").read_text())["guard"]["recovery"] == 2.0
+    assert default["provenance"]["pipeline_key"] == guarded["provenance"]["pipeline_key"]
+    assert _without(default, RUN_SPECIFIC | {("args",), ("guard",)}) == _without(guarded, RUN_SPECIFIC | {
+        ("args",), ("guard",)})  # (the stub flies no model: the same flights)
+
+
+def test_transect_and_outdoor_take_the_guard_table(tmp_path):
+    from experiments.outdoor import OutdoorArgs
+    from experiments.tracking import args_class
+
+    path = _toml(tmp_path, "[guard]\nskeptic = inf\nmonitor = 0.5\n")
+    for cls, name in ((args_class("transect"), "transect"), (OutdoorArgs, "outdoor")):
+        args = parse_args(cls, name, ["--config", str(path), "--out", str(tmp_path / "o")])
+        assert common.guard_settings(args) == {**common.guard_settings(cls()), "skeptic": math.inf, "monitor": 0.5}
+
+
+def test_the_sweep_trains_its_cells_with_the_training_table(tmp_path, monkeypatch):
+    """[training] reaches the grid the sweep runs; without it the cells' settings, and so their cache
+    keys, are those of the grid it built before."""
+    import downwash.sweep
+    from downwash.staged import train_config
+    from downwash.sweep import grid_from_text
+    from experiments import sweep
+
+    class Swept(Exception):
+        pass
+
+    def run_sweep(grid, *a, **k):
+        raise Swept(grid)
+
+    path = _toml(tmp_path, 'seeds = [3, 4]\nmodels = ["equivariant"]\nminutes = [1]\n'
+                           "[training]\nmax_epochs = 7\nbatch_size = 64\n")
+    args = parse_args(sweep.SweepArgs, "sweep", ["--config", str(path), "--quick", "--out", str(tmp_path / "o"),
+                                                 "--cache-dir", str(tmp_path / "cells")])
+    monkeypatch.setattr(sweep, "resolve_pipeline", lambda a: None)
+    monkeypatch.setattr(downwash.sweep, "run_sweep", run_sweep)
+    with pytest.raises(Swept) as e:
+        sweep.run(args)
+    grid = e.value.args[0]
+    assert grid.config(4) == dataclasses.replace(train_config(4, True), max_epochs=7, batch_size=64)
+    plain = dataclasses.replace(args, tables={})
+    before = grid_from_text(plain.field, plain.models, plain.minutes, plain.seeds, plain.quick)
+    assert before.training is None
+    assert [sweep.grid_of(plain).config(s) for s in (3, 4)] == [before.config(s) for s in (3, 4)]
+    assert sweep.grid_of(plain).describe() == before.describe()
 
 
 # ----------------------------------------------------------------------------- arrays for list options
@@ -445,7 +529,7 @@ def test_a_run_reruns_from_its_config_toml_to_the_same_results(tmp_path, monkeyp
     a, b = (json.loads(Path(f"{d}/results.json").read_text()) for d in "AB")
     assert a["args"]["out"] == "A" and b["args"]["out"] == "B"
     assert _without(a, RUN_SPECIFIC) == _without(b, RUN_SPECIFIC)
-    assert a["args"]["tables"] == {k: a_config[k] for k in ("lqr", "sim")}
+    assert a["args"]["tables"] == {k: a_config[k] for k in ("lqr", "sim", "guard")}
     b_config = tomllib.loads(Path("B/config.toml").read_text())
     assert b_config == {**a_config, "out": "B"}
 
@@ -485,7 +569,7 @@ def test_a_listing_reruns_from_its_config_toml(tmp_path, monkeypatch):
 
 def test_help_names_the_tables_an_experiment_applies():
     text = " ".join(common.build_parser(_lemniscate_args(), "lemniscate").format_help().split())
-    assert "tables: [lqr], [sim]" in text and "config.toml" in text
+    assert "tables: [lqr], [sim], [guard]" in text and "config.toml" in text
     from experiments.staged_collection import StagedArgs
 
     assert "tables:" not in " ".join(common.build_parser(StagedArgs, "staged_collection").format_help().split())
