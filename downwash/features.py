@@ -73,8 +73,6 @@ __all__ = [
     "MEMORY_FEATURE_SETS",
     "neighbour_history",
     "leader_axis",
-    "project_plane",
-    "safe_norm",
     "depth",
     "invariant_features",
     "raw_features",
@@ -149,18 +147,6 @@ def _stack(xp: ModuleType, arrays: list, axis: int):
 def leader_axis(R_a):
     """The leader's body up axis ``n = R_a[..., :, 2]`` (..., 3), world frame, unit."""
     return R_a[..., :, 2]
-
-
-def project_plane(x, n):
-    """``P x = x - (x . n) n``: the part of x (..., 3) in the plane normal to n (..., 3)."""
-    xp, (x, n) = _namespace(x, n)
-    return x - dot(x, n, xp)[..., None] * n
-
-
-def safe_norm(x):
-    """Euclidean norm over the last axis (...,), value 0 and (torch) gradient 0 at x = 0."""
-    xp, (x,) = _namespace(x)
-    return _sqrt0(xp, dot(x, x, xp))
 
 
 def depth(dp, R_a):

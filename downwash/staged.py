@@ -15,17 +15,12 @@ wake, hovers at offsets, lemniscates), plus validation flights of the same kind 
 separate seeds. Labels are always the full downwash (f = a - u with u the command
 actually applied). After the last stage the final model of every kind in
 `STAGED_KINDS` is trained on all training data into the models folder, one forked
-process per core at once (each model bit-identical to one trained alone); any other
+process per core at once (`downwash.forked_jobs`; each model bit-identical to one trained alone); any other
 per-neighbour kind asked for (`ensure_models`: the models with memory) is trained there
 on the same data when first asked for.
 
-Provenance. A collection is defined by its `provenance` record: the field, the
-scene, the simulator and its components, the collection settings, the training
-settings and the seed base (the code version is recorded beside it). The manifest and
-every checkpoint carry it, and nothing is reused unless it matches what was asked
-for: `pipeline_dirs` gives the default folders, keyed by its fingerprint, so another
-field or config collects afresh into its own folder; an explicit folder that holds
-something else stops with an error that lists the differences.
+Provenance. A collection is defined by its `provenance` record, and nothing is reused
+unless it matches what was asked for (`downwash.staged_provenance`).
 
 Resuming. Flights fly in batches of `batch_flights` and each log is written as soon
 as its batch lands; every flight draws its reference and noise from its own seeds,
@@ -51,42 +46,32 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
-import multiprocessing
-import multiprocessing.connection
 import os
 import socket
-import sys
 import time
-import traceback
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
-from controllers.autopilot import Autopilot
-from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.locks import folder_lock
 from downwash_core.params import LEADER_POSITION
-from downwash_core.provenance import code_version, describe, differences, fingerprint
+from downwash_core.provenance import fingerprint
 from downwash_core.status import Status
-from downwash.checkpoint import checkpoint_digest, load_checkpoint, read_metadata, save_checkpoint
+from downwash.checkpoint import checkpoint_digest, load_checkpoint, save_checkpoint
 from downwash.datasets import Dataset, concatenate, load_dataset
-from downwash.guard import GuardedPredictor, guard_settings
+from downwash.forked_jobs import in_parallel as _in_parallel  # (importable from here as before: tests use it)
+from downwash.guard import GuardedPredictor
 from downwash.labels import label_noise_floor
-from downwash.manifest import (MANIFEST_VERSION, check_logs, check_models, integrity_error, listed_logs,
-                               read_manifest, rerun_command, verify_collection, write_manifest)
+from downwash.manifest import (check_logs, check_models, integrity_error, listed_logs, rerun_command,
+                               verify_collection, write_manifest)
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.stages import ProgressFactory, Stage, fly_recorded, locked_folder
-from downwash.train import TrainConfig, rmse, train_model
-from sim.logs import SCHEMA_VERSION
-from sim.physics import resolve_threads, usable_cores
+from downwash.staged_provenance import (  # the settings and provenance, importable from here as before
+    DEPLOYED_KIND, STAGES, CollectionConfig, _load_manifest, check_checkpoint, pipeline_dirs, provenance, train_config,
+)
+from downwash.train import rmse, train_model
 from sim.predictor import ZeroPredictor
-from sim.scene import build_scene
-from sim.simulator import SimConfig
-from sim.turbulence import OUTurbulence
-from downwash_trajectories import LEMNISCATE_SHARE
 
 __all__ = [
     "STAGES", "DEPLOYED_KIND", "CollectionConfig", "train_config", "provenance", "pipeline_dirs", "collect",
@@ -94,98 +79,6 @@ __all__ = [
 ]  # fmt: skip
 
 log = logging.getLogger(__name__)
-
-STAGES = (
-    {"separation": (1.35, 1.75)},  # stage 0: far enough for the nominal controller
-    {"separation": (0.85, 1.35)},  # stage 1: closer, stage-0 model compensating
-    {"separation": (0.45, 0.65)},  # stage 2: ~0.5 m (two body lengths), stage-1 model
-)
-DEPLOYED_KIND = "equivariant"  # the model each stage trains and the next stage flies with
-_QUICK_TRAINING = {"max_epochs": 3, "min_steps": 30}  # --quick: a few steps, enough to exercise the code
-
-
-@dataclass(frozen=True)
-class CollectionConfig:
-    """Size and settings of a staged collection (each validated on construction)."""
-
-    stage_minutes: float = 5.7  # training flight minutes per stage (paper: ~5.7, ~17 in all)
-    val_ratio: float = 1.0  # validation minutes per training minute (paper: similar size)
-    flight_seconds: float = 28.5  # length of one flight, s (12 flights of 28.5 s: 5.7 min per stage)
-    clamp: float = 6.0  # magnitude bound of the deployed model's prediction, m/s^2
-    guard: bool = False  # deploy each stage model behind the guard (downwash.guard)
-    seed: int = 0  # base seed of flights, patterns and training
-    quick: bool = False  # a tiny budget (0.1 min per stage of 4 s flights, a few training steps)
-    threads: int = 0  # worker threads for batched flights (0: all cores); training uses one
-    batch_flights: int = 12  # flights flown as one batch; a kill loses at most one batch
-
-    def __post_init__(self) -> None:
-        if not 0 < self.stage_minutes <= 60:
-            raise ConfigError(f"--stage-minutes: allowed (0, 60], got {self.stage_minutes}")
-        if not 0 <= self.val_ratio <= 5:
-            raise ConfigError(f"--val-ratio: allowed [0, 5], got {self.val_ratio}")
-        if not 2.0 <= self.flight_seconds <= 600:
-            raise ConfigError(f"--flight-seconds: allowed 2-600 s, got {self.flight_seconds}")
-        if not self.clamp > 0:
-            raise ConfigError(f"--clamp: must be > 0 m/s^2, got {self.clamp}")
-        if isinstance(self.batch_flights, bool) or not isinstance(self.batch_flights, int) or not 1 <= self.batch_flights <= 256:
-            raise ConfigError(f"--batch-flights: allowed integers 1-256, got {self.batch_flights!r}")
-        try:
-            resolve_threads(self.threads)
-        except ConfigError:
-            raise ConfigError(f"--threads: allowed 0 (every usable core) or 1-{usable_cores()} (the cores this "
-                              f"process may use), got {self.threads!r}") from None
-
-    @property
-    def effective_stage_minutes(self) -> float:
-        return 0.1 if self.quick else self.stage_minutes
-
-    @property
-    def effective_flight_seconds(self) -> float:
-        return 4.0 if self.quick else self.flight_seconds
-
-    @property
-    def n_train(self) -> int:
-        """Training flights per stage."""
-        return max(2, math.ceil(self.effective_stage_minutes * 60 / self.effective_flight_seconds))
-
-    @property
-    def n_val(self) -> int:
-        """Validation flights per stage."""
-        return max(1, math.ceil(self.val_ratio * self.n_train)) if self.val_ratio > 0 else 0
-
-
-def train_config(seed: int, quick: bool) -> TrainConfig:
-    """The training settings every experiment uses: the defaults, or a few steps with --quick."""
-    return TrainConfig(seed=seed, **(_QUICK_TRAINING if quick else {}))
-
-
-def provenance(cfg: CollectionConfig, field: Any) -> dict[str, Any]:
-    """What defines a collection and the models trained on it (see the module docstring)."""
-    return {
-        "field": describe(field),
-        "scene": build_scene().describe(),
-        "sim": describe(SimConfig()),
-        "controller": describe(FeedbackLinearisedLQR()),
-        "autopilot": describe(Autopilot()),
-        "turbulence": describe(OUTurbulence()),
-        "collection": {
-            "stages": describe(STAGES), "stage_minutes": cfg.effective_stage_minutes,
-            "flight_seconds": cfg.effective_flight_seconds, "n_train": cfg.n_train, "n_val": cfg.n_val,
-            "clamp": cfg.clamp, "deployed_kind": DEPLOYED_KIND, "lemniscate_share": LEMNISCATE_SHARE,
-            "log_schema": SCHEMA_VERSION, "training": train_config(cfg.seed, cfg.quick).to_dict(),
-            **({"guard": guard_settings()} if cfg.guard else {}),  # (absent when off: folders keep their key)
-        },
-        "seed": cfg.seed,
-        "code": code_version(),
-    }
-
-
-def pipeline_dirs(record: dict[str, Any], root: str | Path = "runs/pipeline") -> tuple[Path, Path]:
-    """The default (collection, models) folders of a provenance record: root/<field>-<fingerprint>/..."""
-    field = record["field"]
-    name = field.get("type", "field").rsplit(".", 1)[-1] if isinstance(field, dict) else "field"
-    base = Path(root) / f"{name}-{fingerprint(record)}"
-    return base / "collection", base / "models"
 
 
 def _check_stage(k: int, sdir: Path, entry: dict, cfg: CollectionConfig, deployed: Path | None) -> None:
@@ -254,56 +147,6 @@ def _train_and_save(kind: str, data: Dataset, train_dirs: list[Path], path: Path
                                   "data": data.summary(), "train_dirs": [str(d) for d in train_dirs],
                                   "provenance": record, "provenance_key": fingerprint(record), **extra})
     return history
-
-
-def _in_parallel(fn: Callable[[str], dict], items: Sequence[str]) -> Iterator[tuple[str, dict]]:
-    """(item, fn(item)) for every item, as each finishes, up to one forked process per core at once.
-
-    For independent trainings: each trains on one thread (`TrainConfig.num_threads`) from its
-    own seed, so a model is bit-identical to one trained in this process (a test checks), and
-    two cores train two at once. fn must write its own outputs (atomically); its result (small,
-    picklable) comes back through a pipe. Not on Linux (fork is unsafe on macOS, absent on Windows),
-    with one core, or inside a daemonic process: one after another, in this process.
-    """
-    workers = min(len(items), os.cpu_count() or 1)
-    # fork is the only start method without re-imports; a daemonic process may not have children
-    if workers < 2 or not sys.platform.startswith("linux") or multiprocessing.current_process().daemon:
-        for item in items:
-            yield item, fn(item)
-        return
-    ctx = multiprocessing.get_context("fork")
-    todo, running = list(items), {}
-    try:
-        while todo or running:
-            while todo and len(running) < workers:
-                item = todo.pop(0)
-                receive, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_run_child, args=(fn, item, send), daemon=True)
-                proc.start()
-                send.close()
-                running[receive] = (item, proc)
-            for receive in multiprocessing.connection.wait(list(running)):
-                item, proc = running.pop(receive)
-                try:
-                    ok, value = receive.recv()
-                except EOFError:
-                    ok, value = False, "the process ended without a result"
-                proc.join()
-                if not ok and proc.exitcode:
-                    value = f"{value} (exit code {proc.exitcode})"
-                if not ok:
-                    raise RuntimeError(f"{item}: {value}")
-                yield item, value
-    finally:
-        for _, proc in running.values():
-            proc.kill()
-
-
-def _run_child(fn: Callable[[str], dict], item: str, send: Any) -> None:
-    try:
-        send.send((True, fn(item)))
-    except BaseException:  # the parent raises it, with the child's traceback
-        send.send((False, traceback.format_exc()))
 
 
 def _val_rmse(checkpoint: Path, kind: str, val_data: Dataset) -> float:
@@ -465,25 +308,6 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
             "collection_seconds": manifest["collection_seconds"]}
 
 
-def check_checkpoint(path: str | Path, kind: str, record: dict[str, Any]) -> None:
-    """DataError unless the checkpoint at `path` is a `kind` model trained on data of provenance `record`."""
-    meta = read_metadata(path)
-    found = meta.get("model", {}).get("kind")
-    if found != kind:
-        raise DataError(f"{path}: holds a {found!r} model, not the {kind!r} model expected under that name; "
-                        "delete it or point --models-dir elsewhere")
-    have = meta.get("provenance")
-    if have is None or fingerprint(have) != fingerprint(record):
-        diffs = differences(have, record) if have is not None else ["no provenance record (made by older code)"]
-        raise DataError(
-            f"{path}: this {kind} model was trained on data other than what was asked for:\n  "
-            + "\n  ".join(diffs)
-            + f"\nLeave out --models-dir (and --collection-dir) to use the folders keyed by this setup, "
-            f"{pipeline_dirs(record)[1].parent}/, or delete {Path(path).parent} to train afresh there."
-        )
-    _warn_code(have, path)
-
-
 def ensure_models(
     models_dir: str | Path,
     kinds: Sequence[str],
@@ -547,28 +371,3 @@ def ensure_collection(
         else:
             collect(cfg, collection_dir, models_dir, field, progress, refly_missing=False)
     return collection_dir
-
-
-def _load_manifest(path: Path, record: dict) -> dict:
-    if not path.is_file():
-        return {"version": MANIFEST_VERSION, "provenance": record, "key": fingerprint(record), "stages": {}}
-    manifest = read_manifest(path)
-    have = manifest["provenance"]
-    if fingerprint(have) != fingerprint(record):
-        raise DataError(
-            f"{path.parent}: this folder holds a staged collection made with other settings:\n  "
-            + "\n  ".join(differences(have, record))
-            + f"\nLeave out --collection-dir (and --models-dir) to use the folders keyed by this setup, "
-            f"{pipeline_dirs(record)[0].parent}/, use another folder, or delete this one to start afresh."
-        )
-    _warn_code(have, path)
-    if manifest.get("complete"):
-        log.info("%s: collection complete; checking its logs and models", path)
-    return manifest
-
-
-def _warn_code(have: dict, where: Path | str) -> None:
-    now = code_version()
-    if have.get("code") != now:
-        log.warning("%s was made by code %s; reusing it with code %s (the provenance key matches)",
-                    where, have.get("code"), now)

@@ -19,7 +19,8 @@ from numpy.typing import ArrayLike
 from downwash_core.errors import ConfigError
 from downwash_core.validate import count, ordered_range, positive_float, vec3
 from downwash_trajectories.combinators import Mixed, StackedReference, stack
-from downwash_trajectories.primitives import MIN_JERK_PEAK, Hover, Lemniscate, Waypoints
+from downwash_trajectories.primitives import Hover, Lemniscate
+from downwash_trajectories.waypoints import MIN_JERK_PEAK, Waypoints
 
 __all__ = ["SPEED_RANGE", "LEMNISCATE_SHARE", "random_passes", "collection_reference"]
 
