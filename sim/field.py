@@ -3,8 +3,8 @@
 `DownwashField()(p_a, v_a, R_a, p_b, v_b)` is the mean acceleration (m/s^2, world
 frame, z up) that the wake of a leader `a` exerts on a follower `b`; turbulence is
 not part of it. `pairwise_field` sums it over every leader for N vehicles and works
-with any object that has the same call signature; `pairwise_forces` keeps the terms
-of that sum apart, for the aggregation laws of `sim.aggregation`.
+with any object that has the same call signature (`Field`, the protocol); `pairwise_forces`
+keeps the terms of that sum apart, for the aggregation laws of `sim.aggregation`.
 
 The law, with `dp = p_b - p_a` and the leader's axis `n = R_a[..., :, 2]`::
 
@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -41,14 +41,34 @@ from downwash_core.geometry import dot as _dot
 from downwash_core import libm
 from downwash_core.jit import njit
 from downwash_core.validate import check_trailing_shapes
+from sim.stateful_field import check_stateful_field, is_stateful
 
-__all__ = ["DownwashField", "pairwise_field", "pairwise_forces", "check_field", "unit_pair_scale"]
+__all__ = ["Field", "DownwashField", "pairwise_field", "pairwise_forces", "check_field", "unit_pair_scale",
+           "checked_states", "off_diagonal"]
 
 _EPS = np.array(1e-12)  # m, guards the division by r in v_r (at r = 0, r_vec = 0 so v_r = 0)
 _C4_CORE = 0.5  # -, radius (in units of sigma) inside which the c4 modulation tapers to 0
 # 0-d float64 constants: cheaper per op than Python floats under NumPy 2 promotion.
 _ZERO, _ONE, _THREE, _NEG_HALF = (np.array(x) for x in (0.0, 1.0, 3.0, -0.5))
 _NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[NEXT] b[PREV] - a[PREV] b[NEXT]
+
+
+@runtime_checkable
+class Field(Protocol):
+    """What the simulator calls on a field without memory: the law, through `pairwise_field`.
+
+    ``field(p_a, v_a, R_a, p_b, v_b) -> (..., 3)`` m/s^2, world frame: the mean acceleration of leader
+    a's wake on follower b (positions m, velocities m/s, attitudes (..., 3, 3) body to world),
+    broadcasting over the leading axes. Optional, found by name: ``pairwise(pos, vel, rot)`` and
+    ``pair_forces(pos, vel, rot)`` (faster sums for (W, V, 3) states, None to decline),
+    ``describe()`` (its provenance; a dataclass has one from its fields) and ``for_kinds(leader,
+    follower)`` (the field of a pair of other vehicle kinds, `sim.fields.kinds.pair_field`).
+    A field with memory is a `sim.stateful_field.StatefulField` instead; the simulator takes either.
+    """
+
+    def __call__(self, p_a: np.ndarray, v_a: np.ndarray, R_a: np.ndarray, p_b: np.ndarray,
+                 v_b: np.ndarray) -> np.ndarray: ...
+
 
 def _is_off(value: Any) -> bool:
     """True when a knob is a plain Python number equal to 0 (its code path is skipped)."""
@@ -149,26 +169,40 @@ class DownwashField:
             np.array([float(getattr(self, f.name)) for f in dataclasses.fields(self)]) if scalars else None,
         )
 
-    def pairwise(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray) -> np.ndarray | None:
+    @property
+    def packed(self) -> np.ndarray | None:
+        """(16,) float64: the constants in declaration order, as the compiled kernels (and the fused
+        tick) read them; None with per-world constants."""
+        return self._packed
+
+    def pairwise(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray,
+                 scale: np.ndarray | None = None) -> np.ndarray | None:
         """Compiled `pairwise_field(self, ...)` for (W, V, 3) inputs; None with per-world constants.
 
         Same law as `__call__`, evaluated in one loop over worlds and ordered pairs
         (the autopilot-rate hot path: NumPy's per-call overhead dominates on small batches).
+        scale: (V_leader, V_follower) factors of each pair's strength (None: all 1; the pairs of
+        vehicle kinds, `sim.vehicle_params.KindPairs`).
         """
         if self._packed is None:
             return None
-        return _pairwise_kernel(pos, vel, rot, self._packed, unit_pair_scale(pos.shape[1]))  # strided views as they are
+        if scale is None:
+            scale = unit_pair_scale(pos.shape[1])
+        return _pairwise_kernel(pos, vel, rot, self._packed, scale)  # strided views as they are
 
-    def pair_forces(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray) -> np.ndarray | None:
+    def pair_forces(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray,
+                    scale: np.ndarray | None = None) -> np.ndarray | None:
         """Compiled `pairwise_forces(self, ...)` for (W, V, 3) inputs; None with per-world constants.
 
-        pos, vel (W, V, 3) m, m/s and rot (W, V, 3, 3), world frame. Returns
+        pos, vel (W, V, 3) m, m/s and rot (W, V, 3, 3), world frame; scale as in `pairwise`. Returns
         (W, V_leader, V_follower, 3) m/s^2: every ordered pair's force, 0 on the diagonal;
         summed over leaders it is `pairwise(...)` up to rounding (bit for bit for V = 2).
         """
         if self._packed is None:
             return None
-        return _pair_forces_kernel(pos, vel, rot, self._packed, unit_pair_scale(pos.shape[1]))
+        if scale is None:
+            scale = unit_pair_scale(pos.shape[1])
+        return _pair_forces_kernel(pos, vel, rot, self._packed, scale)
 
     def __call__(
         self,
@@ -292,7 +326,7 @@ def pairwise_field(
             result = fast(pos, vel, rot)
             if result is not None:
                 return result
-    pos, vel, rot, n_veh = _checked_states(pos, vel, rot)
+    pos, vel, rot, n_veh = checked_states(pos, vel, rot)
     # Leaders i along axis -3, followers j along axis -2 of the (..., i, j, 3) result.
     forces = field(
         pos[..., :, None, :],
@@ -301,7 +335,7 @@ def pairwise_field(
         pos[..., None, :, :],
         vel[..., None, :, :],
     )
-    return np.where(_off_diagonal(n_veh), forces, 0.0).sum(axis=-3)
+    return np.where(off_diagonal(n_veh), forces, 0.0).sum(axis=-3)
 
 
 def pairwise_forces(
@@ -329,7 +363,7 @@ def pairwise_forces(
             result = fast(pos, vel, rot)
             if result is not None:
                 return result
-    pos, vel, rot, n_veh = _checked_states(pos, vel, rot)
+    pos, vel, rot, n_veh = checked_states(pos, vel, rot)
     forces = field(
         pos[..., :, None, :],
         vel[..., :, None, :],
@@ -337,10 +371,10 @@ def pairwise_forces(
         pos[..., None, :, :],
         vel[..., None, :, :],
     )
-    return np.where(_off_diagonal(n_veh), forces, 0.0)
+    return np.where(off_diagonal(n_veh), forces, 0.0)
 
 
-def _checked_states(pos: Any, vel: Any, rot: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def checked_states(pos: Any, vel: Any, rot: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """(pos, vel, rot, V) as arrays; ConfigError unless (..., V, 3), (..., V, 3), (..., V, 3, 3)."""
     pos, vel, rot = np.asarray(pos), np.asarray(vel), np.asarray(rot)
     if pos.ndim < 2 or pos.shape[-1] != 3:
@@ -359,7 +393,7 @@ def _checked_states(pos: Any, vel: Any, rot: Any) -> tuple[np.ndarray, np.ndarra
 
 
 @functools.lru_cache(maxsize=None)
-def _off_diagonal(n_veh: int) -> np.ndarray:
+def off_diagonal(n_veh: int) -> np.ndarray:
     """(V, V, 1) read-only bool mask, False where leader == follower."""
     mask = ~np.eye(n_veh, dtype=bool)[:, :, None]
     mask.flags.writeable = False
@@ -514,8 +548,6 @@ def check_field(field: Any, pos: np.ndarray | None = None, vel: np.ndarray | Non
         pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9]], [[0.1, -0.2, 2.4], [0.25, 0.0, 1.7]]])
         vel = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0], [0.0, 0.5, -0.1]]])
         rot = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
-    from sim.field_memory import check_stateful_field, is_stateful  # (it builds on this module's neighbours)
-
     if is_stateful(field):  # a field with memory: a few steps of its wake instead of one call
         return check_stateful_field(field, pos, vel, rot, label, finite)
     if not callable(field):

@@ -16,75 +16,25 @@ the air), combines the per-pair forces by the aggregation law, and resets a worl
 with the world. A flight with a stateful field flies the simulator's readable path (the fused
 tick has no pass for it yet); an `OraclePredictor` of the same field reads the per-pair forces
 the simulator has just computed, combined by its own law, so it sees the same truth.
+
+The protocol, `FieldMemory` and the check live in `sim.stateful_field` (below `sim.field`, which
+checks a field before any flight) and are re-exported here; this module adds the oracle, which
+needs the predictors.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
 from typing import Any
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from downwash_core.vehicles import DEFAULT_VEHICLE
-from sim.aggregation import LinearSuperposition
 from sim.predictor import OraclePredictor, PerWorldPredictor
+from sim.stateful_field import FieldMemory, StatefulField, check_stateful_field, combined, is_stateful
 
-__all__ = ["is_stateful", "FieldMemory", "MemoryOracle", "kept_memory", "memory_oracle", "check_stateful_field"]
-
-_METHODS = ("initial_state", "step", "forces")
-
-
-def is_stateful(field: Any) -> bool:
-    """Whether `field` is a field with memory (the protocol of the module docstring)."""
-    return all(callable(getattr(field, m, None)) for m in _METHODS)
-
-
-def _arrays(state: Any) -> dict[str, np.ndarray]:
-    """The arrays of a state (NamedTuple or dataclass), by name."""
-    items = state._asdict() if hasattr(state, "_asdict") else {f.name: getattr(state, f.name)
-                                                                  for f in dataclasses.fields(state)}
-    return {k: v for k, v in items.items() if isinstance(v, np.ndarray)}
-
-
-class FieldMemory:
-    """A stateful field's wake over W worlds of V vehicles, stepped every dt (s).
-
-    source: the field the simulator flies; kinds: each vehicle's kind name, given to a field with
-    ``for_vehicles(kinds)`` unless every vehicle is the paper quad (`field`: the field so bound)."""
-
-    def __init__(self, source: Any, W: int, V: int, dt: float, kinds: Any = ()):
-        bind = getattr(source, "for_vehicles", None)
-        mixed = any(k != DEFAULT_VEHICLE for k in kinds)
-        self.source, self.field = source, bind(list(kinds)) if mixed and callable(bind) else source
-        self.W, self.V, self.dt = W, V, float(dt)
-        self.state = self.field.initial_state(W, V)
-        self.last = (np.zeros((W, V, V, 3)), None, None)  # the latest `advance`'s (forces, pos, rot): an oracle's
-
-    def reset(self, worlds: np.ndarray) -> None:
-        """Empty the wakes of these worlds (their rows of a fresh state)."""
-        fresh = _arrays(self.field.initial_state(self.W, self.V))
-        for name, a in _arrays(self.state).items():
-            if a.ndim and a.shape[0] == self.W:
-                a[worlds] = fresh[name][worlds]
-        self.last[0][worlds] = 0.0
-
-    def advance(self, pos: np.ndarray, vel: np.ndarray, vel_air: np.ndarray, rot: np.ndarray,
-                wind: np.ndarray | None, law: Any = None) -> np.ndarray:
-        """Step the wake by dt with the vehicles' true states (pos, vel (W, V, 3) over the ground, rot
-        (W, V, 3, 3)) and each world's air velocity (wind (W, 3) m/s or None), then the force on every
-        vehicle (W, V, 3) from the wake, at its velocity relative to the air (vel_air), combined by
-        `law` (None: linear superposition)."""
-        self.field.step(self.state, self.dt, pos, vel, rot, wind=wind)
-        self.last = (np.asarray(self.field.forces(self.state, pos, vel_air, rot)), pos, rot)
-        return combined(self.last, law)
-
-
-def combined(last: tuple, law: Any = None) -> np.ndarray:
-    """(W, V, 3) m/s^2: per-pair forces (W, V, V, 3) at (pos, rot) combined by `law` (None: linear)."""
-    forces, pos, rot = last
-    return np.asarray((LinearSuperposition() if law is None else law).combine(forces, pos, rot))
+__all__ = ["is_stateful", "StatefulField", "FieldMemory", "MemoryOracle", "kept_memory", "memory_oracle",
+           "check_stateful_field"]
 
 
 class MemoryOracle:
@@ -133,24 +83,3 @@ def memory_oracle(memory: FieldMemory | None, predictor: Any, worlds: np.ndarray
         raise ConfigError(f"predictor: an OraclePredictor of the field with memory {type(predictor.field).__name__} "
                           "knows the wake only when the simulator flies that same field object (field=...)")
     return None
-
-
-def check_stateful_field(field: Any, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, label: str,
-                         finite: bool = True) -> None:
-    """ConfigError unless a stateful field steps and returns (W, V, V, 3) per-pair forces, finite unless
-    `finite` is False: a few steps on the given states (pos, vel (W, V, 3), rot (W, V, 3, 3))."""
-    W, V = pos.shape[:2]
-    try:
-        memory = FieldMemory(field, W, V, 0.01)
-        for _ in range(5):
-            out = memory.advance(pos, vel, vel, rot, None)
-        forces = memory.last[0]
-    except (TypeError, ValueError, IndexError, AttributeError) as e:
-        raise ConfigError(f"{label}: a field with memory must offer initial_state(W, V), step(state, dt, pos, vel, "
-                          f"rot, thrust=None, wind=None) and forces(state, pos, vel, rot); using it failed: "
-                          f"{type(e).__name__}: {e}") from e
-    if forces.shape != (W, V, V, 3):
-        raise ConfigError(f"{label}: forces(...) must be (W, V, V, 3) = {(W, V, V, 3)}, got {forces.shape}")
-    if finite and not np.all(np.isfinite(out)):
-        raise ConfigError(f"{label}: returned non-finite accelerations (m/s^2) for followers near a leader: "
-                          f"{out.tolist()}")

@@ -231,7 +231,7 @@ def _make_fused_kernel(with_wind: bool):
         live physics state; ref_*: the reference at the tick's start ((W, V, 3), (W, V));
         residual, override: (W, V, 3) m/s^2 C-contiguous, as in `Simulator.tick`, each used only
         where actions (bit 0: residual, bit 1: override) says so; row: the tick's
-        flat row (`sim.rows._row_layout`), written by sub-tick 0; chunks (n, 4) int64: per chunk its first
+        flat row (`sim.rows.row_layout`), written by sub-tick 0; chunks (n, 4) int64: per chunk its first
         and last + 1 world, the address of this thread's scratch MjData and of its warnings
         (stepping `_STEP_ROWS`). Worlds are independent: chunks run on separate threads.
         Unless the caller steps the physics (`_STEP_CALLER`), each sub-tick also steps it,

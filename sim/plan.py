@@ -1,15 +1,17 @@
 """The fused path's plan: whether a simulator's components can fly it, and its bound tables.
 
-`_make_plan(sim)` decides, each time a `sim.simulator.Simulator` binds its components,
+`_make_plan(sim, bound)` decides, each time a `sim.simulator.Simulator` binds its components,
 between the fused compiled tick (`sim.fused`) and the readable path: it returns a `_Plan`
-when every component has a compiled form, else None. The fused path needs
+when every component has a compiled form, else None. It reads the simulator's public attributes
+and, of what the simulator derives when it binds, only what the simulator hands it as `bound`
+(`PlanInputs`, a frozen view). The fused path needs
 
 - the controller: exactly `controllers.lqr.FeedbackLinearisedLQR` (any `LQRConfig`; not a
   subclass, which may override `command_setpoint`), see `_compiled_controller`; its gains
   and limits run as `controllers.lqr._command_setpoint_kernel`;
 - the autopilot: a `controllers.autopilot.Autopilot` (its per-vehicle tables, `Autopilot.tables`);
 - the field: a `sim.field.DownwashField` with scalar constants and linear aggregation
-  (`_packed_field`), whose pairwise sum is `sim.field._pairwise_kernel` with the scene's
+  (`_packed_field`), whose pairwise sum is `DownwashField.pairwise` with the scene's
   per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads);
 - the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
@@ -30,7 +32,9 @@ The worlds of a batch are split into chunks for the helper threads (`_chunk_size
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -44,8 +48,46 @@ from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _
 from sim.physics import _SerialPhysics
 from sim.predictor import (CompiledGuard, CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor,
                            is_stateful)
-from sim.rows import _row_layout
+from sim.rows import row_layout
 from sim.vehicle_params import told_kinds
+
+__all__ = ["PlanInputs"]
+
+
+@dataclass(frozen=True)
+class PlanInputs:
+    """What the plan reads of a simulator beyond its public attributes: what `Simulator._bind` derives
+    from the components, and the state arrays the fused tick addresses (the simulator updates them in
+    place; the tick writes them). Each field is the simulator's attribute of the same name with a
+    leading underscore, handed over by the simulator when it binds (`names`)."""
+
+    scene_predictor: Any  # the predictor as the scene binds it (`sim.vehicle_params.scene_predictor`)
+    wind_on: bool
+    layout: np.ndarray  # (V, 7) int64: per vehicle its qpos and qvel addresses, body id and actuator ids
+    noise: np.ndarray  # (W, block, V, 9): each world's noise block
+    wind_noise: np.ndarray  # (W, block, 3, 2): each world's gust draws
+    cursor: np.ndarray  # (W,) int64: each world's next row of its noise block
+    due: np.ndarray  # (W,) bool: the worlds whose prediction is due
+    rot_des: np.ndarray  # (W, V, 3, 3), the control's setpoint for the autopilot
+    yaw_rate_des: np.ndarray  # (W, V) rad/s
+    thrust_acc: np.ndarray  # (W, V) m/s^2
+    mass_believed: np.ndarray  # (W, V) kg, the controller's model
+    ap_gain: np.ndarray  # (V, 14, 4), the autopilot's tables per vehicle
+    max_thrust: np.ndarray  # (V,) N
+    status_new: np.ndarray  # (W,) int64: how each world ended this tick (0: it did not)
+    sigma_p: float  # m, the sensor's white position noise
+    sigma_att: float  # rad, its attitude noise
+    kf_gain_p: float  # the Kalman filter's steady-state gains
+    kf_gain_v: float
+    ou_a: float  # the turbulence's recursion over one autopilot tick
+    ou_b: float
+    turbulence_intensity: float
+    prediction_period: float  # s
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The fields, in order."""
+        return tuple(f.name for f in dataclasses.fields(cls))
 
 
 class _NoPlan(Exception):
@@ -58,17 +100,17 @@ def _compiled_controller(controller: Any) -> bool:
     return type(controller) is FeedbackLinearisedLQR
 
 
-def _make_plan(sim: Any) -> _Plan | None:
-    """The fused path's plan for simulator `sim` when every component has a compiled form (see the
-    module docstring), else None: the readable path."""
+def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
+    """The fused path's plan for simulator `sim`, whose bound state is `bound`, when every component
+    has a compiled form (see the module docstring), else None: the readable path."""
     field_packed = _packed_field(sim.field, sim.aggregation)
     if field_packed is None or not _compiled_controller(sim.controller):
         return None
     if not isinstance(sim.autopilot, Autopilot):
         return None
     guard = None
-    if is_stateful(sim._scene_predictor) and type(sim._scene_predictor) is not PerWorldPredictor:
-        parts = getattr(sim._scene_predictor, "compiled_guard", lambda W, V: None)(sim.W, sim.V)
+    if is_stateful(bound.scene_predictor) and type(bound.scene_predictor) is not PerWorldPredictor:
+        parts = getattr(bound.scene_predictor, "compiled_guard", lambda W, V: None)(sim.W, sim.V)
         if parts is None:  # its resets and due worlds: only a guard's pass has them compiled
             return None
         guarded, guard = parts
@@ -90,7 +132,7 @@ def _make_plan(sim: Any) -> _Plan | None:
     elif type(predictor) is ZeroPredictor:
         code = _PRED_ZERO
     elif type(predictor) is PerWorldPredictor:
-        per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params, sim._scene_predictor)
+        per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params, bound.scene_predictor)
         if per_world is None:
             return None
         code = _PRED_PER_WORLD
@@ -100,12 +142,13 @@ def _make_plan(sim: Any) -> _Plan | None:
             return None
         code, oracle_packed = _PRED_ORACLE, packed
     else:
-        compiled = getattr(sim._scene_predictor, "compiled", lambda: None)()  # told the scene's kinds (`_bind`)
+        compiled = getattr(bound.scene_predictor, "compiled", lambda: None)()  # told the scene's kinds (`_bind`)
         if compiled is None:
             return None
         code = _PRED_C
     try:
-        return _Plan(sim, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world, guard)
+        return _Plan(sim, bound, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world,
+                     guard)
     except _NoPlan:
         return None
 
@@ -113,36 +156,37 @@ def _make_plan(sim: Any) -> _Plan | None:
 class _Plan:
     """The fast path's bound state: the tables of `_fused_kernel` and every array they address.
 
-    Built from a simulator's current components (`_make_plan`); holding the
+    Built from a simulator's current components and bound state (`_make_plan`); holding the
     arrays here keeps every address in the tables valid for the plan's lifetime.
     chunks: (n_threads, n, 4) int64, the n world ranges (`_chunk_sizes`) as thread t runs them, with
     its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn from one
     counter (`sim.fork_join`).
     """
 
-    def __init__(self, sim: Any, stepping: int, physics_native: tuple | None, field_packed: np.ndarray,
-                 oracle_packed: np.ndarray, predictor_code: int, compiled: CompiledPredictor | None,
-                 n_threads: int, per_world: dict[str, Any] | None = None, guard: CompiledGuard | None = None):
+    def __init__(self, sim: Any, bound: PlanInputs, stepping: int, physics_native: tuple | None,
+                 field_packed: np.ndarray, oracle_packed: np.ndarray, predictor_code: int,
+                 compiled: CompiledPredictor | None, n_threads: int, per_world: dict[str, Any] | None = None,
+                 guard: CompiledGuard | None = None):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
         self.revision = ph.revision
         self.stepping = stepping
         self.n_sub = r.autopilot_per_control
         pw_guards = per_world is not None and bool(per_world["pw_guard_fn"].any())
-        self.row_layout, self.row_size = _row_layout(W, V, sim._wind_on, guard is not None or pw_guards)
-        wind_consts = sim.wind.kernel_constants() if sim._wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
+        self.row_layout, self.row_size = row_layout(W, V, bound.wind_on, guard is not None or pw_guards)
+        wind_consts = sim.wind.kernel_constants() if bound.wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
         keep: dict[str, np.ndarray] = {
-            "layout": sim._layout, "noise": sim._noise, "cursor": sim._cursor, "pos_est": sim.pos_est,
-            "vel_est": sim.vel_est, "t": sim.t, "next_prediction": sim.next_prediction, "due": sim._due,
-            "field_enabled": sim.field_enabled, "turb": sim.turb, "rot_des": sim._rot_des,
-            "yaw_rate_des": sim._yaw_rate_des, "thrust_acc": sim._thrust_acc, "mass_believed": sim._mass_believed,
-            "ap_gain": sim._ap_gain, "max_thrust": sim._max_thrust, "active": sim.active,
-            "f_hat": sim.f_hat, "tick_index": sim.tick_index, "status_new": sim._status_new,
+            "layout": bound.layout, "noise": bound.noise, "cursor": bound.cursor, "pos_est": sim.pos_est,
+            "vel_est": sim.vel_est, "t": sim.t, "next_prediction": sim.next_prediction, "due": bound.due,
+            "field_enabled": sim.field_enabled, "turb": sim.turb, "rot_des": bound.rot_des,
+            "yaw_rate_des": bound.yaw_rate_des, "thrust_acc": bound.thrust_acc, "mass_believed": bound.mass_believed,
+            "ap_gain": bound.ap_gain, "max_thrust": bound.max_thrust, "active": sim.active,
+            "f_hat": sim.f_hat, "tick_index": sim.tick_index, "status_new": bound.status_new,
             "kin": np.empty((5, W, V, 3)), "quat": np.empty((W, V, 4)), "rot": np.empty((W, V, 3, 3)),
             "quat_est": np.empty((W, V, 4)), "rot_est": np.empty((W, V, 3, 3)), "yaw": np.empty((W, V)),
             "applied": np.empty((W, V, 3)), "mean": np.empty((W, V, 3)), "pred": np.empty((W, V, 3)),
             "Kt": np.ascontiguousarray(sim.controller._Kt, dtype=np.float64), "field_packed": field_packed,
-            "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": sim._wind_noise,
+            "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": bound.wind_noise,
             "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
             "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
             "wind_acc": np.empty((W, V, 3)), "diverged": np.zeros(W, bool), "mocap_offset": sim.mocap_offset,
@@ -215,15 +259,16 @@ class _Plan:
         self.n_threads = n_threads
         lqr = sim.controller
         fc = {
-            "sigma_p": sim._sigma_p, "sigma_att": sim._sigma_att, "kf_gain_p": sim._kf_gain_p,
-            "kf_gain_v": sim._kf_gain_v, "ou_a": sim._ou_a, "ou_b": sim._ou_b, "intensity": sim._turbulence_intensity,
-            "dt": r.autopilot_dt, "prediction_period": sim._prediction_period, "lookahead": r.control_dt,
+            "sigma_p": bound.sigma_p, "sigma_att": bound.sigma_att, "kf_gain_p": bound.kf_gain_p,
+            "kf_gain_v": bound.kf_gain_v, "ou_a": bound.ou_a, "ou_b": bound.ou_b,
+            "intensity": bound.turbulence_intensity,
+            "dt": r.autopilot_dt, "prediction_period": bound.prediction_period, "lookahead": r.control_dt,
             "tan_tilt": math.tan(lqr.max_tilt), "min_vertical": lqr.min_vertical,
             "min_airspeed": wind_consts[4], "max_distance": cfg.max_distance, "ground": cfg.ground_clearance,
         }
         self.fc = np.array([float(fc[name]) for name in _FC])
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
-        self.kernel = _FUSED_KERNELS[int(sim._wind_on)]
+        self.kernel = _FUSED_KERNELS[int(bound.wind_on)]
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
 
 
@@ -312,7 +357,7 @@ def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:
         return None
     if type(field).__call__ is not DownwashField.__call__:
         return None
-    packed = getattr(field, "_packed", None)
+    packed = field.packed
     if packed is None or packed.shape != (16,):
         return None
     return np.ascontiguousarray(packed, dtype=np.float64)

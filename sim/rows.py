@@ -2,7 +2,7 @@
 
 The readable path returns a tick's row as a dict of fresh arrays; the fused path
 (`sim.fused`) writes the same names into one flat float64 array per tick, laid out by
-`_row_layout`, and returns it as a `Row`, a read-only mapping of views into it.
+`row_layout`, and returns it as a `Row`, a read-only mapping of views into it.
 `sim.flight` stacks many rows' flat arrays at once.
 """
 
@@ -14,7 +14,7 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["Row"]
+__all__ = ["Row", "row_layout"]
 
 # The row of a controller tick: name -> trailing shape after (W,), in the order of the
 # readable path's dicts. "wind" and "wind_acc" only when the wind is on.
@@ -32,7 +32,7 @@ _ROW_STORAGE = ("pos", "vel", "mocap_pos", "pos_est", "vel_est", "t", "quat", "q
                 "ref_pos", "ref_vel", "ref_acc", "u_cmd", "f_hat", "field_mean", "wind", "wind_acc", "applied")
 
 
-def _row_layout(W: int, V: int, wind: bool, guard: bool = False) -> tuple[dict[str, tuple[int, tuple[int, ...]]], int]:
+def row_layout(W: int, V: int, wind: bool, guard: bool = False) -> tuple[dict[str, tuple[int, tuple[int, ...]]], int]:
     """({name: (offset, shape)}, size) of a flat row; shapes (W, ...) in the order of `_ROW_FIELDS`, then
     the wind's and the guard's fields when they are there."""
     fields = dict(_ROW_FIELDS + (_WIND_ROW_FIELDS if wind else ()) + (_GUARD_ROW_FIELDS if guard else ()))

@@ -41,7 +41,7 @@ import math
 import re
 from dataclasses import asdict, dataclass
 from types import MappingProxyType
-from typing import Any, Callable, ClassVar, Mapping, NamedTuple, Protocol
+from typing import Any, Callable, ClassVar, Mapping, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -63,8 +63,10 @@ class CompiledSensor(NamedTuple):
     attitude_std: float  # rad, white noise per axis of the body-frame rotation vector
 
 
+@runtime_checkable
 class Sensor(Protocol):
-    """What the simulator asks of a sensor (`SimConfig.mocap`)."""
+    """What the simulator asks of a sensor (`SimConfig.mocap`); `isinstance(x, Sensor)` checks that it has
+    each member (not their signatures)."""
 
     name: ClassVar[str]  # its registry name, and the label of its errors
     process_accel_noise: float  # m/s^2, the Kalman filter's process noise (an estimator setting it carries)

@@ -28,7 +28,8 @@ Galilean invariance for a uniform wind), as does the oracle; learned predictors 
 estimated ground velocities. Logged rows then hold `wind` (m/s) and `wind_acc` (the drag).
 A field with memory (`sim.field_memory`) is stepped on the autopilot grid, carried by the
 same air, and a predictor with state (`sim.predictor.is_stateful`) is reset with its worlds and
-told which are due: both on the readable path.
+told which are due: both on the readable path. A controller with ``reset(worlds)`` (its integrators
+and filters, `controllers.lab_common`) is reset with its worlds too.
 
 Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled
 passes of one autopilot tick, shared by both paths), `sim.fused` (the fused tick: a whole
@@ -70,7 +71,7 @@ from sim.fused import _FC, _STEP_CALLER, _TAB
 from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _Sensed, _status_kernel, _true_states_kernel,
                         _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
 from sim.physics import check_world_memory, make_physics
-from sim.plan import _compiled_controller, _make_plan, _Plan
+from sim.plan import PlanInputs, _compiled_controller, _make_plan, _Plan
 from sim.predictor import Predictor, ZeroPredictor, is_stateful
 from sim.rows import Row
 from sim.scene import Scene
@@ -298,7 +299,7 @@ class Simulator:
             self._ap_gain, self._max_thrust, self.physics.ctrl,
             self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
         )
-        self._plan = _make_plan(self) if self.fast else None
+        self._plan = _make_plan(self, PlanInputs(**{k: getattr(self, "_" + k) for k in PlanInputs.names()})) if self.fast else None
         self._observe = None if getattr(self._plan, "monitors", False) else getattr(self._scene_predictor, "observe", None)
         if self.fast and not _compiled_controller(self.controller) and not self.__dict__.get("_warned_readable"):
             self.__dict__["_warned_readable"] = True  # once per simulator
@@ -368,10 +369,9 @@ class Simulator:
         self.turb[worlds] = 0.0
         self.f_hat[worlds] = 0.0
         self.next_prediction[worlds] = 0.0
-        if self._memory is not None:  # the worlds' wakes start empty
-            self._memory.reset(worlds)
-        if self._predictor_state:
-            self._scene_predictor.reset(worlds)
+        for part in (self._memory, self._scene_predictor if self._predictor_state else None, self.controller):
+            if callable(getattr(part, "reset", None)):  # wakes, a predictor's and a controller's state: afresh
+                part.reset(worlds)
         self._cursor_max = int(self._cursor.max())
 
     def _refill(self, w: int) -> None:

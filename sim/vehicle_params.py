@@ -20,7 +20,8 @@ The numbers are per vehicle and the same in every world: the envs' per-episode r
 believed mass, `Simulator._mass_believed`, is (W, V)).
 
 Wakes between kinds. The fields are set for a paper quad in a paper quad's wake; `pair_field(field,
-leader, follower)` is the field for one ordered pair (docs/fields.md, "Vehicles of other kinds"):
+leader, follower)` is the field for one ordered pair (docs/fields.md, "Vehicles of other kinds"; it
+lives in `sim.fields.kinds`, beside the fields that build on it, and is re-exported here):
 
 - `sim.field.DownwashField` (so2): strength x `so2_pair_scale(leader, follower)` =
   (m_l / m_f) min(1, A_f / A_l): the leader's disc loading sets the wake's dynamic pressure, the
@@ -45,22 +46,14 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import QUAD, QuadParams
-from downwash_core.vehicles import (VEHICLES, VehicleKind, airframe_area_scale, as_params, momentum_drag_area_scale,
-                                    momentum_wake_kwargs, size_scale, so2_pair_scale)
-from sim.field import DownwashField, _checked_states, _off_diagonal, _pair_forces_kernel, _pairwise_kernel
-from sim.fields.momentum import MomentumWake
-from sim.field_memory import is_stateful
+from downwash_core.vehicles import airframe_area_scale, as_params, size_scale, so2_pair_scale
+from sim.field import DownwashField, checked_states, off_diagonal
+from sim.fields.kinds import kind_name, pair_field
 from sim.predictor import OraclePredictor, PerWorldPredictor
+from sim.stateful_field import is_stateful
 from sim.wind import AIRFRAME
 
 __all__ = ["VehicleParams", "KindPairs", "pair_field", "scene_field", "scene_predictor", "collision_radii"]
-
-
-def _name(params: QuadParams) -> str:
-    """The kind's name: its own, a registered kind's of the same numbers, else "SimConfig.quad"."""
-    if isinstance(params, VehicleKind):
-        return params.name
-    return next((k.name for k in VEHICLES.values() if k.params == params), "SimConfig.quad")
 
 
 def collision_radii(quads: Sequence[QuadParams], radius_xy: float, radius_z: float) -> tuple[np.ndarray, np.ndarray]:
@@ -98,8 +91,8 @@ class VehicleParams:
         quads = tuple(as_params(k) for k in kinds)
         if scene.kinds and own != QUAD and any(q != own for q in quads):
             raise ConfigError(
-                f"SimConfig.quad: set to {_name(own)} (mass {own.mass} kg), not the scene's vehicles of kinds "
-                f"{[_name(k) for k in kinds]}; each vehicle flies its own kind's numbers: leave SimConfig.quad at "
+                f"SimConfig.quad: set to {kind_name(own)} (mass {own.mass} kg), not the scene's vehicles of kinds "
+                f"{[kind_name(k) for k in kinds]}; each vehicle flies its own kind's numbers: leave SimConfig.quad at "
                 "the paper quad (the vehicle of a scene without kinds) or build the scene of that kind "
                 "(sim.scene.build_scene(kinds=...))")
         # the wind's drag per unit mass, each airframe's area by geometric similarity (exactly AIRFRAME's
@@ -108,7 +101,7 @@ class VehicleParams:
                 for q in quads]
         xy, z = collision_radii(quads, config.collision_radius_xy, config.collision_radius_z)
         return cls(
-            quads=quads, names=tuple(_name(k) for k in kinds),
+            quads=quads, names=tuple(kind_name(k) for k in kinds),
             mass=np.array([q.mass for q in quads], dtype=np.float64),
             drag_gain=np.array([d.gain(q.mass) for d, q in zip(drag, quads)], dtype=np.float64),
             hover_thrust=np.array([q.hover_rotor_thrust for q in quads], dtype=np.float64),
@@ -140,29 +133,6 @@ class VehicleParams:
 # ----------------------------------------------------------------------------- wakes between kinds
 
 
-def pair_field(field: Any, leader: QuadParams, follower: QuadParams) -> Any:
-    """The field for one ordered pair: `field` itself for two paper quads (and wherever the kinds change
-    nothing), else the field with the kinds' numbers (see the module docstring); ConfigError for a field
-    that does not say how it scales."""
-    leader, follower = as_params(leader), as_params(follower)
-    if leader == QUAD and follower == QUAD:
-        return field
-    if isinstance(field, DownwashField):
-        scale = so2_pair_scale(leader, follower)
-        return field if scale == 1.0 else dataclasses.replace(field, strength=field.strength * scale)
-    if isinstance(field, MomentumWake):
-        paired = dataclasses.replace(field, **momentum_wake_kwargs(leader, follower),
-                                     drag_area=field.drag_area * momentum_drag_area_scale(leader, follower))
-        return field if paired == field else paired
-    for_kinds = getattr(field, "for_kinds", None)
-    if callable(for_kinds):
-        return for_kinds(leader, follower)
-    raise ConfigError(
-        f"field {type(field).__name__}: no scaling for a {_name(leader)} leader and a {_name(follower)} follower; "
-        "a scene of other vehicle kinds than the paper quad flies sim.field.DownwashField, "
-        "sim.fields.momentum.MomentumWake, or a field with for_kinds(leader, follower) -> the field of that pair")
-
-
 class KindPairs:
     """A field over a scene of vehicle kinds: every ordered pair with its own field (`pair_field`).
 
@@ -184,10 +154,10 @@ class KindPairs:
                     fields[a, b], masks[a, b] = pair_field(field, a, b), np.zeros((V, V, 1), bool)
                 masks[a, b][i, j] = True
         self.groups = [(fields[key], masks[key]) for key in fields]  # (the pair's field, (V, V, 1) its pairs)
-        packed = getattr(field, "_packed", None)
-        self._compiled = (isinstance(field, DownwashField) and packed is not None
+        # a DownwashField of scalar constants whose sums are DownwashField's: its compiled kernels, each
+        # pair with its factor
+        self._compiled = (isinstance(field, DownwashField) and field.packed is not None
                           and type(field).pairwise is DownwashField.pairwise)
-        self._packed = packed
 
     def describe(self) -> dict[str, Any]:
         from downwash_core.provenance import describe
@@ -201,21 +171,21 @@ class KindPairs:
     def pairwise(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray) -> np.ndarray:
         """(..., V, 3) m/s^2: on every vehicle, the sum over the others of their pair's field."""
         if self._compiled and pos.ndim == 3:
-            return _pairwise_kernel(pos, vel, rot, self._packed, self.scale)
+            return DownwashField.pairwise(self.field, pos, vel, rot, self.scale)
         return self.pair_forces(pos, vel, rot).sum(axis=-3)
 
     def pair_forces(self, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray) -> np.ndarray:
         """(..., V_leader, V_follower, 3) m/s^2: every ordered pair's force, its pair's field; 0 on the diagonal."""
         if self._compiled and pos.ndim == 3:
-            return _pair_forces_kernel(pos, vel, rot, self._packed, self.scale)
-        pos, vel, rot, n_veh = _checked_states(pos, vel, rot)
+            return DownwashField.pair_forces(self.field, pos, vel, rot, self.scale)
+        pos, vel, rot, n_veh = checked_states(pos, vel, rot)
         leaders, followers = (pos[..., :, None, :], vel[..., :, None, :], rot[..., :, None, :, :]), \
             (pos[..., None, :, :], vel[..., None, :, :])
         forces = None
         for field, mask in self.groups:
             f = np.asarray(field(*leaders, *followers), dtype=np.float64)
             forces = np.where(mask, f, 0.0 if forces is None else forces)
-        return np.where(_off_diagonal(n_veh), forces, 0.0)
+        return np.where(off_diagonal(n_veh), forces, 0.0)
 
 
 def scene_field(field: Any, vehicles: VehicleParams) -> Any:

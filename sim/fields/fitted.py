@@ -41,6 +41,7 @@ from typing import Any, Mapping
 
 from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import to_json
+from sim.fields.registry import FIELDS
 
 __all__ = ["FITTED_PREFIX", "FITTED_SCHEMA", "REQUIRED_KEYS", "FittedInfo", "fitted_class", "record_digest",
            "fitted_record", "read_fitted", "build_fitted", "resolve_fitted_spec"]
@@ -171,8 +172,6 @@ def read_fitted(path: str | Path, data_digest: str | None = None) -> dict[str, A
 def build_fitted(record: Mapping[str, Any], where: str = "fitted field") -> Any:
     """The field of a checked record: the registered base field built with ``fixed`` and ``params``,
     as an instance of its `fitted_class`; DataError for an unknown base field or parameter."""
-    from sim.fields.registry import FIELDS  # (the registry resolves specs through this module)
-
     base = record["base"]
     if base not in FIELDS:
         raise DataError(f"{where}: base field {base!r} is not registered here (registered: {', '.join(FIELDS)})")

@@ -99,8 +99,9 @@ from downwash_core.jit import njit
 from downwash_core.params import GRAVITY
 from downwash_core.validate import count, number
 from downwash_core.vehicles import get_vehicle
-from sim.fields import momentum as _momentum
-from sim.fields import shed_kernels as _kernels
+import sim.fields.momentum as _momentum
+import sim.fields.shed_kernels as _kernels
+from sim.fields.kinds import pair_field
 from sim.fields.momentum import MomentumWake
 
 __all__ = ["ShedWake", "WakeState"]
@@ -112,6 +113,7 @@ _TABLE_S = (1e-5, 1e4)  # m, the travel table's depths (geometric), beyond any w
 _TABLE_POINTS = 10_000  # -, spacing ratio 1.002: s(age) within 1e-6 (relative) of quadrature
 _ESTIMATE = np.zeros((0, 0))  # the compiled step's "no thrust given" (each kind's estimate)
 _STILL = np.zeros((0, 3))  # the compiled passes' "no wind"
+_LEVEL = np.eye(3)  # a level leader's attitude: its thrust estimate is the hover thrust times thrust_scale
 
 
 @dataclass
@@ -227,7 +229,7 @@ class ShedWake:
                          for law, _ in self._pairs]).reshape(n_kinds, n_kinds, _kernels.N_PAIR)
         source = np.zeros((n_kinds, _kernels.N_SOURCE))
         source[:, _kernels.S_TRAVEL] = [self.convection * src.vh_per_sqrt_thrust for src in self._sources]
-        source[:, _kernels.S_THRUST] = [float(src.law.thrust_scale) * src.law._hover_thrust for src in self._sources]
+        source[:, _kernels.S_THRUST] = [float(src.law.leader_thrust(_LEVEL)) for src in self._sources]
         x = np.stack([src.reduced for src in self._sources])
         s = np.stack([src.s for src in self._sources])
         K = self.law.ring_points
@@ -247,9 +249,7 @@ class ShedWake:
         return np.zeros(V, np.int64) if kind_of is None else kind_of
 
     def _pair_law(self, source: str, target: str) -> MomentumWake:
-        """The law of an ordered pair of kinds: `sim.vehicle_params.pair_field`'s, the one rule of every field."""
-        from sim.vehicle_params import pair_field  # (it builds on the fields, this module among them)
-
+        """The law of an ordered pair of kinds: `sim.fields.kinds.pair_field`'s, the one rule of every field."""
         return pair_field(self.law, get_vehicle(source), get_vehicle(target))
 
     # ------------------------------------------------------------------ construction and provenance
