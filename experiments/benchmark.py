@@ -28,6 +28,13 @@ vehicle) with the equivariant deep sets (`deepsets_equivariant`, a model of sets
 neighbours each): bare_mj_step_per_s_formation5 (plain mj_step of that scene),
 formation5_serial_over_bare and formation5_batched_over_bare; the same with the trained
 equivariant model summed over neighbours under formation5_*_summed.
+Against MuJoCo's own batched stepping of the same scene (`mujoco.rollout.Rollout`, the simulator's
+threads, the same worlds, no control; `MujocoRollout`), measured in the same rounds right beside our
+batched flight of that scene, in alternating order: mujoco_rollout_world_steps_per_s,
+mujoco_rollout_over_bare and batched_over_mujoco_rollout (the pair: our batched ratio over the
+rollout's, round by round, median) and the same under formation5_*; for the swarm below,
+swarm_mujoco_rollout_world_steps_per_s and swarm_native_over_mujoco_rollout (the native adapter's
+world-steps per second, swarm_world_steps_per_s_native, over the rollout's of its scene).
 RL glue: stable-baselines3's PPO rollout collection (the policy's forward pass and the
 env steps) through the native vector env and its adapter, through Gymnasium's
 SyncVectorEnv of single envs (the same adapter) and through SB3's own DummyVecEnv, 16
@@ -80,16 +87,17 @@ class BenchmarkArgs(CommonArgs):
 
 
 # The project's targets for the ratios, written into results.json beside the measurements.
-TARGETS = {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "formation5_serial_over_bare": 0.5,
-           "formation5_batched_over_bare": 1.5, "env_single_physics_over_bare": 0.3, "sb3_native_over_sync": 2.0,
-           "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
+TARGETS = {"serial_over_bare": 0.8, "batched_over_bare": 1.7, "formation5_serial_over_bare": 0.5,
+           "formation5_batched_over_bare": 1.5, "batched_over_mujoco_rollout": 0.9,
+           "formation5_batched_over_mujoco_rollout": 0.6, "env_single_physics_over_bare": 0.3,
+           "sb3_native_over_sync": 2.0, "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
            "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9,
            "swarm_native_over_supersuit": 3.0}
 
 
-def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
-    """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start), in a
-    Python loop: what a user's own loop around MuJoCo costs."""
+def start_data(preset: Any = None) -> tuple[Any, Any]:
+    """(model, MjData) of the two-vehicle scene (or of `preset`'s) with its vehicles at their start: the
+    state every bare and every MuJoCo-only window steps from, so that they step the same thing."""
     import mujoco
 
     from sim.scene import build_scene
@@ -98,9 +106,18 @@ def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
     data = mujoco.MjData(scene.model)
     start = [[0, 0, 2.5], [0, 0, 1.9]] if preset is None else preset.reference(1)(np.zeros(1)).pos[0]
     data.qpos[scene.qpos_adr[:, None] + np.arange(3)] = start
+    return scene.model, data
+
+
+def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
+    """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start), in a
+    Python loop: what a user's own loop around MuJoCo costs."""
+    import mujoco
+
+    model, data = start_data(preset)
     t0 = time.perf_counter()
     for _ in range(n_steps):
-        mujoco.mj_step(scene.model, data)
+        mujoco.mj_step(model, data)
     return n_steps / (time.perf_counter() - t0)
 
 
@@ -117,6 +134,42 @@ def mujoco_batch_steps_per_s(n_worlds: int, n_steps: int) -> float:
     for _ in range(calls):
         batch.step(nstep=10)
     return calls * 10 * n_worlds / (time.perf_counter() - t0)
+
+
+class MujocoRollout:
+    """MuJoCo's own batched stepping of a scene, to state our batched flights against: `mujoco.rollout`'s
+    thread pool on the simulator's default threads (`sim.physics.resolve_threads(0)`), `n_worlds`
+    worlds from the vehicles' start (`start_data`), no control. A window is one call with no state
+    written out (there is no controller to stop for), so only MuJoCo's stepping is timed: its best
+    rate on the scene, not a loop a user would write around it."""
+
+    def __init__(self, n_worlds: int, preset: Any = None):
+        import mujoco
+        import mujoco.rollout
+
+        from sim.physics import resolve_threads
+
+        self.model, data = start_data(preset)
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        state = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, data, state, spec)
+        self.initial = np.ascontiguousarray(np.tile(state, (n_worlds, 1)))
+        self.n_worlds = n_worlds
+        n_threads = resolve_threads(0)
+        self.pool = mujoco.rollout.Rollout(nthread=n_threads)
+        self.data = [mujoco.MjData(self.model) for _ in range(n_threads)]
+        self.models = [self.model] * n_worlds
+        self.steps_per_s(n_worlds)  # first-call costs
+
+    def steps_per_s(self, n_steps: int) -> float:
+        """World steps per wall second of one rollout of about `n_steps` world steps in all."""
+        nstep = max(1, n_steps // self.n_worlds)
+        t0 = time.perf_counter()
+        self.pool.rollout(self.models, self.data, self.initial, nstep=nstep, skip_checks=True)
+        return nstep * self.n_worlds / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self.pool.close()
 
 
 def closed_loop_sim(n_worlds: int, field: Any, predictor: Any, fast: bool = True, preset: Any = None) -> Simulator:
@@ -203,25 +256,37 @@ def run(args: BenchmarkArgs) -> dict:
         "formation5_batched_world_steps_per_s_summed": (
             closed_loop_sim(worlds, field, learned, preset=five), batched_seconds),
     }
+    rollouts = {"mujoco_rollout_world_steps_per_s": MujocoRollout(worlds),
+                "formation5_mujoco_rollout_world_steps_per_s": MujocoRollout(worlds, five)}
+    beside = {"closed_loop_batched_world_steps_per_s": "mujoco_rollout_world_steps_per_s",
+              "formation5_batched_world_steps_per_s": "formation5_mujoco_rollout_world_steps_per_s"}
     per_env_step = RATES.physics_per_control
     # key: (rate in physics steps per s (the envs': env steps x steps per env step), whose bare it is paired with)
     measure: dict[str, tuple[Any, Any]] = {
         "mujoco_batch_world_steps_per_s": (lambda: mujoco_batch_steps_per_s(worlds, n_bare * 4), None),
-        **{key: (lambda f=f, s=s: closed_loop_steps_per_s(f, s), five if key.startswith("formation5") else None)
-           for key, (f, s) in flights.items()},
+    }
+    for key, (f, s) in flights.items():
+        preset = five if key.startswith("formation5") else None
+        if key in beside:  # MuJoCo's rollout of the scene, the same world-steps, next to our flight
+            measure[beside[key]] = (lambda m=rollouts[beside[key]]: m.steps_per_s(n_bare * 4), preset)
+        measure[key] = (lambda f=f, s=s: closed_loop_steps_per_s(f, s), preset)
+    measure.update({
         "env_steps_per_s_single": (lambda: env_steps_per_s_single(n_env, repeats=1) * per_env_step, None),
         "env_steps_per_s_vector64": (
             lambda: env_steps_per_s_vector(worlds, max(1, n_env // worlds * 4), repeats=1) * per_env_step, None),
-    }
+    })
     rates: dict[str, list[float]] = {key: [] for key in ("bare_mj_step_per_s", "bare_mj_step_per_s_formation5", *measure)}
     ratios: dict[str, list[float]] = {key: [] for key in measure}
-    for _ in range(repeats):
-        for key, (fn, preset) in measure.items():
+    for i in range(repeats):
+        for key in alternate(list(measure), beside, i):
+            fn, preset = measure[key]
             bare = bare_mj_step_per_s(n_bare, preset)
             rate = fn()
             rates["bare_mj_step_per_s" if preset is None else "bare_mj_step_per_s_formation5"].append(bare)
             rates[key].append(rate)
             ratios[key].append(rate / bare)
+    for m in rollouts.values():
+        m.close()
     r.update({key: float(np.median(v)) for key, v in rates.items()})
     for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
         r[key] /= per_env_step
@@ -234,6 +299,10 @@ def run(args: BenchmarkArgs) -> dict:
     for suffix in ("", "_oracle"):
         r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
     r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
+    for ours, theirs in beside.items():  # each against its bare window, so a round's state cancels
+        prefix = "formation5_" if ours.startswith("formation5") else ""
+        r[f"{prefix}mujoco_rollout_over_bare"] = ratio[theirs]
+        r[f"{prefix}batched_over_mujoco_rollout"] = float(np.median(np.array(ratios[ours]) / np.array(ratios[theirs])))
     for name in ("serial", "batched"):
         for suffix in ("", "_summed"):
             r[f"formation5_{name}_over_bare{suffix}"] = ratio[f"formation5_{name}_world_steps_per_s{suffix}"]
@@ -248,6 +317,18 @@ def run(args: BenchmarkArgs) -> dict:
     r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
     r["targets"] = dict(TARGETS)
     return r
+
+
+def alternate(keys: list[str], beside: dict[str, str], round_index: int) -> list[str]:
+    """`keys` in order, with each pair of `beside` (our flight: MuJoCo's rollout just before it) swapped on
+    every other round, so that neither side of a pair always runs first."""
+    if round_index % 2 == 0:
+        return keys
+    out = list(keys)
+    for ours, theirs in beside.items():
+        i, j = out.index(ours), out.index(theirs)
+        out[i], out[j] = out[j], out[i]
+    return out
 
 
 def contention(seconds: float, rounds: int) -> dict[str, Any]:
@@ -309,7 +390,9 @@ def swarm_rollouts(n_worlds: int, n_steps: int, rounds: int, preset: str = "stac
     SuperSuit's `concat_vec_envs_v1` of `n_worlds` ParallelEnv copies (num_cpus=0, as examples/ppo_swarm.py
     ran it), the same worlds and agents and seeds; windows of `n_steps` steps, resets included, alternated
     `rounds` times (median rates, median paired ratios). Actions are drawn before the clock starts.
-    Empty without the `rl` extra (stable-baselines3, SuperSuit)."""
+    Beside the native adapter, in the same rounds: MuJoCo's rollout of the preset's scene (`MujocoRollout`),
+    the same worlds and simulated time, against the adapter's world-steps (its agent steps over the agents
+    per world, times the physics steps per env step). Empty without the `rl` extra (stable-baselines3, SuperSuit)."""
     try:
         import stable_baselines3  # noqa: F401
         import supersuit as ss
@@ -325,6 +408,10 @@ def swarm_rollouts(n_worlds: int, n_steps: int, rounds: int, preset: str = "stac
                                            num_cpus=0, base_class="stable_baselines3"),
     }
     num_envs = backends["native"].num_envs
+    config = backends["native"].env.config
+    mujoco_rollout = MujocoRollout(n_worlds, config.preset)
+    physics_per_step = int(round(1.0 / (mujoco_rollout.model.opt.timestep * config.task.control_hz)))
+    world_steps_per_agent_step = physics_per_step * n_worlds / num_envs
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1.0, 1.0, (n_steps, num_envs, 3)).astype(np.float32)
     for name, venv in backends.items():
@@ -345,11 +432,18 @@ def swarm_rollouts(n_worlds: int, n_steps: int, rounds: int, preset: str = "stac
         return n_steps * num_envs / (time.perf_counter() - t0)
 
     rates: dict[str, list[float]] = {name: [] for name in backends}
-    for _ in range(rounds):
+    rollout_rates: list[float] = []
+    for i in range(rounds):
+        first = i % 2 == 0  # MuJoCo's rollout before the native adapter on even rounds, after it on odd ones
         for name, venv in backends.items():
+            if name == "native" and first:
+                rollout_rates.append(mujoco_rollout.steps_per_s(n_steps * physics_per_step * n_worlds))
             rates[name].append(window(venv))
+            if name == "native" and not first:
+                rollout_rates.append(mujoco_rollout.steps_per_s(n_steps * physics_per_step * n_worlds))
     for venv in backends.values():
         venv.close()
+    mujoco_rollout.close()
     out: dict[str, Any] = {"swarm_preset": preset, "swarm_worlds": n_worlds, "swarm_agents": num_envs,
                            "swarm_rounds": rounds}
     for name in backends:
@@ -357,6 +451,10 @@ def swarm_rollouts(n_worlds: int, n_steps: int, rounds: int, preset: str = "stac
     supersuit = np.array(rates["supersuit"])
     out["swarm_native_over_supersuit"] = float(np.median(np.array(rates["native"]) / supersuit))
     out["swarm_native_one_thread_over_supersuit"] = float(np.median(np.array(rates["native_one_thread"]) / supersuit))
+    native_world_steps = np.array(rates["native"]) * world_steps_per_agent_step
+    out["swarm_world_steps_per_s_native"] = float(np.median(native_world_steps))
+    out["swarm_mujoco_rollout_world_steps_per_s"] = float(np.median(rollout_rates))
+    out["swarm_native_over_mujoco_rollout"] = float(np.median(native_world_steps / np.array(rollout_rates)))
     return out
 
 

@@ -136,8 +136,13 @@ def test_benchmark_quick(workdir):
     r = json.loads((workdir / "bench" / "results.json").read_text())
     for key in ("bare_mj_step_per_s", "closed_loop_serial_steps_per_s", "real_time_factor_serial",
                 "closed_loop_batched_world_steps_per_s", "batched_over_bare", "serial_over_bare_guarded",
-                "batched_over_bare_guarded", "guarded_over_unguarded_serial", "guarded_over_unguarded_batched"):
+                "batched_over_bare_guarded", "guarded_over_unguarded_serial", "guarded_over_unguarded_batched",
+                "mujoco_rollout_world_steps_per_s", "batched_over_mujoco_rollout",
+                "formation5_mujoco_rollout_world_steps_per_s", "formation5_batched_over_mujoco_rollout"):
         assert r[key] > 0
+    if "swarm_agent_steps_per_s_native" in r:  # the swarm is measured with the `rl` extra only
+        assert r["swarm_mujoco_rollout_world_steps_per_s"] > 0 and r["swarm_native_over_mujoco_rollout"] > 0
+    assert {"batched_over_mujoco_rollout", "formation5_batched_over_mujoco_rollout"} <= set(r["targets"])
 
 
 @pytest.mark.parametrize(

@@ -72,8 +72,11 @@ def _fakes():
     bench = {"cpu_count": 2, "mujoco": "3.3.0", "quick": False, "batched_worlds": 64, "bare_mj_step_per_s": 131912.4,
              "real_time_factor_serial": 107.26, "batched_over_bare": 1.2514, "predictor_us_per_call_batch64": 195.33,
              "train_seconds_equivariant_full": 8.012, "serial_over_bare": 0.6412, "rounds": 15,
-             "targets": {"serial_over_bare": 0.6, "batched_over_bare": 1.7}, "mujoco_batch_over_bare": 2.059,
-             "mujoco_batch_world_steps_per_s": 271603.2}
+             "targets": {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "batched_over_mujoco_rollout": 0.9},
+             "mujoco_batch_over_bare": 2.059, "mujoco_batch_world_steps_per_s": 271603.2,
+             "closed_loop_batched_world_steps_per_s": 165076.3, "mujoco_rollout_world_steps_per_s": 268410.7,
+             "batched_over_mujoco_rollout": 0.6149, "formation5_batched_world_steps_per_s": 98213.9,
+             "formation5_mujoco_rollout_world_steps_per_s": 151932.4, "formation5_batched_over_mujoco_rollout": 0.6464}
     conds = ("no_downwash", "baseline", "oracle", "shallow", "deep", "equivariant")
     lem = {"experiment": "lemniscate", "separation": 0.6, "duration": 20.0, "seeds": [0, 1, 2, 3, 4],
            "conditions": _conditions(conds), "wall_seconds": 20.0, "flight_wall_seconds": 19.0}
@@ -251,6 +254,16 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
     summary = text.split("## Speed", 1)[1].split("### The benchmark's full record", 1)[0]
     assert f"times real time | {fmt(b['real_time_factor_serial'])} |" in summary
     assert f"no control at all, world-steps/s | {fmt(b['mujoco_batch_world_steps_per_s'])} | 2.06x one bare" in summary
+    # each scene's batched flights against MuJoCo's rollout of it, one row each (no swarm keys here: no row)
+    assert ("the pair, 64 worlds in one batch against MuJoCo's own rollout of the same scene (`mujoco.rollout`, no "
+            f"control), world-steps/s | {fmt(b['closed_loop_batched_world_steps_per_s'])} | 0.615x of MuJoCo's rollout "
+            f"({fmt(b['mujoco_rollout_world_steps_per_s'])} world-steps/s) |") in summary
+    assert (f"`formation5` (five vehicles), 64 worlds in one batch against MuJoCo's own rollout of the same scene "
+            f"(`mujoco.rollout`, no control), world-steps/s | {fmt(b['formation5_batched_world_steps_per_s'])} | "
+            f"0.646x of MuJoCo's rollout ({fmt(b['formation5_mujoco_rollout_world_steps_per_s'])} world-steps/s) |"
+            ) in summary
+    assert summary.count("x of MuJoCo's rollout") == 2
+    assert "| `batched_over_mujoco_rollout` | >= 0.9 | 0.615 | no |" in text
     assert ">= " not in summary  # no aims in the summary
     assert "| `serial_over_bare` | >= 0.6 | 0.641 | yes |" in text and "| `batched_over_bare` | >= 1.7 | 1.25 | no |" in text
     assert "pipeline key `feedc0ffee12`" in text and "seed 0" in text and "field built-in" in text

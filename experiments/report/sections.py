@@ -409,7 +409,8 @@ def render_force_maps(r: dict, label: str) -> str:
 
 
 def _speed_summary(r: dict) -> list[list[str]]:
-    """What a user wants first: flights against real time, env steps, MuJoCo's own batched stepping."""
+    """What a user wants first: flights against real time, env steps, MuJoCo's own batched stepping, and
+    each scene's batched flights against MuJoCo's rollout of it."""
     worlds, rows = r.get("batched_worlds"), []
 
     def add(what: str, key: str, note: str = "", sig: int = 3) -> None:
@@ -421,6 +422,17 @@ def _speed_summary(r: dict) -> list[list[str]]:
         f"{fmt(r.get('batched_over_bare'), 3)}x one bare `mj_step` loop")
     add(f"MuJoCo's own batched stepping (`mujoco.batch`), {worlds} worlds, no control at all, world-steps/s",
         "mujoco_batch_world_steps_per_s", f"{fmt(r.get('mujoco_batch_over_bare'), 3)}x one bare `mj_step` loop")
+    # each scene's batched flights against MuJoCo's rollout of that scene (older files have none)
+    for what, ours, prefix, ratio in (
+            (f"the pair, {worlds} worlds", "closed_loop_batched_world_steps_per_s", "", "batched_over_mujoco_rollout"),
+            (f"`formation5` (five vehicles), {worlds} worlds", "formation5_batched_world_steps_per_s", "formation5_",
+             "formation5_batched_over_mujoco_rollout"),
+            (f"the swarm env as a `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds)",
+             "swarm_world_steps_per_s_native", "swarm_", "swarm_native_over_mujoco_rollout")):
+        if r.get(ratio) is not None:
+            add(f"{what} in one batch against MuJoCo's own rollout of the same scene (`mujoco.rollout`, no control), "
+                "world-steps/s", ours, f"{fmt(r[ratio], 3)}x of MuJoCo's rollout "
+                f"({fmt(r.get(prefix + 'mujoco_rollout_world_steps_per_s'))} world-steps/s)")
     add("the single env (`gym.make`), steps/s", "env_steps_per_s_single", "an env step is 0.02 s of flight")
     add(f"the native vector env, {worlds} worlds, steps/s", "env_steps_per_s_vector64_solo")
     add(f"stable-baselines3 PPO's rollout through the native vector env, {r.get('sb3_worlds')} worlds, steps/s",
