@@ -12,6 +12,13 @@ the field being off).
                   <model kind>-<data>: the same kind trained on other data (`experiments.outdoor`)
     <learned>_guarded  the same model behind the guard (`downwash.guard.GuardedPredictor`): scaled
                   toward no model where its inputs leave its training data's support
+    integral      the LQR with integral action on the position error (`controllers.integral`), no model
+    dob           the LQR compensating with a disturbance observer (`sim.observer`), no model
+    <learned>_dob the model as feed-forward and the observer on what it misses
+
+The conditions with a controller or predictor of their own kind (`integral`, `dob`, `<learned>_dob`)
+fly as a second batch on the simulator's readable path; every world's flight is the same whichever
+batch it flies in (`sim.simulator`), so the other conditions keep their fused speed and their bits.
 
 `guard` ({setting: value}, the keywords of `GuardedPredictor`; None: `GUARD_DEFAULTS`) lets an
 experiment fly its guarded conditions with other settings (its config file's [guard] table);
@@ -25,23 +32,32 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from controllers.integral import IntegralLQR
+from controllers.lqr import FeedbackLinearisedLQR
+from controllers.per_world import PerWorldController
 from downwash_core.errors import ConfigError
+from downwash_core.state import RefSample
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.guard import GuardedPredictor, guard_settings
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
+from sim.observer import DisturbanceObserver
 from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
 from sim.scene import Scene
 from downwash_trajectories import Reference
 
-__all__ = ["REFERENCE_CONDITIONS", "GUARDED", "CONDITIONS", "DEFAULT_CONDITIONS", "parse_conditions", "learned",
-           "data_variant", "guard_record", "make_predictor", "fly_conditions"]
+__all__ = ["REFERENCE_CONDITIONS", "UNLEARNED", "GUARDED", "OBSERVED", "CONDITIONS", "DEFAULT_CONDITIONS",
+           "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "make_controller",
+           "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
+UNLEARNED = ("integral", "dob")  # the generic tools a control engineer uses first
 GUARDED = "_guarded"  # the suffix of a guarded learned condition
+OBSERVED = "_dob"  # the suffix of a learned condition with the disturbance observer on its residual
 # every condition a flight can name
-CONDITIONS = REFERENCE_CONDITIONS + tuple(PAIRWISE_KINDS) + tuple(k + GUARDED for k in PAIRWISE_KINDS)
+CONDITIONS = (REFERENCE_CONDITIONS + UNLEARNED + tuple(PAIRWISE_KINDS) + tuple(k + GUARDED for k in PAIRWISE_KINDS)
+              + tuple(k + OBSERVED for k in PAIRWISE_KINDS))
 # what the experiments fly unless asked: each staged model, also behind the guard
 DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS + tuple(k + GUARDED for k in STAGED_KINDS)
 
@@ -59,9 +75,19 @@ def parse_conditions(text: str) -> list[str]:
     return names
 
 
+def _model(condition: str) -> str:
+    """A learned condition's model, "<kind>[-<data>]" ("<kind>[-<data>][_guarded|_dob]")."""
+    return condition.removesuffix(GUARDED).removesuffix(OBSERVED)
+
+
 def _kind(condition: str) -> str:
-    """The model kind of a condition ("<kind>[-<data>][_guarded]")."""
-    return condition.removesuffix(GUARDED).partition("-")[0]
+    """The model kind of a condition ("<kind>[-<data>][_guarded|_dob]")."""
+    return _model(condition).partition("-")[0]
+
+
+def _readable(condition: str) -> bool:
+    """Whether a condition flies a controller or predictor that the fused tick cannot run."""
+    return condition in UNLEARNED or condition.endswith(OBSERVED)
 
 
 def learned(conditions: Sequence[str]) -> list[str]:
@@ -72,8 +98,8 @@ def learned(conditions: Sequence[str]) -> list[str]:
 def data_variant(condition: str, data: str) -> str:
     """A learned condition's model trained on other data: "equivariant_guarded", "outdoor" ->
     "equivariant-outdoor_guarded"."""
-    guarded = condition.endswith(GUARDED)
-    return f"{_kind(condition)}-{data}" + (GUARDED if guarded else "")
+    suffix = next((x for x in (GUARDED, OBSERVED) if condition.endswith(x)), "")
+    return f"{_kind(condition)}-{data}" + suffix
 
 
 def guard_record(conditions: Sequence[str], guard: dict | None = None) -> dict | None:
@@ -85,14 +111,41 @@ def guard_record(conditions: Sequence[str], guard: dict | None = None) -> dict |
 def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path], guard: dict | None = None) -> Predictor:
     """The predictor a condition flies with; learned ones load from `checkpoints["<kind>[-<data>]"]`, and
     guarded ones take the `GuardedPredictor` keywords `guard` (None: its defaults)."""
-    if condition in ("no_downwash", "baseline"):
+    if condition in ("no_downwash", "baseline", "integral"):
         return ZeroPredictor()
     if condition == "oracle":
         return OraclePredictor(field)
+    if condition == "dob":
+        return DisturbanceObserver()
     # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
-    model = condition.removesuffix(GUARDED)
-    predictor = LearnedPredictor.from_checkpoint(checkpoints[model], expect_kind=_kind(condition))
+    predictor = LearnedPredictor.from_checkpoint(checkpoints[_model(condition)], expect_kind=_kind(condition))
+    if condition.endswith(OBSERVED):
+        return DisturbanceObserver(predictor)
     return GuardedPredictor(predictor, **(guard or {})) if condition.endswith(GUARDED) else predictor
+
+
+def make_controller(condition: str, controller: Any = None) -> Any:
+    """The controller a condition flies: `controller` (None: the default LQR), or for ``integral`` the LQR
+    with integral action and that LQR's weights and limits (ConfigError for another controller)."""
+    if condition != "integral":
+        return controller
+    if controller is not None and type(controller) is not FeedbackLinearisedLQR:
+        raise ConfigError(f"the integral condition adds integral action to the LQR; the flight's controller is "
+                          f"{type(controller).__name__} (fly it with the LQR, or leave the condition out)")
+    return IntegralLQR(controller.config if controller is not None else None)
+
+
+class _WorldsOf:
+    """The rows `worlds` of a reference over `n_worlds` worlds (its other worlds sampled at the first's time)."""
+
+    def __init__(self, reference: Reference, worlds: np.ndarray, n_worlds: int):
+        self.reference, self.worlds, self.n_worlds = reference, worlds, n_worlds
+
+    def __call__(self, t: Any) -> RefSample:
+        t = np.broadcast_to(np.asarray(t, dtype=np.float64), (len(self.worlds),))
+        full = np.full(self.n_worlds, t[0])
+        full[self.worlds] = t
+        return RefSample(*(a[self.worlds] for a in self.reference(full)))
 
 
 def fly_conditions(
@@ -107,18 +160,32 @@ def fly_conditions(
     guard: dict | None = None,
     **components: Any,
 ) -> dict[str, list[FlightLog]]:
-    """Fly every condition on every seed as one batch of worlds; returns the logs per condition.
+    """Fly every condition on every seed; returns the logs per condition.
 
     reference: a stacked reference (one per vehicle of `scene`) over len(conditions) x
     len(seeds) worlds, condition-major (world i * K + k is condition i, seed k).
     guard: the guarded conditions' `GuardedPredictor` keywords (None: its defaults).
-    components: further `Simulator` keywords shared by every world (e.g. wind, aggregation).
+    components: further `Simulator` keywords shared by every world (e.g. wind, aggregation, the
+    controller). The conditions the fused tick can fly go as one batch, the others as a second
+    (module doc).
     """
-    K = len(seeds)
-    predictor = PerWorldPredictor([make_predictor(c, field, checkpoints, guard) for c in conditions],
-                                  np.repeat(np.arange(len(conditions)), K))
-    field_enabled = np.array([c != "no_downwash" for c in conditions for _ in range(K)])
-    world_meta = [{"condition": c, **(meta or {})} for c in conditions for _ in range(K)]
-    logs = fly(scene, reference, [s for _ in conditions for s in seeds], duration, field=field,
-               predictor=predictor, field_enabled=field_enabled, meta=world_meta, **components)
-    return {c: logs[i * K:(i + 1) * K] for i, c in enumerate(conditions)}
+    K, n = len(seeds), len(conditions) * len(seeds)
+    logs: dict[str, list[FlightLog]] = {}
+    for batch in ([c for c in conditions if not _readable(c)], [c for c in conditions if _readable(c)]):
+        if not batch:
+            continue
+        rows = np.concatenate([np.arange(K) + conditions.index(c) * K for c in batch])
+        controllers = [make_controller(c, components.get("controller")) for c in batch]
+        parts = dict(components)
+        if any(c is not components.get("controller") for c in controllers):
+            parts["controller"] = PerWorldController(
+                [c if c is not None else FeedbackLinearisedLQR() for c in controllers], np.repeat(np.arange(len(batch)), K))
+        predictor = PerWorldPredictor([make_predictor(c, field, checkpoints, guard) for c in batch],
+                                      np.repeat(np.arange(len(batch)), K))
+        field_enabled = np.array([c != "no_downwash" for c in batch for _ in range(K)])
+        world_meta = [{"condition": c, **(meta or {})} for c in batch for _ in range(K)]
+        flown = fly(scene, reference if len(batch) == len(conditions) else _WorldsOf(reference, rows, n),
+                    [s for _ in batch for s in seeds], duration, field=field, predictor=predictor,
+                    field_enabled=field_enabled, meta=world_meta, **parts)
+        logs.update({c: flown[i * K:(i + 1) * K] for i, c in enumerate(batch)})
+    return {c: logs[c] for c in conditions}

@@ -551,10 +551,16 @@ def script(main: Callable[[], Any]) -> Callable[[], None]:
     return entry
 
 
+# the packages whose INFO messages a run shows (other libraries' show from WARNING: PyOpenGL, for one,
+# reports at INFO what it did not find when MuJoCo renders through EGL)
+OWN_LOGGERS = ("downwash_core", "downwash_trajectories", "controllers", "sim", "downwash", "downwash_envs",
+               "experiments", "__main__")
+
+
 def setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
-    )
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    for name in OWN_LOGGERS:
+        logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.INFO)
 
 
 class ProgressBar:
