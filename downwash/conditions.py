@@ -58,8 +58,10 @@ OBSERVED = "_dob"  # the suffix of a learned condition with the disturbance obse
 # every condition a flight can name
 CONDITIONS = (REFERENCE_CONDITIONS + UNLEARNED + tuple(PAIRWISE_KINDS) + tuple(k + GUARDED for k in PAIRWISE_KINDS)
               + tuple(k + OBSERVED for k in PAIRWISE_KINDS))
-# what the experiments fly unless asked: each staged model, also behind the guard
-DEFAULT_CONDITIONS = REFERENCE_CONDITIONS + STAGED_KINDS + tuple(k + GUARDED for k in STAGED_KINDS)
+# what the experiments fly unless asked: each staged model, also behind the guard, the non-learned tools and
+# each staged model with the observer on its residual
+DEFAULT_CONDITIONS = (REFERENCE_CONDITIONS + STAGED_KINDS + tuple(k + GUARDED for k in STAGED_KINDS) + UNLEARNED
+                      + tuple(k + OBSERVED for k in STAGED_KINDS))
 
 
 def parse_conditions(text: str) -> list[str]:

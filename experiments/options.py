@@ -29,8 +29,8 @@ PAIRWISE_KINDS = ("shallow", "deep", "equivariant", "equivariant_general", "equi
                   "deep_memory")  # downwash.models.PAIRWISE_KINDS
 CONDITIONS = ("no_downwash", "baseline", "oracle", "integral", "dob", *PAIRWISE_KINDS,
               *(k + "_guarded" for k in PAIRWISE_KINDS), *(k + "_dob" for k in PAIRWISE_KINDS))  # downwash.conditions.CONDITIONS
-DEFAULT_CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS[:4],
-                      *(k + "_guarded" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
+DEFAULT_CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS[:4], *(k + "_guarded" for k in PAIRWISE_KINDS[:4]),
+                      "integral", "dob", *(k + "_dob" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
 FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed", "jet", "pybullet")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
 PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS

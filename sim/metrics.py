@@ -21,7 +21,7 @@ from sim.logs import FlightLog
 
 __all__ = [
     "TRACKING_METRICS", "IMPROVEMENT_METRICS", "CRASH_PENALTY", "tracking_errors", "planned_ticks",
-    "tracking_metrics", "follower_metrics", "improvement", "compensation_shares",
+    "tracking_metrics", "follower_metrics", "improvement", "compensation_shares", "wilson_interval",
     "aggregate_conditions",
 ]
 
@@ -110,6 +110,17 @@ def compensation_shares(logs: list[FlightLog]) -> dict[str, float] | None:
     return {"full": full, "partial": 1.0 - full - none, "none": none}
 
 
+def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The Wilson score interval (95 % by default) of a rate of k events in n trials: unlike k/n +- its
+    normal error it stays inside [0, 1] and is not empty at 0 of 10 crashes (0 to 28 %)."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1 and 0 <= k <= n):
+        raise ConfigError(f"wilson_interval: expected 0 <= k <= n and n >= 1, got k={k}, n={n}")
+    p, z2 = k / n, z * z
+    centre, half = (p + z2 / (2 * n)) / (1 + z2 / n), z * np.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    # (exact ends at 0 and n events, where rounding would leave them a hair inside)
+    return 0.0 if k == 0 else float(centre - half), 1.0 if k == n else float(centre + half)
+
+
 def improvement(metrics: dict[str, float], baseline: dict[str, float]) -> dict[str, float]:
     """Fractions by which `metrics` improve on `baseline` (0.36: 36 % smaller error)."""
     return {name: 1.0 - metrics[m] / baseline[m] for name, m in IMPROVEMENT_METRICS.items()}
@@ -123,7 +134,7 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
     Each condition gets the mean over seeds of every TRACKING_METRICS entry (crashed
     flights counted by the crash rule of the module docstring), the per-seed values
     under `per_seed` (with `crashed`, bool), `crash_rate` (the fraction of seeds that
-    crashed) and `failed_flights` (messages). With a `baseline`
+    crashed) with its Wilson 95 % interval `crash_rate_ci95`, and `failed_flights` (messages). With a `baseline`
     condition, every other condition but the `unmodelled` ones gets the paired
     IMPROVEMENT_METRICS (per seed, then their mean); with an `oracle` too, every
     compensating condition gets `gap_to_oracle_pos_3d` (m): how much larger its mean 3D
@@ -139,6 +150,7 @@ def aggregate_conditions(per_condition: dict[str, list[FlightLog]], baseline: st
         entry["per_seed"] = {m: [p[m] for p in per_seed] for m in TRACKING_METRICS}
         entry["per_seed"]["crashed"] = [not L.ok for L in logs]
         entry["crash_rate"] = float(np.mean(entry["per_seed"]["crashed"]))
+        entry["crash_rate_ci95"] = list(wilson_interval(int(sum(entry["per_seed"]["crashed"])), len(logs)))
         entry["failed_flights"] = [L.meta["message"] for L in logs if not L.ok]
         if (shares := compensation_shares(logs)) is not None:  # a guarded condition
             entry["compensation"] = shares

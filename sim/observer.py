@@ -37,9 +37,9 @@ from sim.predictor import ZeroPredictor, is_stateful
 
 __all__ = ["DisturbanceObserver", "DEFAULT_BANDWIDTH"]
 
-# rad/s: a time constant of 0.25 s, a few controller ticks of averaging of the noisy
-# finite-difference acceleration; chosen on the training field (docs/design-notes.md)
-DEFAULT_BANDWIDTH = 4.0
+# rad/s (a time constant of 0.125 s): chosen once on the staged collection's training flights, never
+# on a test flight, by `python -m experiments.observer_bandwidth` (results/observer_bandwidth.json)
+DEFAULT_BANDWIDTH = 8.0
 
 
 class DisturbanceObserver:

@@ -20,6 +20,7 @@ from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json
 from experiments import report
 from experiments.common import parse_args, write_results
+from experiments.report.formatting import crash_cell
 from experiments.report import BEGIN, END, HEADLINE_BEGIN, HEADLINE_END, HEADLINE_HEADING, fmt, pct, render, \
     render_headline, rewrite_section, section_of
 
@@ -107,7 +108,14 @@ def _fakes():
             "per_type": {"L2S": {"n_train": 23371, "n_test": 19360, "rmse": {"none": 0.9332, "shallow": 0.6443,
                                                                          "deep": 0.611, "equivariant": 0.5954,
                                                                          "equivariant_general": 0.5987}}}}
+    bandwidth = {"experiment": "observer_bandwidth", "flights_per_stage": 4, "seconds": 28.5, "stages": [[1.35, 1.75]],
+                 "criterion": "mean 3-D tracking error of the follower", "best": 16.0, "chosen": 8.0,
+                 "rule": "the lowest bandwidth whose paired 95 % interval against the best reaches 0",
+                 "candidates": [{"bandwidth": b, "pos_err_3d_mean": e, "minus_best_ci95": ci, "estimation_rms": rms,
+                                 "crashes": 0} for b, e, ci, rms in ((8.0, 0.01541, [-0.0011, 0.0014], 0.2602),
+                                                                    (16.0, 0.01532, [0.0, 0.0], 0.4641))]}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
+            "observer_bandwidth": ("experiments.observer_bandwidth", "BandwidthArgs", bandwidth),
             "real_flights": ("experiments.real_flights", "RealFlightsArgs", real),
             "outdoor": ("experiments.outdoor", "OutdoorArgs", outdoor),
             "swarm": ("experiments.swarm", "SwarmArgs", swarm),
@@ -233,7 +241,8 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
         row = next(line for line in text.splitlines() if line.startswith(f"| {c} | {fmt(v['pos_err_3d_mean'])} |"))
         for key in ("pos_err_xy_mean", "pos_err_z_mean", "pos_err_3d_peak", "vel_err_3d_mean"):
             assert f"| {fmt(v[key])} |" in row
-        assert f"| {pct(v['crash_rate'])} |" in row and f"| {pct(v.get('improvement_pos_z'))} |" in row
+        n = len(written["lemniscate"]["seeds"])
+        assert f"| {crash_cell(v['crash_rate'], n)} |" in row and f"| {pct(v.get('improvement_pos_z'))} |" in row
         if "gap_to_oracle_pos_3d" in v:
             assert f"+{fmt(v['gap_to_oracle_pos_3d'])}" in row
     t = json.loads((work / "results" / "transect.json").read_text())  # the real run's keys render

@@ -79,7 +79,7 @@ def test_the_observer_and_the_integral_act_and_fly(flights):
     for c in ("integral", "dob", "equivariant_dob"):
         assert all(L.ok for L in mixed[c]), c
         assert all(L.meta["condition"] == c for L in mixed[c])
-    # held 0.6 m under the leader: the observer's prediction is the steady wake the follower feels (tau 0.25 s,
+    # held 0.6 m under the leader: the observer's prediction is the steady wake the follower feels (tau 0.125 s,
     # so settled after 2 s), the integral LQR predicts nothing
     tail = slice(-50, None)
     for L in under["dob"]:

@@ -7,7 +7,7 @@ from typing import Any
 
 from experiments.common import CONDITIONS
 
-__all__ = ["ORDER", "fmt", "short", "pct"]
+__all__ = ["ORDER", "fmt", "short", "pct", "crash_cell"]
 
 ORDER = CONDITIONS  # conditions and models in one order: the references, then PAIRWISE_KINDS (the paper's order)
 
@@ -36,6 +36,16 @@ def short(x: float) -> str:
 
 def pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.1f} %"
+
+
+def crash_cell(rate: float | None, n: int) -> str:
+    """A crash rate over n flights with its Wilson 95 % interval: "0.0 % (0-27.8 %)"."""
+    from sim.metrics import wilson_interval
+
+    if rate is None:
+        return "-"
+    lo, hi = wilson_interval(int(round(rate * n)), n)
+    return f"{pct(rate)} ({100 * lo:.1f}-{pct(hi)})"
 
 
 def _ordered(d: dict) -> list[tuple[str, Any]]:

@@ -34,6 +34,7 @@ EXPERIMENTS = {  # (in the results page's order: speed first, what users ask fir
     "benchmark": ("Speed", ("cpu_count",)),
     "staged_collection": ("Staged collection", ("stages", "models", "noise_floor")),
     "sample_efficiency": ("Validation RMSE against minutes of training data", ("minutes", "models", "noise_floor")),
+    "observer_bandwidth": ("The disturbance observer's bandwidth, chosen on the training flights", ("candidates", "chosen")),
     "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
     "transect": ("Tracking: transect", ("conditions", "seeds")),
     "force_maps": ("Force maps", ("maps",)),

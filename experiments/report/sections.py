@@ -12,8 +12,10 @@ from pathlib import Path
 
 from downwash_core.errors import ConfigError
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
-from experiments.report.formatting import ORDER, _ordered, _table, fmt, pct, short
+from experiments.report.formatting import ORDER, _ordered, _table, crash_cell, fmt, pct, short
+from experiments.report.baselines import render_learning_over_baselines, render_observer_bandwidth
 from experiments.report.real_flights import render_real_flights
+from experiments.report.speed import render_benchmark
 
 __all__ = [
     "TRACKED", "PAPER_RMSE", "RENDERERS", "render_machine", "render_provenance", "render_staged", "render_efficiency",
@@ -125,12 +127,14 @@ def render_tracking(r: dict, label: str) -> str:
     for c, e in _ordered(r["conditions"]):
         gap = e.get("gap_to_oracle_pos_3d")
         rows.append([c] + [fmt(e[k]) for k in TRACKED] + [pct(e.get(f"improvement_pos_{k}")) for k in ("3d", "z")]
-                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)), pct(e["crash_rate"])]
+                    + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)),
+                       crash_cell(e["crash_rate"], len(r["seeds"]))]
                     + ([_shares(e.get("compensation"))] if guarded else []))
     header = ["condition", "pos 3D (m)", "pos xy", "pos z", "peak 3D", "vel 3D (m/s)", "improvement 3D",
-              "improvement z", "gap to oracle (m)", "crash rate"] + (["applied: full / partial / none"] if guarded else [])
+              "improvement z", "gap to oracle (m)", "crash rate (Wilson 95 %)"] + (["applied: full / partial / none"] if guarded else [])
+    over = render_learning_over_baselines(r["conditions"], len(r["seeds"]))
     return "\n\n".join([f"{len(r['seeds'])} seeds, {short(r['separation'])} m below the leader, "
-                        f"{short(r['duration'])} s (`{label}`):", _table(header, rows)])
+                        f"{short(r['duration'])} s (`{label}`):", _table(header, rows)] + ([over] if over else []))
 
 
 def _shares(c: dict | None) -> str:
@@ -160,7 +164,7 @@ def render_outdoor(r: dict, label: str) -> str:
             f"the follower {short(r['separation'])} m beneath it; {air}. {trained}")
     models = [k for k, _ in _ordered(c) if k not in ("no_downwash", "baseline", "oracle")]
     best = max(models, key=lambda k: c[k].get("improvement_pos_3d") or -math.inf) if models else None
-    crashed = [f"`{k}` ({pct(c[k]['crash_rate'])})" for k in models if c[k].get("crash_rate")]
+    crashed = [f"`{k}` ({crash_cell(c[k]['crash_rate'], len(r['seeds']))})" for k in models if c[k].get("crash_rate")]
     verdict = []
     if "oracle" in c and c["oracle"].get("improvement_pos_3d") is not None:
         verdict.append(f"The oracle improves the 3D position error by {pct(c['oracle']['improvement_pos_3d'])} over the "
@@ -175,7 +179,7 @@ def render_outdoor(r: dict, label: str) -> str:
     parts = [head, render_tracking(r, label), "; ".join(verdict) + "."]
     sweep = r.get("sweep")
     if sweep:  # --sweep-speeds: each condition's improvement at each leader speed
-        rows = _sweep_rows(sweep["conditions"])
+        rows = _sweep_rows(sweep["conditions"], len(r["seeds"]))
         parts += ["Improvement of the 3D position error over the baseline against the leader's speed (the same seeds "
                   "and wind at each speed):", _table(["condition"] + [f"{short(v)} m/s" for v in sweep["speeds"]], rows)]
         own = _own_error(sweep)
@@ -184,12 +188,12 @@ def render_outdoor(r: dict, label: str) -> str:
     if r.get("wind_sweep"):  # --sweep-winds: at the run's speed, in each wind
         w = r["wind_sweep"]
         parts += [f"Improvement over the baseline in each wind, the leader at {short(r['speed'])} m/s:",
-                  _table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"]))]
+                  _table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"], len(r["seeds"])))]
     for truth, t in (r.get("truths") or {}).items():  # --sweep-fields: the whole experiment on each ground truth
         if t.get("sweep"):
             parts += [f"On the `{truth}` truth, improvement over the baseline against the leader's speed:",
                       _table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
-                             _sweep_rows(t["sweep"]["conditions"]))]
+                             _sweep_rows(t["sweep"]["conditions"], len(r["seeds"])))]
     verdicts = [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
     return "\n\n".join(parts + verdicts)
 
@@ -209,8 +213,8 @@ def _own_error(sweep: dict) -> str | None:
             "it, since their labels (f = a - u) hold every acceleration the command does not explain.")
 
 
-def _sweep_rows(conditions: dict) -> list[list[str]]:
-    return [[f"`{c}`"] + [pct(x) + (f" ({pct(k)} crashed)" if k else "") for x, k in
+def _sweep_rows(conditions: dict, n: int) -> list[list[str]]:
+    return [[f"`{c}`"] + [pct(x) + (f" ({crash_cell(k, n)} crashed)" if k else "") for x, k in
                           zip(e["improvement_pos_3d"], e["crash_rate"])]
             for c, e in _ordered(conditions) if c not in ("no_downwash", "baseline")]
 
@@ -378,7 +382,7 @@ def render_swarm(r: dict, label: str) -> str:
     def cell(e: dict) -> str:
         return (pct(e.get("improvement_pos_3d")) + ("" if e.get("gap_to_oracle_pos_3d") is None else
                                                     f" ({e['gap_to_oracle_pos_3d']:+.3f})")
-                + (f", {pct(e['crash_rate'])} crashed" if e.get("crash_rate") else ""))
+                + (f", {crash_cell(e['crash_rate'], len(r['seeds']))} crashed" if e.get("crash_rate") else ""))
 
     for law, by_preset in r["summary"].items():
         rows = [[f"`{preset}`"] + [cell(entry[c]) for c in shown] for preset, entry in by_preset.items()]
@@ -408,60 +412,6 @@ def render_force_maps(r: dict, label: str) -> str:
                         f"m/s (`{label}`):", _table(header, rows)])
 
 
-def _speed_summary(r: dict) -> list[list[str]]:
-    """What a user wants first: flights against real time, env steps, MuJoCo's own batched stepping, and
-    each scene's batched flights against MuJoCo's rollout of it."""
-    worlds, rows = r.get("batched_worlds"), []
-
-    def add(what: str, key: str, note: str = "", sig: int = 3) -> None:
-        if r.get(key) is not None:
-            rows.append([what, fmt(r[key], sig), note])
-
-    add("one flight (two vehicles, 500 Hz physics, the full stack), times real time", "real_time_factor_serial")
-    add(f"{worlds} worlds in one batch, world-steps/s", "closed_loop_batched_world_steps_per_s",
-        f"{fmt(r.get('batched_over_bare'), 3)}x one bare `mj_step` loop")
-    add(f"MuJoCo's own batched stepping (`mujoco.batch`), {worlds} worlds, no control at all, world-steps/s",
-        "mujoco_batch_world_steps_per_s", f"{fmt(r.get('mujoco_batch_over_bare'), 3)}x one bare `mj_step` loop")
-    # each scene's batched flights against MuJoCo's rollout of that scene (older files have none)
-    for what, ours, prefix, ratio in (
-            (f"the pair, {worlds} worlds", "closed_loop_batched_world_steps_per_s", "", "batched_over_mujoco_rollout"),
-            (f"`formation5` (five vehicles), {worlds} worlds", "formation5_batched_world_steps_per_s", "formation5_",
-             "formation5_batched_over_mujoco_rollout"),
-            (f"the swarm env as a `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds)",
-             "swarm_world_steps_per_s_native", "swarm_", "swarm_native_over_mujoco_rollout")):
-        if r.get(ratio) is not None:
-            add(f"{what} in one batch against MuJoCo's own rollout of the same scene (`mujoco.rollout`, no control), "
-                "world-steps/s", ours, f"{fmt(r[ratio], 3)}x of MuJoCo's rollout "
-                f"({fmt(r.get(prefix + 'mujoco_rollout_world_steps_per_s'))} world-steps/s)")
-    add("the single env (`gym.make`), steps/s", "env_steps_per_s_single", "an env step is 0.02 s of flight")
-    add(f"the native vector env, {worlds} worlds, steps/s", "env_steps_per_s_vector64_solo")
-    add(f"stable-baselines3 PPO's rollout through the native vector env, {r.get('sb3_worlds')} worlds, steps/s",
-        "sb3_rollout_steps_per_s_native", f"{fmt(r.get('sb3_native_over_sync'), 3)}x through Gymnasium's `SyncVectorEnv`")
-    add(f"the swarm env as a stable-baselines3 `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds), "
-        "agent-steps/s", "swarm_agent_steps_per_s_native",
-        f"{fmt(r.get('swarm_native_over_supersuit'), 3)}x SuperSuit's vectorised env")
-    add("training the equivariant model on the staged collection's data, s", "train_seconds_equivariant_full")
-    return rows
-
-
-def render_benchmark(r: dict, label: str) -> str:
-    parts = [f"Measured by `python -m experiments.benchmark` on {r.get('cpu_count')} cores (mujoco {r.get('mujoco')}), "
-             "every rate from one run:", _table(["", "measured", ""], _speed_summary(r)),
-             "### The benchmark's full record"]
-    targets = r.get("targets") or {}
-    if targets:
-        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
-        parts += [f"The ratios the project aims for, as measured in this run ({r.get('rounds')} rounds, each "
-                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
-                  "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
-                  f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
-                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
-                  _table(["ratio", "aim", "measured", "reached"], rows)]
-    rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
-    parts += [f"Every rate and ratio, {r.get('batched_worlds')} batched worlds (`{label}`):", _table(["key", "value"], rows)]
-    return "\n\n".join(parts)
-
-
 def render_field_table(r: dict, label: str) -> str:
     table = r["table"]
     shown = [c for c in ORDER if c not in ("no_downwash", "baseline") and any(c in e["conditions"] for e in table.values())]
@@ -473,20 +423,22 @@ def render_field_table(r: dict, label: str) -> str:
             gap = m.get("gap_to_oracle_pos_3d")
             cells.append(pct(m.get("improvement_pos_3d")) + ("" if gap is None or c == "oracle" else f" ({gap:+.3f})"))
         rows.append([f"`{name}`", fmt(e["conditions"].get("baseline", {}).get("pos_err_3d_mean"))] + cells
-                    + [pct(max((m.get("crash_rate") or 0.0) for m in e["conditions"].values())), f"{e['wall_seconds']:.0f}"])
+                    + [crash_cell(max((m.get("crash_rate") or 0.0) for m in e["conditions"].values()), e["seeds"]),
+                       f"{e['wall_seconds']:.0f}"])
     first = next(iter(table.values()))
     return "\n\n".join([
         f"The lemniscate (`python -m experiments.lemniscate --field NAME`, {first['seeds']} seeds, {short(first['duration'])} s) "
         "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
         "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
         f"oracle). The wall time is the whole lemniscate experiment, collection and training included (`{label}`):",
-        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate", "wall (s)"], rows)])
+        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate (Wilson 95 %)", "wall (s)"], rows)])
 
 
 RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
              "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
              "swarm": render_swarm,
-             "field_table": render_field_table, "real_flights": render_real_flights, "benchmark": render_benchmark}
+             "field_table": render_field_table, "real_flights": render_real_flights, "benchmark": render_benchmark,
+             "observer_bandwidth": render_observer_bandwidth}
 
 
 # What a results file of the right keys but wrong values raises in a renderer (a string where a number

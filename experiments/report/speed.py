@@ -1,0 +1,62 @@
+"""The speed section of the results page: what users want first (real time, env steps, MuJoCo's own
+stepping), then the benchmark's full record with the project's aims."""
+
+from __future__ import annotations
+
+from experiments.report.formatting import _table, fmt
+
+__all__ = ["render_benchmark"]
+
+
+def _speed_summary(r: dict) -> list[list[str]]:
+    """What a user wants first: flights against real time, env steps, MuJoCo's own batched stepping, and
+    each scene's batched flights against MuJoCo's rollout of it."""
+    worlds, rows = r.get("batched_worlds"), []
+
+    def add(what: str, key: str, note: str = "", sig: int = 3) -> None:
+        if r.get(key) is not None:
+            rows.append([what, fmt(r[key], sig), note])
+
+    add("one flight (two vehicles, 500 Hz physics, the full stack), times real time", "real_time_factor_serial")
+    add(f"{worlds} worlds in one batch, world-steps/s", "closed_loop_batched_world_steps_per_s",
+        f"{fmt(r.get('batched_over_bare'), 3)}x one bare `mj_step` loop")
+    add(f"MuJoCo's own batched stepping (`mujoco.batch`), {worlds} worlds, no control at all, world-steps/s",
+        "mujoco_batch_world_steps_per_s", f"{fmt(r.get('mujoco_batch_over_bare'), 3)}x one bare `mj_step` loop")
+    # each scene's batched flights against MuJoCo's rollout of that scene (older files have none)
+    for what, ours, prefix, ratio in (
+            (f"the pair, {worlds} worlds", "closed_loop_batched_world_steps_per_s", "", "batched_over_mujoco_rollout"),
+            (f"`formation5` (five vehicles), {worlds} worlds", "formation5_batched_world_steps_per_s", "formation5_",
+             "formation5_batched_over_mujoco_rollout"),
+            (f"the swarm env as a `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds)",
+             "swarm_world_steps_per_s_native", "swarm_", "swarm_native_over_mujoco_rollout")):
+        if r.get(ratio) is not None:
+            add(f"{what} in one batch against MuJoCo's own rollout of the same scene (`mujoco.rollout`, no control), "
+                "world-steps/s", ours, f"{fmt(r[ratio], 3)}x of MuJoCo's rollout "
+                f"({fmt(r.get(prefix + 'mujoco_rollout_world_steps_per_s'))} world-steps/s)")
+    add("the single env (`gym.make`), steps/s", "env_steps_per_s_single", "an env step is 0.02 s of flight")
+    add(f"the native vector env, {worlds} worlds, steps/s", "env_steps_per_s_vector64_solo")
+    add(f"stable-baselines3 PPO's rollout through the native vector env, {r.get('sb3_worlds')} worlds, steps/s",
+        "sb3_rollout_steps_per_s_native", f"{fmt(r.get('sb3_native_over_sync'), 3)}x through Gymnasium's `SyncVectorEnv`")
+    add(f"the swarm env as a stable-baselines3 `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds), "
+        "agent-steps/s", "swarm_agent_steps_per_s_native",
+        f"{fmt(r.get('swarm_native_over_supersuit'), 3)}x SuperSuit's vectorised env")
+    add("training the equivariant model on the staged collection's data, s", "train_seconds_equivariant_full")
+    return rows
+
+
+def render_benchmark(r: dict, label: str) -> str:
+    parts = [f"Measured by `python -m experiments.benchmark` on {r.get('cpu_count')} cores (mujoco {r.get('mujoco')}), "
+             "every rate from one run:", _table(["", "measured", ""], _speed_summary(r)),
+             "### The benchmark's full record"]
+    targets = r.get("targets") or {}
+    if targets:
+        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
+        parts += [f"The ratios the project aims for, as measured in this run ({r.get('rounds')} rounds, each "
+                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
+                  "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
+                  f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
+                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
+                  _table(["ratio", "aim", "measured", "reached"], rows)]
+    rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
+    parts += [f"Every rate and ratio, {r.get('batched_worlds')} batched worlds (`{label}`):", _table(["key", "value"], rows)]
+    return "\n\n".join(parts)
