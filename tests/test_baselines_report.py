@@ -81,3 +81,29 @@ def test_the_tracking_results_fly_the_unlearned_conditions_beside_every_model(na
     assert models and all(m + "_dob" in c for m in models)
     n = len(r["seeds"])
     assert all(len(e["per_seed"]["pos_err_3d_mean"]) == n for e in c.values())
+
+
+def test_the_guard_criteria_judge_each_setting_against_its_unguarded_twin():
+    from experiments.report.criteria import guard_criteria, render_guard_criteria
+
+    def point(imp, crash=0.0, kinds=None):
+        e = {"improvement_pos_3d": imp, "crash_rate": crash}
+        return e if kinds is None else e | {"kinds_in_data": kinds}
+
+    found = {
+        "lemniscate": {"conditions": {"baseline": point(None), "deep": point(0.5, kinds=True),
+                                      "deep_guarded": point(0.4, kinds=True),  # keeps 80 % of 50 %: a miss
+                                      "shallow": point(0.05), "shallow_guarded": point(-0.03)}},  # below -2 %: a miss
+        "swarm": {"summary": {"linear": {
+            "stack3": {"baseline": point(None, 0.1), "m": point(0.5, 0.0, False), "m_guarded": point(-0.5, 0.2, False)},
+            "stack4": {"baseline": point(None), "m": point(0.5, 0.0, False), "m_guarded": point(0.1, 0.0, False)}}}},
+    }
+    r = guard_criteria(found)
+    assert r["crashes"]["judged"] == 4 and r["crashes"]["misses"] == [("swarm stack3, linear", "m", "guarded 20.0 % > unguarded 0.0 %")]
+    # stack3's baseline crashes: neither judged for never-worse nor for retention there
+    assert r["never_worse"]["judged"] == 3 and [m[:2] for m in r["never_worse"]["misses"]] == [("lemniscate", "shallow")]
+    # stack4's model kinds are not in its data: its 20 % retention is not a miss; shallow's gain is under 10 %
+    assert r["retention"]["judged"] == 1 and r["retention"]["misses"] == [("lemniscate", "deep", "keeps 80.0 % of 50.0 %")]
+    assert r["retention_unknown"] == 0
+    text = render_guard_criteria(found)
+    assert "| 4 | 1 | `m` in swarm stack3, linear: guarded 20.0 % > unguarded 0.0 % |" in text

@@ -35,6 +35,7 @@ from experiments.common import CommonArgs, arg, parse_args, script
 from experiments.report.formatting import _ordered, _table, fmt, pct, short
 from experiments.report.results import (EXPERIMENTS, copy_results, load_results, machine, read_runs, stale_results,
                                         write_copies, write_path)
+from experiments.report.criteria import guard_criteria, render_guard_criteria
 from experiments.report.real_flights import real_model_names
 from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _equivariance_verdict, _memory_verdict,
                                          _render_one, render_benchmark, render_efficiency, render_error,
@@ -116,10 +117,12 @@ def _render_found(found: dict[str, dict], record: dict, results_dir: str | Path)
 def _worst(found: dict[str, dict], results_dir: str | Path) -> str | None:
     """The worst-case table over every results file, or None; an error names the file it fails on."""
     try:
-        return render_worst_cases(found)
+        tables = [t for t in (render_worst_cases(found), render_guard_criteria(found)) if t]
+        return "\n\n".join(tables) or None
     except RENDER_ERRORS as e:
         # the table spans every file: name the one that fails on its own, else them all
-        culprit = [n for n in found if _fails(worst_cases, {n: found[n]})][:1] or list(found)
+        culprit = [n for n in found if _fails(worst_cases, {n: found[n]}) or _fails(guard_criteria, {n: found[n]})][:1]
+        culprit = culprit or list(found)
         raise render_error(_file(results_dir, *culprit), "the worst-case table", e) from e
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from downwash_core.errors import ConfigError
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
 from experiments.report.formatting import ORDER, _ordered, _table, crash_cell, fmt, pct, short
+from experiments.report.criteria import settings_points
 from experiments.report.baselines import render_learning_over_baselines, render_observer_bandwidth
 from experiments.report.real_flights import render_real_flights
 from experiments.report.speed import render_benchmark
@@ -303,28 +304,7 @@ def worst_cases(found: dict[str, dict]) -> dict[str, dict[str, tuple]]:
     over every setting of every experiment's results: the tracking runs, the outdoor run with its
     sweeps and truths, the field table's fields and the swarm's presets and laws (a setting without
     crashes behind the guard is not a crash; none: no "guarded_crashes")."""
-    points: list[tuple[str, str, dict]] = []  # (where, condition, {improvement_pos_3d, crash_rate})
-    for name in ("lemniscate", "transect"):
-        for c, e in (found.get(name) or {}).get("conditions", {}).items():
-            points.append((name, c, e))
-    outdoor = found.get("outdoor") or {}
-    for c, e in outdoor.get("conditions", {}).items():
-        points.append(("outdoor", c, e))
-    sweeps = [("outdoor", outdoor.get("sweep"), "speeds", " m/s"), ("outdoor", outdoor.get("wind_sweep"), "winds", "")]
-    sweeps += [(f"outdoor on {t}", truth.get(k), key, unit) for t, truth in (outdoor.get("truths") or {}).items()
-               for k, key, unit in (("sweep", "speeds", " m/s"), ("wind_sweep", "winds", ""))]
-    for where, sweep, key, unit in sweeps:
-        for c, e in ((sweep or {}).get("conditions") or {}).items():
-            for i, at in enumerate(sweep[key]):
-                points.append((f"{where}, {short(at) if key == 'speeds' else at}{unit}", c,
-                               {"improvement_pos_3d": e["improvement_pos_3d"][i], "crash_rate": e["crash_rate"][i]}))
-    for field, entry in ((found.get("field_table") or {}).get("table") or {}).items():
-        for c, e in entry["conditions"].items():
-            points.append((f"lemniscate on {field}", c, e))
-    for law, by_preset in ((found.get("swarm") or {}).get("summary") or {}).items():
-        for preset, entry in by_preset.items():
-            for c, e in entry.items():
-                points.append((f"swarm {preset}, {law}", c, e))
+    points = settings_points(found)
     baseline = {where: e.get("crash_rate") or 0.0 for where, c, e in points if c == "baseline"}
     out: dict[str, dict[str, tuple]] = {}
     for where, c, e in points:
