@@ -49,7 +49,7 @@ from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "UNLEARNED", "GUARDED", "OBSERVED", "CONDITIONS", "DEFAULT_CONDITIONS",
            "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "make_controller",
-           "fly_conditions"]
+           "kinds_in_data", "fly_conditions"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
 UNLEARNED = ("integral", "dob")  # the generic tools a control engineer uses first
@@ -135,6 +135,24 @@ def make_controller(condition: str, controller: Any = None) -> Any:
         raise ConfigError(f"the integral condition adds integral action to the LQR; the flight's controller is "
                           f"{type(controller).__name__} (fly it with the LQR, or leave the condition out)")
     return IntegralLQR(controller.config if controller is not None else None)
+
+
+def kinds_in_data(conditions: Sequence[str], checkpoints: dict[str, Path], vehicle_kinds: Sequence[Any]) -> dict[str, bool]:
+    """{learned condition: whether its model's training data held every ordered pair of the scene's vehicle
+    kinds} (`downwash.support.Support.holds_kinds`, from the checkpoint's support record): the guard's
+    promise to keep a gain holds only where they did. A checkpoint without a support record: False."""
+    from downwash.checkpoint import read_metadata
+    from downwash.features import kind_descriptors
+    from downwash.support import Support
+
+    descriptors = kind_descriptors(list(vehicle_kinds))
+    out = {}
+    for c in conditions:
+        if c in REFERENCE_CONDITIONS or c in UNLEARNED:
+            continue
+        record = ((read_metadata(checkpoints[_model(c)]) or {}).get("data") or {}).get("support")
+        out[c] = record is not None and Support.from_record(record).holds_kinds(descriptors)
+    return out
 
 
 class _WorldsOf:

@@ -63,6 +63,16 @@ class Support:
         len(KIND_FEATURES) of ``SUPPORT_FEATURES``): whether the data held these vehicle kinds."""
         return np.prod(self._terms(x)[..., -2 * len(KIND_FEATURES):], axis=-1)
 
+    def holds_kinds(self, descriptors: np.ndarray) -> bool:
+        """Whether the data held every ordered pair of these vehicles' kinds (descriptors (V, len(KIND_FEATURES)),
+        `downwash.features.kind_descriptors`), each as neighbour and target: full `kind_confidence` for all."""
+        d = np.asarray(descriptors, dtype=np.float64)
+        a, b = np.meshgrid(np.arange(len(d)), np.arange(len(d)), indexing="ij")
+        pairs = (a != b) if len(d) > 1 else np.ones_like(a, dtype=bool)
+        x = np.zeros((int(pairs.sum()), len(self.lo)))
+        x[:, -2 * d.shape[1]:] = np.concatenate([d[a[pairs]], d[b[pairs]]], axis=-1)
+        return bool(np.all(self.kind_confidence(x) == 1.0))
+
     def _terms(self, x: np.ndarray) -> np.ndarray:
         """(..., k): each feature's factor of the confidence, clip(1 - beyond / margin, 0, 1)."""
         beyond = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0) / self.margin
