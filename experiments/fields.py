@@ -36,7 +36,8 @@ from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FIELD_NAMES, Com
 __all__ = ["FieldsArgs", "TABLE_KEYS", "listing", "run_every_field", "run", "main"]
 
 # per condition, from each field's lemniscate results: what the field x model table shows
-TABLE_KEYS = ("improvement_pos_3d", "improvement_pos_z", "gap_to_oracle_pos_3d", "pos_err_3d_mean", "crash_rate")
+TABLE_KEYS = ("improvement_pos_3d", "improvement_pos_z", "gap_to_oracle_pos_3d", "pos_err_3d_mean", "crash_rate",
+              "crash_rate_ci95", "kinds_in_data")
 
 
 def _only_check(only: str) -> str | None:
@@ -88,7 +89,10 @@ def run_every_field(args: FieldsArgs, out: Path) -> dict:
         table[name] = {
             "wall_seconds": wall, "seeds": len(result["seeds"]), "duration": result["duration"],
             "pipeline_key": result.get("provenance", {}).get("pipeline_key"),
-            "conditions": {c: {k: e.get(k) for k in TABLE_KEYS} for c, e in result["conditions"].items()},
+            # (and each seed's 3-D error, for the paired intervals of the results page)
+            "conditions": {c: {**{k: e.get(k) for k in TABLE_KEYS},
+                               "per_seed": {"pos_err_3d_mean": e["per_seed"]["pos_err_3d_mean"]}}
+                           for c, e in result["conditions"].items()},
         }
         print(f"--field {name}: {wall:.0f} s", flush=True)
     return table

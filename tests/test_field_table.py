@@ -28,11 +28,13 @@ def test_run_tabulates_every_condition_of_the_chosen_field(tmp_path):
     assert set(entry["conditions"]) == set(DEFAULT_CONDITIONS)
     lemniscate = json.loads((tmp_path / "ft" / "momentum" / "results.json").read_text())
     for c, e in entry["conditions"].items():  # the table copies the run's numbers, nothing else
-        assert e == {k: lemniscate["conditions"][c].get(k) for k in TABLE_KEYS}
+        assert e == {**{k: lemniscate["conditions"][c].get(k) for k in TABLE_KEYS},
+                     "per_seed": {"pos_err_3d_mean": lemniscate["conditions"][c]["per_seed"]["pos_err_3d_mean"]}}
     assert lemniscate["provenance"]["pipeline"]["field"]["name"] == "momentum"
     assert (tmp_path / "ft" / "pipeline" / "momentum" / "models" / "equivariant.pt").is_file()  # --fresh: its own
     text = render_field_table(result, "ft/results.json")
     assert "| `momentum` |" in text and "equivariant_general" in text
+    assert "What does learning add" in text and "| `momentum` | `equivariant` |" in text
 
 
 @pytest.mark.parametrize("args, message", [

@@ -15,7 +15,8 @@ from typing import Any
 
 from experiments.report.formatting import _ordered, _table, fmt, pct, short
 
-__all__ = ["UNLEARNED", "paired_interval", "render_learning_over_baselines", "render_observer_bandwidth"]
+__all__ = ["UNLEARNED", "paired_interval", "render_learning_over_baselines", "render_field_baselines",
+           "render_observer_bandwidth"]
 
 UNLEARNED = ("integral", "dob")
 _ERROR = "pos_err_3d_mean"
@@ -87,6 +88,31 @@ def render_learning_over_baselines(conditions: dict[str, Any], n_seeds: int) -> 
         "disturbance observer, `integral` the LQR with integral action, `<model>_dob` the model as feed-forward "
         f"with the observer on what it misses. Differences are paired by seed over {n_seeds} seeds, negative where "
         "the model with the observer has the smaller error:", _table(header, rows)])
+
+
+def render_field_baselines(table: dict[str, dict]) -> str | None:
+    """Per field of the field table and model: its gain, `dob`'s and `integral`'s, the model with the observer's,
+    and the answer of `render_learning_over_baselines`; None without those conditions in the table."""
+    rows = []
+    for field, entry in table.items():
+        c = entry["conditions"]
+        if not all(k in c and "per_seed" in c[k] for k in ("baseline", *UNLEARNED)):
+            continue
+        err = {k: e["per_seed"][_ERROR] for k, e in c.items() if "per_seed" in e}
+        for model, _ in _ordered(c):
+            twin = model + "_dob"
+            if twin not in err or model not in err:
+                continue
+            vs_model, vs_dob = paired_interval(err[twin], err[model]), paired_interval(err[twin], err["dob"])
+            rows.append([f"`{field}`", f"`{model}`"] + [pct(c[k].get("improvement_pos_3d")) for k in
+                                                       (model, "dob", "integral", twin)]
+                        + [_answer(vs_model, vs_dob, paired_interval(err["dob"], err[model]))])
+    if not rows:
+        return None
+    return "\n\n".join([
+        "What does learning add over the observer and integral action on each field (gains over the baseline, "
+        "answers from paired 95 % intervals over the seeds, as for the tracking experiments):",
+        _table(["field", "model", "its gain", "`dob`", "`integral`", "model + `dob`", "answer"], rows)])
 
 
 def render_observer_bandwidth(r: dict, label: str) -> str:

@@ -14,7 +14,8 @@ from downwash_core.errors import ConfigError
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
 from experiments.report.formatting import ORDER, _ordered, _table, crash_cell, fmt, pct, short
 from experiments.report.criteria import settings_points
-from experiments.report.baselines import render_learning_over_baselines, render_observer_bandwidth
+from experiments.report.baselines import (render_field_baselines, render_learning_over_baselines,
+                                         render_observer_bandwidth)
 from experiments.report.real_flights import render_real_flights
 from experiments.report.speed import render_benchmark
 
@@ -394,7 +395,8 @@ def render_force_maps(r: dict, label: str) -> str:
 
 def render_field_table(r: dict, label: str) -> str:
     table = r["table"]
-    shown = [c for c in ORDER if c not in ("no_downwash", "baseline") and any(c in e["conditions"] for e in table.values())]
+    shown = [c for c in ORDER if c not in ("no_downwash", "baseline", "integral", "dob") and not c.endswith("_dob")
+             and any(c in e["conditions"] for e in table.values())]  # (the observer's and integral's: their own table)
     rows = []
     for name, e in sorted(table.items(), key=lambda kv: (list(FIELDS).index(kv[0]) if kv[0] in FIELDS else len(FIELDS), kv[0])):
         cells = []
@@ -411,7 +413,8 @@ def render_field_table(r: dict, label: str) -> str:
         "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
         "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
         f"oracle). The wall time is the whole lemniscate experiment, collection and training included (`{label}`):",
-        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate (Wilson 95 %)", "wall (s)"], rows)])
+        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate (Wilson 95 %)", "wall (s)"], rows)]
+        + [t for t in (render_field_baselines(table),) if t])
 
 
 RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_efficiency,
