@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field,
+from experiments.common import (CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field,
                                 out_lock, parse_args, registered_field_names, run_main, setup_logging, write_results,
                                 script)
 
