@@ -49,7 +49,7 @@ from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "UNLEARNED", "GUARDED", "OBSERVED", "CONDITIONS", "DEFAULT_CONDITIONS",
            "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "make_controller",
-           "kinds_in_data", "fly_conditions"]
+           "kinds_in_data", "fly_conditions", "fly_predictors"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
 UNLEARNED = ("integral", "dob")  # the generic tools a control engineer uses first
@@ -137,14 +137,17 @@ def make_controller(condition: str, controller: Any = None) -> Any:
     return IntegralLQR(controller.config if controller is not None else None)
 
 
-def kinds_in_data(conditions: Sequence[str], checkpoints: dict[str, Path], vehicle_kinds: Sequence[Any]) -> dict[str, bool]:
-    """{learned condition: whether its model's training data held every ordered pair of the scene's vehicle
-    kinds} (`downwash.support.Support.holds_kinds`, from the checkpoint's support record): the guard's
-    promise to keep a gain holds only where they did. A checkpoint without a support record: False."""
+def kinds_in_data(conditions: Sequence[str], checkpoints: dict[str, Path], vehicle_kinds: Sequence[Any] | Scene
+                  ) -> dict[str, bool]:
+    """{learned condition: whether its model's training data held every ordered pair of the vehicle kinds (of a
+    scene: its vehicles')} (`downwash.support.Support.holds_kinds`, from the checkpoint's support record): the
+    guard's promise to keep a gain holds only where they did. A checkpoint without a support record: False."""
     from downwash.checkpoint import read_metadata
     from downwash.features import kind_descriptors
     from downwash.support import Support
 
+    if isinstance(vehicle_kinds, Scene):  # (a scene of paper quads lists no kinds)
+        vehicle_kinds = [k.name for k in vehicle_kinds.kinds] or ["paper_quad"] * len(vehicle_kinds.roles)
     descriptors = kind_descriptors(list(vehicle_kinds))
     out = {}
     for c in conditions:
@@ -189,23 +192,35 @@ def fly_conditions(
     controller). The conditions the fused tick can fly go as one batch, the others as a second
     (module doc).
     """
+    predictors = [make_predictor(c, field, checkpoints, guard) for c in conditions]
+    return fly_predictors(scene, conditions, predictors, reference, seeds, duration, meta=meta, field=field,
+                          **components)
+
+
+def fly_predictors(scene: Scene, conditions: Sequence[str], predictors: Sequence[Predictor], reference: Reference,
+                   seeds: Sequence[int], duration: float, meta: dict | None = None,
+                   **components: Any) -> dict[str, list[FlightLog]]:
+    """`fly_conditions` with each condition's predictor given (`predictors[i]` flies `conditions[i]`; the
+    condition still picks the controller: ``integral``'s): the fused-capable conditions as one batch, the
+    others as a second (module doc). components: the `Simulator` keywords shared by every world."""
     K, n = len(seeds), len(conditions) * len(seeds)
     logs: dict[str, list[FlightLog]] = {}
-    for batch in ([c for c in conditions if not _readable(c)], [c for c in conditions if _readable(c)]):
+    for batch in ([i for i, c in enumerate(conditions) if not _readable(c)],
+                  [i for i, c in enumerate(conditions) if _readable(c)]):
         if not batch:
             continue
-        rows = np.concatenate([np.arange(K) + conditions.index(c) * K for c in batch])
-        controllers = [make_controller(c, components.get("controller")) for c in batch]
+        names = [conditions[i] for i in batch]
+        rows = np.concatenate([np.arange(K) + i * K for i in batch])
+        controllers = [make_controller(c, components.get("controller")) for c in names]
         parts = dict(components)
         if any(c is not components.get("controller") for c in controllers):
             parts["controller"] = PerWorldController(
                 [c if c is not None else FeedbackLinearisedLQR() for c in controllers], np.repeat(np.arange(len(batch)), K))
-        predictor = PerWorldPredictor([make_predictor(c, field, checkpoints, guard) for c in batch],
-                                      np.repeat(np.arange(len(batch)), K))
-        field_enabled = np.array([c != "no_downwash" for c in batch for _ in range(K)])
-        world_meta = [{"condition": c, **(meta or {})} for c in batch for _ in range(K)]
+        predictor = PerWorldPredictor([predictors[i] for i in batch], np.repeat(np.arange(len(batch)), K))
+        field_enabled = np.array([c != "no_downwash" for c in names for _ in range(K)])
+        world_meta = [{"condition": c, **(meta or {})} for c in names for _ in range(K)]
         flown = fly(scene, reference if len(batch) == len(conditions) else _WorldsOf(reference, rows, n),
-                    [s for _ in batch for s in seeds], duration, field=field, predictor=predictor,
-                    field_enabled=field_enabled, meta=world_meta, **parts)
-        logs.update({c: flown[i * K:(i + 1) * K] for i, c in enumerate(batch)})
+                    [s for _ in batch for s in seeds], duration, predictor=predictor, field_enabled=field_enabled,
+                    meta=world_meta, **parts)
+        logs.update({c: flown[j * K:(j + 1) * K] for j, c in enumerate(names)})
     return {c: logs[c] for c in conditions}

@@ -1,9 +1,9 @@
 """Vehicle kinds: the numbers of one multirotor type, each with where it comes from.
 
 A `VehicleKind` is a quadrotor's mass, inertia, geometry and actuator limits, plus a
-`source` that cites every number. `VEHICLES` is the registry (name -> kind) and
-`get_vehicle(name)` the lookup; `sim.scene.build_scene(..., kinds=...)` builds scenes of
-mixed kinds from it. The kinds:
+`source` that cites every number. `VEHICLES` is the registry (a `downwash_core.registry.Registry`:
+name -> kind), `get_vehicle(name)` the lookup and `register_vehicle(kind)` adds one (as plugins
+do); `sim.scene.build_scene(..., kinds=...)` builds scenes of mixed kinds from it. The kinds:
 
 | name | what | mass | source |
 |---|---|---|---|
@@ -50,18 +50,18 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field, fields
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY, QUAD, QuadParams
+from downwash_core.registry import Registry
 
 __all__ = [
     "VehicleKind", "ThrustMap", "VEHICLES", "VEHICLE_NAMES", "DEFAULT_VEHICLE", "PAPER_QUAD", "CRAZYFLIE_2_1",
     "CRAZYFLIE_LARGE", "X500",
-    "AIR_DENSITY", "N_ROTORS", "get_vehicle", "hover_induced_velocity", "so2_strength_scale",
+    "AIR_DENSITY", "N_ROTORS", "get_vehicle", "register_vehicle", "hover_induced_velocity", "so2_strength_scale",
     "momentum_wake_kwargs", "so2_pair_scale", "momentum_drag_area_scale", "airframe_area_scale", "size_scale",
     "as_params",
 ]
@@ -354,18 +354,26 @@ motor_time_constant 0.01875 s: estimated, the mean of timeConstantUp 0.0125 s an
 yaw_moment_coeff 0.016 m: momentConstant (x500/model.sdf)""",
 )
 
-VEHICLES: MappingProxyType = MappingProxyType({k.name: k for k in (PAPER_QUAD, CRAZYFLIE_2_1, X500, CRAZYFLIE_LARGE)})
-VEHICLE_NAMES = tuple(VEHICLES)
+VEHICLES = Registry("vehicle", group="vehicles", objects=True, name_pattern=_NAME.pattern,
+                    name_rule="lower case letters, digits and underscores")  # name -> VehicleKind
 DEFAULT_VEHICLE = PAPER_QUAD.name
+
+
+@VEHICLES.adder
+def register_vehicle(kind: VehicleKind) -> VehicleKind:
+    """Add `kind` under its name (as plugins do); ConfigError for a taken name or no `VehicleKind`."""
+    if not isinstance(kind, VehicleKind):
+        raise ConfigError(f"register_vehicle: expected a VehicleKind, got {type(kind).__name__}")
+    VEHICLES.register(kind.name, None, kind.description or kind.short_source, params={}, obj=kind)
+    return kind
+
+
+VEHICLE_NAMES = tuple(register_vehicle(k).name for k in (PAPER_QUAD, CRAZYFLIE_2_1, X500, CRAZYFLIE_LARGE))  # built-in
 
 
 def get_vehicle(kind: "str | VehicleKind") -> VehicleKind:
     """The kind named `kind` (a `VehicleKind` is returned as it is); ConfigError naming the allowed names."""
-    if isinstance(kind, VehicleKind):
-        return kind
-    if isinstance(kind, str) and kind.strip() in VEHICLES:
-        return VEHICLES[kind.strip()]
-    raise ConfigError(f"vehicle: unknown {kind!r}; allowed: {', '.join(VEHICLE_NAMES)}")
+    return kind if isinstance(kind, VehicleKind) else VEHICLES[kind.strip() if isinstance(kind, str) else kind]
 
 
 # ---------------------------------------------------------------------------- wake scaling

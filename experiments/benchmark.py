@@ -68,8 +68,6 @@ from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_tabl
                                 run_main, setup_logging, write_results, script)
 
 if TYPE_CHECKING:  # annotations only: the stack is imported where it is measured
-    from downwash.guard import GuardedPredictor
-    from downwash.support import Support
     from downwash.predictor import LearnedPredictor
     from sim.simulator import Simulator
 

@@ -11,7 +11,8 @@ range), each name and each output folder (writable) before any work, naming the 
 hold tables of library settings ([lqr], [sim], [training], [guard]) for the experiments that apply them
 (`config_tables`); `experiments.config_file` reads it and writes the resolved `config.toml` beside each
 results.json, and the builders below (`lqr_config`, `sim_config`, `training_config`, `guard_settings`)
-are the one place an experiment turns the tables into the library's settings.
+are the one place an experiment turns the tables into the library's settings; `FlightArgs` adds
+`--controller` (`controllers.registry`), which `flight_components` builds and `check_controller` checks.
 `--quick` gives the options with an `arg(..., quick=)` that value unless they are given.
 `out_lock` holds the --out folder for the run, so two runs on one folder take turns.
 `run_main` runs an experiment from the command line: an expected error (`TestbedError`)
@@ -38,18 +39,19 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator, NoReturn, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError, TestbedError
-from experiments.options import (AGGREGATIONS, CONDITIONS, DEFAULT_CONDITIONS, DEFAULT_FIELD, FIELD_CHOICES,
-                                 FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, PRESETS, SEED_COUNT_MAX,
-                                 WIND_HELP, WIND_SEVERITIES, field_check, in_range, load_wind, names_check, one_of,
-                                 range_words, registered_field_names, seed_count_check, wind_check)
+from experiments.options import (AGGREGATIONS, CONDITIONS, CONTROLLER_NAMES, DEFAULT_CONDITIONS, DEFAULT_CONTROLLER,
+                                 DEFAULT_FIELD, FIELD_CHOICES, FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS,
+                                 PRESETS, SEED_COUNT_MAX, WIND_HELP, WIND_SEVERITIES, field_check, in_range, load_wind,
+                                 names_check, one_of, range_words, registered_field_names, seed_count_check, wind_check)
 
 __all__ = [
-    "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "Pipeline", "ProgressBar", "arg", "parse_args", "load_field",
+    "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "FlightArgs", "Pipeline", "ProgressBar", "arg",
+    "parse_args", "load_field",
     "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
     "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check", "wind_check",
     "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging", "CONDITIONS", "SEED_COUNT_MAX",
-    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "table", "lqr_config", "sim_config", "flight_components",
-    "training_config", "guard_settings",
+    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "one_line",
+    "CONTROLLER_NAMES",
     "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
 ]
 
@@ -110,6 +112,25 @@ class PipelineArgs(CommonArgs):
                                   "keyed by the field, config and seed)")
     models_dir: str = arg("", "trained models folder (default: runs/pipeline/<field>-<key>/models); "
                               "collected and trained first when missing")
+
+
+@dataclass(frozen=True)
+class FlightArgs(PipelineArgs):
+    """Options of the experiments that fly conditions with the trained models: also the flights' controller."""
+
+    # the flights' controller ([lqr], with --controller lqr), simulator, guard and safety layer settings
+    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard", "safety")
+
+    controller: str = arg(DEFAULT_CONTROLLER, f"the flights' outer-loop controller: {', '.join(CONTROLLER_NAMES)} "
+                                              "(lqr: the paper's LQR, the [lqr] table's; mellinger, pid: the Crazyflie "
+                                              "firmware's, its default gains; indi: incremental dynamic inversion; "
+                                              "controllers.registry). The staged collection flies the LQR whatever "
+                                              "this says; the condition integral (the LQR's integral action) needs "
+                                              "lqr, and with another the default conditions leave it out",
+                          check=one_of(CONTROLLER_NAMES))
+    safety: bool = arg(False, "fly every condition with the safety layer (sim.safety: a control barrier function filter "
+                              "on the commanded accelerations that keeps stacked vehicles apart and off the ground; "
+                              "its settings: the config file's [safety] table, which also turns it on)")
 
 
 @dataclass(frozen=True)
@@ -293,7 +314,7 @@ def read_config(path: str | Path, cls: type) -> dict[str, Any]:
     return {**values, **({"tables": tables} if tables else {})}
 
 
-def _one_line(e: BaseException) -> str:
+def one_line(e: BaseException) -> str:
     return " ".join(str(e).split())
 
 
@@ -389,7 +410,7 @@ def load_field(spec: str) -> Any:
         # the user's MODULE:FACTORY is not a field factory (it needs arguments, exits, or what it returns
         # fails when called as a field): name the option, as for any bad value
         raise ConfigError(f"{label}: expected MODULE:FACTORY to name a function that takes no arguments and "
-                          f"returns a field; it failed with {type(e).__name__}: {_one_line(e)}") from e
+                          f"returns a field; it failed with {type(e).__name__}: {one_line(e)}") from e
     return obj
 
 
@@ -433,6 +454,8 @@ def write_results(out: str | Path, results: dict, args: Any, provenance: dict | 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     tables = resolved_tables(args)
+    if getattr(args, "controller", DEFAULT_CONTROLLER) != "lqr":  # flown without the LQR: a rerun refuses [lqr]
+        tables.pop("lqr", None)
     if out == Path(args.out):  # not the folders an experiment writes per part (swarm: one per preset)
         write_config(out / CONFIG_NAME, args, tables)
     options = {f.name: getattr(args, f.name) for f in option_fields(args)}
@@ -442,62 +465,6 @@ def write_results(out: str | Path, results: dict, args: Any, provenance: dict | 
     path = out / "results.json"
     atomic_write_json(path, payload)
     return path
-
-
-def table(args: Any, name: str) -> dict[str, Any]:
-    """The checked values of the config file's [name] table for the run `args` ({} when it gives none);
-    ConfigError when its experiment does not apply that table: a table is never silently ignored."""
-    from experiments.config_file import check_table, refuse_table
-
-    if name not in type(args).config_tables:
-        raise ConfigError(refuse_table(name, type(args)))
-    return check_table(name, args.tables.get(name, {}))
-
-
-def _built(name: str, make: Callable[..., A], *args: Any, **values: Any) -> A:
-    """`make(*args, **values)`, its refusal of a table's values a ConfigError naming the table."""
-    try:
-        return make(*args, **values)
-    except (ConfigError, ValueError, ArithmeticError) as e:  # (a LinAlgError is a ValueError)
-        raise ConfigError(f"[{name}]: {_one_line(e)}") from e
-
-
-def lqr_config(args: Any) -> Any:
-    """The outer loop of the experiment's flights: `controllers.lqr.LQRConfig` with the [lqr] table's values."""
-    from controllers.lqr import LQRConfig
-
-    return _built("lqr", LQRConfig, **table(args, "lqr"))
-
-
-def sim_config(args: Any) -> Any:
-    """The experiment's `sim.simulator.SimConfig`, with the [sim] table's values."""
-    from sim.simulator import SimConfig
-
-    return _built("sim", SimConfig, **table(args, "sim"))
-
-
-def flight_components(args: Any) -> dict[str, Any]:
-    """The `Simulator` keywords of the experiment's own flights: the controller ([lqr]) and the config
-    ([sim]). The staged collection behind its models flies the defaults (part of its provenance)."""
-    from controllers.lqr import FeedbackLinearisedLQR
-
-    return {"controller": _built("lqr", FeedbackLinearisedLQR, lqr_config(args)), "config": sim_config(args)}
-
-
-def training_config(args: Any) -> Any:
-    """The experiment's training settings: `downwash.staged.train_config` (the defaults, or a few steps
-    with --quick) with the [training] table's values; the seed is --seed."""
-    from downwash.staged import train_config
-
-    return _built("training", dataclasses.replace, train_config(args.seed, args.quick), **table(args, "training"))
-
-
-def guard_settings(args: Any) -> dict[str, float]:
-    """The keywords of the experiment's `downwash.guard.GuardedPredictor`s: `GUARD_DEFAULTS` with the
-    [guard] table's values."""
-    from downwash.guard import GUARD_DEFAULTS
-
-    return {**GUARD_DEFAULTS, **table(args, "guard")}
 
 
 def format_table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:

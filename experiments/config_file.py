@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from downwash_core.errors import ConfigError
-from experiments.common import _kind, _one_line, _option, option_fields
+from experiments.common import _kind, one_line, _option, option_fields
 from experiments.options import in_range, range_words
 
 __all__ = ["TABLES", "RESERVED", "CONFIG_NAME", "CONFIG_BYTES_MAX", "Key", "list_separator", "read_file", "check_table",
@@ -105,10 +105,18 @@ TABLES = {
         "fast_monitor": Key(float, "memory of the fast sums, s", _POSITIVE),
         "fast_prior": Key(float, "prior of the fast sums, (m/s^2)^2", _POSITIVE),
     }, {"predictor_hz": "the predictor's rate is the simulator's"}),
+    "safety": Table("sim.safety.SafetyConfig", {
+        "vertical_gap": Key(float, "the least vertical separation of a stacked pair, m", {"gt": 0.0, "le": 10.0}),
+        "stack_radius": Key(float, "a pair closer than this horizontally is stacked, m", {"gt": 0.0, "le": 10.0}),
+        "min_distance": Key(float, "the least distance of any pair, m", {"gt": 0.0, "le": 10.0}),
+        "ground_clearance": Key(float, "the least height of a vehicle's centre, m", {"ge": 0.0, "le": 100.0}),
+        "k0": Key(float, "the barrier's gain on h, 1/s^2", {"gt": 0.0, "le": 1e4}),
+        "k1": Key(float, "the barrier's gain on h', 1/s (at least 2 sqrt(k0))", {"gt": 0.0, "le": 1e3}),
+        "thrust_fraction": Key(float, "of a vehicle's full thrust the filter may command", {"gt": 0.0, "le": 1.0}),
+    }),
 }
 # tables a file may name that map onto nothing yet: refused with why
-RESERVED = {"safety": "no safety layer is configurable yet (the testbed has no safety settings to map it onto); "
-                      "remove the table"}
+RESERVED: dict[str, str] = {}
 
 
 def list_separator(f: dataclasses.Field) -> str | None:
@@ -138,7 +146,7 @@ def read_file(path: str | Path, cls: type) -> tuple[dict[str, Any], dict[str, di
         if name in values or name in tables:
             raise ConfigError(f"--config {path}: key {key!r} given twice (with - and with _)")
         try:
-            if name in fields:
+            if name in fields and not (name in TABLES and isinstance(value, dict)):  # [safety] is the table
                 values[name] = _option_value(key, value, fields[name])
             elif name in TABLES or name in RESERVED:
                 tables[name] = _table_of(key, value, cls)
@@ -166,7 +174,7 @@ def _load(path: str | Path) -> dict[str, Any]:
     except UnicodeDecodeError as e:
         raise ConfigError(f"--config {path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except (ValueError, RecursionError) as e:  # TOMLDecodeError; an integer of thousands of digits; deep nesting
-        raise ConfigError(f"--config {path}: not valid TOML ({_one_line(e)})") from None
+        raise ConfigError(f"--config {path}: not valid TOML ({one_line(e)})") from None
 
 
 _EXPECTED = {bool: "a boolean (true or false)", int: "an integer", float: "a number", str: "a string"}
@@ -295,18 +303,23 @@ def resolved_tables(args: Any) -> dict[str, dict[str, Any]]:
     """Every table the experiment of `args` applies, with every key's value in force (the defaults
     and --quick's included): what its run used. A key whose default is "unset" (None: the training's
     lr and num_threads) is left out, which means the same."""
-    from experiments import common
+    from experiments import components
 
     out = {}
     for name in getattr(type(args), "config_tables", ()):
-        if name == "lqr":
-            settings = dataclasses.asdict(common.lqr_config(args))
+        if name == "safety":  # (written only with --safety: without it a [safety] table is refused)
+            safety = components.safety_config(args)
+            if safety is None:
+                continue
+            settings = dataclasses.asdict(safety)
+        elif name == "lqr":
+            settings = dataclasses.asdict(components.lqr_config(args))
         elif name == "sim":
-            settings = dataclasses.asdict(common.sim_config(args))
+            settings = dataclasses.asdict(components.sim_config(args))
         elif name == "training":
-            settings = dataclasses.asdict(common.training_config(args))
+            settings = dataclasses.asdict(components.training_config(args))
         else:
-            settings = common.guard_settings(args)
+            settings = components.guard_settings(args)
         keys = TABLES[name].keys
         out[name] = {k: _plain(v) for k, v in settings.items() if k in keys and v is not None}
     return out
@@ -387,6 +400,7 @@ def write_config(path: str | Path, args: Any, tables: dict[str, dict[str, Any]])
     """Atomically write the resolved config of the run `args` (its options, and `tables`) to `path`."""
     from downwash_core.io import atomic_write_bytes
 
-    values = {f.name: getattr(args, f.name) for f in option_fields(args)}
+    # (an option and a table of one name, --safety and [safety]: the table alone says both, as TOML has one key)
+    values = {f.name: getattr(args, f.name) for f in option_fields(args) if f.name not in tables}
     atomic_write_bytes(path, dumps(values, tables, HEADER).encode())
     return Path(path)

@@ -18,7 +18,8 @@ from downwash_core.errors import ConfigError
 
 __all__ = [
     "PAIRWISE_KINDS", "CONDITIONS", "DEFAULT_CONDITIONS", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS",
-    "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "FIELD_CHOICES", "SEED_COUNT_MAX", "WIND_HELP",
+    "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "CONTROLLER_NAMES", "DEFAULT_CONTROLLER", "FIELD_CHOICES",
+    "SEED_COUNT_MAX", "WIND_HELP",
     "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
     "in_range", "range_words",
 ]
@@ -38,6 +39,8 @@ AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIO
 WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
 PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep_cells.PAPER_MINUTES
 PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep_cells.PAPER_MODELS
+CONTROLLER_NAMES = ("lqr", "mellinger", "pid", "indi")  # controllers.registry.CONTROLLER_NAMES
+DEFAULT_CONTROLLER = "lqr"  # controllers.registry.DEFAULT_CONTROLLER
 
 FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
                  f"lists their parameters), or MODULE:FACTORY returning a field object")

@@ -29,17 +29,17 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, PipelineArgs,
-                                ProgressBar, arg, check_options, field_check, flight_components, format_table,
-                                guard_settings, load_field, load_wind, names_check, one_of, out_lock, parse_args,
-                                resolve_pipeline, run_main, seed_count_check, setup_logging, wind_check, write_results,
-                                script)
+from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, FlightArgs,
+                                ProgressBar, arg, check_options, field_check, format_table, load_field, load_wind,
+                                names_check, one_of, out_lock, parse_args, resolve_pipeline, run_main,
+                                seed_count_check, setup_logging, wind_check, write_results, script)
+from experiments.components import check_controller, flight_components, flown_record, guard_settings
 
 __all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
 
@@ -91,13 +91,12 @@ _fields_check = _each(field_check, "--field", "truths")
 
 
 @dataclass(frozen=True)
-class OutdoorArgs(PipelineArgs):
+class OutdoorArgs(FlightArgs):
     # the flights' controller and simulator settings, and the guard's of the guarded conditions (the outdoor
     # stages, like the staged collection, fly the defaults)
-    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
 
     conditions: str = arg(",".join(CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
-    seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
+    seeds: int = arg(10, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
                      check=seed_count_check, quick=1)
     leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)", check=one_of(LEADERS))
     speed: float = arg(1.5, "the leader's ground speed, m/s", ge=SPEED_RANGE[0], le=SPEED_RANGE[1])
@@ -129,7 +128,7 @@ def _validate(args: OutdoorArgs) -> list[str]:
     from downwash.conditions import parse_conditions
 
     check_options(args)
-    conditions = parse_conditions(args.conditions)
+    conditions = check_controller(args, parse_conditions(args.conditions))
     fields = _items(args.sweep_fields)
     if _main_field(args) in fields:
         raise ConfigError(f"--sweep-fields: expected distinct truths other than --field ({_main_field(args)}), "
@@ -190,7 +189,7 @@ def _leader_reference(args: OutdoorArgs, W: int):
 
 def run(args: OutdoorArgs) -> dict:
     """Fly every condition x seed with the moving leader and the wind; write results, table and figure."""
-    from downwash.conditions import data_variant, fly_conditions, guard_record, learned
+    from downwash.conditions import data_variant, fly_conditions, guard_record, kinds_in_data, learned
     from downwash.staged import ensure_models
     from downwash_core.provenance import describe
     from sim.metrics import aggregate_conditions
@@ -219,11 +218,12 @@ def run(args: OutdoorArgs) -> dict:
                               meta={"experiment": "outdoor"}, guard=guard, wind=air, **components)
 
     per_condition = fly_at(args)
+    kinds = kinds_in_data(conditions, checkpoints, build_scene())  # (the guard's retention criterion)
     results: dict[str, Any] = {
         "experiment": "outdoor", "leader": args.leader, "speed": args.speed, "separation": args.separation,
         "lateral": args.lateral, "duration": args.duration, "seeds": seeds,
         "wind": None if wind is None else describe(wind), "leader_airspeed": _airspeed(per_condition),
-        "conditions": aggregate_conditions(per_condition), "guard": guard_record(conditions, guard),
+        "conditions": _with_kinds(aggregate_conditions(per_condition), kinds), "guard": guard_record(conditions, guard),
         "trained": trained,
         "outdoor_collection": None if outdoor is None else {
             **{k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
@@ -232,16 +232,17 @@ def run(args: OutdoorArgs) -> dict:
     speeds = _sweep_speeds(args.sweep_speeds)
     if speeds:  # the same conditions, seeds and wind at each speed
         by_speed = [aggregate_conditions(fly_at(dataclasses.replace(args, speed=v))) for v in speeds]
-        results["sweep"] = {"speeds": speeds, "conditions": _per_point(by_speed, conditions)}
+        results["sweep"] = {"speeds": speeds, "conditions": _with_kinds(_per_point(by_speed, conditions), kinds)}
     winds = _items(args.sweep_winds)
     if winds:  # the same conditions, seeds and speed in each wind
         by_wind = [aggregate_conditions(fly_at(args, load_wind(spec))) for spec in winds]
-        results["wind_sweep"] = {"winds": winds, "conditions": _per_point(by_wind, conditions)}
+        results["wind_sweep"] = {"winds": winds, "conditions": _with_kinds(_per_point(by_wind, conditions), kinds)}
     if _items(args.sweep_fields):
         results["truths"] = {_main_field(args): _truth_summary(results, args.out), **_other_truths(args)}
     results["wall_seconds"] = time.perf_counter() - t_start
     out = Path(args.out)
-    path = write_results(out, results, args, p.provenance() if checkpoints else None)
+    flown = flown_record(args, components)  # what made the numbers
+    path = write_results(out, results, args, {**(p.provenance() if checkpoints else {}), **flown})
     _figure(out, per_condition, results)
     if "sweep" in results or any(t.get("sweep") for t in results.get("truths", {}).values()):
         _speed_figure(out, results, _main_field(args))
@@ -253,6 +254,13 @@ def run(args: OutdoorArgs) -> dict:
                 ["condition"] + [str(v) for v in truth["sweep"]["speeds"]]))
     print(f"\nwrote {path} and {out / 'errors_over_time.png'}")
     return results
+
+
+def _with_kinds(conditions: dict[str, dict], kinds: dict[str, bool]) -> dict[str, dict]:
+    """Each learned condition's entry with whether its model's vehicle kinds were in its data."""
+    for c, inside in kinds.items():
+        conditions[c]["kinds_in_data"] = inside
+    return conditions
 
 
 def _per_point(points: list[dict], conditions: list[str]) -> dict:
@@ -268,7 +276,7 @@ def _pct(x: float | None) -> str:
 
 def _truth_summary(results: dict, out: str) -> dict:
     """What the truths' comparison keeps of one truth's results."""
-    keys = ("improvement_pos_3d", "crash_rate", "gap_to_oracle_pos_3d")
+    keys = ("improvement_pos_3d", "crash_rate", "crash_rate_ci95", "gap_to_oracle_pos_3d", "kinds_in_data")
     return {"dir": out, "wall_seconds": results.get("wall_seconds"), "sweep": results.get("sweep"),
             "wind_sweep": results.get("wind_sweep"),
             "conditions": {c: {k: e[k] for k in keys if k in e} for c, e in results["conditions"].items()}}

@@ -1,7 +1,7 @@
 """Many vehicles: does summing two-vehicle models hold up, and what do models of sets learn?
 
     python -m experiments.swarm [--presets stack3,stack4,swap,formation5,...] [--aggregations linear,velocity]
-                                [--seeds 3] [--quick] [--video swarm.mp4]
+                                [--seeds 10] [--quick] [--video swarm.mp4]
 
 The paper's section 6 asks how downwash models carry over to many vehicles. For each
 aggregation law of the ground truth (`sim.aggregation`: how the wakes of several
@@ -31,15 +31,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
-                                arg, check_options, flight_components, format_table, guard_settings, out_lock,
-                                parse_args, resolve_pipeline, run_main, seed_count_check, setup_logging, write_results,
-                                script)
+from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, SEED_COUNT_MAX, FlightArgs, ProgressBar,
+                                arg, check_options, format_table, out_lock, parse_args, resolve_pipeline, run_main,
+                                seed_count_check, setup_logging, write_results, script)
+from experiments.components import check_controller, flight_components, flown_record, guard_settings
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -48,12 +48,13 @@ DEFAULT_PRESETS = "stack3,stack4,swap,formation5,heavy_over_light,crazyflie_stac
 
 def conditions() -> list[str]:
     """baseline, oracle, summed_pairwise, then each trainable kind of sets from each data mix; then each
-    learned one behind the guard (`downwash.guard`, "<condition>_guarded")."""
-    from downwash.conditions import GUARDED
+    learned one behind the guard (`downwash.guard`, "<condition>_guarded"); then the LQR with integral action,
+    the disturbance observer, and each learned one with the observer on its residual ("<condition>_dob")."""
+    from downwash.conditions import GUARDED, OBSERVED, UNLEARNED
     from downwash.swarm_collection import DATA_MIXES, TRAINABLE_SET_KINDS
 
     models = ["summed_pairwise"] + [f"{k}-{m}" for k in TRAINABLE_SET_KINDS for m in DATA_MIXES]
-    return ["baseline", "oracle"] + models + [c + GUARDED for c in models]
+    return ["baseline", "oracle"] + models + [c + GUARDED for c in models] + list(UNLEARNED) + [c + OBSERVED for c in models]
 
 
 def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
@@ -72,10 +73,9 @@ def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
 
 
 @dataclass(frozen=True)
-class SwarmArgs(PipelineArgs):
+class SwarmArgs(FlightArgs):
     # the flights' controller, simulator and guard settings (the swarm stages, like the staged collection,
     # fly the defaults)
-    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
 
     presets: str = arg(DEFAULT_PRESETS, f"comma list of presets: {', '.join(PRESETS)} (stack:n=N takes N = 2-8, "
                                         "and spacing=)",
@@ -84,7 +84,8 @@ class SwarmArgs(PipelineArgs):
     aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
                                                f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)",
                             check=_specs_check("aggregation", AGGREGATIONS, ", ".join(AGGREGATIONS)))
-    seeds: int = arg(3, f"flights per condition, preset and law (at most {SEED_COUNT_MAX})", ge=1,
+    seeds: int = arg(10, f"flights per condition, preset and law (at most {SEED_COUNT_MAX}; a crash rate is "
+                         "reported with its Wilson interval)", ge=1,
                      check=seed_count_check, quick=1)
     duration: float = arg(0.0, "flight length, s (0: the preset's, at least 10 s)", ge=0.0, le=FLIGHT_SECONDS_MAX)
     swarm_minutes: float = arg(2.0, "training minutes per swarm stage (3, then 4 vehicles)", gt=0.0, le=60.0)
@@ -114,6 +115,7 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
     from sim.presets import make_preset
 
     check_options(args)  # parse_args has; again for options built in Python
+    check_controller(args)
     try:
         presets = [make_preset(p) for p in _split(args.presets)]  # ConfigError for a bad parameter (N)
         for p in presets:  # vehicles inside each other are named before any flight
@@ -127,42 +129,59 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
     return presets, laws
 
 
-def _predictors(names: list[str], field: Any, law: Any, pair_model: Path, models_dir: Path, pair_models_dir: Path,
-                neighbours, guard: dict[str, float]) -> list:
+def _model_paths(names: list[str], pair_model: Path, models_dir: Path, pair_models_dir: Path) -> dict[str, Path]:
+    """{model: its checkpoint} of every learned condition's model ("<kind>-<mix>", "summed_pairwise")."""
+    from downwash.conditions import GUARDED, OBSERVED, UNLEARNED
     from downwash.swarm_collection import swarm_model_path
+
+    out = {}
+    for model in dict.fromkeys(c.removesuffix(GUARDED).removesuffix(OBSERVED) for c in names
+                               if c not in ("baseline", "oracle", *UNLEARNED)):
+        if model == "summed_pairwise":
+            out[model] = pair_model
+        else:
+            kind, mix = model.rsplit("-", 1)
+            out[model] = swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix)
+    return out
+
+
+def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], neighbours,
+                guard: dict[str, float]) -> list:
     from downwash.checkpoint import wrap_pairwise
-    from downwash.conditions import GUARDED
+    from downwash.conditions import GUARDED, OBSERVED
     from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
+    from sim.observer import DisturbanceObserver
     from sim.predictor import OraclePredictor, ZeroPredictor
 
     out = []
     for c in names:
-        model = c.removesuffix(GUARDED)
-        if c == "baseline":
+        model = c.removesuffix(GUARDED).removesuffix(OBSERVED)
+        if c in ("baseline", "integral"):
             out.append(ZeroPredictor())
         elif c == "oracle":
             out.append(OraclePredictor(field, aggregation=law))
+        elif c == "dob":
+            out.append(DisturbanceObserver())
         elif model == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
-            out.append(LearnedPredictor(wrap_pairwise(pair_model, neighbours, expect_kind="equivariant")))
+            out.append(LearnedPredictor(wrap_pairwise(paths[model], neighbours, expect_kind="equivariant")))
         else:
-            kind, mix = model.rsplit("-", 1)
-            out.append(LearnedPredictor(swarm_model_path(pair_models_dir if mix == "pair" else models_dir, kind, mix),
-                                        expect_neighbours=neighbours,
+            mix = model.rsplit("-", 1)[1]
+            out.append(LearnedPredictor(paths[model], expect_neighbours=neighbours,
                                         expect_aggregation=None if mix == "pair" else law))
         if c.endswith(GUARDED):
             out[-1] = GuardedPredictor(out[-1], **guard)
+        elif c.endswith(OBSERVED):
+            out[-1] = DisturbanceObserver(out[-1])
     return out
 
 
 def run(args: SwarmArgs) -> dict:
-    from downwash.conditions import guard_record
+    from downwash.conditions import fly_predictors, guard_record, kinds_in_data
     from downwash.staged import ensure_models
     from downwash.swarm_collection import SwarmCollectionConfig, collect_swarm, pair_models_key, swarm_provenance
     from downwash_core.provenance import describe, fingerprint
-    from sim.flight import fly
     from sim.metrics import aggregate_conditions, follower_metrics
-    from sim.predictor import PerWorldPredictor
 
     presets, laws = _validate(args)
     components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
@@ -191,31 +210,34 @@ def run(args: SwarmArgs) -> dict:
                                   pair_models_dir, ProgressBar)
         results["laws"][law_name] = {"law": describe(law), "collection_dir": str(swarm_dir),
                                      "models": collected["models"], "stages": collected["stages"]}
-        predictors = _predictors(names, p.field, law, pair_model, swarm_dir / "models", pair_models_dir,
-                                 cfg.neighbours, guard)
+        paths = _model_paths(names, pair_model, swarm_dir / "models", pair_models_dir)
+        predictors = _predictors(names, p.field, law, paths, cfg.neighbours, guard)
         for preset in presets:
             duration = args.duration or (2.0 if args.quick else max(preset.duration, 10.0))
             W = len(names) * K
-            logs = fly(preset.scene(), preset.reference(W), [s for _ in names for s in seeds], duration,
-                       field=p.field, aggregation=law, **components,
-                       predictor=PerWorldPredictor(predictors, np.repeat(np.arange(len(names)), K)),
-                       meta=[{"experiment": "swarm", "preset": preset.name, "condition": c} for c in names for _ in seeds],
-                       progress=ProgressBar(f"{preset.name}, {law_name}"))
-            per_condition = {c: logs[i * K:(i + 1) * K] for i, c in enumerate(names)}
+            scene = preset.scene()
+            per_condition = fly_predictors(scene, names, predictors, preset.reference(W), seeds, duration,
+                                           meta={"experiment": "swarm", "preset": preset.name}, field=p.field,
+                                           aggregation=law, **components,
+                                           progress=ProgressBar(f"{preset.name}, {law_name}"))
+            kinds = kinds_in_data(names, paths, scene)
             first_logs = first_logs or (preset, per_condition)
             entry = {"preset": preset.describe(), "law": law_name, "duration": duration, "seeds": seeds,
                      "force_mean": _force_mean(per_condition["baseline"]),
                      "conditions": aggregate_conditions(per_condition, metrics=follower_metrics)}
+            for c, inside in kinds.items():
+                entry["conditions"][c]["kinds_in_data"] = inside
             results["presets"].setdefault(preset.name, {})[law_name] = entry
     results["summary"] = _summary(results)
     results["force_mean"] = {law: {preset: by_law[law]["force_mean"] for preset, by_law in results["presets"].items()}
                              for law in results["summary"]}  # law -> preset -> m/s^2 (baseline flights)
     results["wall_seconds"] = time.perf_counter() - t_start
+    provenance = {**p.provenance(), **flown_record(args, components)}
     for name, by_law in results["presets"].items():  # one results.json per preset
         write_results(out / name.replace(":", "_"), {"experiment": "swarm", "preset": name, "laws": by_law}, args,
-                      p.provenance())
+                      provenance)
         _figure(out / name.replace(":", "_"), name, by_law)
-    path = write_results(out, results, args, p.provenance())
+    path = write_results(out, results, args, provenance)
     print(_table(results))
     print(f"\nwrote {path} and one folder per preset in {out}/")
     if args.video and first_logs is not None:
@@ -247,6 +269,8 @@ def _summary(results: dict) -> dict:
             out.setdefault(law, {})[preset] = {
                 c: {"improvement_pos_3d": e.get("improvement_pos_3d"), "gap_to_oracle_pos_3d": e.get("gap_to_oracle_pos_3d"),
                     "pos_err_3d_mean": e["pos_err_3d_mean"], "crash_rate": e["crash_rate"],
+                    "crash_rate_ci95": e.get("crash_rate_ci95"),
+                    **({"kinds_in_data": e["kinds_in_data"]} if "kinds_in_data" in e else {}),
                     **({"compensation": e["compensation"]} if "compensation" in e else {})}
                 for c, e in entry["conditions"].items()}
     return out

@@ -33,8 +33,9 @@ from typing import Any, ClassVar
 
 from downwash.sweep import ADDRESS_TIMEOUT, address_problem, workers_problem  # cheap: no torch, no Ray
 from experiments.common import (FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, CommonArgs, PipelineArgs,
-                                ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main, setup_logging,
-                                out_lock, training_config, write_results, script)
+                                ProgressBar, arg, format_table, parse_args, resolve_pipeline, run_main,
+                                setup_logging, out_lock, write_results, script)
+from experiments.components import (training_config)
 
 __all__ = ["SweepArgs", "grid_of", "run", "main"]
 

@@ -19,15 +19,16 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP,
-                                PipelineArgs, ProgressBar, arg, check_options, flight_components, format_table,
-                                guard_settings, load_wind, names_check, out_lock, parse_args, resolve_pipeline,
-                                seed_count_check, setup_logging, wind_check, write_results)
+                                FlightArgs, ProgressBar, arg, check_options, format_table, load_wind, names_check,
+                                out_lock, parse_args, resolve_pipeline, seed_count_check, setup_logging, wind_check,
+                                write_results)
+from experiments.components import check_controller, flight_components, flown_record, guard_settings
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -63,13 +64,12 @@ TRACKS = {
 
 
 @dataclass(frozen=True)
-class TrackingArgs(PipelineArgs):
+class TrackingArgs(FlightArgs):
     # the flights' controller and simulator settings, and the guard's of the guarded conditions (the staged
     # collection behind the models flies the defaults)
-    config_tables: ClassVar[tuple[str, ...]] = ("lqr", "sim", "guard")
 
     conditions: str = arg(",".join(DEFAULT_CONDITIONS), "comma list of " + ", ".join(CONDITIONS), check=names_check(CONDITIONS))
-    seeds: int = arg(5, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
+    seeds: int = arg(10, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
                      check=seed_count_check, quick=1)
     separation: float = arg(0.6, "vertical separation below the leader, m", ge=SEPARATION_RANGE[0], le=SEPARATION_RANGE[1])
     duration: float = arg(0.0, "flight length, s (0: one period of the reference)", ge=0.0, le=FLIGHT_SECONDS_MAX,
@@ -92,12 +92,12 @@ def _validate(args: TrackingArgs) -> list[str]:
     from downwash.conditions import parse_conditions
 
     check_options(args)
-    return parse_conditions(args.conditions)
+    return check_controller(args, parse_conditions(args.conditions))
 
 
 def run(track: str, args: Any) -> dict:
     """Fly every condition x seed in one batch; write results.json and figures into args.out."""
-    from downwash.conditions import fly_conditions, guard_record, learned
+    from downwash.conditions import fly_conditions, guard_record, kinds_in_data, learned
     from downwash.staged import ensure_models
     from downwash_trajectories import Hover, make_reference, stack
     from sim.metrics import aggregate_conditions
@@ -131,10 +131,13 @@ def run(track: str, args: Any) -> dict:
     results: dict[str, Any] = {"experiment": track, "separation": args.separation, "duration": duration,
                                "seeds": seeds, "conditions": aggregate_conditions(per_condition),
                                "guard": guard_record(conditions, guard)}  # the settings flown
+    for c, inside in kinds_in_data(conditions, checkpoints, scene).items():  # (the guard's retention criterion)
+        results["conditions"][c]["kinds_in_data"] = inside
     results["wall_seconds"] = time.perf_counter() - t_start
     results["flight_wall_seconds"] = flight_seconds
     out = Path(args.out)
-    path = write_results(out, results, args, p.provenance() if checkpoints else None)
+    flown = flown_record(args, components)  # what made the numbers
+    path = write_results(out, results, args, {**(p.provenance() if checkpoints else {}), **flown})
     _figures(out, track, per_condition)
     print(_table(track, results))
     print(f"\nwrote {path} and figures in {out}/")

@@ -20,7 +20,8 @@ import numpy as np
 
 from downwash_core.errors import ConfigError, DataError
 from experiments.common import (PAIRWISE_KINDS, CommonArgs, arg, format_table, load_field, one_of, out_lock,
-                                parse_args, run_main, setup_logging, training_config, write_results, script)
+                                parse_args, run_main, setup_logging, write_results, script)
+from experiments.components import (training_config)
 
 __all__ = ["TrainArgs", "run", "main"]
 

@@ -35,14 +35,15 @@ def fly(
     """Fly W = len(seeds) worlds for `duration` seconds; returns their logs.
 
     components: the `Simulator` keywords (config, controller, autopilot, turbulence,
-      field, predictor, field_enabled, n_threads, wind, aggregation, fast).
+      field, predictor, field_enabled, n_threads, wind, aggregation, fast, safety).
     meta: extra metadata per world (a list) or shared (a dict), merged into each log.
     progress: called as progress(ticks done, ticks in all) after each controller tick.
     A world that diverges or collides ends early with its status and message in the
     log's metadata; the others fly on.
     With a wind (`wind=sim.wind.DrydenWind(...)`, not off) the logs also hold "wind" (the
     air velocity at each vehicle, (T, V, 3) m/s) and "wind_acc" (its drag, m/s^2), and
-    the metadata its `describe()` under "wind". A scene of other vehicle kinds than the paper
+    the metadata its `describe()` under "wind". With a safety filter (`safety=sim.safety.SafetyConfig(...)`)
+    the metadata holds its `describe()` under "safety". A scene of other vehicle kinds than the paper
     quad names each vehicle's kind under "kinds" (and describes each in full under "scene").
     """
     if not duration > 0:
@@ -95,6 +96,7 @@ def fly(
             "aggregation": describe(sim.aggregation if sim.aggregation is not None else LinearSuperposition()),
             "field_enabled": bool(sim.field_enabled[w]),
             **({"wind": describe(sim.wind)} if sim.wind is not None else {}),
+            **({"safety": describe(sim.safety)} if sim.safety is not None else {}),  # the CBF filter's settings
             "predictor": _predictor_name(components.get("predictor")),
             "code": code_version(),
             "duration": duration,

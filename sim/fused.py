@@ -5,7 +5,7 @@ component has a compiled form: see `sim.plan._make_plan`) runs each controller t
 through `_fused_kernel` (made by `_make_fused_kernel`; one variant with and one without
 the wind passes, `_FUSED_KERNELS`). It calls the same passes as the readable path
 (`sim.passes`), the field kernel (`sim.field._pairwise_kernel`), the LQR
-(`controllers.lqr._command_setpoint_kernel`) and the predictor's C function, and steps
+(`controllers.lqr._command_setpoint_kernel`), the predictor's and the safety filter's C functions, and steps
 the physics itself: `mj_step` on a single world's MjData (`sim.physics.mj_step_address`),
 or, for a `mujoco.batch.Batch`, each world's state row loaded into a scratch MjData,
 stepped and saved, as the batch does it (`_step_rows`, `_BatchPhysics.native_step`), with
@@ -144,6 +144,7 @@ _TAB = (
     "guard", "guard_fn", "guard_params", "guard_iparams", "guard_state", "guard_applied", "row_guard",
     "pw_guard_fn", "pw_guard_params", "pw_guard_iparams", "pw_guard_state", "pw_guard_applied", "pw_guarded",
     "monitor_fn", "monitor_params", "monitor_iparams", "seen", "seen_stride", "seen_t",
+    "safety_fn", "safety_params", "safety_lower", "safety_upper",
 )
 (_T_W, _T_V, _T_BLOCK, _T_NSUB, _T_NPHYS, _T_STEPPING, _T_STEP_FN, _T_SET_STATE_FN, _T_GET_STATE_FN, _T_MODEL,
  _T_DATA, _T_WARNINGS, _T_WARNING_STRIDE, _T_STATE, _T_NSTATE, _T_STATE_SPEC, _T_BATCH_WARNINGS, _T_NWARNINGS,
@@ -158,7 +159,8 @@ _TAB = (
  _T_ROW_REF_ACC, _T_ROW_U_CMD, _T_ROW_F_HAT, _T_ROW_MEAN, _T_ROW_WIND, _T_ROW_WIND_ACC,
  _T_GUARD, _T_GUARD_FN, _T_GUARD_PARAMS, _T_GUARD_IPARAMS, _T_GUARD_STATE, _T_GUARD_APPLIED,
  _T_ROW_GUARD, _T_PW_GUARD_FN, _T_PW_GUARD_PARAMS, _T_PW_GUARD_IPARAMS, _T_PW_GUARD_STATE, _T_PW_GUARD_APPLIED,
- _T_PW_GUARDED, _T_MONITOR_FN, _T_MONITOR_PARAMS, _T_MONITOR_IPARAMS, _T_SEEN, _T_SEEN_STRIDE, _T_SEEN_T) = range(len(_TAB))
+ _T_PW_GUARDED, _T_MONITOR_FN, _T_MONITOR_PARAMS, _T_MONITOR_IPARAMS, _T_SEEN, _T_SEEN_STRIDE, _T_SEEN_T,
+ _T_SAFETY_FN, _T_SAFETY_PARAMS, _T_SAFETY_LOWER, _T_SAFETY_UPPER) = range(len(_TAB))
 # The plan's float table `fc` (float64), in this order.
 # (Each vehicle's numbers are arrays of `tab`: mass, drag_gain, ap_gain, max_thrust (V, ...), and the
 # pairs' field_scale, radius_xy, radius_z (V, V): `sim.vehicle_params`.)
@@ -422,6 +424,14 @@ def _make_fused_kernel(with_wind: bool):
                         state = (kin[3], kin[4], yaw, ref_pos_w, ref_vel_w, ref_acc_w, ref_yaw_w, ref_yaw_rate_w, f_hat)
                         limits = (Kt, fc[_F_LOOKAHEAD], fc[_F_TAN_TILT], fc[_F_MIN_VERTICAL], u_cmd, yaw_rate_des, thrust_acc, rot_des)
                         _command_setpoint_kernel(*state, residual_w, override_w, (actions & 1) != 0, (actions & 2) != 0, *limits)
+                        if tab[_T_SAFETY_FN] != 0:  # the CBF filter (sim.safety.SAFETY_SIGNATURE), then the LQR's step again
+                            counts = np.zeros(2, np.int64)  # with the filtered command as override, as the readable path
+                            _call_predictor(tab[_T_SAFETY_FN], W, V, kin[3].ctypes.data, kin[4].ctypes.data, f_hat.ctypes.data,
+                                            u_cmd.ctypes.data, tab[_T_SAFETY_PARAMS], tab[_T_SAFETY_LOWER],
+                                            tab[_T_SAFETY_UPPER], counts.ctypes.data, counts.ctypes.data)
+                            if counts[0] != 0:
+                                no, yes = actions < 0, actions >= 0  # (False, True, not literals: the call's types as above)
+                                _command_setpoint_kernel(*state, residual_w, u_cmd, no, yes, *limits)
                         _copy_into(_row_view(row, tab[_T_ROW_F_HAT], n_worlds, V3, w0, w1).reshape((W, V, 3)), f_hat)
                         if tab[_T_GUARD]:
                             _copy_into(_row_view(row, tab[_T_ROW_GUARD], n_worlds, V, w0, w1).reshape((W, V, 1)),

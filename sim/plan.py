@@ -23,6 +23,8 @@ and, of what the simulator derives when it binds, only what the simulator hands 
   sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
   (`sim.physics`), and buffers laid out as the kernel reads them (else `_NoPlan`).
+A safety filter (`sim.safety`) flies with every plan: its C function (`SafetyFilter.address`) and
+constants by address in `tab` (safety_fn 0: none).
 
 A `_Plan` holds the kernel's tables (`sim.fused._TAB`, `_FC`) and every array they address,
 so the addresses stay valid for the plan's lifetime; the simulator rebuilds it when a
@@ -83,6 +85,7 @@ class PlanInputs:
     ou_b: float
     turbulence_intensity: float
     prediction_period: float  # s
+    safety_filter: Any  # the CBF filter on the commands (`sim.safety.SafetyFilter`), or None
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -210,12 +213,16 @@ class _Plan:
         if self.monitors:
             keep.update(monitor_params=guard.monitor_params, monitor_iparams=guard.monitor_iparams, seen=guard.seen,
                         seen_t=guard.seen_t)
+        safety = self.safety = bound.safety_filter  # (kept: its constants and C function, by address)
+        if safety is not None:
+            keep.update(safety_params=safety.params, safety_lower=safety.lower, safety_upper=safety.upper)
         tab = dict.fromkeys(_TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
                    n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code,
                    guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address),
                    pw_guarded=int(pw_guards), monitor_fn=int(guard.monitor) if self.monitors else 0,
-                   seen_stride=guard.seen.strides[0] if self.monitors else 0)
+                   seen_stride=guard.seen.strides[0] if self.monitors else 0,
+                   safety_fn=0 if safety is None else safety.address)
         sizes = _chunk_sizes(W, n_threads, _TAIL_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])

@@ -1,10 +1,12 @@
 """Named N-vehicle scenes: who flies where, ready to fly (2-8 vehicles from one quad.xml).
 
 A preset is the vehicles (names and roles, top of the stack first), one reference per
-vehicle and a flight duration. `make_preset("stack3")` or `make_preset("stack:n=6")`
-gives it; `preset.scene()` compiles the MuJoCo scene, `preset.reference(W)` the stacked
-reference of W worlds. Every vehicle's wake acts on every other vehicle (the field is
-evaluated on every ordered pair and combined by the aggregation law, `sim.aggregation`).
+vehicle and a flight duration. `make_preset("stack3")` or `make_preset("stack:n=6")` (the
+registries' spec grammar, `downwash_core.registry`; `PRESETS` is the registry and `register_preset`
+adds to it, as plugins do) gives it; `preset.scene()` compiles the MuJoCo scene,
+`preset.reference(W)` the stacked reference of W worlds. Every vehicle's wake acts on every
+other vehicle (the field is evaluated on every ordered pair and combined by the aggregation law,
+`sim.aggregation`).
 
 | name | vehicles | what it exercises |
 |---|---|---|
@@ -37,15 +39,14 @@ law under `so2` (its light disc loading) but a push on the pair's scale under `m
 from __future__ import annotations
 
 import dataclasses
-import re
 from dataclasses import dataclass, field
-from types import MappingProxyType
 from typing import Any, Callable
 
 import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
+from downwash_core.registry import Registry
 from downwash_core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
 from downwash_core.vehicles import PAPER_QUAD, VEHICLES
 from sim.scene import Scene, build_scene, check_clearance, resolve_kinds
@@ -54,7 +55,7 @@ from downwash_trajectories.base import Reference
 from downwash_trajectories.combinators import StackedReference, TimeShifted, stack
 from downwash_trajectories.primitives import Circle, Hover, Lemniscate, Transect
 
-__all__ = ["Preset", "PRESETS", "make_preset", "parse_preset_spec", "SWARM_SIZES"]
+__all__ = ["Preset", "PRESETS", "make_preset", "parse_preset_spec", "register_preset", "SWARM_SIZES"]
 
 SWARM_SIZES = (2, MAX_VEHICLES)  # a preset has 2-8 vehicles: one leader and at least one other
 _TOP = np.array(LEADER_POSITION)  # m, where the top vehicle of every preset flies
@@ -227,44 +228,36 @@ def _mixed_formation() -> Preset:
                                kinds=("crazyflie_2_1",) * 3 + ("paper_quad",) * 2)
 
 
-# name -> (factory, its parameters and their types): `stack` is the parametrised family
-_FACTORIES: MappingProxyType = MappingProxyType({
-    "pair": (lambda: _stack(2), {}),
-    "stack3": (lambda: _stack(3), {}),
-    "stack4": (lambda: _stack(4), {}),
-    "stack": (_stack, {"n": int, "spacing": float}),
-    "swap": (_swap, {}),
-    "formation5": (_formation5, {}),
-    "heavy_over_light": (_heavy_over_light, {"separation": float}),
-    "crazyflie_stack": (_crazyflie_stack, {}),
-    "mixed_formation": (_mixed_formation, {}),
-})
-PRESETS = tuple(_FACTORIES)
-_SPEC = re.compile(r"^([a-z0-9_]+)(?::(.*))?$")
+PRESETS = Registry("preset", group="presets", name_pattern=r"[a-z][a-z0-9_]*",
+                   name_rule="lowercase letters, digits and '_'",
+                   hint="stack takes n=2-8, spacing=; heavy_over_light separation=")  # name -> factory(**params)
+
+
+@PRESETS.adder
+def register_preset(name: str, factory: Callable[..., Preset], description: str,
+                    params: dict[str, type] | None = None) -> Any:
+    """Add a preset: factory(**params) -> `Preset`; params {name: type} a spec may set (default: the
+    factory's typed keyword parameters). ConfigError for a taken or bad name."""
+    return PRESETS.register(name, factory, description, params=params)
+
+
+register_preset("pair", lambda: _stack(2), "the paper's: Alpha hovers, Bravo flies a lemniscate 0.6 m beneath")
+register_preset("stack3", lambda: _stack(3), "a vertical stack of 3, 0.6 m apart, the lower ones on small lemniscates")
+register_preset("stack4", lambda: _stack(4), "the same with four (the bottom one beneath three wakes)")
+register_preset("stack", _stack, "a vertical stack of n = 2-8 (spacing 0.6 m)")
+register_preset("swap", _swap, "two vehicles cross beneath a hovering third, in opposite directions", params={})
+register_preset("formation5", _formation5, "five vehicles on circles at five heights, each through the wakes above it",
+                params={})
+register_preset("heavy_over_light", _heavy_over_light, "an X500 hovers, a paper quad flies a lemniscate beneath it")
+register_preset("crazyflie_stack", _crazyflie_stack, "four Crazyflie 2.1 stacked 0.25 m apart")
+register_preset("mixed_formation", _mixed_formation, "formation5's circles with three Crazyflies above two paper quads")
 
 
 def parse_preset_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """'stack:n=6,spacing=0.5' -> ('stack', {'n': 6, 'spacing': 0.5}); ConfigError naming what is allowed."""
-    m = _SPEC.match(spec.strip()) if isinstance(spec, str) else None
-    if m is None or m.group(1) not in _FACTORIES:
-        raise ConfigError(f"preset: unknown {spec!r}; allowed: {', '.join(PRESETS)} (stack takes n=2-8, spacing=; "
-                          "heavy_over_light separation=)")
-    name, rest = m.group(1), m.group(2)
-    types = _FACTORIES[name][1]
-    params: dict[str, Any] = {}
-    for part in filter(None, (rest or "").split(",")):
-        key, eq, value = part.partition("=")
-        if not eq or key.strip() not in types:
-            allowed = ", ".join(f"{k}=" for k in types) or "no parameters"
-            raise ConfigError(f"preset {name!r}: bad parameter {part!r}; allowed: {allowed}")
-        try:
-            params[key.strip()] = types[key.strip()](value)
-        except ValueError:
-            raise ConfigError(f"preset {name!r}: {key}={value!r} is not a {types[key.strip()].__name__}") from None
-    return name, params
+    return PRESETS.parse(spec)
 
 
 def make_preset(spec: str) -> Preset:
     """The preset named by `spec` (see the module table); ConfigError for an unknown name or a bad parameter."""
-    name, params = parse_preset_spec(spec)
-    return _FACTORIES[name][0](**params)
+    return PRESETS.resolve(spec)

@@ -22,7 +22,8 @@ each other. A new sensor of this family needs only its parameters and `episode_o
 (docs/extending.md, "A new sensor noise model"); one outside it (outliers, dropouts,
 latency) would need a pass of its own, and `check_sensor` refuses it.
 
-Registered (`SENSORS`; `make_sensor`; `resolve_sensor_spec("NAME[:KEY=VALUE,...]")`):
+Registered (`SENSORS`, a `downwash_core.registry.Registry`, which plugins add to; `make_sensor`;
+`resolve_sensor_spec("NAME[:KEY=VALUE,...]")`, the registries' one spec grammar):
 
 - `mocap` (`MocapConfig`, the default): white noise of 0.5 mm per position axis and 2 mrad
   per attitude axis, sample by sample (a marker-based system's jitter);
@@ -36,9 +37,7 @@ Registered (`SENSORS`; `make_sensor`; `resolve_sensor_spec("NAME[:KEY=VALUE,...]
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import re
 from dataclasses import asdict, dataclass
 from types import MappingProxyType
 from typing import Any, Callable, ClassVar, Mapping, NamedTuple, Protocol, runtime_checkable
@@ -47,6 +46,7 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import perturb_quat
+from downwash_core.registry import Entry, Registry
 
 __all__ = ["Sensor", "CompiledSensor", "MocapConfig", "BiasedMocap", "SensorEntry", "SENSORS", "DEFAULT_SENSOR",
            "SENSOR_STREAM", "register_sensor", "make_sensor", "resolve_sensor_spec", "check_sensor",
@@ -185,63 +185,27 @@ def draw_episode_offset(sensor: Any, seed: int, n_vehicles: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the registry
-@dataclass(frozen=True)
-class SensorEntry:
-    """One registered sensor: factory(**params) -> sensor; params {name: float} it accepts."""
-
-    name: str
-    factory: Callable[..., Any]
-    description: str
-    params: Mapping[str, type]
-
-    def make(self, **params: Any) -> Any:
-        unknown = sorted(set(params) - set(self.params))
-        if unknown:
-            raise ConfigError(f"{self.name} has no parameter(s) {unknown}; allowed: {', '.join(self.params)}")
-        return self.factory(**params)
+SensorEntry = Entry  # one registered sensor: factory(**params) -> sensor; params {name: type} it accepts
+SENSORS = Registry("sensor", group="sensors", default=DEFAULT_SENSOR,
+                   description="sensors: what the loop measures of each vehicle (SimConfig.mocap)")
 
 
-_REGISTRY: dict[str, SensorEntry] = {}
-SENSORS: Mapping[str, SensorEntry] = MappingProxyType(_REGISTRY)  # read-only view, in registration order
-
-
+@SENSORS.adder
 def register_sensor(name: str, factory: Callable[..., Any], description: str,
-                    params: Mapping[str, type] | None = None) -> SensorEntry:
-    """Register `factory` under `name` (not yet taken); params default to a dataclass factory's fields, as floats."""
-    if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_-]*", name):
-        raise ConfigError(f"sensor name {name!r}: use lowercase letters, digits, '-' and '_'")
-    if name in _REGISTRY:
-        raise ConfigError(f"sensor name {name!r} is already registered")
-    if params is None:
-        params = {f.name: float for f in dataclasses.fields(factory)} if dataclasses.is_dataclass(factory) else {}
-    entry = SensorEntry(name, factory, description, MappingProxyType(dict(params)))
-    _REGISTRY[name] = entry
-    return entry
+                    params: Mapping[str, type] | None = None) -> Entry:
+    """Register `factory` under `name` (not yet taken); params default to a dataclass factory's fields,
+    typed by their annotations (`downwash_core.registry.infer_params`)."""
+    return SENSORS.register(name, factory, description, params=params)
 
 
 def make_sensor(name: str = DEFAULT_SENSOR, **params: Any) -> Any:
     """The registered sensor `name` with `params`, e.g. make_sensor("mocap_biased", position_bias=0.003)."""
-    if name not in _REGISTRY:
-        raise ConfigError(f"unknown sensor {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name].make(**params)
+    return SENSORS.make(name, **params)
 
 
 def resolve_sensor_spec(spec: str, label: str = "sensor") -> Any:
     """The sensor a spec "NAME[:KEY=VALUE,...]" names ("" is the default, `mocap`); ConfigError otherwise."""
-    head, _, tail = (spec.strip() or DEFAULT_SENSOR).partition(":")
-    params: dict[str, float] = {}
-    for item in filter(None, (x.strip() for x in tail.split(","))):
-        key, eq, text = (part.strip() for part in item.partition("="))
-        if not eq:
-            raise ConfigError(f"{label} {spec!r}: parameters are KEY=VALUE, got {item!r}")
-        try:
-            params[key] = float(text)
-        except ValueError:
-            raise ConfigError(f"{label} {spec!r}: {key}={text!r} is not a number") from None
-    try:
-        return make_sensor(head, **params)
-    except ConfigError as e:
-        raise ConfigError(f"{label} {spec!r}: {e}") from e
+    return SENSORS.resolve(spec, label)
 
 
 register_sensor("mocap", MocapConfig, "motion capture, white noise: 0.5 mm per position axis, 2 mrad of attitude; "

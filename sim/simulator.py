@@ -4,43 +4,39 @@ Rates (downwash_core.params.Rates): physics 500 Hz; autopilot, downwash field, w
 capture on the 100 Hz autopilot grid; the LQR at 50 Hz; the predictor at 45 Hz,
 evaluated at the first autopilot tick after each 1/45 s and held in between.
 
-Everything is batched over worlds W and vehicles V. Each world draws its noise
-(motion capture, turbulence) from its own generator, and its wind gusts from a second
-one of its own (`default_rng([seed, WIND_STREAM])`), so a world's flight does not
-depend on which other worlds share its batch: the batched loop equals a loop of single
-flights bit for bit (a test), and a flight without wind draws what it drew before wind existed.
+Everything is batched over worlds W and vehicles V. Each world draws its noise (motion capture, turbulence)
+from its own generator, and its wind gusts from a second one of its own (`default_rng([seed, WIND_STREAM])`),
+so a world's flight does not depend on which other worlds share its batch: the batched loop equals a loop of
+single flights bit for bit (a test), and a flight without wind draws what it drew before wind existed.
 
-The loop is assembled from components, each injected and each with its config in its own
-module: the sensor (`SimConfig.mocap`, `sim.sensors`: motion capture and its per-episode
-offsets, drawn at reset from a third stream of the world's, `SENSOR_STREAM`), the `controller`
-(`controllers.lqr.FeedbackLinearisedLQR`), the `autopilot` (`controllers.autopilot.Autopilot`),
-the `turbulence` (`sim.turbulence.OUTurbulence`), the downwash `field` (`sim.field.DownwashField`
-or any object with its call signature), how wakes combine (`aggregation`, `sim.aggregation`),
-the ambient `wind` (`sim.wind.DrydenWind`) and the `predictor` (`sim.predictor`).
+The loop is assembled from components, each injected and each with its config in its own module: the sensor
+(`SimConfig.mocap`, `sim.sensors`: motion capture and its per-episode offsets, drawn at reset from a third
+stream of the world's, `SENSOR_STREAM`), the `controller` (`controllers.lqr.FeedbackLinearisedLQR`), the
+`autopilot` (`controllers.autopilot.Autopilot`), the `turbulence` (`sim.turbulence.OUTurbulence`), the
+downwash `field` (`sim.field.DownwashField` or any object with its call signature), how wakes combine
+(`aggregation`, `sim.aggregation`), the ambient `wind` (`sim.wind.DrydenWind`), the `predictor`
+(`sim.predictor`) and, optionally, the `safety` filter on the commanded accelerations (`sim.safety`: None
+flies as without it, bit for bit).
 
-Ambient wind (`wind=DrydenWind(...)`; None or an `off` wind leave the loop and its
-logs bit for bit as without it): u_air = mean + gust, ONE gust state (3, 2) per world,
-shared by its vehicles (the Dryden scale lengths, 3-23 m here, dwarf the ~1 m between
-them; `sim.wind`), advanced on the autopilot grid by the exact sampled recursion. It
-acts on every vehicle through the airframe drag (`sim.wind.drag_acceleration`) and
-convects the wakes: the field sees velocities relative to the air, v - u_air (exact
-Galilean invariance for a uniform wind), as does the oracle; learned predictors see the
-estimated ground velocities. Logged rows then hold `wind` (m/s) and `wind_acc` (the drag).
-A field with memory (`sim.field_memory`) is stepped on the autopilot grid, carried by the
-same air, and a predictor with state (`sim.predictor.is_stateful`) is reset with its worlds and
-told which are due: both on the readable path. A controller with ``reset(worlds)`` (its integrators
+Ambient wind (`wind=DrydenWind(...)`; None or an `off` wind leave the loop and its logs bit for bit as without
+it): u_air = mean + gust, ONE gust state (3, 2) per world, shared by its vehicles (the Dryden scale lengths,
+3-23 m here, dwarf the ~1 m between them; `sim.wind`), advanced on the autopilot grid by the exact sampled
+recursion. It acts on every vehicle through the airframe drag (`sim.wind.drag_acceleration`) and convects the
+wakes: the field sees velocities relative to the air, v - u_air (exact Galilean invariance for a uniform
+wind), as does the oracle; learned predictors see the estimated ground velocities. Logged rows then hold
+`wind` (m/s) and `wind_acc` (the drag). A field with memory (`sim.field_memory`) is stepped on the autopilot
+grid, carried by the same air, and a predictor with state (`sim.predictor.is_stateful`) is reset with its
+worlds and told which are due: both on the readable path. A controller with ``reset(worlds)`` (its integrators
 and filters, `controllers.lab_common`) is reset with its worlds too.
 
-Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled
-passes of one autopilot tick, shared by both paths), `sim.fused` (the fused tick: a whole
-controller tick as ONE compiled call, one variant with and one without the wind passes),
-`sim.plan` (whether the components can fly it, `_make_plan`, and its bound tables,
-`_Plan`) and `sim.rows` (a tick's log row: a `Row` on the fused path, a dict on the other).
-The readable path (`_tick_readable`) runs each autopilot tick as the passes around the
-pluggable Python calls (predictor, field, reference, controller); the fast path
-(`_tick_fused`, when `_make_plan` finds a compiled form for every component) calls the
-fused kernel, with a batch's worlds in chunks for this thread and its helper threads
-(`sim.fork_join`). The plan is rebuilt when a component is replaced (assigning the
+Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled passes of one autopilot
+tick, shared by both paths), `sim.fused` (the fused tick: a whole controller tick as ONE compiled call, one
+variant with and one without the wind passes), `sim.plan` (whether the components can fly it, `_make_plan`,
+and its bound tables, `_Plan`) and `sim.rows` (a tick's log row: a `Row` on the fused path, a dict on the
+other). The readable path (`_tick_readable`) runs each autopilot tick as the passes around the pluggable
+Python calls (predictor, field, reference, controller); the fast path (`_tick_fused`, when `_make_plan` finds
+a compiled form for every component) calls the fused kernel, with a batch's worlds in chunks for this thread
+and its helper threads (`sim.fork_join`). The plan is rebuilt when a component is replaced (assigning the
 attribute does). tests/test_fast_path.py checks that both paths fly bit-identical logs.
 """
 
@@ -73,6 +69,7 @@ from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _Sensed, _
 from sim.physics import check_world_memory, make_physics
 from sim.plan import PlanInputs, _compiled_controller, _make_plan, _Plan
 from sim.predictor import Predictor, ZeroPredictor, is_stateful
+from sim.safety import SafetyConfig, safety_filter
 from sim.rows import Row
 from sim.scene import Scene
 from sim.sensors import MocapConfig, check_sensor, draw_episode_offset
@@ -122,7 +119,7 @@ _NO_CONTROL = fork_join.new_control()  # the control block of a call alone, whic
 # Assigning one of these attributes of a Simulator rebinds its compiled passes at the next tick
 # (its components, and the state arrays the passes address, which are meant to be updated in place).
 _BOUND_INPUTS = frozenset({"field", "predictor", "controller", "autopilot", "turbulence", "wind", "aggregation",
-                           "field_enabled", "fast", "t", "tick_index", "active", "pos_est", "vel_est", "turb",
+                           "field_enabled", "fast", "safety", "t", "tick_index", "active", "pos_est", "vel_est", "turb",
                            "gust_state", "f_hat", "next_prediction", "mocap_offset"})
 
 
@@ -144,7 +141,8 @@ class Simulator:
         `sim.aggregation.wake_field` (None: linear superposition, `pairwise_field`);
       wind: `sim.wind.DrydenWind` (mean wind + Dryden gusts) or None (see the module
         docstring: one gust state per world, drag on every vehicle, wakes convected);
-      predictor: `sim.predictor.Predictor`, evaluated at 45 Hz and held.
+      predictor: `sim.predictor.Predictor`, evaluated at 45 Hz and held;
+      safety: `sim.safety.SafetyConfig` or None, the CBF filter on the commanded accelerations (`sim.safety`).
     field_enabled: (W,) bool, False for worlds flown without downwash.
     fast: take the fused compiled path when every component has a compiled form (the
       result is the same bit for bit; False forces the readable path).
@@ -173,6 +171,7 @@ class Simulator:
         wind: DrydenWind | None = None,
         aggregation: Any = None,
         fast: bool = True,
+        safety: SafetyConfig | None = None,
     ):
         object.__setattr__(self, "_bound", False)
         object.__setattr__(self, "_in_use", threading.RLock())  # one thread at a time (`_one_thread`)
@@ -188,7 +187,7 @@ class Simulator:
         self.turbulence = turbulence if turbulence is not None else OUTurbulence()
         self.field = field if field is not None else DownwashField()
         self.predictor = predictor if predictor is not None else ZeroPredictor()
-        self.aggregation = aggregation
+        self.aggregation, self.safety = aggregation, safety
         self.fast = bool(fast)
         seeds = [int(s) for s in seeds]
         W, V = len(seeds), scene.n_vehicles
@@ -279,6 +278,7 @@ class Simulator:
                                    self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self._scene_predictor) or self._scene_predictor
         self._predictor_state = is_stateful(self._scene_predictor)
+        self._safety_filter = safety_filter(self.safety, self.vehicle_params.quads, self.controller)  # None: off
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()
@@ -541,11 +541,11 @@ class Simulator:
             if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
                 cmd_acc = np.empty((W, V, 3))  # m/s^2, the command applied (row u_cmd)
-                self.controller.command_setpoint(
-                    ControllerState(pos_est, vel_est, yaw), ref, self.f_hat,
-                    Setpoint(cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des),
-                    residual, override, r.control_dt,
-                )
+                state = ControllerState(pos_est, vel_est, yaw)
+                setpoint = Setpoint(cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des)
+                self.controller.command_setpoint(state, ref, self.f_hat, setpoint, residual, override, r.control_dt)
+                if self._safety_filter is not None:  # filtered, then feedback linearisation again where it acted
+                    self._safety_filter.apply(self.controller, state, ref, self.f_hat, setpoint, r.control_dt)
                 row = {
                     "t": t_start, "pos": pos, "vel": vel, "quat": quat,
                     "pos_est": pos_est, "vel_est": vel_est, "quat_est": quat_est, "yaw_est": yaw,

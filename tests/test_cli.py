@@ -27,7 +27,7 @@ from experiments.common import parse_args, read_config, script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
-           "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights", "observer_bandwidth")
+           "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights", "observer_bandwidth", "registry")
 # experiments with a parser of their own (positional files; no --config/--quick/--field): a console script each
 TOOLS = ("export", "replay", "warmup")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")
@@ -74,6 +74,7 @@ def test_help_exits_0_lists_the_choices_and_imports_no_heavy_module(name):
 
 def test_static_choices_match_their_registries():
     """The names `--help` lists without importing the registries are the registries' own."""
+    from controllers.registry import CONTROLLER_NAMES, DEFAULT_CONTROLLER
     from downwash.conditions import CONDITIONS, DEFAULT_CONDITIONS
     from downwash.models import PAIRWISE_KINDS
     from downwash.sweep_cells import PAPER_MINUTES, PAPER_MODELS
@@ -89,6 +90,7 @@ def test_static_choices_match_their_registries():
     assert common.AGGREGATIONS == tuple(AGGREGATIONS)
     assert common.WIND_SEVERITIES == tuple(PRESETS_KT)
     assert common.PAPER_MINUTES == tuple(PAPER_MINUTES) and common.PAPER_MODELS == tuple(PAPER_MODELS)
+    assert common.CONTROLLER_NAMES == tuple(CONTROLLER_NAMES) and common.DEFAULT_CONTROLLER == DEFAULT_CONTROLLER
 
 
 # ----------------------------------------------------------------------------- --config

@@ -276,7 +276,7 @@ def test_help_states_each_range():
     text = common.build_parser(args_class("lemniscate"), "lemniscate").format_help()
     assert "--debug" in text
     flat = " ".join(text.split())
-    assert "default: 5; >= 1" in flat and "in [0, 3600]" in flat, flat
+    assert "default: 10; >= 1" in flat and "in [0, 3600]" in flat, flat
 
 
 def test_allowed_range_in_words():

@@ -22,7 +22,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from experiments import common, config_file
+from experiments import common, components, config_file
 from experiments.common import ConfigError, parse_args
 from experiments.config_file import RESERVED, TABLES, dumps, list_separator, read_file
 
@@ -92,16 +92,27 @@ def test_each_table_maps_onto_the_fields_of_its_settings_class():
     assert TABLES["guard"].source == "downwash.guard.GuardedPredictor"
 
 
-def test_no_safety_settings_exist_so_the_safety_table_is_reserved():
-    """[safety] is refused until a safety layer has settings to map onto; were one added, the table
-    would have to map onto it."""
-    import re
+def test_the_safety_table_maps_onto_the_safety_layer_and_needs_safety_on():
+    """[safety] sets `sim.safety.SafetyConfig` (every key one of its fields) and turns the layer on, as --safety does."""
+    import dataclasses
 
-    assert "safety" in RESERVED and "safety" not in TABLES
-    for package in ("controllers", "downwash", "downwash_core", "downwash_envs", "sim"):
-        for path in (ROOT / package).rglob("*.py"):
-            assert "safety" not in path.stem, path
-            assert not re.search(r"class \w*Safety", path.read_text()), path
+    from experiments.tracking import args_class
+    from sim.safety import SafetyConfig
+
+    assert "safety" in TABLES and not RESERVED
+    assert set(TABLES["safety"].keys) == {f.name for f in dataclasses.fields(SafetyConfig)}
+    cls = args_class("lemniscate")
+    assert components.safety_config(cls()) is None
+    assert components.safety_config(cls(safety=True)) == SafetyConfig()
+    on = cls(safety=True, tables={"safety": {"vertical_gap": 0.25, "k1": 5.0}})
+    assert components.safety_config(on) == SafetyConfig(vertical_gap=0.25, k1=5.0)
+    assert components.flight_components(on)["safety"] == SafetyConfig(vertical_gap=0.25, k1=5.0)
+    # a [safety] table turns it on (TOML cannot hold safety = true beside it), and the config written says so
+    assert components.safety_config(cls(tables={"safety": {"vertical_gap": 0.25}})) == SafetyConfig(vertical_gap=0.25)
+    text = dumps({}, {"safety": {"vertical_gap": 0.25}}, "")
+    assert "[safety]" in text and "safety = " not in text
+    with pytest.raises(ConfigError, match=r"\[safety\]: SafetyConfig.k1"):  # the class's own check, named by table
+        components.safety_config(cls(safety=True, tables={"safety": {"k0": 100.0, "k1": 1.0}}))
 
 
 def test_the_range_of_each_table_is_the_settings_class_own():
@@ -135,10 +146,10 @@ def test_tables_are_read_checked_and_normalised(tmp_path):
     assert args.tables == {"lqr": {"q": (1.0, 1.0, 8.0, 0.01, 0.01, 0.1, 1.0), "max_tilt_deg": 30.0},
                            "sim": {"ground_clearance": 0.0, "noise_block": 64}}
     assert type(args.tables["lqr"]["max_tilt_deg"]) is float and type(args.tables["sim"]["noise_block"]) is int
-    lqr, sim = common.lqr_config(args), common.sim_config(args)
+    lqr, sim = components.lqr_config(args), components.sim_config(args)
     assert lqr.max_tilt_deg == 30.0 and lqr.q[2] == 8.0 and lqr.min_thrust_g == 0.25  # the rest: defaults
     assert sim.ground_clearance == 0.0 and sim.noise_block == 64 and sim.max_distance == 100.0
-    assert common.flight_components(args)["controller"].config == lqr
+    assert components.flight_components(args)["controller"].config == lqr
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -162,9 +173,9 @@ def test_tables_are_read_checked_and_normalised(tmp_path):
     ("[guard]\nbound = 0\n", ["[guard] bound = 0: expected a finite number > 0"]),
     ("[guard]\nrecover = 2\n", ["[guard] unknown key 'recover'", "allowed: recovery, bound"]),
     ("[training]\nmax_epochs = 5\n", ["[training]: this experiment does not apply downwash.train.TrainConfig",
-                                     "refused rather than ignored", "the tables it applies: [lqr], [sim], [guard]"]),
-    ("[safety]\nmin_separation = 0.3\n", ["[safety]: no safety layer is configurable yet"]),
-    ("[controller]\nq = 1\n", ["unknown key 'controller'; allowed:", "tables: [lqr], [sim], [guard]"]),
+                                     "refused rather than ignored", "the tables it applies: [lqr], [sim], [guard], [safety]"]),
+    ("[safety]\nmin_separation = 0.3\n", ["[safety] unknown key 'min_separation'", "allowed: vertical_gap"]),
+    ("[controller]\nq = 1\n", ["controller = {'q': 1}: expected a string, got a TOML table", "--controller"]),
 ])
 def test_a_bad_table_is_one_line_naming_the_table_the_key_and_what_is_allowed(tmp_path, capsys, text, expected):
     path = _toml(tmp_path, text)
@@ -182,19 +193,16 @@ def test_a_bad_table_is_one_line_naming_the_table_the_key_and_what_is_allowed(tm
     ("sweep", "SweepArgs", "[guard]\nbound = 5\n", "[training]"),
     ("train", "TrainArgs", "[lqr]\nmax_tilt_deg = 30\n", "[training]"),
     ("sample_efficiency", "EfficiencyArgs", "[guard]\nbound = 5\n", "[training]"),
-    ("outdoor", "OutdoorArgs", "[training]\nmax_epochs = 5\n", "[lqr], [sim], [guard]"),
-    ("swarm", "SwarmArgs", "[training]\nlr = 0.001\n", "[lqr], [sim], [guard]"),
-    ("swarm", "SwarmArgs", "[safety]\nx = 1\n", None),
+    ("outdoor", "OutdoorArgs", "[training]\nmax_epochs = 5\n", "[lqr], [sim], [guard], [safety]"),
+    ("swarm", "SwarmArgs", "[training]\nlr = 0.001\n", "[lqr], [sim], [guard], [safety]"),
+    ("staged_collection", "StagedArgs", "[safety]\nk0 = 1\n", "none"),
 ])
 def test_each_experiment_refuses_the_tables_it_does_not_apply(tmp_path, capsys, module, cls_name, text, applies):
     import importlib
 
     cls = getattr(importlib.import_module(f"experiments.{module}"), cls_name)
     err = _usage_error(capsys, cls, module, ["--config", str(_toml(tmp_path, text)), "--out", str(tmp_path / "o")])
-    if applies is None:
-        assert "no safety layer is configurable yet" in err, err
-    else:
-        assert "refused rather than ignored" in err and err.endswith(f"the tables it applies: {applies}"), err
+    assert "refused rather than ignored" in err and err.endswith(f"the tables it applies: {applies}"), err
 
 
 def test_a_bad_table_stops_the_script_before_any_work_or_heavy_import(tmp_path):
@@ -222,8 +230,8 @@ def test_tables_built_in_python_are_checked_and_a_table_not_applied_is_refused()
     with pytest.raises(ConfigError, match="unknown table 'lqrs'"):
         common.check_options(cls(tables={"lqrs": {}}))
     with pytest.raises(ConfigError, match=r"\[lqr\]: this experiment does not apply"):
-        common.lqr_config(TrainArgs())  # an experiment asking for a table it does not declare
-    assert common.lqr_config(cls(tables={"lqr": {"min_thrust_g": 0.5}})).min_thrust_g == 0.5
+        components.lqr_config(TrainArgs())  # an experiment asking for a table it does not declare
+    assert components.lqr_config(cls(tables={"lqr": {"min_thrust_g": 0.5}})).min_thrust_g == 0.5
 
 
 def test_the_builders_apply_the_training_and_guard_tables():
@@ -234,12 +242,12 @@ def test_the_builders_apply_the_training_and_guard_tables():
     from experiments.train import TrainArgs
 
     args = TrainArgs(seed=4, quick=True, tables={"training": {"max_epochs": 7, "lr": 0.002, "portable": True}})
-    assert common.training_config(args) == dataclasses.replace(train_config(4, True), max_epochs=7, lr=0.002)
-    assert common.training_config(TrainArgs(seed=4)) == train_config(4, False)
+    assert components.training_config(args) == dataclasses.replace(train_config(4, True), max_epochs=7, lr=0.002)
+    assert components.training_config(TrainArgs(seed=4)) == train_config(4, False)
     grid = grid_of(EfficiencyArgs(seed=3, quick=True, trials=2, tables={"training": {"batch_size": 64}}))
     assert [grid.config(s).batch_size for s in grid.seeds] == [64, 64] and grid.config(5).seed == 5
     assert grid.config(5) == dataclasses.replace(train_config(5, True), batch_size=64)
-    assert common.guard_settings(SwarmArgs(tables={"guard": {"bound": 4.0, "skeptic": math.inf}})) == {
+    assert components.guard_settings(SwarmArgs(tables={"guard": {"bound": 4.0, "skeptic": math.inf}})) == {
         **GUARD_DEFAULTS, "bound": 4.0, "skeptic": math.inf}
 
 
@@ -278,7 +286,7 @@ def test_swarm_guards_its_conditions_with_the_guard_table(monkeypatch):
     monkeypatch.setattr(downwash.checkpoint, "wrap_pairwise", lambda *a, **k: "pairwise")
     monkeypatch.setattr(downwash.predictor, "LearnedPredictor", lambda model, **k: ("learned", model))
     monkeypatch.setattr(downwash.guard, "GuardedPredictor", lambda p, **kw: made.append(kw) or ("guarded", p))
-    guard = common.guard_settings(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
+    guard = components.guard_settings(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
     out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None, Path("p.pt"),
                       Path("m"), Path("pm"), None, guard)
     assert out[2] == ("guarded", ("learned", "pairwise")) and made == [guard] and guard["recovery"] == 2.0
@@ -333,7 +341,7 @@ def test_transect_and_outdoor_take_the_guard_table(tmp_path):
     path = _toml(tmp_path, "[guard]\nskeptic = inf\nmonitor = 0.5\n")
     for cls, name in ((args_class("transect"), "transect"), (OutdoorArgs, "outdoor")):
         args = parse_args(cls, name, ["--config", str(path), "--out", str(tmp_path / "o")])
-        assert common.guard_settings(args) == {**common.guard_settings(cls()), "skeptic": math.inf, "monitor": 0.5}
+        assert components.guard_settings(args) == {**components.guard_settings(cls()), "skeptic": math.inf, "monitor": 0.5}
 
 
 def test_the_sweep_trains_its_cells_with_the_training_table(tmp_path, monkeypatch):
@@ -455,7 +463,7 @@ def test_flags_override_the_file_and_the_file_overrides_the_defaults(tmp_path):
     assert from_file.duration == 2.0  # --quick (from the file) fills what neither gives
     assert (both.seeds, both.separation, both.conditions, both.quick, both.duration) == (3, 0.7, "oracle", False, 0.0)
     assert both.half_width == defaults.half_width == 0.5 and both.tables == {"lqr": {"max_tilt_deg": 25.0}}
-    assert common.lqr_config(defaults).max_tilt_deg == 35.0 and common.lqr_config(both).max_tilt_deg == 25.0
+    assert components.lqr_config(defaults).max_tilt_deg == 35.0 and components.lqr_config(both).max_tilt_deg == 25.0
 
 
 # ----------------------------------------------------------------------------- writing config.toml

@@ -57,8 +57,8 @@ def test_lemniscate_all_conditions(collection):
     _run(["experiments.lemniscate", "--quick", "--out", "lem", "--collection-dir", "staged", "--models-dir", "models"],
          collection)
     r = json.loads((collection / "lem" / "results.json").read_text())
-    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", *STAGED_KINDS,
-                                    *(f"{k}_guarded" for k in STAGED_KINDS)}
+    assert set(r["conditions"]) == {"no_downwash", "baseline", "oracle", "integral", "dob", *STAGED_KINDS,
+                                    *(f"{k}_guarded" for k in STAGED_KINDS), *(f"{k}_dob" for k in STAGED_KINDS)}
     for name, c in r["conditions"].items():
         assert c["pos_err_3d_mean"] >= 0 and len(c["per_seed"]["pos_err_3d_mean"]) == 1
         assert c["crash_rate"] == 0.0 and c["per_seed"]["crashed"] == [False]

@@ -126,7 +126,7 @@ def test_the_controller_recipe_flies_a_hover(monkeypatch):
     assert "fly(scene, reference" in blocks[2]  # the call the page shows
 
 
-def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch):
+def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch, request):
     """The frame-shifted motion capture, registered and flown as the page shows (shortened to 2 s):
     every vehicle's measurement is off by one offset, its episode's, on the fused path."""
     import sim.sensors as sensors
@@ -140,8 +140,7 @@ def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch):
     namespace: dict = {"__name__": "mypkg.sensors"}
     exec(blocks[1], namespace)
     cls = namespace["FrameShiftedMocap"]
-    monkeypatch.setattr(sensors, "_REGISTRY", dict(sensors._REGISTRY))  # the registration stays in this test
-    monkeypatch.setattr(sensors, "SENSORS", sensors.MappingProxyType(sensors._REGISTRY))
+    request.addfinalizer(lambda: sensors.SENSORS.pop("mocap_frame_shift", None))  # the registration stays in this test
     scene = build_scene()
     reference = stack([Hover(LEADER, n_worlds=2), Hover(LEADER - [0, 0, 0.6], n_worlds=2)])
     run = {"SimConfig": SimConfig, "FrameShiftedMocap": cls, "scene": scene, "reference": reference,

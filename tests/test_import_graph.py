@@ -21,8 +21,9 @@ PACKAGES = ("downwash_core", "downwash_trajectories", "controllers", "sim", "dow
 FUNCTION_LEVEL_CYCLES = {
     # resolve_field_spec imports the fitted-field reader, which looks its base field up in FIELDS
     frozenset({"sim.fields.registry", "sim.fields.fitted"}),
-    # the command line reads a config file through config_file, which builds on common's options
-    frozenset({"experiments.common", "experiments.config_file"}),
+    # the command line reads a config file through config_file, which builds on common's options and writes the
+    # tables in force through components, which applies them
+    frozenset({"experiments.common", "experiments.components", "experiments.config_file"}),
 }
 
 
@@ -271,13 +272,11 @@ KNOWN_PRIVATE_READS = {
     ("downwash_envs.viewer", ("_MJPYTHON",)): "MuJoCo's viewer: whether it runs under mjpython",
     ("downwash_envs.viewer", ("_PATH_RGBA", "_REF_RADIUS", "_REF_RGBA", "_add_geom", "_add_line")):
         "downwash_envs.video's and downwash_envs.rendering's drawing helpers",
-    ("experiments.config_file", ("_kind", "_one_line", "_option")): "experiments.common's option helpers",
+    ("experiments.config_file", ("_kind", "_option")): "experiments.common's option helpers",
     ("experiments.replay", ("_PATH_POINTS", "_check_trajectories")): "downwash_envs.video's trajectory helpers",
-    ("experiments.report", ("_equivariance_verdict", "_memory_verdict", "_ordered", "_render_one", "_table")):
+    ("experiments.report", ("_equivariance_verdict", "_memory_verdict", "_render_one")):
         "the report package's formatting and sections",
-    ("experiments.report.real_flights", ("_table",)): "experiments.report.formatting",
     ("experiments.report.results", ("_render_one",)): "experiments.report.sections",
-    ("experiments.report.sections", ("_ordered", "_table")): "experiments.report.formatting",
 }
 
 

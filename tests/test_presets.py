@@ -64,7 +64,7 @@ def test_swap_crosses_beneath_the_top():
     ("nope", "unknown 'nope'.*allowed: pair"),
     ("stack:n=9", "2-8 vehicles, got 9"),
     ("stack:n=1", "2-8 vehicles, got 1"),
-    ("stack:n=x", "not a int"),
+    ("stack:n=x", r"'stack:n=x': preset 'stack' parameter n='x': expected an integer"),
     ("stack:spacing=0.1", "spacing: allowed 0.3-2.0"),
     ("swap:n=3", "allowed: no parameters"),
 ])

@@ -190,12 +190,13 @@ def test_the_kalman_filter_takes_its_measurement_noise_from_the_sensor(scene):
     (lambda: MocapConfig(position_noise=-1e-3), r"mocap position_noise: allowed 0.0 to 0.1 m, got -0.001"),
     (lambda: MocapConfig(attitude_noise=float("nan")), r"mocap attitude_noise: allowed 0.0 to 0.5 rad, got nan"),
     (lambda: BiasedMocap(position_bias=0.2), r"mocap_biased position_bias: allowed 0.0 to 0.05 m, got 0.2"),
-    (lambda: make_sensor("vicon"), r"unknown sensor 'vicon'; registered: mocap, mocap_biased"),
-    (lambda: make_sensor("mocap", position_bias=0.1), r"mocap has no parameter\(s\) \['position_bias'\]; allowed: "),
-    (lambda: resolve_sensor_spec("mocap_biased:position_bias=-1"), r"sensor 'mocap_biased:position_bias=-1': "
+    (lambda: make_sensor("vicon"), r"sensor: unknown 'vicon'; allowed: mocap, mocap_biased"),
+    (lambda: make_sensor("mocap", position_bias=0.1),
+     r"sensor 'mocap' has no parameter\(s\) \['position_bias'\]; allowed: "),
+    (lambda: resolve_sensor_spec("mocap_biased:position_bias=-1"), r"sensor: 'mocap_biased:position_bias=-1': "
                                                                    r"mocap_biased position_bias: allowed 0.0 to 0.05 m"),
     (lambda: resolve_sensor_spec("mocap_biased:position_bias"), r"parameters are KEY=VALUE"),
-    (lambda: resolve_sensor_spec("mocap:position_noise=lots"), r"position_noise='lots' is not a number"),
+    (lambda: resolve_sensor_spec("mocap:position_noise=lots"), r"position_noise='lots': expected a number"),
     (lambda: check_sensor(object()), r"SimConfig.mocap: a sensor needs measurement_noise, .*got object"),
 ])
 def test_a_bad_setting_names_the_option_and_what_is_allowed(make, match):

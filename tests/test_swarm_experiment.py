@@ -33,7 +33,9 @@ def test_every_preset_law_and_condition_is_reported(swarm_run):
     r = json.loads((swarm_run / "sw" / "results.json").read_text())
     models = ["summed_pairwise", "deepsets_equivariant-pair", "deepsets_equivariant-mixed",
               "deepsets_equivariant-kinds", "deepsets-pair", "deepsets-mixed", "deepsets-kinds"]
-    names = ["baseline", "oracle", *models, *(f"{m}_guarded" for m in models)]  # each model also behind the guard
+    # each model also behind the guard; the LQR with integral action, the observer, each model with the observer
+    names = ["baseline", "oracle", *models, *(f"{m}_guarded" for m in models), "integral", "dob",
+             *(f"{m}_dob" for m in models)]
     assert r["conditions"] == names
     assert set(r["summary"]) == {"linear", "velocity"}
     for law in ("linear", "velocity"):
@@ -42,6 +44,10 @@ def test_every_preset_law_and_condition_is_reported(swarm_run):
             assert set(entry) == set(names)
             # the oracle knows the wake and how the wakes combine: it beats no model
             assert entry["oracle"]["improvement_pos_3d"] > 0.2, (law, preset)
+            # each model's vehicle kinds are in its data here (paper quads), and each crash rate has its interval
+            assert all(entry[c]["kinds_in_data"] is True for c in names if c not in ("baseline", "oracle", "integral", "dob"))
+            assert all(entry[c]["crash_rate_ci95"][0] <= entry[c]["crash_rate"] <= entry[c]["crash_rate_ci95"][1]
+                       for c in names)
             shares = entry["summed_pairwise_guarded"]["compensation"]  # how much of it the guard applied
             assert sum(shares.values()) == pytest.approx(1.0) and "compensation" not in entry["summed_pairwise"]
     for preset in ("stack3", "swap"):  # a results.json and a figure per preset

@@ -32,7 +32,7 @@ from pathlib import Path
 from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_bytes
 from experiments.common import CommonArgs, arg, parse_args, script
-from experiments.report.formatting import _ordered, _table, fmt, pct, short
+from experiments.report.formatting import ordered, markdown_table, fmt, pct, short
 from experiments.report.results import (EXPERIMENTS, copy_results, load_results, machine, read_runs, stale_results,
                                         write_copies, write_path)
 from experiments.report.criteria import guard_criteria, render_guard_criteria
@@ -143,19 +143,24 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
     parts = [GENERATED]
     if tracks:
         try:
-            conds = {c: None for n in tracks for c, _ in _ordered(found[n]["conditions"]) if not c.endswith("_guarded")}
-            guarded = any(c.endswith("_guarded") for n in tracks for c in found[n]["conditions"])
+            conds = {c: None for n in tracks for c, _ in ordered(found[n]["conditions"])
+                     if not c.endswith(("_guarded", "_dob"))}  # (each model's twins: columns of its row)
+            twins = [suffix for suffix in ("_guarded", "_dob")
+                     if any(c.endswith(suffix) for n in tracks for c in found[n]["conditions"])]
             rows = [[f"`{c}`" + (f" ({HEADLINE_CONDITIONS[c]})" if c in HEADLINE_CONDITIONS else "")]
                     + [_headline_cell(found[n]["conditions"].get(c)) for n in tracks]
-                    + ([_headline_cell(found[n]["conditions"].get(f"{c}_guarded")) for n in tracks] if guarded else [])
+                    + [_headline_cell(found[n]["conditions"].get(c + suffix)) for suffix in twins for n in tracks]
                     for c in conds]
             first = found[tracks[0]]
+            said = {"_guarded": "behind the guard (`<model>_guarded`)",
+                    "_dob": "with the disturbance observer on its residual (`<model>_dob`)"}
             parts += [f"Mean 3D position error of the follower flying {short(first['separation'])} m beneath a hovering "
                       f"leader, in m over {len(first['seeds'])} seeds; in brackets the improvement over the baseline"
-                      + ("; each model also behind the guard (`<model>_guarded`)" if guarded else "") + ". "
+                      + ("; each model also " + " and ".join(said[t] for t in twins) if twins else "") + ". "
                       f"Simulated flights: every result, with its machine and provenance, is on the "
                       f"[results page]({link}).",
-                      _table(["condition"] + tracks + ([f"{n}, guarded" for n in tracks] if guarded else []), rows)]
+                      markdown_table(["condition"] + tracks + [f"{n}, {'guarded' if t == '_guarded' else 'with dob'}"
+                                                               for t in twins for n in tracks], rows)]
         except RENDER_ERRORS as e:
             raise render_error(_file(results_dir, *tracks), "the headline tracking table", e) from e
     else:
@@ -183,7 +188,7 @@ def _headline_found(found: dict[str, dict], link: str, results_dir: str | Path) 
     if "staged_collection" in found:
         r = found["staged_collection"]
         try:
-            models = ", ".join(f"{k} {fmt(m.get('val_rmse'))}" for k, m in _ordered(r.get("models", {})))
+            models = ", ".join(f"{k} {fmt(m.get('val_rmse'))}" for k, m in ordered(r.get("models", {})))
             floor = (r.get("noise_floor") or {}).get("rmse_mean")
         except RENDER_ERRORS as e:
             raise render_error(_file(results_dir, "staged_collection"), "the headline's final models", e) from e
@@ -232,7 +237,7 @@ def _outdoor_headline(r: dict, link: str) -> str:
     models do there unguarded and guarded, and the verdicts on memory and on equivariance."""
     c = r["conditions"]
     imp = lambda k: c[k].get("improvement_pos_3d")  # noqa: E731
-    models = [k for k, _ in _ordered(c) if k not in ("no_downwash", "baseline", "oracle") and imp(k) is not None]
+    models = [k for k, _ in ordered(c) if k not in ("no_downwash", "baseline", "oracle") and imp(k) is not None]
     best = max(models, key=imp)
     oracle = imp("oracle")
     out = [f"Outdoors (the leader on a {r['leader']} at {short(r['speed'])} m/s in wind, "
@@ -271,7 +276,7 @@ def _swarm_headline(r: dict, link: str) -> str:
            f"error over the baseline, over {len(r['seeds'])} seeds per preset; |f| is the mean magnitude of the true "
            f"mean field on the followers, m/s^2 (the presets and the models of sets are on the "
            f"[results page]({link})). {_swarm_training(r)}",
-           _table(["preset", "\\|f\\|"] + [f"`{c}`" for c in conds], rows)]
+           markdown_table(["preset", "\\|f\\|"] + [f"`{c}`" for c in conds], rows)]
 
     def best(entry: dict, names: tuple[str, ...]) -> tuple[float, str]:
         return max((entry[c]["improvement_pos_3d"], c) for c in names if entry.get(c, {}).get("improvement_pos_3d")

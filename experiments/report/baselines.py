@@ -13,10 +13,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from experiments.report.formatting import _ordered, _table, fmt, pct, short
+from experiments.report.formatting import ordered, markdown_table, fmt, pct, short
 
 __all__ = ["UNLEARNED", "paired_interval", "render_learning_over_baselines", "render_field_baselines",
-           "render_observer_bandwidth"]
+           "render_swarm_baselines", "render_observer_bandwidth"]
 
 UNLEARNED = ("integral", "dob")
 _ERROR = "pos_err_3d_mean"
@@ -68,7 +68,7 @@ def render_learning_over_baselines(conditions: dict[str, Any], n_seeds: int) -> 
     err = {k: e["per_seed"][_ERROR] for k, e in c.items()}
     gain = {k: c[k].get("improvement_pos_3d") for k in c}
     rows = []
-    for model, _ in _ordered(c):
+    for model, _ in ordered(c):
         twin = model + "_dob"
         if twin not in c:
             continue
@@ -87,7 +87,7 @@ def render_learning_over_baselines(conditions: dict[str, Any], n_seeds: int) -> 
         "follower's mean 3-D error over the baseline (the LQR alone); `dob` is the LQR compensating with the "
         "disturbance observer, `integral` the LQR with integral action, `<model>_dob` the model as feed-forward "
         f"with the observer on what it misses. Differences are paired by seed over {n_seeds} seeds, negative where "
-        "the model with the observer has the smaller error:", _table(header, rows)])
+        "the model with the observer has the smaller error:", markdown_table(header, rows)])
 
 
 def render_field_baselines(table: dict[str, dict]) -> str | None:
@@ -99,7 +99,7 @@ def render_field_baselines(table: dict[str, dict]) -> str | None:
         if not all(k in c and "per_seed" in c[k] for k in ("baseline", *UNLEARNED)):
             continue
         err = {k: e["per_seed"][_ERROR] for k, e in c.items() if "per_seed" in e}
-        for model, _ in _ordered(c):
+        for model, _ in ordered(c):
             twin = model + "_dob"
             if twin not in err or model not in err:
                 continue
@@ -112,7 +112,36 @@ def render_field_baselines(table: dict[str, dict]) -> str | None:
     return "\n\n".join([
         "What does learning add over the observer and integral action on each field (gains over the baseline, "
         "answers from paired 95 % intervals over the seeds, as for the tracking experiments):",
-        _table(["field", "model", "its gain", "`dob`", "`integral`", "model + `dob`", "answer"], rows)])
+        markdown_table(["field", "model", "its gain", "`dob`", "`integral`", "model + `dob`", "answer"], rows)])
+
+
+def render_swarm_baselines(presets: dict[str, dict]) -> str | None:
+    """Per law and preset of the swarm (its results' ``presets``): the best learned model there, its gain, `dob`'s,
+    `integral`'s and the best model with the observer's, and the answer for that model; None without them."""
+    rows = []
+    for preset, by_law in presets.items():
+        for law, entry in by_law.items():
+            c = entry["conditions"]
+            if not all(k in c for k in ("baseline", *UNLEARNED)):
+                continue
+            err = {k: e["per_seed"][_ERROR] for k, e in c.items()}
+            models = [m for m in c if m + "_dob" in c]
+            if not models:
+                continue
+            best = max(models, key=lambda m: c[m].get("improvement_pos_3d") or -math.inf)
+            twin = best + "_dob"
+            vs_model, vs_dob = paired_interval(err[twin], err[best]), paired_interval(err[twin], err["dob"])
+            rows.append([law, f"`{preset}`", f"`{best}`"] + [pct(c[k].get("improvement_pos_3d")) for k in
+                                                          (best, "dob", "integral", twin)]
+                        + [_answer(vs_model, vs_dob, paired_interval(err["dob"], err[best]))])
+    if not rows:
+        return None
+    return "\n\n".join([
+        "What does learning add over the observer and integral action in the swarm? Per law and preset, the best "
+        "learned model there against `dob` and `integral` (gains over the baseline, answers from paired 95 % "
+        "intervals over the seeds):",
+        markdown_table(["law", "preset", "best model", "its gain", "`dob`", "`integral`", "model + `dob`", "answer"],
+                       rows)])
 
 
 def render_observer_bandwidth(r: dict, label: str) -> str:
@@ -124,6 +153,6 @@ def render_observer_bandwidth(r: dict, label: str) -> str:
         f"stages' patterns with the observer alone), never on a test flight. Criterion: {r['criterion']}; rule: "
         f"{r['rule']}. Best: {short(r['best'])} rad/s; chosen: **{short(r['chosen'])} rad/s**, the default of every "
         f"`dob` condition (`{label}`):",
-        _table(["bandwidth (rad/s)", "3-D error (cm)", "minus the best, cm (95 % CI)",
+        markdown_table(["bandwidth (rad/s)", "3-D error (cm)", "minus the best, cm (95 % CI)",
                 "estimation RMS (m/s^2)", "crashes"], rows)])
 

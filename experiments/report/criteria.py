@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from experiments.report.formatting import _table, pct, short
+from experiments.report.formatting import markdown_table, pct, short
 
 __all__ = ["GUARDED", "WORSE_FLOOR", "RETAIN", "RETAIN_ABOVE", "settings_points", "guard_criteria",
            "render_guard_criteria"]
@@ -115,4 +115,4 @@ def render_guard_criteria(found: dict[str, dict]) -> str | None:
             "data are not judged for retention.")
     return ("The guard's criteria over every setting of every results file (model by model, the guarded "
             f"condition against its unguarded twin).{note}\n\n"
-            + _table(["criterion", "settings judged", "missed", "misses"], rows))
+            + markdown_table(["criterion", "settings judged", "missed", "misses"], rows))

@@ -7,7 +7,7 @@ from typing import Any
 
 from experiments.common import CONDITIONS
 
-__all__ = ["ORDER", "fmt", "short", "pct", "crash_cell"]
+__all__ = ["ORDER", "fmt", "short", "pct", "crash_cell", "ordered", "markdown_table"]
 
 ORDER = CONDITIONS  # conditions and models in one order: the references, then PAIRWISE_KINDS (the paper's order)
 
@@ -48,11 +48,11 @@ def crash_cell(rate: float | None, n: int) -> str:
     return f"{pct(rate)} ({100 * lo:.1f}-{pct(hi)})"
 
 
-def _ordered(d: dict) -> list[tuple[str, Any]]:
+def ordered(d: dict) -> list[tuple[str, Any]]:
     """The items of `d` in ORDER, unknown names after, alphabetically (the files hold sorted keys)."""
     return sorted(d.items(), key=lambda kv: (ORDER.index(kv[0]) if kv[0] in ORDER else len(ORDER), kv[0]))
 
 
-def _table(header: list[str], rows: list[list[str]]) -> str:
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])

@@ -4,7 +4,7 @@ pairs to triples and the learning curves."""
 
 from __future__ import annotations
 
-from experiments.report.formatting import _table, fmt
+from experiments.report.formatting import markdown_table, fmt
 
 __all__ = ["render_real_flights", "real_model_names"]
 
@@ -44,10 +44,10 @@ def _render_fitted(fitted: dict) -> list[str]:
         "published constant in parentheses), and each field's RMSE on the test flights' samples with its default "
         "and its fitted constants (m/s^2, three axes). Each fit is written with its data's digest; "
         "`--field fitted:PATH` flies it:",
-        _table(["field", "fitted constants [95 % CI] (default)", "default", "fitted", "no field"], rows),
+        markdown_table(["field", "fitted constants [95 % CI] (default)", "default", "fitted", "no field"], rows),
         f"The wake's mean vertical push on the test samples within {fmt(first['lateral_max'])} m laterally of the "
         "vehicle above, by its height above them (m; m/s^2), measured and as each fitted field predicts it:",
-        _table(["height", "samples", "measured", *(f"`{n}`" for n in fitted)], profile)]
+        markdown_table(["height", "samples", "measured", *(f"`{n}`" for n in fitted)], profile)]
 
 
 def _cm(x) -> str:
@@ -78,7 +78,7 @@ def _render_replays(rp: dict) -> list[str]:
              "The gains are the LQR's default weights, or weights whose gain is the Crazyflie firmware's default "
              "position PD (`crazyflie`: as stiff as the real vehicles flew; the default LQR is about 12 times softer "
              "in height).",
-             _table(["field", "gains", "worlds ended early", "under: real", "sim", "z mean: real", "sim", "alone: real",
+             markdown_table(["field", "gains", "worlds ended early", "under: real", "sim", "z mean: real", "sim", "alone: real",
                      "sim"], rows)]
     loop = rp.get("in_loop") or {}
     if loop:
@@ -95,7 +95,7 @@ def _render_replays(rp: dict) -> list[str]:
                   "field's own prediction (`oracle`): position error RMS (cm) of the vehicles with another above, the "
                   "ticks a crashed world did not fly counted at the crash penalty (in parentheses: over the rows "
                   "flown), the worlds that ended early, and the share of the oracle's gain the model keeps:",
-                  _table(["field", "gains", *conds, "ended early", "oracle gain kept"], lrows)]
+                  markdown_table(["field", "gains", *conds, "ended early", "oracle gain kept"], lrows)]
     return parts
 
 
@@ -121,7 +121,7 @@ def render_real_flights(r: dict, label: str) -> str:
         "small and a large above a small one, `Ge2S`: near the ground with none above, `none2S`: free air). Pair models "
         "read the nearest other vehicle only; the models of sets (`..._kinds`) read both others and every vehicle's "
         f"kind; the lowest error of each row is in bold (`{label}`):",
-        _table(["type", "train", "test", "no model", *kinds], rows)]
+        markdown_table(["type", "train", "test", "no model", *kinds], rows)]
     published = r.get("published")
     if published:
         prow = [[f"`{name}`", fmt(t["z_rmse"]["none"]), *(fmt(t["z_rmse"][k]) for k in kinds),
@@ -130,14 +130,14 @@ def render_real_flights(r: dict, label: str) -> str:
         parts += [f"The vertical component beside the data set's own per-type errors ({published['units']}). Theirs are "
                   "errors on their training samples, after training one network per vehicle frame on the flights of "
                   "all days; ours are on a held-out day, so theirs are the lower bound of a like-for-like comparison:",
-                  _table(["type", "no model", *kinds, "Neural-Swarm", "Neural-Swarm (gf^2)"], prow)]
+                  markdown_table(["type", "no model", *kinds, "Neural-Swarm", "Neural-Swarm (gf^2)"], prow)]
     triples = r.get("pairs_to_triples") or {}
     if "models" in triples:
         trow = [[f"`{k}`", fmt(v["nearest"]), fmt(v["summed"])] for k, v in triples["models"].items()]
         parts += [f"Pairs to triples: the per-neighbour models trained on the two-vehicle training flights only "
                   f"({triples['n_train']} samples), judged on the {triples['n_test']} test samples with two vehicles "
                   f"above (no model: {fmt(triples['none'])} m/s^2), reading the nearest vehicle above, and summed over "
-                  "both (the paper's naive multi-vehicle law):", _table(["model", "nearest", "summed"], trow)]
+                  "both (the paper's naive multi-vehicle law):", markdown_table(["model", "nearest", "summed"], trow)]
     fitted = r.get("fitted_fields") or {}
     if fitted:
         parts += _render_fitted(fitted)
@@ -153,7 +153,7 @@ def render_real_flights(r: dict, label: str) -> str:
         parts += [f"Learning curves: the test RMSE on the {curves['n_test']} samples with a vehicle above (no model "
                   f"{fmt(curves['none'])} m/s^2), each model trained on a share of the training flights of two or three "
                   f"vehicles, the mean over {a['curve_seeds']} draws of flights:",
-                  _table(["share", "flights", *names], crow)]
+                  markdown_table(["share", "flights", *names], crow)]
         claim = curves.get("claim")
         if claim:
             verdict = ("holds" if claim["ci_high"] < 0 else "does not hold" if claim["ci_low"] > 0 else

@@ -12,10 +12,10 @@ from pathlib import Path
 
 from downwash_core.errors import ConfigError
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
-from experiments.report.formatting import ORDER, _ordered, _table, crash_cell, fmt, pct, short
+from experiments.report.formatting import ORDER, ordered, markdown_table, crash_cell, fmt, pct, short
 from experiments.report.criteria import settings_points
 from experiments.report.baselines import (render_field_baselines, render_learning_over_baselines,
-                                         render_observer_bandwidth)
+                                         render_observer_bandwidth, render_swarm_baselines)
 from experiments.report.real_flights import render_real_flights
 from experiments.report.speed import render_benchmark
 
@@ -74,13 +74,13 @@ def render_staged(r: dict, label: str) -> str:
         failed += s.get("failed_flights", [])
     floor = (r.get("noise_floor") or {}).get("rmse_mean")
     models = [[k, fmt(m["val_rmse"]), pct(m["val_rmse"] / floor - 1) if floor and m["val_rmse"] is not None else "-",
-               fmt(m.get("train_seconds"))] for k, m in _ordered(r["models"])]
+               fmt(m.get("train_seconds"))] for k, m in ordered(r["models"])]
     return "\n\n".join([
         f"Stages (`{label}`):",
-        _table(["stage", "separation (m)", "training min", "samples", "deployed model",
+        markdown_table(["stage", "separation (m)", "training min", "samples", "deployed model",
                 "its val RMSE on this stage (m/s^2)"], rows),
         f"Final models (`{label}`), validation RMSE in m/s^2:",
-        _table(["model", "val RMSE", "above the noise floor", "train s"], models),
+        markdown_table(["model", "val RMSE", "above the noise floor", "train s"], models),
         f"{fmt(r.get('training_minutes'))} min of training data, {fmt(r.get('validation_minutes'))} min of validation "
         f"data. Label-noise floor (labels against the true mean field): {fmt(floor)} m/s^2. "
         + (f"Failed flights ({len(failed)}): " + "; ".join(failed) + "." if failed else "No flight failed.")
@@ -97,7 +97,7 @@ def render_efficiency(r: dict, label: str) -> str:
         return f"{fmt(models[k]['rmse_mean'][i])} ± {fmt(models[k]['rmse_std'][i], 2)}" if k in models else "-"
 
     header = ["model"] + [f"{short(m)} min" for m in minutes[:-1]] + [f"{short(minutes[-1])} min (full)"]
-    rows = [[k] + [cell(k, i) for i in range(len(minutes))] for k, _ in _ordered(models)]
+    rows = [[k] + [cell(k, i) for i in range(len(minutes))] for k, _ in ordered(models)]
     nearest = {t: min(range(len(minutes)), key=lambda i: abs(minutes[i] - t)) for t in PAPER_RMSE}
     said = ", ".join(f"{short(t)} min: ours at {short(minutes[i])} min" for t, i in nearest.items())
     paper_rows = [[k] + [c for t, i in nearest.items() for c in (cell(k, i), fmt(PAPER_RMSE[t][k]))]
@@ -106,10 +106,10 @@ def render_efficiency(r: dict, label: str) -> str:
                                                                           f"paper {short(t)} min")]
     return "\n\n".join([
         f"Validation RMSE (m/s^2), mean ± std over {r.get('trials')} trials (`{label}`):",
-        _table(header, rows),
+        markdown_table(header, rows),
         f"Label-noise floor: {fmt(r['noise_floor'])} m/s^2; validation set {fmt(r.get('validation_minutes'))} min.",
         f"Beside the paper's table (its means; nearest point present, {said}; `{label}`):",
-        _table(paper_header, paper_rows)] + ([_claim(r["claim"])] if r.get("claim") else []))
+        markdown_table(paper_header, paper_rows)] + ([_claim(r["claim"])] if r.get("claim") else []))
 
 
 def _claim(c: dict) -> str:
@@ -126,7 +126,7 @@ def _claim(c: dict) -> str:
 def render_tracking(r: dict, label: str) -> str:
     rows = []
     guarded = any("compensation" in e for e in r["conditions"].values())
-    for c, e in _ordered(r["conditions"]):
+    for c, e in ordered(r["conditions"]):
         gap = e.get("gap_to_oracle_pos_3d")
         rows.append([c] + [fmt(e[k]) for k in TRACKED] + [pct(e.get(f"improvement_pos_{k}")) for k in ("3d", "z")]
                     + ["-" if gap is None else ("+" if gap >= 0 else "-") + fmt(abs(gap)),
@@ -136,7 +136,7 @@ def render_tracking(r: dict, label: str) -> str:
               "improvement z", "gap to oracle (m)", "crash rate (Wilson 95 %)"] + (["applied: full / partial / none"] if guarded else [])
     over = render_learning_over_baselines(r["conditions"], len(r["seeds"]))
     return "\n\n".join([f"{len(r['seeds'])} seeds, {short(r['separation'])} m below the leader, "
-                        f"{short(r['duration'])} s (`{label}`):", _table(header, rows)] + ([over] if over else []))
+                        f"{short(r['duration'])} s (`{label}`):", markdown_table(header, rows)] + ([over] if over else []))
 
 
 def _shares(c: dict | None) -> str:
@@ -164,7 +164,7 @@ def render_outdoor(r: dict, label: str) -> str:
                   f"leader on lines and circles at 0.5-3 m/s, {flown})." if regime else "."))
     head = (f"The leader flies a {r['leader']} at {short(r['speed'])} m/s (airspeed {fmt(a['min'])}-{fmt(a['max'])} m/s); "
             f"the follower {short(r['separation'])} m beneath it; {air}. {trained}")
-    models = [k for k, _ in _ordered(c) if k not in ("no_downwash", "baseline", "oracle")]
+    models = [k for k, _ in ordered(c) if k not in ("no_downwash", "baseline", "oracle")]
     best = max(models, key=lambda k: c[k].get("improvement_pos_3d") or -math.inf) if models else None
     crashed = [f"`{k}` ({crash_cell(c[k]['crash_rate'], len(r['seeds']))})" for k in models if c[k].get("crash_rate")]
     verdict = []
@@ -183,18 +183,18 @@ def render_outdoor(r: dict, label: str) -> str:
     if sweep:  # --sweep-speeds: each condition's improvement at each leader speed
         rows = _sweep_rows(sweep["conditions"], len(r["seeds"]))
         parts += ["Improvement of the 3D position error over the baseline against the leader's speed (the same seeds "
-                  "and wind at each speed):", _table(["condition"] + [f"{short(v)} m/s" for v in sweep["speeds"]], rows)]
+                  "and wind at each speed):", markdown_table(["condition"] + [f"{short(v)} m/s" for v in sweep["speeds"]], rows)]
         own = _own_error(sweep)
         if own:
             parts.append(own)
     if r.get("wind_sweep"):  # --sweep-winds: at the run's speed, in each wind
         w = r["wind_sweep"]
         parts += [f"Improvement over the baseline in each wind, the leader at {short(r['speed'])} m/s:",
-                  _table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"], len(r["seeds"])))]
+                  markdown_table(["condition"] + [f"`{spec}`" for spec in w["winds"]], _sweep_rows(w["conditions"], len(r["seeds"])))]
     for truth, t in (r.get("truths") or {}).items():  # --sweep-fields: the whole experiment on each ground truth
         if t.get("sweep"):
             parts += [f"On the `{truth}` truth, improvement over the baseline against the leader's speed:",
-                      _table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
+                      markdown_table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
                              _sweep_rows(t["sweep"]["conditions"], len(r["seeds"])))]
     verdicts = [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
     return "\n\n".join(parts + verdicts)
@@ -218,7 +218,7 @@ def _own_error(sweep: dict) -> str | None:
 def _sweep_rows(conditions: dict, n: int) -> list[list[str]]:
     return [[f"`{c}`"] + [pct(x) + (f" ({crash_cell(k, n)} crashed)" if k else "") for x, k in
                           zip(e["improvement_pos_3d"], e["crash_rate"])]
-            for c, e in _ordered(conditions) if c not in ("no_downwash", "baseline")]
+            for c, e in ordered(conditions) if c not in ("no_downwash", "baseline")]
 
 
 # each model with memory and the memoryless model it extends (the same features without the history)
@@ -335,12 +335,12 @@ def render_worst_cases(found: dict[str, dict]) -> str | None:
         return "none" if w is None else f"{pct(w[0])} ({w[1]}" + ("" if w[2] is None else f"; baseline {pct(w[2])}") + ")"
 
     rows = [[f"`{m}`", cell(w.get("unguarded")), cell(w.get("guarded")), crashes(w.get("guarded_crashes"))]
-            for m, w in _ordered(worst)]
+            for m, w in ordered(worst)]
     return ("Worst case: each model's worst improvement of the 3D position error over the baseline, over every "
             "setting of every experiment in `results/` (the tracking runs, the outdoor run with its sweeps and ground "
             "truths, the field table, the swarm's presets and laws), unguarded and behind the guard, and the most "
             "flights that crashed behind the guard in any setting, with the baseline's crashes there:\n\n"
-            + _table(["model", "worst unguarded", "worst guarded", "most crashes guarded"], rows))
+            + markdown_table(["model", "worst unguarded", "worst guarded", "most crashes guarded"], rows))
 
 
 def _share_of_oracle(entry: dict, condition: str) -> float | None:
@@ -350,7 +350,8 @@ def _share_of_oracle(entry: dict, condition: str) -> float | None:
 
 
 def render_swarm(r: dict, label: str) -> str:
-    shown = [c for c in r["conditions"][1:] if not c.endswith("_guarded")]  # all but the baseline; guarded apart
+    unlearned = ("integral", "dob")  # (these and the models with the observer: their own table)
+    shown = [c for c in r["conditions"][1:] if not c.endswith(("_guarded", "_dob")) and c not in unlearned]
     guarded = [c for c in r["conditions"][1:] if c.endswith("_guarded")]
     parts = [f"{len(r['seeds'])} seeds per preset and law; metrics over every follower of a flight. Each cell: the "
              "improvement of the followers' mean 3D position error over the baseline, and in brackets the gap to "
@@ -368,10 +369,10 @@ def render_swarm(r: dict, label: str) -> str:
     for law, by_preset in r["summary"].items():
         rows = [[f"`{preset}`"] + [cell(entry[c]) for c in shown] for preset, entry in by_preset.items()]
         parts += [f"**{law} aggregation** ({r['laws'][law]['law'].get('name', law)}):",
-                  _table(["preset"] + shown, rows)]
+                  markdown_table(["preset"] + shown, rows)]
         if guarded:
             rows = [[f"`{preset}`"] + [cell(entry[c]) for c in guarded] for preset, entry in by_preset.items()]
-            parts += [f"The same models behind the guard, {law} aggregation:", _table(["preset"] + guarded, rows)]
+            parts += [f"The same models behind the guard, {law} aggregation:", markdown_table(["preset"] + guarded, rows)]
         shares = {c: [x for e in by_preset.values() if (x := _share_of_oracle(e, c)) is not None] for c in shown[1:]}
         mean = {c: sum(v) / len(v) for c, v in shares.items() if v}
         best = max(mean, key=mean.get) if mean else None
@@ -381,16 +382,17 @@ def render_swarm(r: dict, label: str) -> str:
                             f"with {pct(mean[best])}")
     if verdicts:
         parts.append("Does summing pairwise models hold up? " + "; ".join(verdicts) + ".")
-    return "\n\n".join(parts)
+    over = render_swarm_baselines(r.get("presets") or {})
+    return "\n\n".join(parts + ([over] if over else []))
 
 
 def render_force_maps(r: dict, label: str) -> str:
     keys = ("down_top_rmse_vs_truth", "down_side_rmse_vs_truth", "lateral_rmse_vs_truth_pos",
             "lateral_rmse_vs_truth_neg")
-    rows = [[k] + [fmt(m.get(key)) for key in keys] for k, m in _ordered(r["maps"])]
+    rows = [[k] + [fmt(m.get(key)) for key in keys] for k, m in ordered(r["maps"])]
     header = ["model", "downward, top view", "downward, side view", "lateral, +v", "lateral, -v"]
     return "\n\n".join([f"RMSE of each model's maps against the truth, m/s^2, follower speed {short(r['speed'])} "
-                        f"m/s (`{label}`):", _table(header, rows)])
+                        f"m/s (`{label}`):", markdown_table(header, rows)])
 
 
 def render_field_table(r: dict, label: str) -> str:
@@ -413,7 +415,7 @@ def render_field_table(r: dict, label: str) -> str:
         "run from scratch on every registered field by `python -m experiments.fields --run`: the improvement of the "
         "mean 3D position error over the baseline, and in brackets the gap to the oracle (m; + is worse than the "
         f"oracle). The wall time is the whole lemniscate experiment, collection and training included (`{label}`):",
-        _table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate (Wilson 95 %)", "wall (s)"], rows)]
+        markdown_table(["field", "baseline 3D error (m)"] + shown + ["worst crash rate (Wilson 95 %)", "wall (s)"], rows)]
         + [t for t in (render_field_baselines(table),) if t])
 
 

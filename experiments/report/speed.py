@@ -3,7 +3,7 @@ stepping), then the benchmark's full record with the project's aims."""
 
 from __future__ import annotations
 
-from experiments.report.formatting import _table, fmt
+from experiments.report.formatting import markdown_table, fmt
 
 __all__ = ["render_benchmark"]
 
@@ -46,7 +46,7 @@ def _speed_summary(r: dict) -> list[list[str]]:
 
 def render_benchmark(r: dict, label: str) -> str:
     parts = [f"Measured by `python -m experiments.benchmark` on {r.get('cpu_count')} cores (mujoco {r.get('mujoco')}), "
-             "every rate from one run:", _table(["", "measured", ""], _speed_summary(r)),
+             "every rate from one run:", markdown_table(["", "measured", ""], _speed_summary(r)),
              "### The benchmark's full record"]
     targets = r.get("targets") or {}
     if targets:
@@ -56,7 +56,7 @@ def render_benchmark(r: dict, label: str) -> str:
                   "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
                   f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
                   f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
-                  _table(["ratio", "aim", "measured", "reached"], rows)]
+                  markdown_table(["ratio", "aim", "measured", "reached"], rows)]
     rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
-    parts += [f"Every rate and ratio, {r.get('batched_worlds')} batched worlds (`{label}`):", _table(["key", "value"], rows)]
+    parts += [f"Every rate and ratio, {r.get('batched_worlds')} batched worlds (`{label}`):", markdown_table(["key", "value"], rows)]
     return "\n\n".join(parts)

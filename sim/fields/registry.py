@@ -18,26 +18,26 @@ is an import path, which takes no '=' after its colon. Registered names contain 
 '.', so a dotted module path is never taken for one; a top-level module that shares
 a registered name (say a module `momentum`) must be reached through its package
 path. Parameter values are converted to the parameter's type (float; int; bool:
-true/false/1/0/yes/no/on/off). An unknown name or parameter, a bad value, or an
-import that fails raises ConfigError naming what is allowed, before any work.
+true/false/1/0/yes/no/on/off): the one spec grammar of `downwash_core.registry`, whose
+`Registry` `FIELDS` is. An unknown name or parameter, a bad value, or an import that
+fails raises ConfigError naming what is allowed, before any work.
 
 The `so2*` entries return a plain `sim.field.DownwashField`, so that the same law with
 the same constants has the same provenance (and pipeline key) however it is spelled:
 `so2-c4` and `so2:c4_amplitude=0.3` name one collection. `register_field` adds a
-user's field under a name.
+user's field under a name, and a plugin adds one through the entry-point group
+`downwash_testbed.plugins` (`downwash_core.registry`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
-import math
-import re
 from dataclasses import dataclass
-from types import MappingProxyType
 from typing import Any, Callable, Mapping
 
 from downwash_core.errors import ConfigError
+from downwash_core.registry import Entry, Registry
 from sim.field import DownwashField
 from sim.fields.jet import JetWake
 from sim.fields.momentum import MomentumWake
@@ -48,32 +48,15 @@ __all__ = ["FieldEntry", "FIELDS", "DEFAULT_FIELD", "register_field", "make_fiel
            "resolve_field_spec", "field_parameters"]
 
 DEFAULT_FIELD = "so2"
-_NAME = re.compile(r"^[a-z][a-z0-9_-]*$")  # no '.', so never a dotted module path
-_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
 
 
 @dataclass(frozen=True)
-class FieldEntry:
-    """One registered field.
+class FieldEntry(Entry):
+    """One registered field (a `downwash_core.registry.Entry`): factory(**params) -> field object;
+    params {parameter: float | int | bool} that the factory accepts; preset: the parameters the
+    entry fixes unless overridden (shown by the listing); symmetry: one line, what the law keeps."""
 
-    name: the registry key; factory(**params) -> field object; description and symmetry:
-    one line each; params: {parameter: float | int | bool} that the factory accepts;
-    preset: the parameters the entry fixes unless overridden (shown by the listing).
-    """
-
-    name: str
-    factory: Callable[..., Any]
-    description: str
-    symmetry: str
-    params: Mapping[str, type]
-    preset: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-
-    def make(self, **params: Any) -> Any:
-        """The field object with `params` (already typed) over the preset; ConfigError for unknown ones."""
-        unknown = sorted(set(params) - set(self.params))
-        if unknown:
-            raise ConfigError(f"field {self.name!r}: unknown parameter(s) {unknown}; allowed: {', '.join(self.params)}")
-        return self.factory(**{**self.preset, **params})
+    symmetry: str = ""
 
 
 def field_parameters(cls: type) -> dict[str, type]:
@@ -85,51 +68,29 @@ def field_parameters(cls: type) -> dict[str, type]:
     return out
 
 
-_REGISTRY: dict[str, FieldEntry] = {}
-FIELDS: Mapping[str, FieldEntry] = MappingProxyType(_REGISTRY)  # read-only view, in registration order
+# the fields by name, in registration order (plugins' last); registered names contain no '.', so a
+# dotted module path is never taken for one
+FIELDS = Registry("field", group="fields", entry_type=FieldEntry, default=DEFAULT_FIELD,
+                  reserved={"fitted": "the spec grammar's (fitted:PATH)"},
+                  description="ground-truth downwash fields (--field NAME[:KEY=VALUE,...])")
+_REGISTRY = FIELDS  # its former name (tests remove what they register with _REGISTRY.pop)
 
 
+@FIELDS.adder
 def register_field(name: str, factory: Callable[..., Any], description: str, symmetry: str,
-                   params: Mapping[str, type] | None = None, preset: Mapping[str, Any] | None = None) -> FieldEntry:
-    """Register `factory` under `name` (lowercase letters, digits, '-', '_'; not yet taken)."""
-    if not isinstance(name, str) or not _NAME.match(name):
-        raise ConfigError(f"field name {name!r}: use lowercase letters, digits, '-' and '_' (no '.' or ':')")
-    if name in _REGISTRY or name == "fitted":
-        raise ConfigError(f"field name {name!r} is already registered" if name in _REGISTRY else
-                          "field name 'fitted' is the spec grammar's (fitted:PATH)")
-    if not callable(factory):
-        raise ConfigError(f"field {name!r}: factory must be callable, got {type(factory).__name__}")
-    entry = FieldEntry(name, factory, description, symmetry, MappingProxyType(dict(params or {})),
-                       MappingProxyType(dict(preset or {})))
-    _REGISTRY[name] = entry
-    return entry
+                   params: Mapping[str, type] | None = None, preset: Mapping[str, Any] | None = None,
+                   defaults: Mapping[str, Any] | None = None) -> FieldEntry:
+    """Register `factory` under `name` (lowercase letters, digits, '-', '_'; not yet taken); params:
+    {name: type} a spec may set (default: the factory's typed fields or keyword parameters,
+    `downwash_core.registry.infer_params`); defaults: the factory's values (read from it unless
+    given), for the listing."""
+    return FIELDS.register(name, factory, description, params=params, preset=preset, defaults=defaults,
+                           symmetry=symmetry)
 
 
 def make_field(name: str, **params: Any) -> Any:
     """The registered field `name` built with typed `params`, e.g. make_field("momentum", thrust_scale=1.5)."""
-    if name not in _REGISTRY:
-        raise ConfigError(f"field: unknown name {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name].make(**params)
-
-
-def _convert(label: str, entry: FieldEntry, key: str, text: str) -> Any:
-    kind = entry.params[key]
-    value = text.strip()
-    if kind is bool:
-        if value.lower() in _TRUE:
-            return True
-        if value.lower() in _FALSE:
-            return False
-        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: expected a bool "
-                          f"({'/'.join(_TRUE)} or {'/'.join(_FALSE)})")
-    try:
-        number = int(value) if kind is int else float(value)
-    except ValueError:
-        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: expected "
-                          f"{'an integer' if kind is int else 'a number'}") from None
-    if not math.isfinite(number):
-        raise ConfigError(f"{label}: {entry.name} parameter {key}={text!r}: must be finite")
-    return number
+    return FIELDS.make(name, **params)
 
 
 def parse_field_spec(spec: str, label: str = "field") -> tuple[str, str, Any]:
@@ -147,22 +108,9 @@ def parse_field_spec(spec: str, label: str = "field") -> tuple[str, str, Any]:
         if not tail.strip():
             raise ConfigError(f"{label}: {spec!r}: expected fitted:PATH, the JSON of downwash.field_fit.write_fitted")
         return "fitted", tail.strip(), None
-    if head in _REGISTRY:
-        entry, params = _REGISTRY[head], {}
-        for item in filter(None, (x.strip() for x in tail.split(","))) if colon else ():
-            key, eq, value = item.partition("=")
-            key = key.strip()
-            if not eq:
-                raise ConfigError(f"{label}: {spec!r}: parameters of field {head!r} are KEY=VALUE, got {item!r}; "
-                                  f"allowed keys: {', '.join(entry.params)}")
-            if key not in entry.params:
-                raise ConfigError(f"{label}: field {head!r} has no parameter {key!r}; "
-                                  f"allowed: {', '.join(entry.params)}")
-            if key in params:
-                raise ConfigError(f"{label}: {spec!r}: parameter {key!r} given twice")
-            params[key] = _convert(label, entry, key, value)
-        return "name", head, params
-    registered = ", ".join(_REGISTRY)
+    if head in FIELDS:
+        return "name", head, FIELDS.entry(head).parse_params(tail if colon else "", spec, label)
+    registered = ", ".join(FIELDS)
     if not colon:
         raise ConfigError(f"{label}: unknown field {spec!r}; registered: {registered}; or a MODULE:FACTORY "
                           "import path (e.g. mypkg.fields:make_field)")
@@ -188,7 +136,7 @@ def resolve_field_spec(spec: str, label: str = "field") -> Any:
         return resolve_fitted_spec(target, label)
     if kind == "name":
         try:
-            return _REGISTRY[target].make(**detail)
+            return FIELDS.entry(target).make(**detail)
         except ConfigError as e:  # a value the field's constructor rejects: say which spec
             raise ConfigError(f"{label}: {spec.strip() or DEFAULT_FIELD!r}: {e}") from e
     module_name, factory_name = target, detail
@@ -250,7 +198,9 @@ register_field(
     "shed", _shed_wake,
     "a wake with memory: the momentum jet shed by the rotors, carried down by its own speed and the wind",
     "as momentum below a leader hovering in still air; none once its wake trails (it moves, tilts or the wind blows)",
-    {**field_parameters(MomentumWake), **_SHED_OWN})
+    {**field_parameters(MomentumWake), **_SHED_OWN},
+    defaults={**dataclasses.asdict(MomentumWake()),
+              **{f.name: f.default for f in dataclasses.fields(ShedWake) if f.name in _SHED_OWN}})
 register_field(
     "jet", JetWake,
     "Bauersfeld et al.'s turbulent jet (RA-L 2024: B_d 10.11, S 0.0767, s0 -5.8 l), acting on the follower as momentum",
