@@ -107,3 +107,23 @@ def test_the_guard_criteria_judge_each_setting_against_its_unguarded_twin():
     assert r["retention_unknown"] == 0
     text = render_guard_criteria(found)
     assert "| 4 | 1 | `m` in swarm stack3, linear: guarded 20.0 % > unguarded 0.0 % |" in text
+
+
+def test_the_safety_comparison_pairs_cells_and_names_each_miss():
+    from experiments.report.safety import render_safety_comparison, safety_comparison
+
+    def cell(**rates_errors):
+        return {c: {"crash_rate": r, "pos_err_3d_mean": e} for c, (r, e) in rates_errors.items()}
+
+    off = {"summary": {"linear": {"calm": cell(baseline=(0.0, 0.1), m=(0.0, 0.05)),
+                                  "rough": cell(baseline=(0.0, 0.1), m=(0.3, 0.2))}}}
+    on = {"summary": {"linear": {"calm": cell(baseline=(0.0, 0.1), m=(0.0, 0.0505)),  # +1 %: kept
+                                 "rough": cell(baseline=(0.0, 0.1), m=(0.1, 0.15))}}}
+    r = safety_comparison(off, on)
+    assert r["cells"] == 2 and r["crashes"] == [("linear", "rough", "m", 0.3, 0.1)]
+    assert [(c, round(x, 3)) for _, p, c, x in r["changes"]] == [("baseline", 0.0), ("m", 0.01)]  # calm only
+    text = render_safety_comparison({"swarm": off, "swarm_safety": on})
+    assert "`m` in rough, linear: 30.0 % without, 10.0 % with" in text and "Missed: no new crash" in text
+    on["summary"]["linear"]["rough"]["m"]["crash_rate"] = 0.0
+    assert "Both promises hold." in render_safety_comparison({"swarm": off, "swarm_safety": on})
+    assert render_safety_comparison({"swarm": off}) is None

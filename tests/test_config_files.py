@@ -287,8 +287,8 @@ def test_swarm_guards_its_conditions_with_the_guard_table(monkeypatch):
     monkeypatch.setattr(downwash.predictor, "LearnedPredictor", lambda model, **k: ("learned", model))
     monkeypatch.setattr(downwash.guard, "GuardedPredictor", lambda p, **kw: made.append(kw) or ("guarded", p))
     guard = components.guard_settings(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
-    out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None, Path("p.pt"),
-                      Path("m"), Path("pm"), None, guard)
+    out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None,
+                      {"summed_pairwise": Path("p.pt")}, None, guard)
     assert out[2] == ("guarded", ("learned", "pairwise")) and made == [guard] and guard["recovery"] == 2.0
 
 
@@ -312,6 +312,7 @@ def test_the_lemniscate_guards_its_conditions_with_the_guard_table(tmp_path, mon
     monkeypatch.setattr(downwash.conditions, "LearnedPredictor",
                         SimpleNamespace(from_checkpoint=lambda path, **k: ("learned", path)))
     monkeypatch.setattr(downwash.conditions, "GuardedPredictor", lambda p, **kw: made.append(kw) or ZeroPredictor())
+    monkeypatch.setattr(downwash.conditions, "kinds_in_data", lambda conditions, *a: {})  # (no checkpoint to read)
     monkeypatch.chdir(tmp_path)
     flight = ["--quick", "--conditions", "baseline,equivariant_guarded"]
     main([*flight, "--out", "default"])
@@ -457,7 +458,7 @@ def test_flags_override_the_file_and_the_file_overrides_the_defaults(tmp_path):
     from_file = parse_args(cls, "lemniscate", ["--config", str(path), "--out", str(tmp_path / "o")])
     both = parse_args(cls, "lemniscate", ["--separation", "0.7", "--config", str(path), "--no-quick",
                                           "--conditions", "oracle", "--out", str(tmp_path / "o")])
-    assert (defaults.seeds, defaults.separation, defaults.quick, defaults.tables) == (5, 0.6, False, {})
+    assert (defaults.seeds, defaults.separation, defaults.quick, defaults.tables) == (10, 0.6, False, {})
     assert (from_file.seeds, from_file.separation, from_file.conditions, from_file.quick) == (3, 0.8, "baseline,oracle",
                                                                                              True)
     assert from_file.duration == 2.0  # --quick (from the file) fills what neither gives

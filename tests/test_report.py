@@ -119,6 +119,7 @@ def _fakes():
             "real_flights": ("experiments.real_flights", "RealFlightsArgs", real),
             "outdoor": ("experiments.outdoor", "OutdoorArgs", outdoor),
             "swarm": ("experiments.swarm", "SwarmArgs", swarm),
+            "swarm_safety": ("experiments.swarm", "SwarmArgs", swarm),
             "field_table": ("experiments.fields", "FieldsArgs", field_table),
             "sample_efficiency": ("experiments.sample_efficiency", "EfficiencyArgs", efficiency),
             "force_maps": ("experiments.force_maps", "ForceMapArgs", maps),

@@ -37,6 +37,7 @@ from experiments.report.results import (EXPERIMENTS, copy_results, load_results,
                                         write_copies, write_path)
 from experiments.report.criteria import guard_criteria, render_guard_criteria
 from experiments.report.real_flights import real_model_names
+from experiments.report.safety import render_safety_comparison
 from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _equivariance_verdict, _memory_verdict,
                                          _render_one, render_benchmark, render_efficiency, render_error,
                                          render_force_maps, render_machine, render_provenance, render_staged,
@@ -117,7 +118,8 @@ def _render_found(found: dict[str, dict], record: dict, results_dir: str | Path)
 def _worst(found: dict[str, dict], results_dir: str | Path) -> str | None:
     """The worst-case table over every results file, or None; an error names the file it fails on."""
     try:
-        tables = [t for t in (render_worst_cases(found), render_guard_criteria(found)) if t]
+        tables = [t for t in (render_worst_cases(found), render_guard_criteria(found), render_safety_comparison(found))
+                  if t]
         return "\n\n".join(tables) or None
     except RENDER_ERRORS as e:
         # the table spans every file: name the one that fails on its own, else them all

@@ -40,6 +40,7 @@ EXPERIMENTS = {  # (in the results page's order: speed first, what users ask fir
     "force_maps": ("Force maps", ("maps",)),
     "outdoor": ("Outdoor: a moving leader in wind", ("conditions", "seeds", "leader", "leader_airspeed")),
     "swarm": ("Many vehicles: summed pairwise models against models of sets", ("summary", "conditions", "laws")),
+    "swarm_safety": ("The safety layer: the swarm flown with it", ("summary", "conditions", "seeds")),
     "field_table": ("Field x model: the lemniscate experiment on every registered field", ("fields", "table")),
     "real_flights": ("Real flights: the Neural-Swarm data set", ("per_type", "models", "files", "args")),
 }

@@ -17,6 +17,7 @@ from experiments.report.criteria import settings_points
 from experiments.report.baselines import (render_field_baselines, render_learning_over_baselines,
                                          render_observer_bandwidth, render_swarm_baselines)
 from experiments.report.real_flights import render_real_flights
+from experiments.report.safety import render_swarm_safety
 from experiments.report.speed import render_benchmark
 
 __all__ = [
@@ -423,7 +424,7 @@ RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_eff
              "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
              "swarm": render_swarm,
              "field_table": render_field_table, "real_flights": render_real_flights, "benchmark": render_benchmark,
-             "observer_bandwidth": render_observer_bandwidth}
+             "observer_bandwidth": render_observer_bandwidth, "swarm_safety": render_swarm_safety}
 
 
 # What a results file of the right keys but wrong values raises in a renderer (a string where a number
