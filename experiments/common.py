@@ -8,11 +8,10 @@ keys are the long option names); a flag on the command line overrides the file.
 Every numeric option states its range once, in its `arg(..., ge=, gt=, le=, lt=)`, and
 every option of names states them in its `check=`; `parse_args` checks each number (finite, within its
 range), each name and each output folder (writable) before any work, naming the flag. The file may also
-hold tables of library settings ([lqr], [sim], [training], [guard]) for the experiments that apply them
-(`config_tables`); `experiments.config_file` reads it and writes the resolved `config.toml` beside each
-results.json, and the builders below (`lqr_config`, `sim_config`, `training_config`, `guard_settings`)
-are the one place an experiment turns the tables into the library's settings; `FlightArgs` adds
-`--controller` (`controllers.registry`), which `flight_components` builds and `check_controller` checks.
+hold tables of library settings ([lqr], [sim], [training], [guard], [safety]) for the experiments that
+apply them (`config_tables`); `experiments.config_file` reads it and writes the resolved `config.toml`
+beside each results.json, and `experiments.components` turns the tables, `--controller` and `--safety`
+(`FlightArgs`) into the library's settings. Tables, logging and progress bars: `experiments.console`.
 `--quick` gives the options with an `arg(..., quick=)` that value unless they are given.
 `out_lock` holds the --out folder for the run, so two runs on one folder take turns.
 `run_main` runs an experiment from the command line: an expected error (`TestbedError`)
@@ -30,7 +29,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import logging
 import os
 import sys
 import tempfile
@@ -39,6 +37,7 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator, NoReturn, Sequence, TypeVar
 
 from downwash_core.errors import ConfigError, TestbedError
+from experiments.console import ProgressBar, format_table, setup_logging
 from experiments.options import (AGGREGATIONS, CONDITIONS, CONTROLLER_NAMES, DEFAULT_CONDITIONS, DEFAULT_CONTROLLER,
                                  DEFAULT_FIELD, FIELD_CHOICES, FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS,
                                  PRESETS, SEED_COUNT_MAX, WIND_HELP, WIND_SEVERITIES, field_check, in_range, load_wind,
@@ -46,13 +45,12 @@ from experiments.options import (AGGREGATIONS, CONDITIONS, CONTROLLER_NAMES, DEF
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "FlightArgs", "Pipeline", "ProgressBar", "arg",
-    "parse_args", "load_field",
-    "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table", "script", "run_main",
-    "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check", "wind_check",
-    "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging", "CONDITIONS", "SEED_COUNT_MAX",
-    "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "one_line",
-    "CONTROLLER_NAMES",
-    "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS",
+    "parse_args", "load_field", "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table",
+    "script", "run_main", "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check",
+    "wind_check", "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging",
+    "CONDITIONS", "SEED_COUNT_MAX", "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "one_line",
+    "CONTROLLER_NAMES", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES",
+    "PAPER_MODELS",
 ]
 
 A = TypeVar("A")
@@ -467,21 +465,6 @@ def write_results(out: str | Path, results: dict, args: Any, provenance: dict | 
     return path
 
 
-def format_table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:
-    """A plain fixed-width table; floats with 4 significant digits."""
-
-    def fmt(x: Any) -> str:
-        if isinstance(x, float):
-            return f"{x:.4g}"
-        return str(x)
-
-    cells = [[fmt(x) for x in row] for row in rows]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
-    lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths)), "  ".join("-" * w for w in widths)]
-    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in cells]
-    return "\n".join(lines)
-
-
 def run_main(main: Callable[[], Any]) -> None:
     """Run an experiment's `main` on the command line: the one path of `python -m experiments.X`
     and of the console scripts. An expected error (`TestbedError`: a bad option, a bad file)
@@ -506,45 +489,12 @@ def run_main(main: Callable[[], Any]) -> None:
 
 
 def script(main: Callable[[], Any]) -> Callable[[], None]:
-    """The console-script entry point ([project.scripts] in pyproject.toml) of an experiment's
-    `main`: `run_main(main)`, which returns None, so that a finished run exits 0 (`main`
-    returns its results to Python callers, which a console script would pass to sys.exit
-    as an error)."""
+    """The console-script entry point ([project.scripts] in pyproject.toml) of an experiment's `main`:
+    `run_main(main)`, which returns None, so that a finished run exits 0 (`main` returns its results to
+    Python callers, which a console script would pass to sys.exit as an error)."""
 
     def entry() -> None:
         run_main(main)
 
     entry.__doc__ = f"Run {main.__module__} from the command line."
     return entry
-
-
-# the packages whose INFO messages a run shows (other libraries' show from WARNING: PyOpenGL, for one,
-# reports at INFO what it did not find when MuJoCo renders through EGL)
-OWN_LOGGERS = ("downwash_core", "downwash_trajectories", "controllers", "sim", "downwash", "downwash_envs",
-               "experiments", "__main__")
-
-
-def setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    for name in OWN_LOGGERS:
-        logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.INFO)
-
-
-class ProgressBar:
-    """A tqdm progress bar with rate and ETA on stderr, for `progress(done, total)` callbacks;
-    quiet when stderr is not a terminal (CI, logs, pipes). `ProgressBar(label)` is also the
-    progress factory the library takes (`downwash.staged.collect(..., progress=ProgressBar)`)."""
-
-    def __init__(self, label: str, unit: str = "it"):
-        self.label, self.unit = label, unit
-        self._bar: Any = None  # a tqdm bar, made on the first call
-
-    def __call__(self, done: int, total: int) -> None:
-        if self._bar is None:
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=total, desc=self.label, unit=self.unit, disable=not sys.stderr.isatty(),
-                             dynamic_ncols=True, leave=True)
-        self._bar.update(done - self._bar.n)
-        if done >= total:
-            self._bar.close()

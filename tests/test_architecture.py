@@ -41,10 +41,10 @@ def test_lower_layers_import_no_learning_or_rl_library(module, banned):
 
 def test_no_experiment_imports_another():
     """Experiments share only `experiments.common` (with the option checks of `experiments.options` and the flights'
-    components of `experiments.components`) and the
+    components of `experiments.components`, the printing of `experiments.console`) and the
     tracking table (lemniscate and transect are its entries); an experiment that is a package
     (`experiments.report`) imports its own modules besides."""
-    shared = {"common", "components", "options", "tracking"}
+    shared = {"common", "components", "console", "options", "tracking"}
     for path in (ROOT / "experiments").rglob("*.py"):
         parts = path.relative_to(ROOT / "experiments").parts
         own = {parts[0]} if len(parts) > 1 else set()  # the experiment's package, for a module inside one
@@ -95,7 +95,8 @@ def test_docs_architecture_table_lists_every_module():
             if path.name == "__init__.py" or text.lstrip('"').startswith("Deprecated"):
                 continue
             modules.add(".".join(path.relative_to(ROOT).with_suffix("").parts))
-    modules |= {"experiments.common", "experiments.components", "experiments.options", "experiments.tracking"}
+    modules |= {"experiments.common", "experiments.components", "experiments.console", "experiments.options",
+                "experiments.tracking"}
     assert listed == modules, (f"missing from docs/architecture.md: {sorted(modules - listed)}; "
                                f"stale: {sorted(listed - modules)}")
 
