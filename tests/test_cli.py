@@ -27,7 +27,7 @@ from experiments.common import parse_args, read_config, script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("lemniscate", "transect", "staged_collection", "sample_efficiency", "sweep", "force_maps", "train", "fields",
-           "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights", "observer_bandwidth", "registry")
+           "outdoor", "swarm", "benchmark", "report", "vehicles", "real_flights", "observer_bandwidth", "controller_table", "registry")
 # experiments with a parser of their own (positional files; no --config/--quick/--field): a console script each
 TOOLS = ("export", "replay", "warmup")
 HEAVY = ("torch", "numba", "mujoco", "matplotlib", "ray")

@@ -124,3 +124,27 @@ def test_the_controller_leaves_the_pipeline_key_alone(tmp_path):
     records = [resolve_pipeline(_lemniscate(["--controller", name, "--out", str(tmp_path / "o"), *dirs]), models=())
                .provenance() for name in ("lqr", "indi")]
     assert records[0] == records[1]
+
+
+def test_the_controller_table_flies_each_controller_and_renders(tmp_path):
+    """python -m experiments.controller_table --quick: each track under each controller asked for, integral
+    only under the LQR, the table rendered with each controller's column."""
+    import json
+    import subprocess
+    import sys
+
+    from experiments.report.baselines import render_controller_table
+
+    proc = subprocess.run([sys.executable, "-m", "experiments.controller_table", "--quick", "--controllers", "lqr,indi",
+                           "--conditions", "baseline,oracle,integral,dob", "--out", "ct"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads((tmp_path / "ct" / "results.json").read_text())
+    assert list(r["table"]) == ["indi", "lqr"] or set(r["table"]) == {"lqr", "indi"}
+    for track in ("lemniscate", "transect"):
+        assert set(r["table"]["lqr"][track]["conditions"]) == {"baseline", "oracle", "integral", "dob"}
+        assert set(r["table"]["indi"][track]["conditions"]) == {"baseline", "oracle", "dob"}
+        flown = json.loads((tmp_path / "ct" / f"{track}-indi" / "results.json").read_text())
+        assert flown["provenance"]["controller"]["name"] == "indi"
+    text = render_controller_table(r, "ct/results.json")
+    assert "| condition | `lqr` | `indi` |" in text and "| `integral` |" in text

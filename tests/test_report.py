@@ -116,6 +116,12 @@ def _fakes():
                                                                     (16.0, 0.01532, [0.0, 0.0], 0.4641))]}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
             "observer_bandwidth": ("experiments.observer_bandwidth", "BandwidthArgs", bandwidth),
+            "controller_table": ("experiments.controller_table", "ControllerTableArgs", {
+                "experiment": "controller_table", "tracks": ["lemniscate"], "table": {k: {"lemniscate": {
+                    "seeds": 10, "duration": 20.0, "conditions": {
+                        "baseline": {"pos_err_3d_mean": 0.0948, "improvement_pos_3d": None, "crash_rate": 0.0},
+                        "dob": {"pos_err_3d_mean": 0.025, "improvement_pos_3d": 0.736, "crash_rate": 0.1}}}}
+                    for k in ("lqr", "indi")}}),
             "real_flights": ("experiments.real_flights", "RealFlightsArgs", real),
             "outdoor": ("experiments.outdoor", "OutdoorArgs", outdoor),
             "swarm": ("experiments.swarm", "SwarmArgs", swarm),

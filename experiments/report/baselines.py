@@ -13,10 +13,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from experiments.report.formatting import ordered, markdown_table, fmt, pct, short
+from experiments.common import CONTROLLER_NAMES
+from experiments.report.formatting import crash_cell, fmt, markdown_table, ordered, pct, short
 
 __all__ = ["UNLEARNED", "paired_interval", "render_learning_over_baselines", "render_field_baselines",
-           "render_swarm_baselines", "render_observer_bandwidth"]
+           "render_swarm_baselines", "render_observer_bandwidth", "render_controller_table"]
 
 UNLEARNED = ("integral", "dob")
 _ERROR = "pos_err_3d_mean"
@@ -156,3 +157,31 @@ def render_observer_bandwidth(r: dict, label: str) -> str:
         markdown_table(["bandwidth (rad/s)", "3-D error (cm)", "minus the best, cm (95 % CI)",
                 "estimation RMS (m/s^2)", "crashes"], rows)])
 
+
+
+def render_controller_table(r: dict, label: str) -> str:
+    """`python -m experiments.controller_table`: per track, each condition's error under each controller."""
+    table = r["table"]
+    controllers = sorted(table, key=lambda k: (CONTROLLER_NAMES.index(k) if k in CONTROLLER_NAMES else len(CONTROLLER_NAMES), k))
+    parts = [f"The tracking experiments under each controller labs fly (`--controller`), the models trained under "
+             f"the LQR; the follower's mean 3-D error in m, in brackets the improvement over that controller's own "
+             f"baseline (`{label}`):"]
+    for track in r["tracks"]:
+        conditions = [c for c, _ in ordered({c: None for k in controllers for c in table[k][track]["conditions"]})]
+        rows = []
+        for c in conditions:
+            cells = []
+            for k in controllers:
+                e = table[k][track]["conditions"].get(c)
+                if e is None:
+                    cells.append("-")
+                    continue
+                n = table[k][track]["seeds"]
+                cells.append(fmt(e["pos_err_3d_mean"]) + ("" if e.get("improvement_pos_3d") is None else
+                                                           f" ({pct(e['improvement_pos_3d'])})")
+                             + (f", {crash_cell(e['crash_rate'], n)} crashed" if e.get("crash_rate") else ""))
+            rows.append([f"`{c}`"] + cells)
+        first = table[controllers[0]][track]
+        parts += [f"**{track}** ({first['seeds']} seeds, {short(first['duration'])} s):",
+                  markdown_table(["condition"] + [f"`{k}`" for k in controllers], rows)]
+    return "\n\n".join(parts)

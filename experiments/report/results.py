@@ -38,6 +38,7 @@ EXPERIMENTS = {  # (in the results page's order: speed first, what users ask fir
     "lemniscate": ("Tracking: lemniscate", ("conditions", "seeds")),
     "transect": ("Tracking: transect", ("conditions", "seeds")),
     "force_maps": ("Force maps", ("maps",)),
+    "controller_table": ("Tracking under the controllers labs fly", ("table", "tracks")),
     "outdoor": ("Outdoor: a moving leader in wind", ("conditions", "seeds", "leader", "leader_airspeed")),
     "swarm": ("Many vehicles: summed pairwise models against models of sets", ("summary", "conditions", "laws")),
     "swarm_safety": ("The safety layer: the swarm flown with it", ("summary", "conditions", "seeds")),

@@ -14,8 +14,9 @@ from downwash_core.errors import ConfigError
 from experiments.common import FIELD_NAMES as FIELDS  # the registry's names, in its order, without importing it
 from experiments.report.formatting import ORDER, ordered, markdown_table, crash_cell, fmt, pct, short
 from experiments.report.criteria import settings_points
-from experiments.report.baselines import (render_field_baselines, render_learning_over_baselines,
-                                         render_observer_bandwidth, render_swarm_baselines)
+from experiments.report.baselines import (render_controller_table, render_field_baselines,
+                                         render_learning_over_baselines, render_observer_bandwidth,
+                                         render_swarm_baselines)
 from experiments.report.real_flights import render_real_flights
 from experiments.report.safety import render_swarm_safety
 from experiments.report.speed import render_benchmark
@@ -424,7 +425,8 @@ RENDERERS = {"staged_collection": render_staged, "sample_efficiency": render_eff
              "lemniscate": render_tracking, "transect": render_tracking, "force_maps": render_force_maps, "outdoor": render_outdoor,
              "swarm": render_swarm,
              "field_table": render_field_table, "real_flights": render_real_flights, "benchmark": render_benchmark,
-             "observer_bandwidth": render_observer_bandwidth, "swarm_safety": render_swarm_safety}
+             "observer_bandwidth": render_observer_bandwidth, "swarm_safety": render_swarm_safety,
+             "controller_table": render_controller_table}
 
 
 # What a results file of the right keys but wrong values raises in a renderer (a string where a number
