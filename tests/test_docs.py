@@ -87,7 +87,10 @@ def test_readme_is_a_newcomers_page():
              "&& pip install -c .ci/constraints.txt -e . && python -m experiments.lemniscate")
     assert first in text  # the CPU build of torch, before anything pulls the CUDA one
     assert "bash .ci/run" in text and 'pip install -c .ci/constraints.txt -e ".[test]" && pytest' in text
-    assert 'pip install -c .ci/constraints.txt -e ".[test]" && pytest' in (ROOT / ".ci" / "run").read_text()
+    script = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if not line.lstrip().startswith("#")]
+    assert script[-1] == 'pip install -c .ci/constraints.txt -e ".[test]" && pytest'
+    # the tests run once, after the setup (a command in the header's comment once ran them twice)
+    assert sum("pytest" in line for line in script) == 1 and script.index("set -euo pipefail") < len(script) - 1
     for link in re.findall(r"\]\(((?:docs/)?[\w./-]+\.(?:md|png|cff)|LICENSE)\)", text):
         assert (ROOT / link).is_file(), f"README links to {link}, which does not exist"
     assert "LICENSE" in text and "CITATION.cff" in text
