@@ -127,3 +127,16 @@ def test_the_safety_comparison_pairs_cells_and_names_each_miss():
     on["summary"]["linear"]["rough"]["m"]["crash_rate"] = 0.0
     assert "Both promises hold." in render_safety_comparison({"swarm": off, "swarm_safety": on})
     assert render_safety_comparison({"swarm": off}) is None
+
+
+def test_no_guarded_condition_of_the_committed_results_crashes_more_than_its_twin():
+    """The first of the guard's criteria, held over every committed results file (the others are judged on the
+    results page, where their misses stand as measured)."""
+    from pathlib import Path
+
+    from experiments.report.criteria import guard_criteria
+    from experiments.report.results import load_results
+
+    found = load_results(Path(__file__).resolve().parent.parent / "results")[0]
+    r = guard_criteria(found)
+    assert r["crashes"]["judged"] > 100 and r["crashes"]["misses"] == []
