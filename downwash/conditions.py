@@ -49,7 +49,7 @@ from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "UNLEARNED", "GUARDED", "OBSERVED", "CONDITIONS", "DEFAULT_CONDITIONS",
            "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "make_controller",
-           "kinds_in_data", "fly_conditions", "fly_predictors"]
+           "kinds_in_data", "model_of", "fly_conditions", "fly_predictors"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
 UNLEARNED = ("integral", "dob")  # the generic tools a control engineer uses first
@@ -77,14 +77,14 @@ def parse_conditions(text: str) -> list[str]:
     return names
 
 
-def _model(condition: str) -> str:
+def model_of(condition: str) -> str:
     """A learned condition's model, "<kind>[-<data>]" ("<kind>[-<data>][_guarded|_dob]")."""
     return condition.removesuffix(GUARDED).removesuffix(OBSERVED)
 
 
 def _kind(condition: str) -> str:
     """The model kind of a condition ("<kind>[-<data>][_guarded|_dob]")."""
-    return _model(condition).partition("-")[0]
+    return model_of(condition).partition("-")[0]
 
 
 def _readable(condition: str) -> bool:
@@ -120,7 +120,7 @@ def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path], gua
     if condition == "dob":
         return DisturbanceObserver()
     # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
-    predictor = LearnedPredictor.from_checkpoint(checkpoints[_model(condition)], expect_kind=_kind(condition))
+    predictor = LearnedPredictor.from_checkpoint(checkpoints[model_of(condition)], expect_kind=_kind(condition))
     if condition.endswith(OBSERVED):
         return DisturbanceObserver(predictor)
     return GuardedPredictor(predictor, **(guard or {})) if condition.endswith(GUARDED) else predictor
@@ -153,7 +153,7 @@ def kinds_in_data(conditions: Sequence[str], checkpoints: dict[str, Path], vehic
     for c in conditions:
         if c in REFERENCE_CONDITIONS or c in UNLEARNED:
             continue
-        record = ((read_metadata(checkpoints[_model(c)]) or {}).get("data") or {}).get("support")
+        record = ((read_metadata(checkpoints[model_of(c)]) or {}).get("data") or {}).get("support")
         out[c] = record is not None and Support.from_record(record).holds_kinds(descriptors)
     return out
 

@@ -131,12 +131,11 @@ def _validate(args: SwarmArgs) -> tuple[list, list]:
 
 def _model_paths(names: list[str], pair_model: Path, models_dir: Path, pair_models_dir: Path) -> dict[str, Path]:
     """{model: its checkpoint} of every learned condition's model ("<kind>-<mix>", "summed_pairwise")."""
-    from downwash.conditions import GUARDED, OBSERVED, UNLEARNED
+    from downwash.conditions import UNLEARNED, model_of
     from downwash.swarm_collection import swarm_model_path
 
     out = {}
-    for model in dict.fromkeys(c.removesuffix(GUARDED).removesuffix(OBSERVED) for c in names
-                               if c not in ("baseline", "oracle", *UNLEARNED)):
+    for model in dict.fromkeys(model_of(c) for c in names if c not in ("baseline", "oracle", *UNLEARNED)):
         if model == "summed_pairwise":
             out[model] = pair_model
         else:
@@ -148,7 +147,7 @@ def _model_paths(names: list[str], pair_model: Path, models_dir: Path, pair_mode
 def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], neighbours,
                 guard: dict[str, float]) -> list:
     from downwash.checkpoint import wrap_pairwise
-    from downwash.conditions import GUARDED, OBSERVED
+    from downwash.conditions import GUARDED, OBSERVED, model_of
     from downwash.guard import GuardedPredictor
     from downwash.predictor import LearnedPredictor
     from sim.observer import DisturbanceObserver
@@ -156,7 +155,7 @@ def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], 
 
     out = []
     for c in names:
-        model = c.removesuffix(GUARDED).removesuffix(OBSERVED)
+        model = model_of(c)
         if c in ("baseline", "integral"):
             out.append(ZeroPredictor())
         elif c == "oracle":
