@@ -78,12 +78,12 @@ def parse_conditions(text: str) -> list[str]:
 
 
 def model_of(condition: str) -> str:
-    """A learned condition's model, "<kind>[-<data>]" ("<kind>[-<data>][_guarded|_dob]")."""
+    """A learned condition's model, `<kind>[-<data>]`, with its `_guarded` or `_dob` suffix removed."""
     return condition.removesuffix(GUARDED).removesuffix(OBSERVED)
 
 
 def _kind(condition: str) -> str:
-    """The model kind of a condition ("<kind>[-<data>][_guarded|_dob]")."""
+    """The model kind of a condition (its model's name up to the first `-`)."""
     return model_of(condition).partition("-")[0]
 
 
