@@ -74,12 +74,11 @@ from typing import Any
 
 import numpy as np
 
-from controllers.lab_common import LabController, PerWorldState, finish_one, number_in, positive, three
-from controllers.lqr import ControllerState, Setpoint
+from controllers.compiled import finish_one
+from controllers.lab_common import LabController, PerWorldState, number_in, positive, three
 from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 from downwash_core.params import GRAVITY
-from downwash_core.state import RefSample
 
 __all__ = ["FIRMWARE", "CF_MASS", "MellingerGains", "MellingerController", "PIDGains", "CrazyfliePID"]
 
@@ -169,17 +168,22 @@ class MellingerController(LabController):
     def __init__(self, gains: MellingerGains | None = None, **limits: Any):
         super().__init__(**limits)
         self.gains = _gains(gains, MellingerGains)
-        self._tables = tuple(np.array(getattr(self.gains, k)) for k in ("kp", "kd", "ki", "i_range"))
+        self._params = np.array([*(x for k in ("kp", "kd", "ki", "i_range") for x in getattr(self.gains, k)), self.dt,
+                                 self._tan_tilt, self._min_vertical], dtype=np.float64)  # as _mellinger_step reads them
         self._state = PerWorldState(integral=(3,))
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), **asdict(self.gains), "source": f"{FIRMWARE}, controller_mellinger.c "
                 f"(force gains / CF_MASS {CF_MASS} kg); Mellinger & Kumar 2011"}
 
-    def _step(self, state: ControllerState, ref: RefSample, f_hat: np.ndarray, actions: tuple, lookahead: float,
-              arrays: dict[str, np.ndarray], out: Setpoint) -> None:
-        _mellinger_kernel(state.pos, state.vel, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat, *actions,
-                          *self._tables, self.dt, lookahead, self._tan_tilt, self._min_vertical, arrays["integral"], *out)
+@njit
+def _mellinger_step(pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
+                    use_residual, use_override, lookahead, state, params, acc_out, yaw_rate_out, thrust_out, rot_out):
+    """The array form (`controllers.compiled`): params (kp, kd, ki, i_range (3 each), dt, tan_tilt, min_vertical),
+    state (W, V, 3) the integral."""
+    _mellinger_kernel(pos, vel, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override,
+                      use_residual, use_override, params[0:3], params[3:6], params[6:9], params[9:12], params[12],
+                      lookahead, params[13], params[14], state, acc_out, yaw_rate_out, thrust_out, rot_out)
 
 
 @njit
@@ -268,9 +272,10 @@ class CrazyfliePID(LabController):
         # above hover (1 g), or the PID could not hold height
         self.thrust_max_g = None if thrust_max_g is None else number_in("thrust_max_g", thrust_max_g, 1.0, math.inf, "g")
         g = self.gains
-        self._tables = (np.array(g.pos_kp), np.array(g.pos_ki), np.array(g.vel_max), np.array(g.vel_kp),
-                        np.array(g.vel_ki), g.tilt_limit, g.tilt_max, g.thrust_range, g.thrust_min_g * GRAVITY,
-                        np.inf if thrust_max_g is None else self.thrust_max_g * GRAVITY, g.i_limit)
+        self._params = np.array([*g.pos_kp, *g.pos_ki, *g.vel_max, *g.vel_kp, *g.vel_ki, g.tilt_limit, g.tilt_max,
+                                 g.thrust_range, g.thrust_min_g * GRAVITY,
+                                 np.inf if thrust_max_g is None else self.thrust_max_g * GRAVITY, g.i_limit, self.dt,
+                                 self._tan_tilt, self._min_vertical], dtype=np.float64)  # as _pid_step reads them
         self._state = PerWorldState(pos_integral=(3,), vel_integral=(3,))
 
     def describe(self) -> dict[str, Any]:
@@ -278,11 +283,16 @@ class CrazyfliePID(LabController):
                 "source": f"{FIRMWARE}, position_controller_pid.c and platform_defaults_cf2.h "
                           f"(tilt in rad, thrust x g / PID_VEL_THRUST_BASE)"}
 
-    def _step(self, state: ControllerState, ref: RefSample, f_hat: np.ndarray, actions: tuple, lookahead: float,
-              arrays: dict[str, np.ndarray], out: Setpoint) -> None:
-        _pid_kernel(state.pos, state.vel, state.yaw, ref.pos, ref.yaw, ref.yaw_rate, f_hat, *actions, *self._tables,
-                    self.dt, lookahead, self._tan_tilt, self._min_vertical, arrays["pos_integral"],
-                    arrays["vel_integral"], *out)
+@njit
+def _pid_step(pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual,
+              use_override, lookahead, state, params, acc_out, yaw_rate_out, thrust_out, rot_out):
+    """The array form (`controllers.compiled`): params (pos_kp, pos_ki, vel_max, vel_kp, vel_ki (3 each),
+    tilt_limit, tilt_max, thrust_range, thrust_min, thrust_max, i_limit, dt, tan_tilt, min_vertical), state
+    (W, V, 6) the position and velocity integrators."""
+    _pid_kernel(pos, vel, yaw, ref_pos, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual, use_override,
+                params[0:3], params[3:6], params[6:9], params[9:12], params[12:15], params[15], params[16], params[17],
+                params[18], params[19], params[20], params[21], lookahead, params[22], params[23], state[:, :, 0:3],
+                state[:, :, 3:6], acc_out, yaw_rate_out, thrust_out, rot_out)
 
 
 @njit
@@ -327,3 +337,7 @@ def _pid_kernel(pos, vel, yaw, ref_pos, ref_yaw, ref_yaw_rate, f_hat, residual, 
             yaw_des = ref_yaw[w, i] + ref_yaw_rate[w, i] * lookahead
             thrust_out[w, i] = finish_one(acc_out, w, i, residual, override, use_residual, use_override, yaw_des,
                                           tan_tilt, min_vertical, rot_out)
+
+
+MellingerController.step_function = _mellinger_step
+CrazyfliePID.step_function = _pid_step

@@ -52,12 +52,12 @@ from typing import Any
 
 import numpy as np
 
-from controllers.lab_common import LabController, PerWorldState, finish_one, positive, three
-from controllers.lqr import ControllerState, LQRConfig, Setpoint, lqr_gain
+from controllers.compiled import finish_one
+from controllers.lab_common import LabController, PerWorldState, positive, three
+from controllers.lqr import LQRConfig, lqr_gain
 from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 from downwash_core.params import GRAVITY
-from downwash_core.state import RefSample
 
 __all__ = ["CUTOFF_HZ", "butterworth2", "lqr_matched_gains", "INDIController"]
 
@@ -103,7 +103,8 @@ class INDIController(LabController):
         self._lqr_matched = kp is None and kd is None
         self.cutoff_hz = positive("cutoff_hz", cutoff_hz)
         self._filter = butterworth2(self.cutoff_hz, self.dt)
-        self._gains = np.array(self.kp), np.array(self.kd)
+        self._params = np.array([*self.kp, *self.kd, *self._filter, self.dt, self._tan_tilt, self._min_vertical],
+                                dtype=np.float64)  # as _indi_step reads them
         self._state = PerWorldState(primed=(), vel_prev=(3,), acc_filter=(3, 2), cmd_filter=(3, 2),
                                     prediction_filter=(3, 2), cmd_filtered=(3,), prediction_filtered=(3,))
 
@@ -112,21 +113,25 @@ class INDIController(LabController):
                 "filter": "second-order Butterworth",
                 "gains": "the default LQR's diagonal (lqr_matched_gains)" if self._lqr_matched else "given"}
 
-    def _step(self, state: ControllerState, ref: RefSample, f_hat: np.ndarray, actions: tuple, lookahead: float,
-              arrays: dict[str, np.ndarray], out: Setpoint) -> None:
-        _indi_kernel(state.pos, state.vel, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat, *actions,
-                     *self._gains, self._filter, self.dt, lookahead, self._tan_tilt,
-                     self._min_vertical, arrays["primed"], arrays["vel_prev"], arrays["acc_filter"],
-                     arrays["cmd_filter"], arrays["prediction_filter"], arrays["cmd_filtered"],
-                     arrays["prediction_filtered"], *out)
+@njit
+def _indi_step(pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual,
+               use_override, lookahead, state, params, acc_out, yaw_rate_out, thrust_out, rot_out):
+    """The array form (`controllers.compiled`): params (kp, kd (3 each), the biquad (5), dt, tan_tilt,
+    min_vertical), state (W, V, 28) as `INDIController._state` lays it out (primed, vel_prev, the three
+    filters' (3, 2) states, cmd_filtered, prediction_filtered)."""
+    _indi_kernel(pos, vel, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual,
+                 use_override, params[0:3], params[3:6], params[6:11], params[11], lookahead, params[12], params[13],
+                 state[:, :, 0], state[:, :, 1:4], state[:, :, 4:10], state[:, :, 10:16], state[:, :, 16:22],
+                 state[:, :, 22:25], state[:, :, 25:28], acc_out, yaw_rate_out, thrust_out, rot_out)
 
 
 @njit
 def _lowpass(states, w, i, k, x, c):
-    """One sample x through the biquad c = (b0, b1, b2, a1, a2) (transposed direct form II, states[w, i, k])."""
-    y = c[0] * x + states[w, i, k, 0]
-    states[w, i, k, 0] = c[1] * x - c[3] * y + states[w, i, k, 1]
-    states[w, i, k, 1] = c[2] * x - c[4] * y
+    """One sample x through the biquad c = (b0, b1, b2, a1, a2) (transposed direct form II): its two
+    states are states[w, i, 2 k] and states[w, i, 2 k + 1] (a filter's (3, 2) states, flattened)."""
+    y = c[0] * x + states[w, i, 2 * k]
+    states[w, i, 2 * k] = c[1] * x - c[3] * y + states[w, i, 2 * k + 1]
+    states[w, i, 2 * k + 1] = c[2] * x - c[4] * y
     return y
 
 
@@ -159,3 +164,6 @@ def _indi_kernel(pos, vel, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_h
             for k in range(3):  # the acceleration delivered: thrust along the desired body z, less gravity
                 delivered = thrust * rot_out[w, i, k, 2] - (GRAVITY if k == 2 else 0.0)
                 cmd_filtered[w, i, k] = _lowpass(cmd_filter, w, i, k, delivered, c)
+
+
+INDIController.step_function = _indi_step

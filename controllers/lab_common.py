@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from controllers.lqr import MAX_TILT_DEG, MIN_THRUST_G, ControllerState, Setpoint, _setpoint_one
+from controllers.compiled import CompiledController, controller_function, run_step
+from controllers.lqr import MAX_TILT_DEG, MIN_THRUST_G, ControllerState, Setpoint
 from downwash_core.errors import ConfigError
-from downwash_core.jit import njit
 from downwash_core.params import GRAVITY, RATES
 from downwash_core.state import RefSample
 
-__all__ = ["PerWorldState", "LabController", "finish_one", "positive", "number_in", "three"]
+__all__ = ["PerWorldState", "LabController", "positive", "number_in", "three"]
 
 
 def _number(value: Any) -> float | None:
@@ -65,40 +65,53 @@ def three(name: str, values: Any, strictly_positive: bool = False) -> tuple[floa
 
 
 class PerWorldState:
-    """Named float64 arrays (W, V, *trailing) that a controller keeps between ticks, zero when fresh.
+    """A controller's memory between ticks: one float64 block (W, V, S), zero when fresh, and its named
+    parts as views (W, V, *trailing), the parts side by side along the last axis in the order given.
 
-    Allocated (zeros) at the first `of(W, V)` and again when the batch's shape changes (a
-    controller handed to another simulator starts fresh); `reset(worlds)` zeroes those worlds.
+    The block is what a compiled form hands the fused tick (`controllers.compiled`). Allocated (zeros) at
+    the first `of(W, V)` and again when the batch's shape changes (a controller handed to another
+    simulator starts fresh); `reset(worlds)` zeroes those worlds.
     """
 
     def __init__(self, **trailing: tuple[int, ...]):
         self._trailing = trailing
+        self.width = sum(int(np.prod(shape)) for shape in trailing.values())
+        self.block: np.ndarray | None = None
         self.arrays: dict[str, np.ndarray] | None = None
 
-    def of(self, n_worlds: int, n_vehicles: int) -> dict[str, np.ndarray]:
-        arrays = self.arrays
-        if arrays is None or next(iter(arrays.values())).shape[:2] != (n_worlds, n_vehicles):
-            arrays = {k: np.zeros((n_worlds, n_vehicles, *shape)) for k, shape in self._trailing.items()}
-            self.arrays = arrays
-        return arrays
+    def of(self, n_worlds: int, n_vehicles: int) -> np.ndarray:
+        """The block (W, V, S) for this batch shape (allocated afresh when the shape changed)."""
+        if self.block is None or self.block.shape[:2] != (n_worlds, n_vehicles):
+            self.block = np.zeros((n_worlds, n_vehicles, self.width))
+            self.arrays, start = {}, 0
+            for name, shape in self._trailing.items():
+                size = int(np.prod(shape))
+                self.arrays[name] = self.block[:, :, start:start + size].reshape(n_worlds, n_vehicles, *shape)
+                start += size
+        return self.block
 
     def reset(self, worlds: Any = None) -> None:
-        if self.arrays is not None:
-            index = slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)
-            for a in self.arrays.values():
-                a[index] = 0.0
+        if self.block is not None:
+            self.block[slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)] = 0.0
+
+
+_C_FUNCTIONS: dict[type, Any] = {}  # each lab controller class's C function, compiled at its first use
 
 
 class LabController:
-    """The controller interface of `controllers.lqr.FeedbackLinearisedLQR` around a compiled step.
+    """The controller interface of `controllers.lqr.FeedbackLinearisedLQR` around a compiled step, with its
+    compiled form for the fused tick (`controllers.compiled`).
 
-    Subclasses set `_state` (a `PerWorldState`) and implement `_step`. dt: s, the period
-    of `command_setpoint` calls (the simulator's controller rate, `Rates.control_dt`), by
-    which integrators and finite differences advance. max_tilt_deg, min_thrust_g: the limits
-    of feedback linearisation, the LQR's by default.
+    Subclasses set `_state` (a `PerWorldState`), `_params` (their constants, float64, packed as their
+    `step_function` reads them) and `step_function`, their law in the array form of
+    `controllers.compiled` (numba-compiled). dt: s, the period of `command_setpoint` calls (the
+    simulator's controller rate, `Rates.control_dt`), by which integrators and finite differences
+    advance. max_tilt_deg, min_thrust_g: the limits of feedback linearisation, the LQR's by default.
     """
 
     _state: PerWorldState
+    _params: np.ndarray
+    step_function: Any  # the class's law in the array form (controllers.compiled), numba-compiled
 
     def __init__(self, dt: float = RATES.control_dt, max_tilt_deg: float = MAX_TILT_DEG,
                  min_thrust_g: float = MIN_THRUST_G):
@@ -114,7 +127,7 @@ class LabController:
 
     @property
     def state(self) -> dict[str, np.ndarray] | None:
-        """The per-world arrays (None before the first command)."""
+        """The per-world arrays by name (views of the state block; None before the first command)."""
         return self._state.arrays
 
     def reset(self, worlds: Any = None) -> None:
@@ -130,27 +143,13 @@ class LabController:
         added to the acceleration command and `override` replaces it where finite; the heading is
         the reference's `lookahead` s ahead (the attitude set-point is held for one period)."""
         W, V = state.pos.shape[:2]
-        arrays = self._state.of(W, V)
-        actions = (f_hat if residual is None else residual, f_hat if override is None else override,  # (unread when None)
-                   residual is not None, override is not None)
-        self._step(state, ref, f_hat, actions, lookahead, arrays, out)
+        run_step(type(self).step_function, state, ref, f_hat, out, residual, override, lookahead, self._state.of(W, V),
+                 self._params)
 
-    def _step(self, state: ControllerState, ref: RefSample, f_hat: np.ndarray, actions: tuple, lookahead: float,
-              arrays: dict[str, np.ndarray], out: Setpoint) -> None:
-        raise NotImplementedError
-
-
-@njit
-def finish_one(acc, w, i, residual, override, use_residual, use_override, yaw_des, tan_tilt, min_vertical, rot):
-    """The end of one vehicle's step: acc[w, i] (W, V, 3) m/s^2 holds the controller's command (gravity
-    excluded, the downwash compensated); `residual` is added, `override` replaces it where finite
-    (flags, not None arguments, as the LQR's kernel), in place. Returns the collective specific
-    thrust (m/s^2) and writes the desired attitude into rot[w, i] (feedback linearisation)."""
-    for k in range(3):
-        a = acc[w, i, k]
-        if use_residual:
-            a = a + residual[w, i, k]
-        if use_override and np.isfinite(override[w, i, k]):
-            a = override[w, i, k]
-        acc[w, i, k] = a
-    return _setpoint_one(acc[w, i, 0], acc[w, i, 1], acc[w, i, 2], yaw_des, tan_tilt, min_vertical, rot[w, i])
+    def compiled_controller(self, n_worlds: int, n_vehicles: int) -> CompiledController:
+        """Its compiled form for a simulator of (W, V) (`controllers.compiled`): the class's C function, its
+        constants and its state block (the one `reset` clears)."""
+        cls = type(self)
+        if cls not in _C_FUNCTIONS:
+            _C_FUNCTIONS[cls] = controller_function(cls.step_function, self._state.width, len(self._params))
+        return CompiledController(int(_C_FUNCTIONS[cls].address), self._params, self._state.of(n_worlds, n_vehicles))

@@ -1,8 +1,9 @@
 """What the simulator asks of an outer-loop controller (`Controller`), in the layer the simulator builds on.
 
 `sim.simulator.Simulator(controller=...)` calls ``command_setpoint`` once per controller tick on the
-readable path (the fused tick runs exactly `controllers.lqr.FeedbackLinearisedLQR` compiled) and
-records ``describe()`` in every log's provenance. docs/extending.md, "A new controller", has a recipe.
+readable path and records ``describe()`` in every log's provenance. The fused tick runs the built-in
+`controllers.lqr.FeedbackLinearisedLQR` and any controller with a compiled form, ``compiled_controller(W, V)``
+(`controllers.compiled`). docs/extending.md, "A new controller", has a recipe of each.
 """
 
 from __future__ import annotations

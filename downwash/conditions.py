@@ -28,7 +28,7 @@ experiment fly its guarded conditions with other settings (its config file's [gu
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -48,7 +48,7 @@ from sim.scene import Scene
 from downwash_trajectories import Reference
 
 __all__ = ["REFERENCE_CONDITIONS", "UNLEARNED", "GUARDED", "OBSERVED", "CONDITIONS", "DEFAULT_CONDITIONS",
-           "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "make_controller",
+           "parse_conditions", "learned", "data_variant", "guard_record", "make_predictor", "condition_controller",
            "kinds_in_data", "model_of", "fly_conditions", "fly_predictors"]
 
 REFERENCE_CONDITIONS = ("no_downwash", "baseline", "oracle")
@@ -110,23 +110,28 @@ def guard_record(conditions: Sequence[str], guard: dict | None = None) -> dict |
     return {**guard_settings(), **(guard or {})} if any(c.endswith(GUARDED) for c in conditions) else None
 
 
-def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path], guard: dict | None = None) -> Predictor:
-    """The predictor a condition flies with; learned ones load from `checkpoints["<kind>[-<data>]"]`, and
-    guarded ones take the `GuardedPredictor` keywords `guard` (None: its defaults)."""
+def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path] | None = None, guard: dict | None = None,
+                   *, aggregation: Any = None, load: Callable[[str], Predictor] | None = None) -> Predictor:
+    """The predictor a condition flies with, the one factory every experiment uses. A learned condition's
+    model "<kind>[-<data>]" comes from load(model) (default: `checkpoints[model]`, checked to be of its
+    kind); guarded ones take the `GuardedPredictor` keywords `guard` (None: its defaults); the oracle
+    sums its field under `aggregation` (None: linear)."""
     if condition in ("no_downwash", "baseline", "integral"):
         return ZeroPredictor()
     if condition == "oracle":
-        return OraclePredictor(field)
+        return OraclePredictor(field, aggregation=aggregation)
     if condition == "dob":
         return DisturbanceObserver()
     # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
-    predictor = LearnedPredictor.from_checkpoint(checkpoints[model_of(condition)], expect_kind=_kind(condition))
+    model = model_of(condition)
+    predictor = (load(model) if load is not None
+                 else LearnedPredictor.from_checkpoint(checkpoints[model], expect_kind=_kind(condition)))
     if condition.endswith(OBSERVED):
         return DisturbanceObserver(predictor)
     return GuardedPredictor(predictor, **(guard or {})) if condition.endswith(GUARDED) else predictor
 
 
-def make_controller(condition: str, controller: Any = None) -> Any:
+def condition_controller(condition: str, controller: Any = None) -> Any:
     """The controller a condition flies: `controller` (None: the default LQR), or for ``integral`` the LQR
     with integral action and that LQR's weights and limits (ConfigError for another controller)."""
     if condition != "integral":
@@ -211,7 +216,7 @@ def fly_predictors(scene: Scene, conditions: Sequence[str], predictors: Sequence
             continue
         names = [conditions[i] for i in batch]
         rows = np.concatenate([np.arange(K) + i * K for i in batch])
-        controllers = [make_controller(c, components.get("controller")) for c in names]
+        controllers = [condition_controller(c, components.get("controller")) for c in names]
         parts = dict(components)
         if any(c is not components.get("controller") for c in controllers):
             parts["controller"] = PerWorldController(

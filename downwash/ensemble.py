@@ -18,7 +18,8 @@ member's own `train_model` (see "Equivalence"):
   model the spectral-norm estimates settled after training.
 
 This module holds the training loop; the batched network is
-`downwash.ensemble_network`, the deep members' final settling `downwash.ensemble_settle`.
+`downwash.ensemble_network`, the members' set-up and stacked state `downwash.ensemble_members`,
+the deep members' final settling `downwash.ensemble_settle`.
 
 How the members are batched
 ---------------------------
@@ -72,26 +73,21 @@ activations outgrow the caches). Where most members of a step have padded batche
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-import numpy as np
 import torch
 from torch.optim.adam import adam as _adam_functional
 
 from downwash_core.errors import ConfigError
-from downwash.datasets import split_by_flight
-from downwash.ensemble_network import (_aligned_stack, _batch_slots, _forward, _Layer, _layers, _pad_rows,
-                                       _per_member, _round_rows)
+from downwash.ensemble_members import Member, Stacks, member_configs, member_vals, prepare_member
+from downwash.ensemble_network import _aligned_stack, _forward, _Layer, _layers, _pad_rows, _per_member, _round_rows
 from downwash.ensemble_settle import _settle_models
 from downwash.features import assemble
 from downwash.models import PAIRWISE_KINDS, DeepSNMLP, DownwashModel
-from downwash.registry import make_model
-from downwash.train import TrainConfig, _check, training_kernels
+from downwash.train import TrainConfig, training_kernels
 
 __all__ = ["train_ensemble"]
 
@@ -111,138 +107,6 @@ def _fused_adam_available() -> bool:
 
 
 _FUSED: bool | None = None
-
-
-@dataclass
-class _Member:
-    """One member's schedule, data and bookkeeping (its weights live in the stacks)."""
-
-    index: int
-    config: TrainConfig
-    model: DownwashModel
-    params: list[torch.Tensor]  # the model's own tensors, in plan order (eval copies and final state)
-    buffers: list[torch.Tensor]
-    train: Any
-    val: Any
-    xv: torch.Tensor  # validation features, basis, labels
-    basis_v: torch.Tensor | None
-    yv: torch.Tensor
-    n: int
-    bs: int
-    steps_per_epoch: int
-    n_epochs: int
-    patience: int
-    total_steps: int
-    lr: float
-    gen: torch.Generator
-    x: torch.Tensor | None = None  # normalised training features (n, k), targets (n, 3), basis (n, m, 3)
-    xv_n: torch.Tensor | None = None  # normalised validation features
-    y: torch.Tensor | None = None
-    basis: torch.Tensor | None = None
-    epoch: int = 0
-    batch: int = 0
-    step: int = 0
-    best: float = math.inf
-    best_epoch: int = -1
-    best_state: dict | None = None
-    epoch_data: tuple | None = None  # this epoch's shuffled x, y, basis as (steps_per_epoch, width, ...) zero-padded
-    history: dict = field(default_factory=lambda: {"train_loss": [], "val_loss": []})
-
-    def batch_rows(self) -> int:
-        return min(self.bs, self.n - self.batch * self.bs)
-
-    def shuffle(self, width: int) -> None:
-        """Start an epoch: train_model's permutation and gather, laid out one batch per row of slots."""
-        perm = torch.randperm(self.n, generator=self.gen)
-        self.epoch_data = tuple(
-            None if t is None else _batch_slots(t.index_select(0, perm), self.steps_per_epoch, self.bs, width)
-            for t in (self.x, self.y, self.basis)
-        )  # index_select: the same rows as train_model's x[perm], three times faster
-
-    def current_lr(self) -> float:
-        """The cosine schedule of `train_model`, term for term."""
-        c = self.config
-        return self.lr * (c.lr_final + (1 - c.lr_final) * 0.5 * (1 + math.cos(math.pi * self.step / self.total_steps)))
-
-
-class _Stacks:
-    """The active members' weights, Adam state and power-iteration vectors, stacked on dim 0."""
-
-    def __init__(self, params: list[torch.Tensor], exp_avg, exp_avg_sq, steps, buffers, out_std, out_mean, totals):
-        self.params = [p.requires_grad_(True) for p in params]
-        self.exp_avg, self.exp_avg_sq, self.steps = exp_avg, exp_avg_sq, steps
-        self.buffers, self.out_std, self.out_mean, self.totals = buffers, out_std, out_mean, totals
-        # per-member views for Adam and the power iteration (in-place updates reach the stacks)
-        m = params[0].shape[0]
-        detached = [p.detach() for p in self.params]
-        self.p_views = _per_member(detached, m)
-        self.ea_views = _per_member(exp_avg, m)
-        self.eas_views = _per_member(exp_avg_sq, m)
-        self.step_views = [list(row.unbind(0)) for row in steps.unbind(0)]
-        self.buf_views = _per_member(buffers, m)
-
-    @classmethod
-    def from_members(cls, members: list[_Member]) -> "_Stacks":
-        with torch.no_grad():
-            params = [_aligned_stack([mb.params[i].detach() for mb in members]) for i in range(len(members[0].params))]
-            buffers = [_aligned_stack([mb.buffers[i] for mb in members]) for i in range(len(members[0].buffers))]
-            out_std = torch.stack([mb.model.out_std for mb in members])[:, None, :]
-            out_mean = torch.stack([mb.model.out_mean for mb in members])[:, None, :]
-        exp_avg = [torch.zeros_like(p) for p in params]
-        exp_avg_sq = [torch.zeros_like(p) for p in params]
-        steps = torch.zeros(len(members), len(params), dtype=torch.float32)
-        totals = torch.zeros(len(members), dtype=params[0].dtype)
-        return cls(params, exp_avg, exp_avg_sq, steps, buffers, out_std, out_mean, totals)
-
-    def keep(self, index: list[int]) -> "_Stacks":
-        """The stacks of the members at positions ``index`` (copies)."""
-        ix = torch.as_tensor(index, dtype=torch.long)
-        with torch.no_grad():
-            sel = lambda ts: [_aligned_stack(t.detach().unbind(0), index) for t in ts]  # noqa: E731
-            return _Stacks(sel(self.params), sel(self.exp_avg), sel(self.exp_avg_sq), self.steps.index_select(0, ix),
-                           sel(self.buffers), self.out_std.index_select(0, ix), self.out_mean.index_select(0, ix),
-                           self.totals.index_select(0, ix))
-
-
-def _member_configs(n: int, configs: Any, seeds: Sequence[int] | None) -> list[TrainConfig]:
-    if configs is None:
-        configs = [TrainConfig()] * n
-    elif isinstance(configs, TrainConfig):
-        configs = [configs] * n
-    else:
-        try:
-            configs = list(configs)
-        except TypeError as e:
-            raise ConfigError(f"configs: expected a TrainConfig or a list of them (one per member), got {configs!r}") from e
-        if len(configs) != n:
-            raise ConfigError(f"configs: got {len(configs)} configs for {n} data sets (need one per member)")
-        for i, c in enumerate(configs):
-            if not isinstance(c, TrainConfig):
-                raise ConfigError(f"configs[{i}]: expected a TrainConfig, got {type(c).__name__}")
-    if seeds is not None:
-        seeds = list(seeds)
-        if len(seeds) != n:
-            raise ConfigError(f"seeds: got {len(seeds)} seeds for {n} data sets (need one per member)")
-        out = []
-        for i, (c, s) in enumerate(zip(configs, seeds)):
-            if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
-                raise ConfigError(f"seeds[{i}]: expected an int >= 0, got {s!r}")
-            out.append(dataclasses.replace(c, seed=int(s)))
-        configs = out
-    threads = {c.num_threads for c in configs}
-    if len(threads) > 1:
-        raise ConfigError(f"configs: num_threads must be the same for all members (one process), got {sorted(threads, key=str)}")
-    if len({c.portable for c in configs}) > 1:
-        raise ConfigError("configs: portable must be the same for all members (one process's kernels), got both")
-    return list(configs)
-
-
-def _member_vals(n: int, val: Any) -> list[Any]:
-    if val is None or not isinstance(val, (list, tuple)):
-        return [val] * n
-    if len(val) != n:
-        raise ConfigError(f"val: got {len(val)} validation sets for {n} data sets (need one per member, or one for all)")
-    return list(val)
 
 
 def train_ensemble(
@@ -280,8 +144,8 @@ def train_ensemble(
     if not datasets:
         raise ConfigError("datasets: empty list, need at least one data set (one per member)")
     n = len(datasets)
-    configs = _member_configs(n, configs, seeds)
-    vals = _member_vals(n, val)
+    configs = member_configs(n, configs, seeds)
+    vals = member_vals(n, val)
 
     kernels = training_kernels(configs[0])
     threads = configs[0].num_threads
@@ -298,48 +162,11 @@ def train_ensemble(
             torch.set_num_threads(old_threads)
 
 
-def _prepare(i: int, kind: str, train: Any, val: Any, config: TrainConfig, feature_set, shared_val: dict) -> _Member:
-    """A member as `train_model` sets it up: split, model, encoding, normalisation, schedule."""
-    _check(train, f"datasets[{i}]")
-    given = val is not None
-    if not given:
-        train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(config.seed))
-    elif id(val) not in shared_val:
-        _check(val, f"val[{i}]")
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        model = make_model(kind, feature_set)
-    (x, basis), y = model.encode_samples(train)
-    if given and id(val) in shared_val:  # a validation set given for several members: encoded once
-        xv, basis_v, yv = shared_val[id(val)]
-    else:
-        (xv, basis_v), yv = model.encode_samples(val)
-        if given:
-            shared_val[id(val)] = (xv, basis_v, yv)
-    model.fit_normalization(x, model.output_targets(y, basis))
-    nrows, bs = x.shape[0], min(config.batch_size, x.shape[0])
-    steps_per_epoch = math.ceil(nrows / bs)
-    n_epochs = max(config.max_epochs, math.ceil(config.min_steps / steps_per_epoch))
-    patience = math.ceil(config.patience * n_epochs / config.max_epochs)
-    _, params, buffers = _layers(model)
-    member = _Member(
-        index=i, config=config, model=model, params=params, buffers=buffers, train=train, val=val,
-        xv=xv, basis_v=basis_v, yv=yv, n=int(nrows), bs=int(bs), steps_per_epoch=steps_per_epoch,
-        n_epochs=n_epochs, patience=patience, total_steps=n_epochs * steps_per_epoch, lr=config.peak_lr(kind),
-        gen=torch.Generator().manual_seed(config.seed),
-    )  # fmt: skip
-    with torch.no_grad():  # decode's normalisation, elementwise: the same values as train_model's
-        member.x = (x - model.in_mean) / model.in_std
-        member.xv_n = (xv - model.in_mean) / model.in_std
-    member.y, member.basis = y, basis
-    return member
-
-
 def _train(kind, datasets, vals, configs, progress, feature_set):
     start = time.perf_counter()
     level = logging.INFO if progress else logging.DEBUG
     shared_val: dict[int, tuple] = {}
-    members = [_prepare(i, kind, train, val, config, feature_set, shared_val)
+    members = [prepare_member(i, kind, train, val, config, feature_set, shared_val)
                for i, (train, val, config) in enumerate(zip(datasets, vals, configs))]
     plan, _, _ = _layers(members[0].model)
     # rows per step are padded to a multiple of 16, so that every member's slice of every
@@ -348,7 +175,7 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
     dtype = members[0].x.dtype
 
     active = list(members)
-    stacks = _Stacks.from_members(active)
+    stacks = Stacks.from_members(active)
     step = 0
     while active:
         # -- this step's rows: each member's next batch of its own epoch order ------------------
@@ -418,7 +245,7 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
     return [(mb.model, mb.history) for mb in members]
 
 
-def _adam_step(active: list[_Member], stacks: _Stacks, grads: Sequence[torch.Tensor]) -> None:
+def _adam_step(active: list[Member], stacks: Stacks, grads: Sequence[torch.Tensor]) -> None:
     """torch's Adam (fused where available, as `downwash.train`) on each member's views.
 
     Members that share a learning rate and weight decay at this step go in one call.
@@ -444,7 +271,7 @@ def _adam_step(active: list[_Member], stacks: _Stacks, grads: Sequence[torch.Ten
         )  # fmt: skip
 
 
-def _load(mb: _Member, stacks: _Stacks, j: int) -> None:
+def _load(mb: Member, stacks: Stacks, j: int) -> None:
     """Copy member j's current weights and power-iteration vectors into its model."""
     with torch.no_grad():
         for dst, src in zip(mb.params, stacks.p_views[j]):
@@ -453,7 +280,7 @@ def _load(mb: _Member, stacks: _Stacks, j: int) -> None:
             dst.copy_(src)
 
 
-def _validate(plan: list[_Layer], stacks: _Stacks, active: list[_Member], ending: list[int]) -> list[float]:
+def _validate(plan: list[_Layer], stacks: Stacks, active: list[Member], ending: list[int]) -> list[float]:
     """Validation losses of the members at positions ``ending``, as `train_model` computes them.
 
     ``mean((decode(xv, basis_v) - yv)^2)`` in eval mode, one batched forward for all of
@@ -479,7 +306,7 @@ def _validate(plan: list[_Layer], stacks: _Stacks, active: list[_Member], ending
         return [float(torch.mean((pred[e, : mb.yv.shape[0]] - mb.yv) ** 2)) for e, mb in enumerate(members)]
 
 
-def _end_epoch(kind: str, mb: _Member, stacks: _Stacks, j: int, val_loss: float) -> bool:
+def _end_epoch(kind: str, mb: Member, stacks: Stacks, j: int, val_loss: float) -> bool:
     """Bookkeeping and early stopping at the end of one of the member's epochs; True when it stops."""
     epoch = mb.epoch
     train_loss = float(stacks.totals[j]) / mb.n
@@ -502,7 +329,7 @@ def _end_epoch(kind: str, mb: _Member, stacks: _Stacks, j: int, val_loss: float)
     return epoch - mb.best_epoch >= mb.patience or mb.epoch >= mb.n_epochs
 
 
-def _finish(kind: str, mb: _Member, level: int, size: int) -> None:
+def _finish(kind: str, mb: Member, level: int, size: int) -> None:
     """Best-epoch restore and history, as at the end of `train_model`; the deep model's
     spectral norms are settled later, for all members at once (`_settle_members`)."""
     model = mb.model
@@ -524,12 +351,12 @@ def _finish(kind: str, mb: _Member, level: int, size: int) -> None:
     _log_member(kind, mb, level)
 
 
-def _log_member(kind: str, mb: _Member, level: int) -> None:
+def _log_member(kind: str, mb: Member, level: int) -> None:
     logger.log(level, "%s member %d: best val rmse %.4f at epoch %d of %d", kind, mb.index,
                math.sqrt(mb.history["best_val_loss"]), mb.best_epoch, mb.history["epochs"])
 
 
-def _settle_members(members: list[_Member], level: int) -> None:
+def _settle_members(members: list[Member], level: int) -> None:
     """`DeepSNMLP.settle_spectral_norm` of every member, then its validation loss, as `train_model` ends.
 
     The power iterations of one layer run for all members side by side, chunk by

@@ -50,7 +50,8 @@ equivariant one scales its outputs by one scalar, which keeps it equivariant.
 Checkpoints (`downwash.checkpoint`) record the neighbour set and the aggregation law a
 model of sets was trained for; `downwash.predictor.LearnedPredictor` flies it, by default
 as one compiled pass (`downwash.set_fused`), checked against the model's float64 NumPy
-twin (`SetModel.numpy_forward`), which is tested against the torch model.
+twin (`SetModel.numpy_forward`, its network `downwash.numpy_mlp`'s), which is tested against the
+torch model.
 """
 
 from __future__ import annotations
@@ -67,6 +68,9 @@ from downwash.features import (EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEAT
                                model_inputs)
 from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters, layer_widths,
                              settle_spectral_norm)
+# the NumPy twins' network, under the names downwash.set_fused takes from here
+from downwash.numpy_mlp import numpy_layers as _numpy_layers
+from downwash.numpy_mlp import numpy_mlp as _numpy_mlp
 
 __all__ = ["Encoded", "kind_columns", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
 
@@ -134,58 +138,6 @@ def _sn_mlp(widths: Sequence[int], gamma: float) -> nn.Sequential:
             layers.append(nn.ReLU())
         layers.append(_SpectralLinear(a, b, gamma))
     return nn.Sequential(*layers)
-
-
-@torch.no_grad()
-def _effective_weight64(layer: _SpectralLinear) -> torch.Tensor:
-    """The eval-mode weight ``gamma W / (u . W v)`` computed in float64 from the stored estimates
-    (as the float64 copy of the torch model computes it)."""
-    param = layer.linear.parametrizations.weight[0]
-    w = layer.linear.parametrizations.weight.original.double()
-    sigma = torch.dot(param._u.double(), torch.mv(w, param._v.double()))
-    return layer.gamma * w / sigma
-
-
-@torch.no_grad()
-def _numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
-    """[(W_i (in, out), b_i (out,)), ...] float64 of an MLP of (spectral) linear layers and ReLUs, as in eval mode."""
-    layers = []
-    for m in net:
-        if isinstance(m, _SpectralLinear):
-            w, b = _effective_weight64(m), m.linear.bias
-        elif isinstance(m, nn.Linear):
-            w, b = m.weight, m.bias
-        elif isinstance(m, nn.ReLU):
-            continue
-        else:  # pragma: no cover - guards future architectures
-            raise TypeError(f"numpy_forward: unsupported layer {type(m).__name__}")
-        layers.append((np.ascontiguousarray(w.detach().double().numpy().T), b.detach().double().numpy().copy()))
-    return layers
-
-
-_MLP_ROWS = 128  # rows per matrix product: small enough that OpenBLAS stays on the calling thread
-
-
-def _numpy_mlp(layers: list[tuple[np.ndarray, np.ndarray]], h: np.ndarray) -> np.ndarray:
-    """The MLP on h (..., in) -> (..., out), in blocks of `_MLP_ROWS` rows.
-
-    Why blocks: one product over all rows is large enough for OpenBLAS to split it over its
-    threads, and on two busy cores those threads waited their turn for milliseconds (we
-    measured 5 ms a call instead of 0.3 ms at 192 targets); a batched (..., in) @ (in, out)
-    instead runs one tiny product per leading index.
-    """
-    lead = h.shape[:-1]
-    h = h.reshape(-1, h.shape[-1])
-    out = np.empty((h.shape[0], layers[-1][1].shape[0]))
-    for i in range(0, h.shape[0], _MLP_ROWS):
-        x = h[i : i + _MLP_ROWS]
-        for w, b in layers[:-1]:
-            x = x @ w
-            x += b
-            np.maximum(x, 0.0, out=x)
-        w, b = layers[-1]
-        out[i : i + _MLP_ROWS] = x @ w + b
-    return out.reshape(*lead, -1)
 
 
 def _with_kinds(kinds: bool, x: np.ndarray, kind_a: Any, kind_b: Any) -> np.ndarray:

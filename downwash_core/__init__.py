@@ -4,6 +4,7 @@ Modules (import them directly; this package imports nothing on its own):
 
 - `downwash_core.params`: the one source of every physical and timing parameter, with units
 - `downwash_core.vehicles`: vehicle kinds (`VEHICLES`: the paper quad, a Crazyflie 2.1, an X500), each number with its source
+- `downwash_core.vehicle_kind`, `downwash_core.vehicle_catalog`: a vehicle kind's type and the built-in kinds' numbers
 - `downwash_core.registry`: the one `Registry` type and `NAME:KEY=VALUE,...` spec grammar, and the plugins
 - `downwash_core.locks`: cross-process locks on folders and files (`flock`)
 - `downwash_core.jit`: the one place that configures compiled kernels (numba)

@@ -5,6 +5,7 @@ keyword options into a validated config: an unknown name raises TypeError listin
 the allowed ones, a bad value `downwash_core.errors.ConfigError` (a ValueError) naming the
 option and its allowed range, before anything is built. Numeric options refuse strings and
 bools ("0.6", True): float() would read them as numbers.
+Those checks, shared with the swarm's options, are `downwash_envs.option_checks`' (re-exported here).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import dataclasses
 import inspect
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -22,8 +23,10 @@ from controllers.lqr import LQRConfig
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION, SEPARATION_RANGE
 from downwash_core.validate import choice, count, number, pair
+from downwash_envs.option_checks import check_not_text_or_bool, number_option, pair_option, unknown_options_error
 from sim.field import DownwashField, check_field
-from sim.field_memory import is_stateful
+from sim.field_memory import is_stateful_field
+from sim.observer import DisturbanceObserver
 from sim.predictor import ZeroPredictor
 from sim.fields.registry import FIELDS, field_parameters, resolve_field_spec
 from sim.simulator import SimConfig
@@ -40,7 +43,10 @@ __all__ = [
 ]  # fmt: skip
 
 ACTION_MODES = ("residual", "acceleration")
-PREDICTORS = ("none", "oracle")
+PREDICTORS = ("none", "oracle", "dob")
+# the outer loops an env flies: the paper's LQR, the LQR with integral action (controllers.integral), and the
+# controllers labs fly (controllers.crazyflie, controllers.indi); each at the env's control rate
+CONTROLLERS = ("lqr", "integral", "mellinger", "pid", "indi")
 DEFAULT_ACTION_BOUND = MappingProxyType({"residual": 5.0, "acceleration": 10.0})  # m/s^2, per axis
 MAX_ACTION_BOUND = 20.0  # m/s^2, largest accepted action_bound
 # Hz, controller (= env step) rates offered; those dividing the autopilot grid (100 Hz
@@ -110,7 +116,9 @@ class FollowerConfig:
         control_hz: controller (= env step) rate, Hz: one of 10, 20, 25, 50, 100 (it
             must divide the 100 Hz autopilot grid). Default 50 (10 physics steps).
         predictor: "none", "oracle" (the LQR subtracts the true mean field,
-            evaluated at 45 Hz; residual mode only), or a predictor object
+            evaluated at 45 Hz; residual mode only), "dob" (a disturbance observer,
+            `sim.observer.DisturbanceObserver`, at its stated bandwidth: the generic
+            baseline a learned compensation is compared with), or a predictor object
             (`sim.predictor.Predictor`, e.g. a learned model behind the guard:
             ``GuardedPredictor(LearnedPredictor.from_checkpoint(path))`` of
             `downwash.guard` and `downwash.predictor`), copied into each env.
@@ -147,6 +155,10 @@ class FollowerConfig:
             failure checks); its controller rate is replaced by control_hz.
         lqr: `controllers.lqr.LQRConfig` (LQR weights, tilt limit) of every vehicle's
             outer loop; default the paper's.
+        controller: every vehicle's outer loop: "lqr" (default, the paper's), "integral"
+            (the LQR with integral action on the position error, `controllers.integral`),
+            or a controller labs fly, "mellinger", "pid" (the Crazyflie firmware's) or
+            "indi"; each at control_hz. `lqr` sets the weights of the first two only.
         turbulence: `sim.turbulence.OUTurbulence` (intensity, correlation time);
             default 10 % and 0.05 s.
         render_width, render_height: pixels of `render()`, at most 640 x 480.
@@ -161,6 +173,7 @@ class FollowerConfig:
     random_phase: bool = True
     control_hz: int = 50
     predictor: Any = "none"
+    controller: str = "lqr"
     c4_amplitude: float = 0.0
     swirl: float = 0.0
     skew: float = 0.0
@@ -227,53 +240,6 @@ def make_config(options: Mapping[str, Any] | None = None) -> FollowerConfig:
     return FollowerConfig(**options)
 
 
-def unknown_options_error(who: str, unknown: Sequence[str], allowed: Sequence[str]) -> TypeError:
-    """TypeError for unknown keyword options, worded as Python's own (``got an unexpected keyword
-    argument 'x'``): wrappers that probe an optional keyword (TorchRL's ``GymEnv`` passes ``frameskip``)
-    look for that wording and retry without it."""
-    return TypeError(f"{who} got an unexpected keyword argument {unknown[0]!r} (unknown option(s) {list(unknown)}; "
-                     f"allowed: {', '.join(allowed)})")
-
-
-def _text_or_bool(value: Any) -> tuple[bool, Any]:
-    """(True, the first string or bool in `value`) or (False, None); `value` a number, or a sequence
-    or array of them. float() reads "0.6" as 0.6 and True as 1.0, so these would pass a range check."""
-    if isinstance(value, (str, bytes, bool, np.bool_)):
-        return True, value
-    if isinstance(value, np.ndarray):
-        if value.dtype.kind in "bUS":
-            return True, value
-        if value.dtype.kind != "O":
-            return False, None
-        value = value.ravel().tolist()
-    if isinstance(value, (list, tuple)):
-        for v in value:
-            found, bad = _text_or_bool(v)
-            if found:
-                return True, bad
-    return False, None
-
-
-def check_not_text_or_bool(name: str, value: Any, allowed: str) -> None:
-    """ConfigError naming `name` and what is `allowed` when `value` is, or holds, a string or a bool."""
-    found, bad = _text_or_bool(value)
-    if found:
-        what = f"a {type(bad).__name__}" if bad is value else f"{bad!r} is a {type(bad).__name__}"
-        raise ConfigError(f"{name}: expected a number, got {value!r} ({what}, not a number); allowed {allowed}")
-
-
-def number_option(name: str, value: Any, unit: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
-    """`downwash_core.validate.number`, which also refuses strings and bools."""
-    check_not_text_or_bool(name, value, f"{'(' if lo_open else '['}{lo}, {hi}] {unit}")
-    return number(name, value, unit, lo, hi, lo_open=lo_open)
-
-
-def pair_option(name: str, value: Any, unit: str, lo: float, hi: float) -> tuple[float, float]:
-    """`downwash_core.validate.pair`, which also refuses strings and bools."""
-    check_not_text_or_bool(name, value, f"(low, high) with {lo} <= low <= high <= {hi} {unit}")
-    return pair(name, value, unit, lo, hi)
-
-
 def _separation_range(sep: Any) -> tuple[float, float]:
     lo, hi = SEPARATION_RANGE
     check_not_text_or_bool("separation", sep, f"a number in [{lo}, {hi}] m, or (low, high) within it")
@@ -315,6 +281,10 @@ def _validate(c: FollowerConfig) -> None:
         raise ConfigError(f"sim_config: expected a sim.simulator.SimConfig, got {type(c.sim_base).__name__}")
     if c.lqr is not None and not isinstance(c.lqr, LQRConfig):
         raise ConfigError(f"lqr: expected a controllers.lqr.LQRConfig, got {type(c.lqr).__name__}")
+    choice("controller", c.controller, CONTROLLERS)
+    if c.lqr is not None and c.controller not in ("lqr", "integral"):
+        raise ConfigError(f"lqr: sets the LQR's weights; controller={c.controller!r} has its own gains "
+                          "(allowed with controller 'lqr' or 'integral')")
     if c.turbulence is not None and not isinstance(c.turbulence, OUTurbulence):
         raise ConfigError(f"turbulence: expected a sim.turbulence.OUTurbulence, got {type(c.turbulence).__name__}")
     rates = c.sim_base.rates
@@ -387,7 +357,7 @@ def randomizable_constants(field: Any) -> tuple[str, ...]:
     too), the float constants of any other stateless dataclass field (momentum, jet, pybullet, `fitted:`), else ()."""
     if isinstance(field, DownwashField):
         return FIELD_RANDOMIZABLE
-    if not dataclasses.is_dataclass(field) or isinstance(field, type) or is_stateful(field):
+    if not dataclasses.is_dataclass(field) or isinstance(field, type) or is_stateful_field(field):
         return ()
     kinds, names = field_parameters(type(field)), [f.name for f in dataclasses.fields(field) if f.init]
     return tuple(k for k in names if kinds[k] is float and type(getattr(field, k)) is not bool
@@ -497,11 +467,11 @@ def _reference_probe(c: FollowerConfig) -> None:
 
 def predictor_of(spec: Any, oracle: Any, owner: Any) -> Any:
     """The predictor an env's ``predictor`` option names: no model for "none", ``oracle()`` for
-    "oracle", else the owner's own deep copy of the given predictor object (made once: a predictor
-    with state, such as a guard, serves one simulator)."""
-    if isinstance(spec, str):
+    "oracle", else the owner's own disturbance observer ("dob") or deep copy of the given predictor
+    object (made once: a predictor with state, such as a guard or the observer, serves one simulator)."""
+    if isinstance(spec, str) and spec != "dob":
         return oracle() if spec == "oracle" else ZeroPredictor()
     own = getattr(owner, "_own_predictor", None)
     if own is None:
-        own = owner._own_predictor = copy.deepcopy(spec)
+        own = owner._own_predictor = DisturbanceObserver() if spec == "dob" else copy.deepcopy(spec)
     return own

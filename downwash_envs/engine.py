@@ -154,6 +154,25 @@ def control_sim_config(task: FollowerConfig) -> SimConfig:
     return dataclasses.replace(base, rates=rates)
 
 
+def env_controller(task: FollowerConfig) -> Any:
+    """The outer loop `task.controller` names, at the task's control rate (its integrators and filters
+    advance by the env step): the LQR (`task.lqr`), the LQR with integral action, or a lab controller."""
+    dt = 1.0 / task.control_hz
+    if task.controller == "integral":
+        from controllers.integral import IntegralLQR
+
+        return IntegralLQR(task.lqr, dt=dt)
+    if task.controller in ("mellinger", "pid"):
+        from controllers.crazyflie import CrazyfliePID, MellingerController
+
+        return MellingerController(dt=dt) if task.controller == "mellinger" else CrazyfliePID(dt=dt)
+    if task.controller == "indi":
+        from controllers.indi import INDIController
+
+        return INDIController(dt=dt)
+    return FeedbackLinearisedLQR(task.lqr)
+
+
 class BatchOutcome(NamedTuple):
     """What a step of W worlds gives per agent, from the true state at its end. A world that
     did not step reports zeros (status OK, not terminated)."""
@@ -191,7 +210,7 @@ class TaskWorlds:
         self.vehicles = VehicleModel(scene, self.agent_index, task.vehicle_spreads)  # before any allocation
         self.sim = Simulator(
             scene, self._reference(), [0] * W, config=self.sim_config, field=field, predictor=predictor,
-            controller=FeedbackLinearisedLQR(task.lqr), turbulence=task.turbulence, n_threads=n_threads, **sim_options,
+            controller=env_controller(task), turbulence=task.turbulence, n_threads=n_threads, **sim_options,
         )
         self.last_action = np.zeros((W, self.agent_index.size, 3))  # m/s^2, as applied (clipped)
         # the simulator's (W, V, 3) command, the agents' rows written each step: a residual on every

@@ -130,7 +130,7 @@ from pettingzoo import ParallelEnv
 
 from downwash_core.validate import count
 from downwash_envs.base import (
-    RENDER_MODES, ResetNeededError, TaskEnv, VectorAutoreset, agent_spaces, pickled_as_constructed,
+    RENDER_MODES, AutoresetStep, ResetNeededError, TaskEnv, VectorAutoreset, agent_spaces, pickled_as_constructed,
 )
 from downwash_envs.config import make_config  # noqa: F401  (the shared options' validation, as before the split)
 from downwash_envs.swarm_task import (  # noqa: F401  (the task's names, importable from here as before)
@@ -266,7 +266,9 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
     keys). Autoreset on the next step (Gymnasium's default): the step after a world ends
     resets it; its actions are ignored, its reward is 0, terminated and truncated False,
     its observation the new episode's first, and ``infos[agent]["autoreset"]`` marks it
-    (``sim_seed`` and ``phase`` give its episode). n_threads: the threads that step the worlds: 0 (default) one per
+    (``sim_seed`` and ``phase`` give its episode). `reset_arrays` and `step_arrays` are reset and step
+    without the per-agent dicts: whole (W, A, ...) arrays, agent i's at [:, i] (the SB3 adapter's path,
+    `downwash_envs.swarm_sb3`). n_threads: the threads that step the worlds: 0 (default) one per
     core this process may use (its CPU affinity), 1..that many as given, anything else a
     ConfigError. Set 1 when other threads of the process need the cores, e.g. a learner's
     torch threads: the helper threads wait for work by spinning.
@@ -300,15 +302,13 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
         return infos
 
     def reset(self, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
-        worlds, mask, episodes = self._seeded_reset(seed, options)
-        self._record_episodes(worlds, episodes)
-        return self._per_agent(self._worlds.observe()), self._infos({}, mask)
+        obs, mask = self.reset_arrays(seed, options)
+        return self._per_agent(obs), self._infos({}, mask)
 
     def step(self, actions: Mapping[str, Any]):
         self._check_reset()
         a = self._worlds.check_actions(actions, self.possible_agents, self.n_worlds)
-        result = self._autoreset_step(a, self.max_steps)
-        self._record_episodes(result.reset_indices, result.episodes)
+        result = self._step_checked(a)
         info = result.outcome.info
         rewards = {ag: info["reward"][:, i] for i, ag in enumerate(self.possible_agents)}
         terms = {ag: result.terminated.copy() for ag in self.possible_agents}
@@ -317,6 +317,34 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
 
     def _per_agent(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         return {a: obs[:, i] for i, a in enumerate(self.possible_agents)}
+
+    # ---------------------------------------------------------------- the same, as whole arrays
+    def reset_arrays(self, seed: Any = None, options: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`reset(seed, options)` without the per-agent dicts: (observations (W, A, D) float32, agent i's at
+        [:, i]; the reset worlds' mask (W,) bool); their episode info is in `episode_arrays`."""
+        worlds, mask, episodes = self._seeded_reset(seed, options)
+        self._record_episodes(worlds, episodes)
+        return self._worlds.observe(), mask
+
+    def step_arrays(self, actions: np.ndarray) -> AutoresetStep:
+        """`step` without the per-agent dicts (the SB3 adapter's, `downwash_envs.swarm_sb3`): the actions as
+        one (W, A, 3) array, agent i's at [:, i] (the same checks and errors); returns the autoreset step
+        (`downwash_envs.base.AutoresetStep`): obs (W, A, D) float32 (a new array), terminated and truncated
+        (W,), resetting, and ``outcome.info``, the task's {key: (W, A, ...)} columns, ``reward`` included.
+        The episode info that `step` adds to each agent's info is `episode_arrays`."""
+        self._check_reset()
+        return self._step_checked(self._worlds.check_action_array(actions))
+
+    @property
+    def episode_arrays(self) -> dict[str, np.ndarray]:
+        """Each world's current episode info, {key: (W, A)} (``sim_seed``, ``phase``, the drawn scales): the
+        env's own arrays, rewritten at each reset (copy what you keep)."""
+        return self._episode_info
+
+    def _step_checked(self, actions: np.ndarray) -> AutoresetStep:
+        result = self._autoreset_step(actions, self.max_steps)
+        self._record_episodes(result.reset_indices, result.episodes)
+        return result
 
     def render(self):
         self._open_viewer()

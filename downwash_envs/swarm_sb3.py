@@ -88,12 +88,12 @@ class SwarmSB3VecEnv(VecEnv):
     def reset(self) -> VecEnvObs:
         world_seeds = self._seeds[:: self.n_agents]
         seeds = None if all(s is None for s in world_seeds) else list(world_seeds)
-        obs, infos = self.env.reset(seed=seeds)
-        self.reset_infos = self._slot_infos(infos)
+        obs, _ = self.env.reset_arrays(seed=seeds)
+        self.reset_infos = self._episode_infos()
         self._reset_seeds()
         self._reset_options()
         self._actions = None
-        return self._flat(obs)
+        return obs.reshape(self.num_envs, -1)
 
     # ------------------------------------------------------------------ step
     def step_async(self, actions: np.ndarray) -> None:
@@ -106,47 +106,60 @@ class SwarmSB3VecEnv(VecEnv):
         self._actions = actions
 
     def step_wait(self) -> VecEnvStepReturn:
+        """One batched step of every world as whole arrays (no per-agent dicts on the way): slot w*A + i is
+        row (w, i) of the native env's (W, A, ...) arrays, so observations, rewards and info columns are
+        reshapes; only the info dicts are built per slot, from one list per key."""
         if self._actions is None:
             raise RuntimeError("step_wait: call step_async (or step) first")
         per_world = self._actions.reshape(self.n_worlds, self.n_agents, -1)
         self._actions = None
-        obs, rewards, terms, truncs, infos = self.env.step({a: per_world[:, i] for i, a in enumerate(self.agents)})
-        first = self.agents[0]  # a world's end is shared by its agents: any agent's flags are the world's
-        terminated, truncated = terms[first], truncs[first]
-        world_done = terminated | truncated
-        flat_obs = self._flat(obs)
-        reward = np.stack([rewards[a] for a in self.agents], axis=1).reshape(-1).astype(np.float32)
-        done = np.repeat(world_done, self.n_agents)
-        out_infos = self._slot_infos(infos)
-        time_limit = np.repeat(truncated & ~terminated, self.n_agents).tolist()
-        for info, limited in zip(out_infos, time_limit):
-            info["TimeLimit.truncated"] = limited
+        result = self.env.step_arrays(per_world)
+        terminated, truncated = result.terminated, result.truncated
+        world_done = terminated | truncated  # a world's end is shared by its agents
+        flat_obs = result.obs.reshape(self.num_envs, -1)  # the step's own fresh array: written below, not copied
+        info = result.outcome.info
+        reward = info["reward"].reshape(-1).astype(np.float32)
+        done = world_done.repeat(self.n_agents)
+        keys, episode = [k for k in info if k != "reward"], self.env.episode_arrays
+        out_infos = self._slot_dicts(
+            [*keys, *episode, "TimeLimit.truncated"],
+            [*(info[k] for k in keys), *episode.values(), truncated & ~terminated],
+        )
         if world_done.any():
-            final = flat_obs[done]
-            new_obs, reset_infos = self.env.reset(options={"reset_mask": world_done})
-            flat_obs[done] = self._flat(new_obs)[done]
-            new_infos = self._slot_infos(reset_infos)
-            for k, slot in enumerate(np.flatnonzero(done)):
-                out_infos[slot]["terminal_observation"] = final[k]
-                self.reset_infos[slot] = new_infos[slot]
+            slots = np.flatnonzero(done)
+            final = flat_obs[slots]  # a copy: the ended episodes' last observations
+            new_obs, _ = self.env.reset_arrays(options={"reset_mask": world_done})
+            flat_obs[slots] = new_obs.reshape(self.num_envs, -1)[slots]
+            new_infos = self._episode_infos(slots)
+            for slot, terminal, new_info in zip(slots.tolist(), final, new_infos):
+                out_infos[slot]["terminal_observation"] = terminal
+                self.reset_infos[slot] = new_info
         return flat_obs, reward, done, out_infos
 
     # ------------------------------------------------------------------ slots
-    def _flat(self, per_agent: dict[str, np.ndarray]) -> np.ndarray:
-        """{agent: (W, ...)} -> (W x A, ...), world-major (a fresh array)."""
-        stacked = np.stack([per_agent[a] for a in self.agents], axis=1)  # (W, A, ...)
-        return stacked.reshape(self.num_envs, *stacked.shape[2:])
+    def _slot_dicts(self, keys: list[str], columns: list[np.ndarray], slots: np.ndarray | None = None
+                    ) -> list[dict[str, Any]]:
+        """One dict {key: value} per slot (or per slot of `slots`, in that order) from per-key columns of
+        shape (W, A, ...) (or (W,): the world's, every agent's): plain Python numbers, (3,) arrays (views
+        of the column) for vectors. One list per key, then each slot's dict from its values."""
+        lists = []
+        for column in columns:
+            if column.ndim == 1:  # per world
+                flat = column.repeat(self.n_agents)
+            elif column.ndim == 2:
+                flat = column.reshape(self.num_envs)
+            else:
+                flat = column.reshape(self.num_envs, *column.shape[2:])
+            if slots is not None:
+                flat = flat[slots]
+            lists.append(flat.tolist() if flat.ndim == 1 else list(flat))
+        return [dict(zip(keys, values)) for values in zip(*lists)]
 
-    def _slot_infos(self, infos: dict[str, dict[str, np.ndarray]]) -> list[dict[str, Any]]:
-        """The native {agent: {key: (W, ...)}} as one dict per slot: plain numbers, (3,) arrays for vectors.
-        The native ``autoreset`` mask is left out: here a world never waits a step to reset."""
-        out: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
-        for i, agent in enumerate(self.agents):
-            keys = [k for k in infos[agent] if k != "autoreset"]
-            columns = [v.tolist() if v.ndim == 1 else list(v) for v in (infos[agent][k] for k in keys)]
-            for w, row in enumerate(zip(*columns)):
-                out[w * self.n_agents + i] = dict(zip(keys, row))
-        return out
+    def _episode_infos(self, slots: np.ndarray | None = None) -> list[dict[str, Any]]:
+        """The reset info of every slot (or of `slots`): its world's current episode's (the native
+        ``sim_seed``, ``phase``, the drawn scales; not its ``autoreset`` mask)."""
+        episode = self.env.episode_arrays
+        return self._slot_dicts(list(episode), list(episode.values()), slots)
 
     def _checked_indices(self, indices: VecEnvIndices) -> list[int]:
         found = list(self._get_indices(indices))

@@ -18,7 +18,6 @@ positions m, velocities m/s, accelerations and actions m/s^2, all world frame, z
 from __future__ import annotations
 
 import functools
-import inspect
 from dataclasses import dataclass
 from typing import Any, Mapping, NamedTuple, Sequence
 
@@ -40,7 +39,6 @@ from sim.neighbours import NeighbourSet, select_into, select_neighbours
 from sim.predictor import OraclePredictor
 from sim.presets import Preset, make_preset
 from sim.scene import Scene, build_scene
-from sim.simulator import Simulator
 from downwash_trajectories import Cached, TimeShifted
 
 __all__ = [
@@ -54,7 +52,7 @@ __all__ = [
 # single env's reference, separation, knobs and field/mass randomisations do not apply to a preset.
 SHARED_OPTIONS = (
     "action_bound", "control_hz", "predictor", "max_tracking_error", *REWARD_WEIGHTS,
-    "sim_config", "lqr", "turbulence", "render_width", "render_height", "randomize",
+    "sim_config", "lqr", "controller", "turbulence", "render_width", "render_height", "randomize",
 )  # fmt: skip
 
 # ----------------------------------------------------------------------------- observation layout
@@ -297,9 +295,6 @@ def make_swarm_config(
     if not isinstance(aggregation, str):
         raise ConfigError(f"aggregation: expected a law name, got {type(aggregation).__name__}")
     law = make_aggregation(aggregation)  # ConfigError naming the allowed laws
-    if not isinstance(law, LinearSuperposition) and "aggregation" not in inspect.signature(Simulator).parameters:
-        # transitional: until the simulator has its aggregation slot, only its built-in sum
-        raise ConfigError(f"aggregation: {aggregation!r} needs the simulator's aggregation slot; allowed: linear")
     V = preset.n_vehicles
     K = V - 1 if max_neighbours is None else count("max_neighbours", max_neighbours, 1, MAX_VEHICLES - 1)
     task = make_config({"field": field, **options})  # the shared options, checked by downwash_envs.config
@@ -366,6 +361,9 @@ def agent_names(preset: Any, vehicles: Sequence[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
+_REWARD_INFO_KEYS = tuple(f"reward_{k}" for k in REWARD_TERMS)  # the info keys of the terms, in order
+
+
 class SwarmStep(NamedTuple):
     """A step of the swarm's W worlds: terminated (W,) bool, and the per-agent info (see `SwarmWorlds.step`)."""
 
@@ -429,6 +427,21 @@ class SwarmWorlds(TaskWorlds):
         out *= self.bound  # normalised -> m/s^2
         return out
 
+    def check_action_array(self, actions: Any) -> np.ndarray:
+        """(W, A, 3) normalised actions, agent i's at [:, i] -> (W, A, 3) float64 m/s^2: `check_actions` of
+        ``{agent i: actions[:, i]}`` in one pass, without the dict: the same numbers, and for a value that is
+        not finite the same ValueError, naming the agent; a wrong shape is a ValueError naming the shapes."""
+        actions, shape = np.asarray(actions), (self.W, self.agent_index.size, 3)
+        if actions.shape != shape:
+            raise ValueError(f"actions: expected shape {shape} (worlds, agents, action), got {actions.shape}")
+        try:
+            a = check_action("actions", actions, shape)  # a clipped float64 copy
+        except ValueError:  # the readable check, agent by agent, says which and why
+            return self.check_actions({agent: actions[:, i] for i, agent in enumerate(self.agents)}, self.agents,
+                                      self.W)
+        a *= self.bound  # normalised -> m/s^2
+        return a
+
     def step(self, actions: np.ndarray, stepping: np.ndarray | None = None) -> SwarmStep:
         """Advance the `stepping` worlds (default all) one controller period with (W, A, 3) actions (m/s^2).
 
@@ -440,7 +453,7 @@ class SwarmWorlds(TaskWorlds):
         """
         out = self.advance(actions, stepping)
         W, A = out.reward.shape
-        info: dict[str, np.ndarray] = {f"reward_{k}": out.values[i] for i, k in enumerate(REWARD_TERMS)}
+        info: dict[str, np.ndarray] = dict(zip(_REWARD_INFO_KEYS, out.values))
         info["reward"] = out.reward
         info.update(position_error=out.values[6], velocity_error=out.values[7],
                     status=np.repeat(out.status[:, None], A, axis=1))

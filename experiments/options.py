@@ -8,6 +8,7 @@ command line is parsed, before any work.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
 import math
@@ -19,10 +20,57 @@ from downwash_core.errors import ConfigError
 __all__ = [
     "PAIRWISE_KINDS", "CONDITIONS", "DEFAULT_CONDITIONS", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS",
     "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "CONTROLLER_NAMES", "DEFAULT_CONTROLLER", "FIELD_CHOICES",
-    "SEED_COUNT_MAX", "WIND_HELP",
+    "SEED_COUNT_MAX", "WIND_HELP", "RegisteredNames",
     "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
     "in_range", "range_words",
 ]
+
+
+PLUGIN_GROUP = "downwash_testbed.plugins"  # downwash_core.registry.PLUGIN_GROUP
+
+
+@functools.lru_cache(maxsize=1)
+def plugins_installed() -> bool:
+    """Whether any package registers components through the entry-point group (`downwash_core.registry`)."""
+    from importlib.metadata import entry_points
+
+    return bool(entry_points(group=PLUGIN_GROUP))
+
+
+class RegisteredNames(Sequence[str]):
+    """A registry's names for the option checks: the static copy (the built-in names, no import), and
+    the registry itself, with every installed plugin's names, once a name outside the copy is asked for
+    (`in`): a plugin's component passes the check where the built-in ones do, and a bad name's message
+    lists every registered one."""
+
+    def __init__(self, static: tuple[str, ...], module: str, attr: str):
+        self.static, self.module, self.attr = static, module, attr
+        self._live: tuple[str, ...] | None = None
+
+    def _names(self) -> tuple[str, ...]:
+        return self._live if self._live is not None else self.static
+
+    def __contains__(self, name: object) -> bool:
+        if name in self.static:
+            return True
+        if self._live is None:
+            if not plugins_installed():  # nothing can have been added: refused without importing the stack
+                return False
+            self._live = tuple(getattr(importlib.import_module(self.module), self.attr))  # its plugins loaded
+        return name in self._live
+
+    def __getitem__(self, index: Any) -> Any:
+        return self._names()[index]
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    def __eq__(self, other: object) -> bool:
+        return tuple(self) == (tuple(other) if isinstance(other, (tuple, list, RegisteredNames)) else other)
+
+    def __hash__(self) -> int:
+        return hash(tuple(self))
+
 
 # The names the options take, copied from their registries so that `--help` needs none of
 # the heavy imports behind them (tests/test_cli.py checks each against its source).
@@ -34,12 +82,14 @@ DEFAULT_CONDITIONS = ("no_downwash", "baseline", "oracle", *PAIRWISE_KINDS[:4], 
                       "integral", "dob", *(k + "_dob" for k in PAIRWISE_KINDS[:4]))  # downwash.conditions.DEFAULT_CONDITIONS
 FIELD_NAMES = ("so2", "so2-c4", "so2-swirl", "so2-skew", "momentum", "shed", "jet", "pybullet")  # sim.fields.registry.FIELDS
 DEFAULT_FIELD = "so2"  # sim.fields.registry.DEFAULT_FIELD
-PRESETS = ("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light", "crazyflie_stack", "mixed_formation")  # sim.presets.PRESETS
+PRESETS = RegisteredNames(("pair", "stack3", "stack4", "stack", "swap", "formation5", "heavy_over_light",
+                           "crazyflie_stack", "mixed_formation"), "sim.presets", "PRESETS")  # sim.presets.PRESETS
 AGGREGATIONS = ("linear", "velocity", "shielding")  # sim.aggregation.AGGREGATIONS
 WIND_SEVERITIES = ("light", "moderate", "severe")  # sim.wind.PRESETS_KT
 PAPER_MINUTES = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)  # downwash.sweep_cells.PAPER_MINUTES
 PAPER_MODELS = ("shallow", "deep", "equivariant")  # downwash.sweep_cells.PAPER_MODELS
-CONTROLLER_NAMES = ("lqr", "mellinger", "pid", "indi")  # controllers.registry.CONTROLLER_NAMES
+CONTROLLER_NAMES = RegisteredNames(("lqr", "mellinger", "pid", "indi"), "controllers.registry",
+                                   "CONTROLLERS")  # controllers.registry.CONTROLLER_NAMES
 DEFAULT_CONTROLLER = "lqr"  # controllers.registry.DEFAULT_CONTROLLER
 
 FIELD_CHOICES = (f"NAME[:KEY=VALUE,...] with NAME one of {', '.join(FIELD_NAMES)} (python -m experiments.fields "
@@ -88,10 +138,13 @@ def one_of(allowed: Sequence[str]) -> Callable[[str], str | None]:
     return check
 
 
-def registered_field_names() -> tuple[str, ...]:
+def registered_field_names(name: str | None = None) -> tuple[str, ...]:
     """The registered field names: the registry's own once it is loaded (a user's `register_field`
-    shows there), else the static copy (nothing can have added to a registry not yet loaded)."""
+    shows there), or when `name` is not a built-in one (the registry loads the installed plugins,
+    which may have registered it); else the static copy."""
     registry = sys.modules.get("sim.fields.registry")
+    if registry is None and name is not None and name not in FIELD_NAMES and plugins_installed():
+        registry = importlib.import_module("sim.fields.registry")
     return tuple(registry.FIELDS) if registry is not None else FIELD_NAMES
 
 
@@ -103,8 +156,8 @@ def field_check(spec: str) -> str | None:
     text = spec.strip()
     if not text:
         return None
-    names = registered_field_names()
     head, colon, tail = text.partition(":")
+    names = registered_field_names(head if "." not in head else None)  # (a dotted head: a module path)
     if head in names:
         return None
     registered = ", ".join(names)

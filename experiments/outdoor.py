@@ -41,11 +41,11 @@ from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, S
                                 seed_count_check, setup_logging, wind_check, write_results, script)
 from experiments.components import check_controller, flight_components, flown_record, guard_settings
 
-__all__ = ["OutdoorArgs", "LEADERS", "SPEED_RANGE", "run", "main"]
+__all__ = ["OutdoorArgs", "LEADERS", "LEADER_SPEED_RANGE", "run", "main"]
 
 LEADERS = ("circle", "line")
 TRAINED = ("indoor", "outdoor")  # the data the learned conditions were trained on
-SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor, sustained-speed regime)
+LEADER_SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's outdoor, sustained-speed regime)
 
 
 # The checks of the list options, run while parsing (before the stack is imported): each returns what is
@@ -64,7 +64,7 @@ def _speeds_check(text: str) -> str | None:
         speeds = _sweep_speeds(text)
     except ValueError:
         speeds = None
-    lo, hi = SPEED_RANGE
+    lo, hi = LEADER_SPEED_RANGE
     if speeds is None or not all(lo <= v <= hi for v in speeds) or len(set(speeds)) != len(speeds):
         return f"expected a comma list of distinct speeds in {lo}-{hi} m/s"
     return None
@@ -99,7 +99,7 @@ class OutdoorArgs(FlightArgs):
     seeds: int = arg(10, f"number of seeds (flights per condition, at most {SEED_COUNT_MAX})", ge=1,
                      check=seed_count_check, quick=1)
     leader: str = arg("circle", "the leader's path: circle (radius --radius) or line (along +x)", check=one_of(LEADERS))
-    speed: float = arg(1.5, "the leader's ground speed, m/s", ge=SPEED_RANGE[0], le=SPEED_RANGE[1])
+    speed: float = arg(1.5, "the leader's ground speed, m/s", ge=LEADER_SPEED_RANGE[0], le=LEADER_SPEED_RANGE[1])
     radius: float = arg(2.0, "radius of the leader's circle, m", ge=1.0, le=10.0)
     separation: float = arg(0.6, "the follower's depth below the leader, m", ge=0.3, le=2.0)
     lateral: float = arg(0.1, "the follower's offset from beneath the leader along y, m", ge=0.0, le=1.0)

@@ -57,9 +57,10 @@ def conditions() -> list[str]:
     return ["baseline", "oracle"] + models + [c + GUARDED for c in models] + list(UNLEARNED) + [c + OBSERVED for c in models]
 
 
-def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
-    """A `check` for a comma list of NAME[:KEY=VALUE,...] specs whose NAME is one of `names`, run while
-    parsing (before the stack is imported); the parameters are checked when the specs are built."""
+def _specs_check(label: str, names: Sequence[str], notes: str = "") -> Any:
+    """A `check` for a comma list of NAME[:KEY=VALUE,...] specs whose NAME is one of `names` (a plugin's
+    preset included: `experiments.options.RegisteredNames`), run while parsing (before the stack is
+    imported); the parameters are checked when the specs are built. notes: added to the allowed names."""
 
     def check(text: str) -> str | None:
         try:
@@ -67,7 +68,7 @@ def _specs_check(label: str, names: Sequence[str], allowed: str) -> Any:
         except ValueError as e:
             return str(e)
         unknown = [spec for spec in items if spec.partition(":")[0].strip() not in names]
-        return f"{label}: unknown {unknown[0]!r}; allowed: {allowed}" if unknown else None
+        return f"{label}: unknown {unknown[0]!r}; allowed: {', '.join(names)}{notes}" if unknown else None
 
     return check
 
@@ -79,11 +80,11 @@ class SwarmArgs(FlightArgs):
 
     presets: str = arg(DEFAULT_PRESETS, f"comma list of presets: {', '.join(PRESETS)} (stack:n=N takes N = 2-8, "
                                         "and spacing=)",
-                       check=_specs_check("preset", PRESETS, f"{', '.join(PRESETS)} (stack takes n=2-8, spacing=; "
-                                                              "heavy_over_light separation=)"))
+                       check=_specs_check("preset", PRESETS, " (stack takes n=2-8, spacing=; heavy_over_light "
+                                                             "separation=)"))
     aggregations: str = arg("linear,velocity", "comma list of aggregation laws of the ground truth "
                                                f"({', '.join(AGGREGATIONS)}, with optional :KEY=VALUE)",
-                            check=_specs_check("aggregation", AGGREGATIONS, ", ".join(AGGREGATIONS)))
+                            check=_specs_check("aggregation", AGGREGATIONS))
     seeds: int = arg(10, f"flights per condition, preset and law (at most {SEED_COUNT_MAX}; a crash rate is "
                          "reported with its Wilson interval)", ge=1,
                      check=seed_count_check, quick=1)
@@ -147,32 +148,17 @@ def _model_paths(names: list[str], pair_model: Path, models_dir: Path, pair_mode
 def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], neighbours,
                 guard: dict[str, float]) -> list:
     from downwash.checkpoint import wrap_pairwise
-    from downwash.conditions import GUARDED, OBSERVED, model_of
-    from downwash.guard import GuardedPredictor
+    from downwash.conditions import make_predictor
     from downwash.predictor import LearnedPredictor
-    from sim.observer import DisturbanceObserver
-    from sim.predictor import OraclePredictor, ZeroPredictor
 
-    out = []
-    for c in names:
-        model = model_of(c)
-        if c in ("baseline", "integral"):
-            out.append(ZeroPredictor())
-        elif c == "oracle":
-            out.append(OraclePredictor(field, aggregation=law))
-        elif c == "dob":
-            out.append(DisturbanceObserver())
-        elif model == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
-            out.append(LearnedPredictor(wrap_pairwise(paths[model], neighbours, expect_kind="equivariant")))
-        else:
-            mix = model.rsplit("-", 1)[1]
-            out.append(LearnedPredictor(paths[model], expect_neighbours=neighbours,
-                                        expect_aggregation=None if mix == "pair" else law))
-        if c.endswith(GUARDED):
-            out[-1] = GuardedPredictor(out[-1], **guard)
-        elif c.endswith(OBSERVED):
-            out[-1] = DisturbanceObserver(out[-1])
-    return out
+    def load(model: str) -> Any:  # a set model of its neighbours, or the pair model summed over them
+        if model == "summed_pairwise":  # assumes linear superposition: flown under every law, by design
+            return LearnedPredictor(wrap_pairwise(paths[model], neighbours, expect_kind="equivariant"))
+        mix = model.rsplit("-", 1)[1]
+        return LearnedPredictor(paths[model], expect_neighbours=neighbours,
+                                expect_aggregation=None if mix == "pair" else law)
+
+    return [make_predictor(c, field, guard=guard, aggregation=law, load=load) for c in names]
 
 
 def run(args: SwarmArgs) -> dict:

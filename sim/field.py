@@ -25,6 +25,9 @@ the follower down (-z), with A = 3.0, 1.4, 0.8 m/s^2 at s = 0.5, 1.0, 1.5 m.
 Everything is finite at r = 0, |vxy| = 0 and dp = 0, and no operation divides by zero
 or overflows; far outside the wake (rho > ~38) `G` underflows to exactly 0, which
 NumPy ignores by default.
+
+The compiled loops over pairs (`DownwashField.pairwise`, `DownwashField.pair_forces`) are
+`sim.field_kernels`'.
 """
 
 from __future__ import annotations
@@ -39,15 +42,17 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
 from downwash_core import libm
-from downwash_core.jit import njit
 from downwash_core.validate import check_trailing_shapes
-from sim.stateful_field import check_stateful_field, is_stateful
+# the compiled loops, under the names the fused tick and the tests use
+from sim.field_kernels import C4_CORE as _C4_CORE
+from sim.field_kernels import pair_forces_kernel as _pair_forces_kernel
+from sim.field_kernels import pairwise_kernel as _pairwise_kernel
+from sim.stateful_field import check_stateful_field, is_stateful_field
 
 __all__ = ["Field", "DownwashField", "pairwise_field", "pairwise_forces", "check_field", "unit_pair_scale",
            "checked_states", "off_diagonal"]
 
 _EPS = np.array(1e-12)  # m, guards the division by r in v_r (at r = 0, r_vec = 0 so v_r = 0)
-_C4_CORE = 0.5  # -, radius (in units of sigma) inside which the c4 modulation tapers to 0
 # 0-d float64 constants: cheaper per op than Python floats under NumPy 2 promotion.
 _ZERO, _ONE, _THREE, _NEG_HALF = (np.array(x) for x in (0.0, 1.0, 3.0, -0.5))
 _NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[NEXT] b[PREV] - a[PREV] b[NEXT]
@@ -407,130 +412,6 @@ def unit_pair_scale(n_veh: int) -> np.ndarray:
     return np.ones((n_veh, n_veh))
 
 
-@njit
-def _pairwise_kernel(pos, vel, rot, c, scale):
-    """Loop form of pairwise_field(DownwashField(...)) for (W, V, ...) arrays.
-
-    c: the DownwashField constants in declaration order (strength, strength_depth,
-    width0, width_slope, fade_start, fade_end, approach_gain, approach_speed,
-    radial_gain, radial_offset, radial_speed_gain, radial_speed, leader_speed_scale,
-    c4_amplitude, swirl, skew). scale (V_leader, V_follower): each pair's factor on the
-    strength (`sim.vehicle_params`: the two vehicles' kinds); 1.0, exact, flies the law as given.
-    """
-    strength, depth0, width0, width_slope, fade_start, fade_end = c[0], c[1], c[2], c[3], c[4], c[5]
-    approach_gain, approach_speed, radial_gain, radial_offset = c[6], c[7], c[8], c[9]
-    radial_speed_gain, radial_speed, speed_scale, c4, swirl, skew = c[10], c[11], c[12], c[13], c[14], c[15]
-    W, V = pos.shape[0], pos.shape[1]
-    out = np.zeros((W, V, 3))
-    for w in range(W):
-        for i in range(V):  # leader
-            nx, ny, nz = rot[w, i, 0, 2], rot[w, i, 1, 2], rot[w, i, 2, 2]
-            va_n = vel[w, i, 0] * nx + vel[w, i, 1] * ny + vel[w, i, 2] * nz
-            vax, vay, vaz = vel[w, i, 0] - va_n * nx, vel[w, i, 1] - va_n * ny, vel[w, i, 2] - va_n * nz
-            k = 1.0 / (1.0 + (vax * vax + vay * vay + vaz * vaz) / (speed_scale * speed_scale))
-            for j in range(V):  # follower
-                if j == i:
-                    continue
-                dx, dy, dz = pos[w, j, 0] - pos[w, i, 0], pos[w, j, 1] - pos[w, i, 1], pos[w, j, 2] - pos[w, i, 2]
-                s = -(dx * nx + dy * ny + dz * nz)
-                t = min(max((s - fade_start) / (fade_end - fade_start), 0.0), 1.0)
-                if t == 0.0:
-                    continue  # above the leader or just below it: exactly no wake
-                sp = max(s, 0.0)
-                rx, ry, rz = dx + s * nx, dy + s * ny, dz + s * nz
-                if skew != 0.0:
-                    rx, ry, rz = rx + skew * sp * vax, ry + skew * sp * vay, rz + skew * sp * vaz
-                vb_n = vel[w, j, 0] * nx + vel[w, j, 1] * ny + vel[w, j, 2] * nz
-                ux, uy, uz = vel[w, j, 0] - vb_n * nx, vel[w, j, 1] - vb_n * ny, vel[w, j, 2] - vb_n * nz
-                q = np.sqrt(ux * ux + uy * uy + uz * uz)
-                r = np.sqrt(rx * rx + ry * ry + rz * rz)
-                v_r = (ux * rx + uy * ry + uz * rz) / max(r, 1e-12)
-                sigma = width0 + width_slope * sp
-                rho = r / sigma
-                a = strength * scale[i, j] / (1.0 + sp / depth0) ** 2  # (strength x 1.0 is exact)
-                kawg = k * a * t * t * (3.0 - 2.0 * t) * np.exp(-0.5 * rho * rho)
-                down = kawg * (1.0 - approach_gain * np.tanh(v_r / approach_speed) * rho)
-                if c4 != 0.0:
-                    x = rx * rot[w, i, 0, 0] + ry * rot[w, i, 1, 0] + rz * rot[w, i, 2, 0]
-                    y = rx * rot[w, i, 0, 1] + ry * rot[w, i, 1, 1] + rz * rot[w, i, 2, 1]
-                    x2, y2 = x * x, y * y
-                    r4 = (x2 + y2) ** 2
-                    down *= 1.0 + c4 * (r4 - 8.0 * x2 * y2) / (r4 + (_C4_CORE * sigma) ** 4)
-                radial = radial_gain * (rho * rho - radial_offset * (1.0 + radial_speed_gain * q / radial_speed))
-                radial *= kawg / sigma
-                out[w, j, 0] += radial * rx - down * nx
-                out[w, j, 1] += radial * ry - down * ny
-                out[w, j, 2] += radial * rz - down * nz
-                if swirl != 0.0:
-                    g = swirl * kawg * rho / sigma  # times n x r_vec
-                    out[w, j, 0] += g * (ny * rz - nz * ry)
-                    out[w, j, 1] += g * (nz * rx - nx * rz)
-                    out[w, j, 2] += g * (nx * ry - ny * rx)
-    return out
-
-
-@njit
-def _pair_forces_kernel(pos, vel, rot, c, scale):
-    """(W, V_leader, V_follower, 3): the terms of `_pairwise_kernel`'s sum, kept per pair.
-
-    The same statements as `_pairwise_kernel`, accumulating into out[w, i, j] instead
-    of out[w, j] (so for V = 2 the two agree bit for bit). A copy rather than a shared
-    helper: numba does not inline across cached functions, and a helper called per pair
-    cost `_pairwise_kernel`, the 100 Hz path, 20-100 % (measured); the tests pin the two
-    loops to each other and to `DownwashField.__call__`. c and scale as in `_pairwise_kernel`.
-    """
-    strength, depth0, width0, width_slope, fade_start, fade_end = c[0], c[1], c[2], c[3], c[4], c[5]
-    approach_gain, approach_speed, radial_gain, radial_offset = c[6], c[7], c[8], c[9]
-    radial_speed_gain, radial_speed, speed_scale, c4, swirl, skew = c[10], c[11], c[12], c[13], c[14], c[15]
-    W, V = pos.shape[0], pos.shape[1]
-    out = np.zeros((W, V, V, 3))
-    for w in range(W):
-        for i in range(V):  # leader
-            nx, ny, nz = rot[w, i, 0, 2], rot[w, i, 1, 2], rot[w, i, 2, 2]
-            va_n = vel[w, i, 0] * nx + vel[w, i, 1] * ny + vel[w, i, 2] * nz
-            vax, vay, vaz = vel[w, i, 0] - va_n * nx, vel[w, i, 1] - va_n * ny, vel[w, i, 2] - va_n * nz
-            k = 1.0 / (1.0 + (vax * vax + vay * vay + vaz * vaz) / (speed_scale * speed_scale))
-            for j in range(V):  # follower
-                if j == i:
-                    continue
-                dx, dy, dz = pos[w, j, 0] - pos[w, i, 0], pos[w, j, 1] - pos[w, i, 1], pos[w, j, 2] - pos[w, i, 2]
-                s = -(dx * nx + dy * ny + dz * nz)
-                t = min(max((s - fade_start) / (fade_end - fade_start), 0.0), 1.0)
-                if t == 0.0:
-                    continue  # above the leader or just below it: exactly no wake
-                sp = max(s, 0.0)
-                rx, ry, rz = dx + s * nx, dy + s * ny, dz + s * nz
-                if skew != 0.0:
-                    rx, ry, rz = rx + skew * sp * vax, ry + skew * sp * vay, rz + skew * sp * vaz
-                vb_n = vel[w, j, 0] * nx + vel[w, j, 1] * ny + vel[w, j, 2] * nz
-                ux, uy, uz = vel[w, j, 0] - vb_n * nx, vel[w, j, 1] - vb_n * ny, vel[w, j, 2] - vb_n * nz
-                q = np.sqrt(ux * ux + uy * uy + uz * uz)
-                r = np.sqrt(rx * rx + ry * ry + rz * rz)
-                v_r = (ux * rx + uy * ry + uz * rz) / max(r, 1e-12)
-                sigma = width0 + width_slope * sp
-                rho = r / sigma
-                a = strength * scale[i, j] / (1.0 + sp / depth0) ** 2  # (strength x 1.0 is exact)
-                kawg = k * a * t * t * (3.0 - 2.0 * t) * np.exp(-0.5 * rho * rho)
-                down = kawg * (1.0 - approach_gain * np.tanh(v_r / approach_speed) * rho)
-                if c4 != 0.0:
-                    x = rx * rot[w, i, 0, 0] + ry * rot[w, i, 1, 0] + rz * rot[w, i, 2, 0]
-                    y = rx * rot[w, i, 0, 1] + ry * rot[w, i, 1, 1] + rz * rot[w, i, 2, 1]
-                    x2, y2 = x * x, y * y
-                    r4 = (x2 + y2) ** 2
-                    down *= 1.0 + c4 * (r4 - 8.0 * x2 * y2) / (r4 + (_C4_CORE * sigma) ** 4)
-                radial = radial_gain * (rho * rho - radial_offset * (1.0 + radial_speed_gain * q / radial_speed))
-                radial *= kawg / sigma
-                out[w, i, j, 0] += radial * rx - down * nx
-                out[w, i, j, 1] += radial * ry - down * ny
-                out[w, i, j, 2] += radial * rz - down * nz
-                if swirl != 0.0:
-                    g = swirl * kawg * rho / sigma  # times n x r_vec
-                    out[w, i, j, 0] += g * (ny * rz - nz * ry)
-                    out[w, i, j, 1] += g * (nz * rx - nx * rz)
-                    out[w, i, j, 2] += g * (nx * ry - ny * rx)
-    return out
-
-
 def check_field(field: Any, pos: np.ndarray | None = None, vel: np.ndarray | None = None,
                 rot: np.ndarray | None = None, name: str | None = None, finite: bool = True) -> None:
     """ConfigError unless `field` returns (W, V, 3) accelerations through `pairwise_field`, finite
@@ -548,7 +429,7 @@ def check_field(field: Any, pos: np.ndarray | None = None, vel: np.ndarray | Non
         pos = np.array([[[0.0, 0.0, 2.5], [0.0, 0.0, 1.9]], [[0.1, -0.2, 2.4], [0.25, 0.0, 1.7]]])
         vel = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0], [0.0, 0.5, -0.1]]])
         rot = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
-    if is_stateful(field):  # a field with memory: a few steps of its wake instead of one call
+    if is_stateful_field(field):  # a field with memory: a few steps of its wake instead of one call
         return check_stateful_field(field, pos, vel, rot, label, finite)
     if not callable(field):
         raise ConfigError(f"{label}: a field must be callable as field(p_a, v_a, R_a, p_b, v_b), got {type(field).__name__}")

@@ -31,9 +31,9 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from sim.predictor import OraclePredictor, PerWorldPredictor
-from sim.stateful_field import FieldMemory, StatefulField, check_stateful_field, combined, is_stateful
+from sim.stateful_field import FieldMemory, StatefulField, check_stateful_field, combined, is_stateful_field
 
-__all__ = ["is_stateful", "StatefulField", "FieldMemory", "MemoryOracle", "kept_memory", "memory_oracle",
+__all__ = ["is_stateful_field", "StatefulField", "FieldMemory", "MemoryOracle", "kept_memory", "memory_oracle",
            "check_stateful_field"]
 
 
@@ -61,7 +61,7 @@ def kept_memory(memory: FieldMemory | None, field: Any, W: int, V: int, dt: floa
     when other components change), a fresh one for a new stateful field, None for a field without memory."""
     if memory is not None and memory.source is field:
         return memory
-    return FieldMemory(field, W, V, dt, kinds) if is_stateful(field) else None
+    return FieldMemory(field, W, V, dt, kinds) if is_stateful_field(field) else None
 
 
 def memory_oracle(memory: FieldMemory | None, predictor: Any, worlds: np.ndarray | None = None) -> Any:
@@ -79,7 +79,7 @@ def memory_oracle(memory: FieldMemory | None, predictor: Any, worlds: np.ndarray
         return None
     if memory is not None and predictor.field is memory.source:
         return MemoryOracle(memory, predictor.aggregation, worlds)
-    if is_stateful(predictor.field):
+    if is_stateful_field(predictor.field):
         raise ConfigError(f"predictor: an OraclePredictor of the field with memory {type(predictor.field).__name__} "
                           "knows the wake only when the simulator flies that same field object (field=...)")
     return None

@@ -7,6 +7,7 @@ the very same passes inside one compiled call. As NumPy on these small arrays,
 per-call overhead cost several times MuJoCo's own step.
 
 - `_sense_kernel`: the true state, the sensor's sample (`sim.sensors`), the Kalman update;
+  `_sense_law_kernel` the same with a sensor's compiled law (`sim.sensor_contract`) for the sample;
 - `_wind_sense_kernel`, `_wind_advance_kernel`, `_wind_force_kernel`: the air velocity
   at each vehicle and its drag, the next gust state, the drag into `xfrc_applied`;
 - `_hold_kernel`: the 45 Hz prediction, held;
@@ -34,6 +35,7 @@ from downwash_core.geometry import perturb_quat_into, quat_to_rot
 from downwash_core.jit import njit
 from downwash_core.status import Status
 from sim.estimation import kf_predict, kf_update
+from sim.fused_abi import call_sensor
 from sim.wind import coefficients_into, drag_gain_speed, gust_into, gust_step_into
 
 # Status codes as plain ints for the compiled status pass (numba freezes globals).
@@ -107,6 +109,51 @@ def _sense_kernel(
                 kin[1, w, i, k] = qvel[w, b + k]
                 kin[2, w, i, k] = m
                 pe, ve = kf_update(pos_est[w, i, k], vel_est[w, i, k], m, gain_p, gain_v)
+                pos_est[w, i, k] = kin[3, w, i, k] = pe
+                vel_est[w, i, k] = kin[4, w, i, k] = ve
+        due[w] = t[w] >= next_prediction[w] - 1e-9
+        n_due += due[w]
+    return n_due
+
+
+@njit
+def _sense_law_kernel(
+    qpos, qvel, layout, noise, cursor, law_fn, law_params, law_state, offset, gain_p, gain_v,
+    pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw_meas,
+):
+    """`_sense_kernel` with the sample taken by a sensor's compiled law (`sim.sensor_contract`).
+
+    law_fn: the address of its C function of `SENSOR_SIGNATURE`; law_params, law_state: the addresses
+    of its constants and of these worlds' first row of its state (W, V, S). The law maps the true
+    positions kin[0] and attitudes quat, the sample's normals (columns 0:6 of each world's noise
+    block at its cursor, gathered (W, V, 6)) and offset (W, V, 3) m into the measurement kin[2] and
+    quat_est; the rest is `_sense_kernel`'s, in its order. Every array is C-contiguous over these
+    worlds (a chunk of whole worlds of the fused tick, or all of them). Returns how many worlds are due.
+    """
+    W, V = pos_est.shape[0], pos_est.shape[1]
+    normals = np.empty((W, V, 6))
+    for w in range(W):
+        c = cursor[w]
+        for i in range(V):
+            a, b = layout[i, _QPOS], layout[i, _QVEL]
+            for k in range(4):
+                quat[w, i, k] = qpos[w, a + 3 + k]
+            quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+            for k in range(3):
+                kin[0, w, i, k] = qpos[w, a + k]
+                kin[1, w, i, k] = qvel[w, b + k]
+            for k in range(6):
+                normals[w, i, k] = noise[w, c, i, k]
+    measured, truth = kin[2], kin[0]
+    call_sensor(law_fn, W, V, truth.ctypes.data, quat.ctypes.data, normals.ctypes.data, offset.ctypes.data, law_state,
+                law_params, measured.ctypes.data, quat_est.ctypes.data)
+    n_due = 0
+    for w in range(W):
+        for i in range(V):
+            q = quat_est[w, i]
+            yaw_meas[w, i] = quat_to_rot(q[0], q[1], q[2], q[3], rot_est[w, i])
+            for k in range(3):
+                pe, ve = kf_update(pos_est[w, i, k], vel_est[w, i, k], kin[2, w, i, k], gain_p, gain_v)
                 pos_est[w, i, k] = kin[3, w, i, k] = pe
                 vel_est[w, i, k] = kin[4, w, i, k] = ve
         due[w] = t[w] >= next_prediction[w] - 1e-9

@@ -7,26 +7,31 @@ and, of what the simulator derives when it binds, only what the simulator hands 
 (`PlanInputs`, a frozen view). The fused path needs
 
 - the controller: exactly `controllers.lqr.FeedbackLinearisedLQR` (any `LQRConfig`; not a
-  subclass, which may override `command_setpoint`), see `_compiled_controller`; its gains
-  and limits run as `controllers.lqr._command_setpoint_kernel`;
+  subclass, which may override `command_setpoint`), whose gains and limits run as
+  `controllers.lqr._command_setpoint_kernel`, or one with a compiled form (`controllers.compiled`:
+  ``compiled_controller(W, V)``, not with the safety layer), see `_compiled_controller`;
 - the autopilot: a `controllers.autopilot.Autopilot` (its per-vehicle tables, `Autopilot.tables`);
 - the field: a `sim.field.DownwashField` with scalar constants and linear aggregation
   (`_packed_field`), whose pairwise sum is `DownwashField.pairwise` with the scene's
-  per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads);
-- the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field, a predictor whose
+  per-pair factors (`sim.vehicle_params`: all 1.0 for paper quads); or, under linear
+  aggregation, a field with a compiled form, ``compiled_field()`` (`sim.field_contract`),
+  that every pair of the scene flies as given (`_compiled_field`; its C function by address);
+- the predictor: a `ZeroPredictor`, an `OraclePredictor` of such a field (a compiled form's too; inside a
+  `PerWorldPredictor`, only the paper field's), a predictor whose
   `compiled()` returns a `sim.predictor.CompiledPredictor` (a C function), or a
   `PerWorldPredictor` of those (`_per_world_tables`); none with state (`sim.predictor.is_stateful`)
   but a guard whose ``compiled_guard(W, V)`` gives its model's C function and its own pass,
   alone or among the predictors of a `PerWorldPredictor` (alone, its monitor runs compiled at
   the end of the kernel's tick too, in place of the simulator's call of ``observe``);
-- the sensor: any of `sim.sensors` (every sensor the simulator takes is of the one family the
-  sense pass runs: its `compiled()` stds in `fc`, its episode's offsets `mocap_offset` in `tab`);
+- the sensor: any the simulator takes: of the family of `sim.sensors` (its `compiled()` stds in `fc`),
+  or with a compiled law (`sim.sensor_contract`: its C function, constants and state by address in
+  `tab`, sensor_fn 0: none); its episode's offsets `mocap_offset` in `tab`;
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
   (`sim.physics`), and buffers laid out as the kernel reads them (else `_NoPlan`).
 A safety filter (`sim.safety`) flies with every plan: its C function (`SafetyFilter.address`) and
 constants by address in `tab` (safety_fn 0: none).
 
-A `_Plan` holds the kernel's tables (`sim.fused._TAB`, `_FC`) and every array they address,
+A `_Plan` holds the kernel's tables (`sim.fused.TAB`, `FC`) and every array they address,
 so the addresses stay valid for the plan's lifetime; the simulator rebuilds it when a
 component is replaced (assigning the attribute does) or the physics' models change.
 The worlds of a batch are split into chunks for the helper threads (`_chunk_sizes`).
@@ -43,15 +48,19 @@ import numpy as np
 
 from controllers.autopilot import Autopilot
 from controllers.lqr import FeedbackLinearisedLQR
+from downwash_core.errors import ConfigError
 from sim.aggregation import LinearSuperposition
 from sim.field import DownwashField
-from sim.fused import (_FC, _FUSED_KERNELS, _FATAL_MAX, _PRED_C, _PRED_ORACLE, _PRED_PER_WORLD, _PRED_ZERO,
-                       _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL, _TAB)
+from sim.field_contract import CompiledField, checked_field
+from sim.fused import FUSED_KERNELS
+from sim.fused_abi import (FATAL_MAX, FC, PRED_C, PRED_ORACLE, PRED_PER_WORLD, PRED_ZERO, STEP_CALLER, STEP_ROWS,
+                           STEP_SERIAL, TAB)
 from sim.physics import _SerialPhysics
 from sim.predictor import (CompiledGuard, CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor,
                            is_stateful)
 from sim.rows import row_layout
-from sim.vehicle_params import told_kinds
+from sim.stateful_field import is_stateful_field
+from sim.vehicle_params import scene_field, told_kinds
 
 __all__ = ["PlanInputs"]
 
@@ -86,6 +95,7 @@ class PlanInputs:
     turbulence_intensity: float
     prediction_period: float  # s
     safety_filter: Any  # the CBF filter on the commands (`sim.safety.SafetyFilter`), or None
+    sensor_law: Any  # the sensor's compiled law (`sim.sensor_contract.CompiledSensorLaw`, checked), or None
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -99,16 +109,31 @@ class _NoPlan(Exception):
 
 def _compiled_controller(controller: Any) -> bool:
     """Whether `controller` runs inside the fused kernel: exactly a `FeedbackLinearisedLQR` (its gains
-    and limits are read into the plan; any other controller, a subclass included, runs in Python)."""
-    return type(controller) is FeedbackLinearisedLQR
+    and limits are read into the plan), or a controller with a compiled form, ``compiled_controller(W, V)``
+    (`controllers.compiled`); any other controller, an LQR subclass included, runs in Python."""
+    return type(controller) is FeedbackLinearisedLQR or callable(getattr(controller, "compiled_controller", None))
+
+
+def _c_array(a: Any, dtype: Any, name: str, leading: tuple[int, ...] = ()) -> np.ndarray:
+    """A compiled form's array as the kernel reads it by address: never copied (a controller's memory is
+    the one its ``reset`` clears), so ConfigError unless it is C-contiguous of `dtype` with these leading axes."""
+    if not (isinstance(a, np.ndarray) and a.dtype == dtype and a.flags.c_contiguous and a.shape[:len(leading)] == leading
+            and a.ndim == len(leading) + 1):
+        got = f"{type(a).__name__} {getattr(a, 'dtype', '')} {getattr(a, 'shape', '')}"
+        raise ConfigError(f"compiled_controller: its {name} must be a C-contiguous {np.dtype(dtype).name} array "
+                          f"of shape {(*leading, 'n')}, got {got}")
+    return a
 
 
 def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
     """The fused path's plan for simulator `sim`, whose bound state is `bound`, when every component
     has a compiled form (see the module docstring), else None: the readable path."""
     field_packed = _packed_field(sim.field, sim.aggregation)
-    if field_packed is None or not _compiled_controller(sim.controller):
+    field_law = None if field_packed is not None else _compiled_field(sim.field, sim.aggregation, sim.vehicle_params)
+    if (field_packed is None and field_law is None) or not _compiled_controller(sim.controller):
         return None
+    if type(sim.controller) is not FeedbackLinearisedLQR and bound.safety_filter is not None:
+        return None  # the safety layer redoes the LQR's own step (controllers.compiled)
     if not isinstance(sim.autopilot, Autopilot):
         return None
     guard = None
@@ -119,39 +144,41 @@ def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
         guarded, guard = parts
     ph, n_threads = sim.physics, 1
     if isinstance(ph, _SerialPhysics):
-        stepping, native = _STEP_SERIAL, ph.native_step()
+        stepping, native = STEP_SERIAL, ph.native_step()
         if native is None:
             return None
     else:
         # at least _CHUNK_WORLDS worlds per thread of the batch's, each thread with its MjData (chunks: `_chunk_sizes`)
         n_threads = max(1, min(ph.batch.nthread, sim.W // _CHUNK_WORLDS))
         native = ph.native_step(n_threads)
-        stepping = _STEP_ROWS if native is not None else _STEP_CALLER
+        stepping = STEP_ROWS if native is not None else STEP_CALLER
         if native is None:
             n_threads = 1
-    predictor, compiled, oracle_packed, per_world = sim.predictor, None, np.zeros(16), None
+    predictor, compiled, oracle_packed, per_world, oracle_law = sim.predictor, None, np.zeros(16), None, None
     if guard is not None:
-        code, compiled = _PRED_C, guarded
+        code, compiled = PRED_C, guarded
     elif type(predictor) is ZeroPredictor:
-        code = _PRED_ZERO
+        code = PRED_ZERO
     elif type(predictor) is PerWorldPredictor:
         per_world = _per_world_tables(predictor, sim.W, sim.vehicle_params, bound.scene_predictor)
         if per_world is None:
             return None
-        code = _PRED_PER_WORLD
+        code = PRED_PER_WORLD
     elif type(predictor) is OraclePredictor:
         packed = _packed_field(predictor.field, predictor.aggregation)
-        if packed is None:
-            return None
-        code, oracle_packed = _PRED_ORACLE, packed
+        if packed is None:  # a field's compiled form, as the truth's
+            oracle_law = _compiled_field(predictor.field, predictor.aggregation, sim.vehicle_params)
+            if oracle_law is None:
+                return None
+        code, oracle_packed = PRED_ORACLE, np.zeros(16) if packed is None else packed
     else:
         compiled = getattr(bound.scene_predictor, "compiled", lambda: None)()  # told the scene's kinds (`_bind`)
         if compiled is None:
             return None
-        code = _PRED_C
+        code = PRED_C
     try:
         return _Plan(sim, bound, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world,
-                     guard)
+                     guard, (field_law, oracle_law))
     except _NoPlan:
         return None
 
@@ -169,7 +196,8 @@ class _Plan:
     def __init__(self, sim: Any, bound: PlanInputs, stepping: int, physics_native: tuple | None,
                  field_packed: np.ndarray, oracle_packed: np.ndarray, predictor_code: int,
                  compiled: CompiledPredictor | None, n_threads: int, per_world: dict[str, Any] | None = None,
-                 guard: CompiledGuard | None = None):
+                 guard: CompiledGuard | None = None,
+                 laws: tuple[CompiledField | None, CompiledField | None] = (None, None)):
         W, V, cfg, r = sim.W, sim.V, sim.cfg, sim.cfg.rates
         ph = sim.physics
         self.revision = ph.revision
@@ -178,6 +206,8 @@ class _Plan:
         pw_guards = per_world is not None and bool(per_world["pw_guard_fn"].any())
         self.row_layout, self.row_size = row_layout(W, V, bound.wind_on, guard is not None or pw_guards)
         wind_consts = sim.wind.kernel_constants() if bound.wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)
+        lqr = type(sim.controller) is FeedbackLinearisedLQR  # else a compiled form (controllers.compiled)
+        law = None if lqr else sim.controller.compiled_controller(W, V)
         keep: dict[str, np.ndarray] = {
             "layout": bound.layout, "noise": bound.noise, "cursor": bound.cursor, "pos_est": sim.pos_est,
             "vel_est": sim.vel_est, "t": sim.t, "next_prediction": sim.next_prediction, "due": bound.due,
@@ -188,7 +218,8 @@ class _Plan:
             "kin": np.empty((5, W, V, 3)), "quat": np.empty((W, V, 4)), "rot": np.empty((W, V, 3, 3)),
             "quat_est": np.empty((W, V, 4)), "rot_est": np.empty((W, V, 3, 3)), "yaw": np.empty((W, V)),
             "applied": np.empty((W, V, 3)), "mean": np.empty((W, V, 3)), "pred": np.empty((W, V, 3)),
-            "Kt": np.ascontiguousarray(sim.controller._Kt, dtype=np.float64), "field_packed": field_packed,
+            "Kt": np.ascontiguousarray(sim.controller._Kt if lqr else np.zeros((7, 4)), dtype=np.float64),
+            "field_packed": np.zeros(16) if field_packed is None else field_packed,
             "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": bound.wind_noise,
             "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
             "wind_axes": wind_consts[3], "air": np.empty((W, V, 3)), "vel_air": np.empty((W, V, 3)),
@@ -209,32 +240,52 @@ class _Plan:
                         guard_applied=guard.applied)
         # the guard's monitor runs at the end of the kernel's tick (not when the caller steps the physics:
         # the kernel runs one autopilot tick per call then, and the simulator calls observe)
-        self.monitors = guard is not None and guard.monitor != 0 and stepping != _STEP_CALLER
+        self.monitors = guard is not None and guard.monitor != 0 and stepping != STEP_CALLER
         if self.monitors:
             keep.update(monitor_params=guard.monitor_params, monitor_iparams=guard.monitor_iparams, seen=guard.seen,
                         seen_t=guard.seen_t)
         safety = self.safety = bound.safety_filter  # (kept: its constants and C function, by address)
         if safety is not None:
             keep.update(safety_params=safety.params, safety_lower=safety.lower, safety_upper=safety.upper)
-        tab = dict.fromkeys(_TAB, 0)
+        # the truth's and the oracle's compiled forms (sim.field_contract), kept with their constants, by address;
+        # a scene flies them as given: every pair's factor 1.0
+        self.laws = field_law, oracle_law = laws
+        keep["field_fn_scale"] = np.ones((V, V))
+        if field_law is not None:
+            keep["field_params"] = field_law.params
+        if oracle_law is not None:
+            keep["oracle_params"] = oracle_law.params
+        sensor = self.sensor_law = bound.sensor_law  # (kept: its constants and state, by address; the state is
+        if sensor is not None:  # the simulator's, which the readable path reads and its resets set)
+            keep.update(sensor_params=sensor.params, sensor_state=sensor.state)
+        if law is not None:  # (kept: its constants and memory, by address; the memory is the controller's own)
+            keep.update(controller_params=_c_array(law.params, np.float64, "params"),
+                        controller_state=_c_array(law.state, np.float64, "state", (W, V)))
+        tab = dict.fromkeys(TAB, 0)
         tab.update(W=W, V=V, block=cfg.noise_block, n_sub=self.n_sub,
                    n_physics=r.physics_per_autopilot, stepping=stepping, predictor=predictor_code,
                    guard=int(guard is not None), guard_fn=0 if guard is None else int(guard.address),
                    pw_guarded=int(pw_guards), monitor_fn=int(guard.monitor) if self.monitors else 0,
                    seen_stride=guard.seen.strides[0] if self.monitors else 0,
-                   safety_fn=0 if safety is None else safety.address)
+                   safety_fn=0 if safety is None else safety.address,
+                   controller_fn=0 if law is None else int(law.address),
+                   controller_width=0 if law is None else law.state.shape[2],
+                   field_fn=0 if field_law is None else int(field_law.address),
+                   oracle_fn=0 if oracle_law is None else int(oracle_law.address),
+                   sensor_fn=0 if sensor is None else int(sensor.address),
+                   sensor_width=0 if sensor is None else sensor.state.shape[2])
         sizes = _chunk_sizes(W, n_threads, _TAIL_WORLDS)
         chunks = np.zeros((n_threads, len(sizes), 4), np.int64)  # as run by each thread: its own MjData
         bounds = np.concatenate([[0], np.cumsum(sizes)])
         chunks[:, :, 0], chunks[:, :, 1] = bounds[:-1], bounds[1:]
-        if stepping == _STEP_SERIAL:
+        if stepping == STEP_SERIAL:
             step_fn, model, data, warnings = physics_native
-            if warnings.dtype != np.int32 or warnings.strides[0] % 4 or warnings.size <= _FATAL_MAX:
+            if warnings.dtype != np.int32 or warnings.strides[0] % 4 or warnings.size <= FATAL_MAX:
                 raise _NoPlan("unexpected layout of MuJoCo's warning counts")
             self.warnings = warnings
             tab.update(step_fn=step_fn, model=model, data=data, warnings=warnings.ctypes.data,
                        warning_stride=warnings.strides[0] // 4)
-        elif stepping == _STEP_ROWS:
+        elif stepping == STEP_ROWS:
             step_fn, set_state, get_state, model, state, spec, batch_warnings, scratch = physics_native
             keep.update(state=state, batch_warnings=batch_warnings)
             self.scratch = scratch  # one MjData per thread, as mujoco.batch keeps
@@ -261,21 +312,21 @@ class _Plan:
         for slot, name in storage.items():
             if name in self.row_layout:
                 tab["row_" + slot] = self.row_layout[name][0]
-        self.tab = np.array([tab[name] for name in _TAB], dtype=np.int64)
+        self.tab = np.array([tab[name] for name in TAB], dtype=np.int64)
         self.chunks = chunks
         self.n_threads = n_threads
-        lqr = sim.controller
+        limits = sim.controller if lqr else None  # (the LQR's limits; a compiled form keeps its own in params)
         fc = {
             "sigma_p": bound.sigma_p, "sigma_att": bound.sigma_att, "kf_gain_p": bound.kf_gain_p,
             "kf_gain_v": bound.kf_gain_v, "ou_a": bound.ou_a, "ou_b": bound.ou_b,
             "intensity": bound.turbulence_intensity,
             "dt": r.autopilot_dt, "prediction_period": bound.prediction_period, "lookahead": r.control_dt,
-            "tan_tilt": math.tan(lqr.max_tilt), "min_vertical": lqr.min_vertical,
+            "tan_tilt": math.tan(limits.max_tilt) if lqr else 0.0, "min_vertical": limits.min_vertical if lqr else 0.0,
             "min_airspeed": wind_consts[4], "max_distance": cfg.max_distance, "ground": cfg.ground_clearance,
         }
-        self.fc = np.array([float(fc[name]) for name in _FC])
+        self.fc = np.array([float(fc[name]) for name in FC])
         self.leading_args = (self.tab, self.fc, ph.qpos, ph.qvel, ph.ctrl, ph.xfrc_applied)  # of every kernel call
-        self.kernel = _FUSED_KERNELS[int(bound.wind_on)]
+        self.kernel = FUSED_KERNELS[int(bound.wind_on)]
         self.no_action = np.zeros((W, V, 3))  # stands in for an absent residual or override
 
 
@@ -341,7 +392,7 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) 
             packed = _packed_field(p.field, p.aggregation)
             if packed is None:
                 return None
-            out["pw_code"][worlds], out["pw_oracle"][worlds] = _PRED_ORACLE, packed
+            out["pw_code"][worlds], out["pw_oracle"][worlds] = PRED_ORACLE, packed
             continue
         compiled = (p if isinstance(p, CompiledPredictor)  # (a guard's model, above)
                     else getattr(told_kinds(p, vehicles), "compiled", lambda: None)())
@@ -350,7 +401,7 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) 
         params = np.ascontiguousarray(compiled.params, dtype=np.float64)
         iparams = np.ascontiguousarray(compiled.iparams, dtype=np.int64)
         out["compiled"].append((compiled, params, iparams))
-        out["pw_code"][worlds], out["pw_fn"][worlds] = _PRED_C, int(compiled.address)
+        out["pw_code"][worlds], out["pw_fn"][worlds] = PRED_C, int(compiled.address)
         out["pw_params"][worlds], out["pw_iparams"][worlds] = params.ctypes.data, iparams.ctypes.data
     return out
 
@@ -368,3 +419,16 @@ def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:
     if packed is None or packed.shape != (16,):
         return None
     return np.ascontiguousarray(packed, dtype=np.float64)
+
+
+def _compiled_field(field: Any, aggregation: Any, vehicles: Any) -> CompiledField | None:
+    """A field's compiled form (`sim.field_contract`, checked: ConfigError for one the kernel cannot read)
+    under linear aggregation, for a field without memory that every pair of the scene flies as given
+    (`sim.vehicle_params.scene_field`; a pair of kinds with a field of its own flies the readable path),
+    else None."""
+    if aggregation is not None and not isinstance(aggregation, LinearSuperposition):
+        return None
+    make = getattr(field, "compiled_field", None)
+    if not callable(make) or is_stateful_field(field) or scene_field(field, vehicles) is not field:
+        return None
+    return checked_field(make(), type(field).__name__)

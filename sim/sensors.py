@@ -20,7 +20,9 @@ were components, bit for bit. `measure` is the readable law (NumPy, batched (W, 
 tests/test_sensors.py checks the compiled pass against it and both paths' flights against
 each other. A new sensor of this family needs only its parameters and `episode_offset`
 (docs/extending.md, "A new sensor noise model"); one outside it (outliers, dropouts,
-latency) would need a pass of its own, and `check_sensor` refuses it.
+latency) brings its own compiled law, ``compiled_sensor(W, V)`` (`sim.sensor_contract`), which the
+same sense pass runs in place of the family's on both paths; `check_sensor` refuses a sensor with
+neither.
 
 Registered (`SENSORS`, a `downwash_core.registry.Registry`, which plugins add to; `make_sensor`;
 `resolve_sensor_spec("NAME[:KEY=VALUE,...]")`, the registries' one spec grammar):
@@ -161,17 +163,23 @@ class BiasedMocap(MocapConfig):
 
 
 def check_sensor(sensor: Any, label: str = "SimConfig.mocap") -> Any:
-    """`sensor` when it has the interface of `Sensor` and finite, non-negative compiled constants;
-    ConfigError naming `label` otherwise."""
-    missing = [a for a in ("measurement_noise", "process_accel_noise", "compiled", "episode_offset", "measure",
-                           "describe") if not hasattr(sensor, a)]
+    """`sensor` when it has the interface of `Sensor` and finite, non-negative compiled constants, or,
+    outside the family, a compiled law (``compiled_sensor``, `sim.sensor_contract`: checked when the
+    simulator asks for it, with its batch's sizes); ConfigError naming `label` otherwise."""
+    law = hasattr(sensor, "compiled_sensor")
+    needs = ("measurement_noise", "process_accel_noise", "episode_offset", "describe") + \
+        (() if law else ("compiled", "measure"))
+    missing = [a for a in needs if not hasattr(sensor, a)]
     if missing:
         raise ConfigError(f"{label}: a sensor needs {', '.join(missing)} (see sim.sensors.Sensor; registered: "
                           f"{', '.join(SENSORS)}), got {type(sensor).__name__}")
+    if law:
+        return sensor
     constants = sensor.compiled()
     if not isinstance(constants, CompiledSensor) or not all(math.isfinite(c) and c >= 0 for c in constants):
         raise ConfigError(f"{label}: compiled() must give a CompiledSensor of finite stds >= 0 (a sensor outside "
-                          f"the family of sim.sensors needs a pass of its own), got {constants!r}")
+                          f"the family of sim.sensors brings a compiled law, compiled_sensor: "
+                          f"sim.sensor_contract), got {constants!r}")
     return sensor
 
 

@@ -33,10 +33,10 @@ Two paths, one behaviour, over the modules below this one: `sim.passes` (the com
 tick, shared by both paths), `sim.fused` (the fused tick: a whole controller tick as ONE compiled call, one
 variant with and one without the wind passes), `sim.plan` (whether the components can fly it, `_make_plan`,
 and its bound tables, `_Plan`) and `sim.rows` (a tick's log row: a `Row` on the fused path, a dict on the
-other). The readable path (`_tick_readable`) runs each autopilot tick as the passes around the pluggable
-Python calls (predictor, field, reference, controller); the fast path (`_tick_fused`, when `_make_plan` finds
-a compiled form for every component) calls the fused kernel, with a batch's worlds in chunks for this thread
-and its helper threads (`sim.fork_join`). The plan is rebuilt when a component is replaced (assigning the
+other). The readable path (`_tick_readable`, of `sim.ticks.ReadableTicks`) runs each autopilot tick as the
+passes around the pluggable Python calls (predictor, field, reference, controller); the fast path
+(`_tick_fused`, of `sim.ticks.FusedTicks`, when `_make_plan` finds a compiled form for every component) calls
+the fused kernel, with a batch's worlds in chunks for this thread and its helper threads (`sim.fork_join`). The plan is rebuilt when a component is replaced (assigning the
 attribute does). tests/test_fast_path.py checks that both paths fly bit-identical logs.
 """
 
@@ -51,28 +51,25 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from controllers.autopilot import Autopilot
-from controllers.lqr import ControllerState, FeedbackLinearisedLQR, Setpoint
+from controllers.lqr import FeedbackLinearisedLQR
 from downwash_core.errors import ConcurrentUseError, ConfigError
 from downwash_core.jit import announce_first_compile, mark_compiled
 from downwash_core.params import QUAD, RATES, QuadParams, Rates
 from downwash_core.provenance import describe
 from downwash_core.state import VehicleStates
 from downwash_core.status import Status
-from sim import fork_join
-from sim.aggregation import wake_field
 from sim.field_memory import kept_memory, memory_oracle
 from sim.estimation import MocapKalmanFilter
 from sim.field import DownwashField, check_field
-from sim.fused import _FC, _STEP_CALLER, _TAB
-from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _Sensed, _status_kernel, _true_states_kernel,
-                        _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
+from sim.passes import _Sensed, _status_kernel, _true_states_kernel
 from sim.physics import check_world_memory, make_physics
-from sim.plan import PlanInputs, _compiled_controller, _make_plan, _Plan
+from sim.plan import PlanInputs, _compiled_controller, _make_plan
 from sim.predictor import Predictor, ZeroPredictor, is_stateful
 from sim.safety import SafetyConfig, safety_filter
-from sim.rows import Row
 from sim.scene import Scene
+from sim.sensor_contract import compiled_sensor_law, episode_state
 from sim.sensors import MocapConfig, check_sensor, draw_episode_offset
+from sim.ticks import FusedTicks, ReadableTicks, as_batch
 from sim.turbulence import OUTurbulence
 from sim.vehicle_params import VehicleParams, scene_field, scene_predictor
 from sim.wind import DrydenWind
@@ -113,7 +110,6 @@ class SimConfig:
         return out
 
 
-_NO_CONTROL = fork_join.new_control()  # the control block of a call alone, which never reads it
 
 
 # Assigning one of these attributes of a Simulator rebinds its compiled passes at the next tick
@@ -123,7 +119,7 @@ _BOUND_INPUTS = frozenset({"field", "predictor", "controller", "autopilot", "tur
                            "gust_state", "f_hat", "next_prediction", "mocap_offset"})
 
 
-class Simulator:
+class Simulator(FusedTicks, ReadableTicks):
     """W worlds of V vehicles flying the full stack; advance one controller tick at a time.
 
     reference: callable t (W,) -> RefSample with (W, V, ...) arrays (`downwash_trajectories.stack`).
@@ -216,7 +212,8 @@ class Simulator:
         ).astype(np.int64)
         # scalars of the hot loop that do not depend on the components, as Python floats
         self._prediction_period = 1.0 / r.predictor_hz  # s
-        self._sigma_p, self._sigma_att = self.sensor.compiled()
+        self._sensor_law = compiled_sensor_law(self.sensor, W, V)  # a law outside the family (sim.sensor_contract)
+        self._sigma_p, self._sigma_att = self.sensor.compiled() if self._sensor_law is None else (0.0, 0.0)
         self._kf_gain_p, self._kf_gain_v = (float(g) for g in self.kf.gain)
         self._drag_gain = vp.drag_gain  # (V,) 1/m, of the wind's drag
 
@@ -287,10 +284,13 @@ class Simulator:
                                          np.zeros((3, 2, 2)))
         # The readable path's compiled passes: their persistent arguments, bound once; every
         # array here is only ever updated in place, so each tick passes just the fresh ones.
+        law = self._sensor_law  # (the family's stds, or the addresses of a compiled law: `sim.sensor_contract`)
+        sample = (self._sigma_p, self._sigma_att) if law is None else (
+            int(law.address), law.params.ctypes.data, law.state.ctypes.data)
         self._sense_args = (
-            self.physics.qpos, self.physics.qvel, self._layout, self._noise, self._cursor,
-            self._sigma_p, self._sigma_att, self.mocap_offset, self._kf_gain_p, self._kf_gain_v,
-            self.pos_est, self.vel_est, self.t, self.next_prediction, self._due,
+            self.physics.qpos, self.physics.qvel, self._layout, self._noise, self._cursor, *sample,
+            self.mocap_offset, self._kf_gain_p, self._kf_gain_v, self.pos_est, self.vel_est, self.t,
+            self.next_prediction, self._due,
         )
         self._actuate_args = (
             self.field_enabled, self._noise, self._cursor, self.turb,
@@ -303,10 +303,11 @@ class Simulator:
         self._observe = None if getattr(self._plan, "monitors", False) else getattr(self._scene_predictor, "observe", None)
         if self.fast and not _compiled_controller(self.controller) and not self.__dict__.get("_warned_readable"):
             self.__dict__["_warned_readable"] = True  # once per simulator
-            log.warning("Simulator: the controller %s has no compiled form (the fused tick runs exactly "
-                        "controllers.lqr.FeedbackLinearisedLQR), so this simulator flies the readable path, the same "
-                        "loop with the controller called from Python: about %s slower (docs/extending.md, "
-                        "'A new controller')", type(self.controller).__name__, _READABLE_SLOWDOWN)
+            log.warning("Simulator: the controller %s has no compiled form (the fused tick runs "
+                        "controllers.lqr.FeedbackLinearisedLQR and controllers with compiled_controller), so this "
+                        "simulator flies the readable path, the same loop with the controller called from Python: "
+                        "about %s slower (docs/extending.md, 'A new controller')", type(self.controller).__name__,
+                        _READABLE_SLOWDOWN)
         object.__setattr__(self, "_bound", True)
 
     # ------------------------------------------------------------------ state access
@@ -357,6 +358,9 @@ class Simulator:
             else:
                 self.gust_state[w] = 0.0
             self.mocap_offset[w] = draw_episode_offset(self.sensor, self.seeds[w], self.V)
+            if self._sensor_law is not None:  # its memory, from the world's own sensor-state stream
+                state = self._sensor_law.state
+                state[w] = episode_state(self.sensor, self.seeds[w], self.V, state.shape[2])
             self._refill(w)
         self.t[worlds] = 0.0
         self.tick_index[worlds] = 0
@@ -369,8 +373,9 @@ class Simulator:
         self.turb[worlds] = 0.0
         self.f_hat[worlds] = 0.0
         self.next_prediction[worlds] = 0.0
-        for part in (self._memory, self._scene_predictor if self._predictor_state else None, self.controller):
-            if callable(getattr(part, "reset", None)):  # wakes, a predictor's and a controller's state: afresh
+        for part in (self._memory, self._scene_predictor if self._predictor_state else None, self.controller,
+                     self._safety_filter):
+            if callable(getattr(part, "reset", None)):  # wakes, a predictor's, a controller's, the safety filter's state
                 part.reset(worlds)
         self._cursor_max = int(self._cursor.max())
 
@@ -412,9 +417,9 @@ class Simulator:
         """
         W, V = self.W, self.V
         if residual is not None:
-            residual = _as_batch(residual, (W, V, 3))
+            residual = as_batch(residual, (W, V, 3))
         if override is not None:
-            override = _as_batch(override, (W, V, 3))
+            override = as_batch(override, (W, V, 3))
         lock = self._one_thread("tick")
         try:
             if not self._bound:
@@ -431,140 +436,6 @@ class Simulator:
             mark_compiled()
         finally:
             lock.release()
-        return row
-
-    def _tick_fused(self, plan: _Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
-        """One controller tick through `_fused_kernel` (see the module docstring)."""
-        ref = self.reference(self.t)
-        flat = np.empty(plan.row_size)
-        n_sub, block = plan.n_sub, self.cfg.noise_block
-        actions = (residual is not None) + 2 * (override is not None)
-        residual = plan.no_action if residual is None else _kernel_array(residual)
-        override = plan.no_action if override is None else _kernel_array(override)
-        refs = (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate)
-        if plan.n_threads > 1:  # the helpers read them by address, as C-contiguous arrays
-            refs = tuple(_kernel_array(x) for x in refs)
-        args = plan.leading_args + refs + (residual, override, actions, flat)
-        sub, diverged, n_ended = 0, None, 0
-        chunks = plan.chunks
-        caller_steps = plan.stepping == _STEP_CALLER
-        while sub < n_sub:
-            if self._cursor_max >= block:
-                self._refill_used()
-            # the rest of the tick in one call (up to a refill of the noise blocks), unless the
-            # caller steps the physics: then one autopilot tick per call
-            stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
-            if plan.n_threads == 1:
-                n_ended = plan.kernel(*args, sub, stop, chunks[0], _NO_CONTROL, fork_join.SOLO)
-            else:
-                n_ended = self._run_threads(plan, args, sub, stop)
-            self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
-            if caller_steps:
-                d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
-                diverged = d if diverged is None else diverged | d
-            sub = stop
-        if caller_steps:
-            self._check(diverged)
-        elif n_ended:
-            self._end_worlds(self._status_new)
-        return Row(flat, plan.row_layout)
-
-    def _run_threads(self, plan: _Plan, args: tuple, sub: int, stop: int) -> int:
-        """Autopilot ticks sub..stop-1 on this thread and the helpers (`sim.fork_join`); returns how
-        many worlds ended. The helpers serve every plan of this simulator (a plan is rebuilt
-        when a component changes, e.g. at each autoreset of an env with randomised fields)."""
-        helpers = self.__dict__.get("_helpers")
-        if helpers is None or not helpers.alive or helpers.key != (plan.kernel, plan.n_threads):
-            helpers = self._start_helpers(plan)  # first use, or a forked child (no threads of its own)
-        ctl, role = (helpers.ctl, fork_join.MAIN) if helpers.start_tick() else (_NO_CONTROL, fork_join.SOLO)
-        return helpers.end_tick(plan.kernel(*args, sub, stop, plan.chunks[0], ctl, role), stop - sub)
-
-    def _start_helpers(self, plan: _Plan) -> fork_join.Helpers:
-        """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever
-        the plan (each tick's tables come through the control block). What they hold must not
-        refer to the simulator, which stops them when it is collected."""
-        previous = self.__dict__.get("_helpers")
-        if previous is not None:
-            previous.stop()  # (nothing in a forked child, whose copy has no threads)
-        ctl = fork_join.new_control()
-        W, V = self.W, self.V
-        kernel = plan.kernel  # and the physics state: the same arrays for every plan of this simulator
-        # placeholders of the arguments but the physics state's (a helper reads the tick's own from ctl)
-        fixed = (np.zeros(len(_TAB), np.int64), np.zeros(len(_FC))) + plan.leading_args[2:] \
-            + (np.zeros((W, V, 3)),) * 3 + (np.zeros((W, V)),) * 2 + (np.zeros((W, V, 3)),) * 2 \
-            + (0, np.zeros(1), 0, 0, np.zeros((1, 4), np.int64))
-
-        def serve(t: int) -> int:
-            return kernel(*fixed, ctl, fork_join.HELPER + t)
-
-        helpers = fork_join.Helpers(plan.n_threads - 1, serve, ctl, owner=self)
-        helpers.key = (kernel, plan.n_threads)
-        self.__dict__["_helpers"] = helpers
-        return helpers
-
-    def _tick_readable(self, residual: np.ndarray | None, override: np.ndarray | None) -> dict[str, np.ndarray]:
-        """One controller tick as compiled passes around the Python components (see the module docstring)."""
-        r = self.cfg.rates
-        ph, W, V = self.physics, self.W, self.V
-        wind = self._wind_on
-        row: dict[str, np.ndarray] = {}
-        t_start = self.t.copy()
-        diverged = None
-        for sub in range(r.autopilot_per_control):
-            first = sub == 0
-            if self._cursor_max >= self._noise.shape[1]:
-                self._refill_used()
-            sensed = _Sensed.empty(W, V) if first else self._reused  # the first tick's arrays become the row
-            kin, quat, rot, quat_est, rot_est, yaw, applied = sensed
-            pos, vel, mocap, pos_est, vel_est = kin
-            # motion capture and Kalman update
-            n_due = _sense_kernel(*self._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
-
-            # the wind at each vehicle, its drag, and the next gust state; the wakes see vel - u_air
-            vel_air = vel
-            if wind:
-                air, vel_air, wind_acc = tuple(np.empty((W, V, 3)) for _ in range(3)) if first else self._wind_reused
-                _wind_sense_kernel(self.gust_state, *self._wind_sense_consts, vel, air, vel_air, wind_acc)
-                _wind_advance_kernel(self.gust_state, self._wind_noise, self._cursor, vel, *self._wind_advance_consts)
-
-            # downwash field, applied as an external force until the next autopilot tick (a wake with memory
-            # steps first, carried by the air); before the predictor, whose oracle may read it
-            mean = (wake_field(self._scene_field, pos, vel_air, rot, self.aggregation) if self._memory is None else
-                    self._memory.advance(pos, vel, vel_air, rot, air.mean(axis=1) if wind else None, self.aggregation))
-
-            # predictor at 45 Hz, held: it sees what a lab measures, the truth only for oracles
-            if n_due:
-                pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot),
-                                             **({"due": self._due} if self._predictor_state else {}))
-                _hold_kernel(self.f_hat, _as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
-
-            if first:  # the LQR and feedback linearisation at 50 Hz
-                ref = self.reference(self.t)
-                cmd_acc = np.empty((W, V, 3))  # m/s^2, the command applied (row u_cmd)
-                state = ControllerState(pos_est, vel_est, yaw)
-                setpoint = Setpoint(cmd_acc, self._yaw_rate_des, self._thrust_acc, self._rot_des)
-                self.controller.command_setpoint(state, ref, self.f_hat, setpoint, residual, override, r.control_dt)
-                if self._safety_filter is not None:  # filtered, then feedback linearisation again where it acted
-                    self._safety_filter.apply(self.controller, state, ref, self.f_hat, setpoint, r.control_dt)
-                row = {
-                    "t": t_start, "pos": pos, "vel": vel, "quat": quat,
-                    "pos_est": pos_est, "vel_est": vel_est, "quat_est": quat_est, "yaw_est": yaw,
-                    "mocap_pos": mocap, "ref_pos": ref.pos, "ref_vel": ref.vel, "ref_acc": ref.acc,
-                    "u_cmd": cmd_acc, "f_hat": self.f_hat.copy(), "field_mean": mean, "field_applied": applied,
-                }
-                if wind:
-                    row["wind"], row["wind_acc"] = air, wind_acc
-                if (fraction := getattr(self._scene_predictor, "applied", None)) is not None:  # a guard's
-                    row["applied"] = np.array(fraction, dtype=np.float64)
-
-            # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
-            _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
-            if wind:
-                _wind_force_kernel(ph.xfrc_applied, self._layout, self.vehicle_params.mass, wind_acc)
-            self.__dict__["_cursor_max"] += 1
-            d = ph.step(r.physics_per_autopilot, self.active)
-            diverged = d if diverged is None else diverged | d
-        self._check(diverged)
         return row
 
     def _check(self, diverged: np.ndarray) -> None:
@@ -585,16 +456,3 @@ class Simulator:
             what = Status(int(status[w])).description
             self.message[w] = f"world {w} (seed {self.seeds[w]}): {what} at t = {self.t[w]:.2f} s"
             self.active[w] = False
-
-
-def _kernel_array(x: np.ndarray) -> np.ndarray:
-    """x (float64) as the fused kernel reads it: C-contiguous and writeable (a copy only when it is not)."""
-    flags = x.flags
-    return x if flags.c_contiguous and flags.writeable else np.require(x, np.float64, ("C", "W"))
-
-
-def _as_batch(x: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """x as a float64 array of exactly `shape` (broadcast, read-only, only when it differs)."""
-    x = np.asarray(x, dtype=np.float64)
-    return x if x.shape == shape else np.broadcast_to(x, shape)
-

@@ -1,4 +1,4 @@
-"""A field with memory: what it offers (`StatefulField`, `is_stateful`), its wake over a batch of worlds
+"""A field with memory: what it offers (`StatefulField`, `is_stateful_field`), its wake over a batch of worlds
 (`FieldMemory`) and the check that it works (`check_stateful_field`).
 
 These sit below `sim.field`, whose `check_field` steps a stateful field before any flight, and
@@ -17,7 +17,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.vehicles import DEFAULT_VEHICLE
 
-__all__ = ["StatefulField", "is_stateful", "FieldMemory", "combined", "check_stateful_field"]
+__all__ = ["StatefulField", "is_stateful_field", "FieldMemory", "combined", "check_stateful_field"]
 
 _METHODS = ("initial_state", "step", "forces")
 
@@ -41,7 +41,7 @@ class StatefulField(Protocol):
         """(W, V, V, 3) m/s^2: each vehicle's wake (axis 1) on each vehicle (axis 2), diagonal 0."""
 
 
-def is_stateful(field: Any) -> bool:
+def is_stateful_field(field: Any) -> bool:
     """Whether `field` is a field with memory (`StatefulField`: each of its methods callable)."""
     return all(callable(getattr(field, m, None)) for m in _METHODS)
 

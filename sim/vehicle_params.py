@@ -50,7 +50,7 @@ from downwash_core.vehicles import airframe_area_scale, as_params, size_scale, s
 from sim.field import DownwashField, checked_states, off_diagonal
 from sim.fields.kinds import kind_name, pair_field
 from sim.predictor import OraclePredictor, PerWorldPredictor
-from sim.stateful_field import is_stateful
+from sim.stateful_field import is_stateful_field
 from sim.wind import AIRFRAME
 
 __all__ = ["VehicleParams", "KindPairs", "pair_field", "scene_field", "scene_predictor", "collision_radii"]
@@ -191,7 +191,7 @@ class KindPairs:
 def scene_field(field: Any, vehicles: VehicleParams) -> Any:
     """`field` itself when every pair of the scene flies it as given (a scene of paper quads) or when it
     has memory (it takes the kinds itself, `sim.field_memory`), else its `KindPairs`."""
-    if is_stateful(field):
+    if is_stateful_field(field):
         return field
     quads = list(dict.fromkeys(vehicles.quads))  # the distinct kinds in scene order
     if all(pair_field(field, a, b) is field for a in quads for b in quads):

@@ -1,5 +1,6 @@
 """The layers hold (docs/architecture.md): the import contract, and light imports of the lower layers."""
 
+import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -75,6 +76,29 @@ def test_no_module_grows_past_the_limit():
     assert not grown, f"over {MAX_MODULE_LINES} lines (or longer than its recorded cap): {grown}; split it"
     shrunk = sorted(set(OVER_THE_LIMIT) - set(long))
     assert not shrunk, f"{shrunk}: now within {MAX_MODULE_LINES} lines; remove from OVER_THE_LIMIT"
+
+
+def _nesting(node, depth=0):
+    """The deepest nesting of blocks (for, while, if, with, try) inside `node`."""
+    blocks = (ast.For, ast.While, ast.If, ast.With, ast.Try)
+    inner = [_nesting(child, depth + isinstance(child, blocks)) for child in ast.iter_child_nodes(node)]
+    return max([depth, *inner])
+
+
+def test_the_fused_tick_body_fits_on_one_screen():
+    """The fused kernel is a short composition of stages (sim.tick_stages): its body, docstring aside, at
+    most 80 lines and four nested blocks; and no stage reads the address table (only the bundle makers do)."""
+    tree = ast.parse((ROOT / "sim" / "fused.py").read_text())
+    kernel = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_fused_kernel")
+    body = kernel.body[1:] if isinstance(kernel.body[0], ast.Expr) else kernel.body  # the docstring aside
+    lines = body[-1].end_lineno - body[0].lineno + 1
+    assert lines <= 80, f"the fused tick's body is {lines} lines"
+    depth = max(_nesting(stmt, isinstance(stmt, (ast.For, ast.While, ast.If, ast.With, ast.Try))) for stmt in body)
+    assert depth <= 4, f"the fused tick nests {depth} blocks deep"
+    stages = ast.parse((ROOT / "sim" / "tick_stages.py").read_text())
+    readers = {f.name for f in stages.body if isinstance(f, ast.FunctionDef)
+               and any(isinstance(n, ast.Name) and n.id == "tab" for n in ast.walk(f))}
+    assert readers and all(name.endswith("_bundle") for name in readers), readers
 
 
 def test_docs_architecture_table_lists_every_module():

@@ -91,6 +91,10 @@ def test_static_choices_match_their_registries():
     assert common.WIND_SEVERITIES == tuple(PRESETS_KT)
     assert common.PAPER_MINUTES == tuple(PAPER_MINUTES) and common.PAPER_MODELS == tuple(PAPER_MODELS)
     assert common.CONTROLLER_NAMES == tuple(CONTROLLER_NAMES) and common.DEFAULT_CONTROLLER == DEFAULT_CONTROLLER
+    from downwash_core.registry import PLUGIN_GROUP
+    from experiments import options
+
+    assert options.PLUGIN_GROUP == PLUGIN_GROUP
 
 
 # ----------------------------------------------------------------------------- --config

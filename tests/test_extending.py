@@ -46,6 +46,42 @@ def test_the_field_recipe_flies_by_import_path(tmp_path, monkeypatch):
     sys.modules.pop("mypkg.fields", None), sys.modules.pop("mypkg", None)
 
 
+def test_the_compiled_field_recipe_flies_the_fused_tick_as_the_readable_path(tmp_path, monkeypatch):
+    """The page's Gaussian jet with a compiled form, in modules of their own (numba caches by file): its simulator
+    takes the fused tick, both paths fly the same bits, and the compiled sum is the NumPy law to rounding."""
+    from sim.field import pairwise_field
+    from sim.simulator import Simulator
+    from sim.scene import build_scene
+    from downwash_trajectories import Hover, Lemniscate, stack
+
+    blocks = _blocks("A new field")
+    assert blocks[3].startswith("# mypkg/compiled_fields.py")
+    (tmp_path / "mypkg").mkdir()
+    (tmp_path / "mypkg" / "__init__.py").write_text("")
+    (tmp_path / "mypkg" / "fields.py").write_text(blocks[1])
+    (tmp_path / "mypkg" / "compiled_fields.py").write_text(blocks[3])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("mypkg.compiled_fields", "mypkg.fields", "mypkg"):
+        monkeypatch.delitem(sys.modules, name, raising=False)  # (and restored after the test)
+    from mypkg.compiled_fields import CompiledGaussianJet
+
+    field = CompiledGaussianJet()
+    reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], 0.1, 0.05, n_worlds=3)])
+    sims = [Simulator(build_scene(), reference, [0, 1, 2], field=field, fast=fast) for fast in (True, False)]
+    assert sims[0]._plan is not None and sims[1]._plan is None
+    for k in range(40):
+        if k == 15:
+            for sim in sims:
+                sim.reset(np.array([1]))
+        rows = [dict(sim.tick()) for sim in sims]
+        assert all(np.array_equal(rows[0][name], rows[1][name], equal_nan=True) for name in rows[0])
+    assert rows[0]["field_mean"][:, 1, 2].mean() < -1.0  # the jet pushes the follower down
+    state = sims[0].true_states()
+    np.testing.assert_allclose(field.pairwise(state.pos, state.vel, state.rot),
+                               pairwise_field(lambda *args: field(*args), state.pos, state.vel, state.rot),
+                               rtol=1e-12, atol=1e-12)
+
+
 def _field_samples(n, rng):
     """n samples below a level leader labelled by the default field plus noise, in 10 flights."""
     from downwash.datasets import Dataset
@@ -126,6 +162,28 @@ def test_the_controller_recipe_flies_a_hover(monkeypatch):
     assert "fly(scene, reference" in blocks[2]  # the call the page shows
 
 
+def test_the_compiled_controller_recipe_flies_the_fused_tick_as_the_readable_path(tmp_path, monkeypatch):
+    """The compiled PD of the page, in a module of its own (numba caches by file): its simulator takes the
+    fused tick, and both paths fly the same bits."""
+    import importlib
+
+    from sim.scene import build_scene
+    from sim.simulator import Simulator
+    from downwash_trajectories import Hover, Lemniscate, stack
+
+    (tmp_path / "recipe_compiled_pd.py").write_text(_blocks("A new controller")[3])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    namespace = vars(importlib.import_module("recipe_compiled_pd"))
+    reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=3)])
+    sims = [Simulator(build_scene(), reference, [0, 1, 2], controller=namespace["CompiledPD"](), fast=fast)
+            for fast in (True, False)]
+    assert sims[0]._plan is not None and sims[1]._plan is None
+    for _ in range(50):
+        rows = [dict(sim.tick()) for sim in sims]
+        assert all(np.array_equal(rows[0][k], rows[1][k], equal_nan=True) for k in rows[0])
+    assert np.all(sims[0].controller.memory[..., 0] == 50)
+
+
 def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch, request):
     """The frame-shifted motion capture, registered and flown as the page shows (shortened to 2 s):
     every vehicle's measurement is off by one offset, its episode's, on the fused path."""
@@ -159,3 +217,39 @@ def test_the_sensor_recipe_registers_and_flies_a_shared_offset(monkeypatch, requ
                                               "frame_offset": 0.005}
     with pytest.raises(ValueError, match=r"mocap_frame_shift frame_offset: allowed 0.0 to 0.05 m"):
         cls(frame_offset=0.1)
+
+
+def test_the_compiled_sensor_recipe_flies_the_fused_tick_as_the_readable_path(tmp_path, monkeypatch):
+    """The page's dropout sensor, in a module of its own (numba caches by file): it flies the fused tick, both
+    paths fly the same bits, the page's flight runs (shortened to 2 s), and without losses it is `mocap`."""
+    import importlib
+
+    from sim.flight import fly
+    from sim.scene import build_scene
+    from sim.simulator import SimConfig, Simulator
+    from downwash_trajectories import Hover, Lemniscate, stack
+
+    blocks = _blocks("A new sensor noise model")
+    assert blocks[3].startswith("# mypkg/dropouts.py")
+    (tmp_path / "recipe_dropout_mocap.py").write_text(blocks[3])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cls = vars(importlib.import_module("recipe_dropout_mocap"))["DropoutMocap"]
+    scene = build_scene()
+    reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=3)])
+    config = SimConfig(mocap=cls(loss=0.4))
+    sims = [Simulator(scene, reference, [0, 1, 2], config=config, fast=fast) for fast in (True, False)]
+    assert sims[0]._plan is not None and sims[1]._plan is None
+    for k in range(40):
+        if k == 15:
+            for sim in sims:
+                sim.reset(np.array([1]))
+        rows = [dict(sim.tick()) for sim in sims]
+        assert all(np.array_equal(rows[0][name], rows[1][name], equal_nan=True) for name in rows[0])
+    pair = stack([Hover(LEADER, n_worlds=2), Hover(LEADER - [0, 0, 0.6], n_worlds=2)])  # the page's two seeds
+    run = {"SimConfig": SimConfig, "DropoutMocap": cls, "scene": scene, "reference": pair,
+           "fly": lambda *args, duration, **kw: fly(*args, duration=2.0, **kw)}
+    exec(blocks[4], run)
+    assert run["logs"][0].ok and run["logs"][0].meta["config"]["mocap"]["loss"] == 0.2
+    plain = fly(scene, reference, [0, 1, 2], 1.0)
+    for a, b in zip(plain, fly(scene, reference, [0, 1, 2], 1.0, config=SimConfig(mocap=cls(loss=0.0)))):
+        assert np.array_equal(a["mocap_pos"], b["mocap_pos"]) and np.array_equal(a["pos"], b["pos"])

@@ -17,7 +17,7 @@ from sim.fields.momentum import MomentumWake
 from sim.physics import mj_step_address
 from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
-from sim.fused import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL
+from sim.fused_abi import STEP_CALLER, STEP_ROWS, STEP_SERIAL
 from sim.plan import _chunk_sizes
 from sim.rows import Row
 from sim.simulator import SimConfig, Simulator
@@ -118,7 +118,7 @@ def test_threads_and_models_of_their_own(scene, models):
     wind = DrydenWind(mean=(1.0, 0.0, 0.0), w20=5.0)
     fused, readable = _fly_both(scene, 33, 30, wind=wind, predictor=LearnedPredictor(models["equivariant"]), n_threads=2)
     plan = fused[1]._plan
-    assert plan.stepping == _STEP_ROWS and plan.n_threads == 2  # chunks of worlds, large first, on two threads
+    assert plan.stepping == STEP_ROWS and plan.n_threads == 2  # chunks of worlds, large first, on two threads
     bounds = plan.chunks[1, :, :2]
     assert np.array_equal(np.diff(bounds, axis=1)[:, 0], [8, 8, 4, 4, 2, 2, 2, 3]) and bounds[0, 0] == 0
     assert np.array_equal(bounds[1:, 0], bounds[:-1, 1]) and bounds[-1, 1] == 33
@@ -128,10 +128,10 @@ def test_threads_and_models_of_their_own(scene, models):
         sim = Simulator(scene, _lemniscate(3), [0, 1, 2], fast=fast, predictor=OraclePredictor(DownwashField()))
         sim.physics.set_body_mass(np.array([1]), scene.body_ids[1:], np.array([[0.9]]))
         rows = [dict(sim.tick()) for _ in range(30)]
-        assert fast == (sim._plan is not None) and (not fast or sim._plan.stepping == _STEP_CALLER)
+        assert fast == (sim._plan is not None) and (not fast or sim._plan.stepping == STEP_CALLER)
         out.append((rows, sim))
     _assert_same(*out)
-    assert Simulator(scene, _lemniscate(1), [0])._plan.stepping == _STEP_SERIAL
+    assert Simulator(scene, _lemniscate(1), [0])._plan.stepping == STEP_SERIAL
 
 
 def test_fused_equals_readable_when_worlds_end(scene):

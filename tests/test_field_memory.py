@@ -10,7 +10,7 @@ import pytest
 from downwash_core.errors import ConfigError
 from downwash_trajectories import Hover, Lemniscate, stack
 from sim.field import check_field
-from sim.field_memory import FieldMemory, is_stateful
+from sim.field_memory import FieldMemory, is_stateful_field
 from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
 from sim.scene import build_scene
 from sim.simulator import Simulator
@@ -57,7 +57,7 @@ def _sim(W: int, field, predictor=None, seeds=None) -> Simulator:
 def test_the_toy_field_is_stateful_and_the_paper_law_is_not():
     from sim.field import DownwashField
 
-    assert is_stateful(GrowingPush()) and not is_stateful(DownwashField())
+    assert is_stateful_field(GrowingPush()) and not is_stateful_field(DownwashField())
 
 
 def test_the_wake_is_stepped_once_per_autopilot_tick_and_acts_on_every_vehicle():

@@ -221,42 +221,46 @@ def all_private_reads() -> set[tuple[str, str]]:
 KNOWN_PRIVATE_READS = {
     # the simulation stack: the loop's modules (sim.simulator -> sim.plan -> sim.fused -> sim.passes), split
     # from one module, share their kernels and table layouts under these names, as do the tests
-    ("sim.simulator", ("_FC", "_TAB", "_STEP_CALLER")): "sim.fused's table layouts",
-    ("sim.simulator", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_status_kernel", "_true_states_kernel",
-                       "_wind_advance_kernel", "_wind_force_kernel", "_wind_sense_kernel", "_Sensed")):
+    ("sim.simulator", ("_status_kernel", "_true_states_kernel", "_Sensed")):
         "sim.passes' compiled passes, which the readable path calls",
-    ("sim.simulator", ("_make_plan", "_Plan", "_compiled_controller")): "sim.plan's plan and its fast-path test",
-    ("sim.plan", ("_FC", "_TAB", "_FUSED_KERNELS", "_FATAL_MAX", "_STEP_CALLER", "_STEP_ROWS", "_STEP_SERIAL",
-                  "_PRED_C", "_PRED_ORACLE", "_PRED_PER_WORLD", "_PRED_ZERO")):
-        "sim.fused's table layouts, kernels and codes, one family with those sim.simulator takes",
+    ("sim.ticks", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_sense_law_kernel", "_wind_advance_kernel",
+                   "_wind_force_kernel", "_wind_sense_kernel", "_Sensed")):
+        "sim.passes' compiled passes, which the readable path calls",
+    ("sim.simulator", ("_make_plan", "_compiled_controller")): "sim.plan's plan and its fast-path test",
+    ("sim.ticks", ("_Plan",)): "sim.plan's plan, which the fused path runs",
     ("sim.plan", ("_SerialPhysics",)): "sim.physics' single-world physics, which the fused tick steps itself",
     ("sim.plan", ("_Kt",)): "controllers.lqr.FeedbackLinearisedLQR's transposed gain, which the fused tick runs",
     ("sim.plan", ("_address",)): "MuJoCo's MjData._address: the scratch data the fused tick steps by address",
-    ("sim.fused", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_status_kernel", "_wind_advance_kernel",
-                   "_wind_force_kernel", "_wind_sense_kernel")): "sim.passes' compiled passes, as sim.simulator",
-    ("sim.fused", ("_pairwise_kernel",)): "sim.field's compiled pairwise sum, called inside the fused tick",
-    ("sim.fused", ("_command_setpoint_kernel",)): "controllers.lqr's compiled control step",
-    ("sim.fused", ("_FATAL_0", "_FATAL_1", "_FATAL_2")): "sim.physics' MuJoCo warnings that end a world",
+    ("sim.tick_stages", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_sense_law_kernel", "_status_kernel",
+                         "_wind_advance_kernel", "_wind_force_kernel", "_wind_sense_kernel")):
+        "sim.passes' compiled passes, as sim.simulator",
+    ("sim.tick_stages", ("_pairwise_kernel",)): "sim.field's compiled pairwise sum, called inside the fused tick",
+    ("sim.tick_stages", ("_command_setpoint_kernel",)): "controllers.lqr's compiled control step",
+    ("sim.tick_stages", ("_FATAL_0", "_FATAL_1", "_FATAL_2")): "sim.physics' MuJoCo warnings that end a world",
+    ("sim.fused_abi", ("_FATAL_0", "_FATAL_1", "_FATAL_2")): "sim.physics' MuJoCo warnings, for the table's layout",
     ("sim.physics", ("_address", "_models")): "MuJoCo's MjModel/MjData._address and Batch._models",
     ("sim.fields.shed", ("_velocity", "_BLEND", "_C_STAR", "_C_SMALL")):
         "sim.fields.momentum's induced velocity and its constants, which the shed wake reuses",
     ("sim.fields.shed_kernels", ("_d0", "_drag_law", "_radius_eq", "_vh_follower", "_vh_per_sqrt_thrust")):
         "MomentumWake's derived constants, packed for the compiled passes",
-    ("controllers.lab_common", ("_setpoint_one",)): "controllers.lqr's compiled feedback linearisation of one vehicle",
+    ("controllers.compiled", ("_setpoint_one",)): "controllers.lqr's compiled feedback linearisation of one vehicle",
     ("downwash_core.jit", ("_locator_classes", "_downwash_stamp")): "numba's cache locators, extended in place",
     ("downwash_trajectories.combinators", ("_group_into", "_sample_into")):
         "the primitives' batched sampling hooks, which the combinators call",
     # the learning stack: sibling modules share helpers
-    ("downwash.ensemble", ("_Layer", "_aligned_stack", "_batch_slots", "_forward", "_layers", "_pad_rows",
+    ("downwash.ensemble", ("_Layer", "_aligned_stack", "_forward", "_layers", "_pad_rows",
                            "_per_member", "_round_rows")): "downwash.ensemble_network's batched network",
     ("downwash.ensemble", ("_settle_models",)): "downwash.ensemble_settle",
-    ("downwash.ensemble", ("_check",)): "downwash.train's argument checks",
+    ("downwash.ensemble_members", ("_aligned_stack", "_batch_slots", "_layers", "_per_member")):
+        "downwash.ensemble_network's batched network",
+    ("downwash.ensemble_members", ("_check",)): "downwash.train's argument checks",
     ("downwash.ensemble_network", ("_SpectralLinear", "_u", "_v")):
         "downwash.models' spectral layer, and torch's spectral-norm vectors",
     ("downwash.ensemble_settle", ("_SpectralLinear", "_aligned_stack", "_normalize_rows", "_u", "_v")):
         "downwash.models' spectral layer, downwash.ensemble_network's helpers, torch's spectral-norm vectors",
     ("downwash.models", ("_u", "_v")): "torch's spectral-norm vectors (its power iteration, settled in place)",
-    ("downwash.set_models", ("_SpectralLinear", "_u", "_v")):
+    ("downwash.set_models", ("_SpectralLinear",)): "downwash.models' spectral layer",
+    ("downwash.numpy_mlp", ("_SpectralLinear", "_u", "_v")):
         "downwash.models' spectral layer, and torch's spectral-norm vectors",
     ("downwash.predictor", ("_SpectralLinear",)): "downwash.models' spectral layer",
     ("downwash.set_fused", ("_numpy_layers",)): "downwash.set_models' layers as arrays",
@@ -267,7 +271,7 @@ KNOWN_PRIVATE_READS = {
     ("downwash_envs.evaluation", ("_setup_learn",)): "stable-baselines3's callback set-up",
     ("downwash_envs.rendering", ("_MUJOCO_GL",)): "MuJoCo's chosen GL back end",
     ("downwash_envs.swarm", ("_observe_kernel",)): "downwash_envs.swarm_task's compiled observation",
-    ("downwash_envs.video", ("_FOLLOWER_RGBA", "_LEADER_RGBA", "_REF_RGBA", "_TINTED_GEOMS")):
+    ("downwash_envs.video_tiles", ("_FOLLOWER_RGBA", "_LEADER_RGBA", "_REF_RGBA", "_TINTED_GEOMS")):
         "downwash_envs.rendering's colours",
     ("downwash_envs.viewer", ("_MJPYTHON",)): "MuJoCo's viewer: whether it runs under mjpython",
     ("downwash_envs.viewer", ("_PATH_RGBA", "_REF_RADIUS", "_REF_RGBA", "_add_geom", "_add_line")):

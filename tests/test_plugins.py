@@ -163,8 +163,25 @@ def gust(strength: float = 4.0, swirl: float = 0.1):
     return DownwashField(strength=strength, swirl=swirl)
 
 
+def soft_lqr(vehicle_kind=None):
+    """The LQR with a softer position weight."""
+    from controllers.lqr import FeedbackLinearisedLQR, LQRConfig
+
+    return FeedbackLinearisedLQR(LQRConfig(q=(0.5, 0.5, 4.0, 0.01, 0.01, 0.1, 1.0)))
+
+
+def wide_stack():
+    """stack3's vehicles 0.8 m apart."""
+    from sim.presets import make_preset
+
+    return make_preset("stack", n=3, spacing=0.8)
+
+
 def register(registries):
     from downwash_core.vehicles import PAPER_QUAD
+
+    registries.controllers.register("demo_lqr", soft_lqr, "a plugin's controller: the LQR, softer")
+    registries.presets.register("demo_stack", wide_stack, "a plugin's preset: three quads 0.8 m apart")
 
     registries.fields.register("demo-gust", gust, "a plugin's field: so2 at 4 m/s^2 with a swirl",
                                "SO(2) about the leader axis (chiral)", {"strength": float, "swirl": float})
@@ -260,6 +277,22 @@ def test_the_listing_command_lists_every_kind_with_the_plugin_s_entries(site, tm
     _python(site, "-m", "experiments.registry", "--kind", "fields", "--out", str(tmp_path / "fields"))
     one = json.loads((tmp_path / "fields" / "results.json").read_text())
     assert list(one["registry"]) == ["fields"] and one["registry"]["fields"][-1]["name"] == "demo-gust"
+
+
+def test_the_command_lines_take_a_plugin_s_controller_field_and_preset(site, tmp_path):
+    """Names a plugin registered pass the checks that run while the command line is parsed, and fly."""
+    _python(site, "-m", "experiments.lemniscate", "--quick", "--controller", "demo_lqr", "--field", "demo-gust",
+            "--conditions", "baseline", "--out", str(tmp_path / "lem"))
+    results = json.loads((tmp_path / "lem" / "results.json").read_text())
+    assert results["provenance"]["controller"]["q"][0] == 0.5  # the plugin's controller flew
+    assert results["args"]["field"] == "demo-gust"
+    code = ("from experiments.common import parse_args; from experiments.swarm import SwarmArgs; "
+            "a = parse_args(SwarmArgs, 'swarm', ['--presets', 'demo_stack,stack3', '--quick']); print(a.presets)")
+    assert _python(site, "-c", code).stdout.strip().splitlines()[-1] == "demo_stack,stack3"
+    bad = subprocess.run([sys.executable, "-m", "experiments.lemniscate", "--controller", "nope"], cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)])},
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "demo_lqr" in bad.stderr  # a bad name's message lists the plugin's too
 
 
 def test_the_listing_refuses_an_unknown_kind_and_a_field(tmp_path):

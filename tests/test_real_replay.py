@@ -2,7 +2,7 @@
 made with the readers' own `vehicle_arrays` + `real_flight` (no data set needed): two Crazyflies
 hovering 0.4 m apart vertically, then a swap that crosses one under the other again.
 
-A hover replayed without downwash tracks within millimetres; `tracking_errors` of a hand-made log
+A hover replayed without downwash tracks within millimetres; `tracking_summary` of a hand-made log
 gives the hand-computed numbers; the oracle beats no model under a strong field, a model that
 predicts zero flies exactly the baseline; a world that crashes is reported; same seeds, same numbers.
 """
@@ -16,7 +16,7 @@ import torch
 from downwash_core.errors import ConfigError
 from downwash.real_logs.convert import real_flight, vehicle_arrays
 from downwash.real_logs.replay import (compare_tracking, error_stats, flight_reference, fly_real_model, replay_in_sim,
-                                       tracking_errors, under_another)
+                                       tracking_summary, under_another)
 from downwash.registry import make_model
 
 RATE = 100.0  # Hz, the data set's grid
@@ -72,7 +72,7 @@ def test_a_replayed_hover_without_downwash_tracks_within_millimetres():
     flight = _flight([_hover([0.0, 0.0, 1.4]), _hover([0.0, 0.0, 1.0])], 2.0)
     (log,) = replay_in_sim(flight, "so2:strength=0", seeds=[0])
     assert log.ok and log.meta["kinds"] == [CF, CF] and log.meta["replay_of"]["flight"] == "cf50_00,cf51_00"
-    errors = tracking_errors(log)
+    errors = tracking_summary(log)
     for v in errors["vehicles"]:
         assert v["kind"] == CF and v["all"]["pos"]["max"] < 0.005  # m: motion-capture noise and rounding only
     assert errors["vehicles"][1]["under"]["rows"] == len(log) and errors["vehicles"][0]["under"]["rows"] == 0
@@ -94,7 +94,7 @@ def test_tracking_errors_by_hand():
     flight = _flight([_hover([0.0, 0.0, 1.4]), _hover([0.0, 0.0, 1.0])], 0.04)  # 5 rows
     e = np.array([[0.03, 0.0, 0.04], [0.0, 0.0, -0.1], [0.0, 0.0, 0.0], [0.06, 0.08, 0.0], [0.0, 0.0, 0.02]])
     flight.arrays["pos_est"] = flight["ref_pos"] + e[:, None, :]  # both vehicles, the same errors
-    out = tracking_errors(flight)
+    out = tracking_summary(flight)
     # |e| = 0.05, 0.1, 0, 0.1, 0.02 (sorted 0, 0.02, 0.05, 0.1, 0.1); z = 0.04, -0.1, 0, 0, 0.02
     want_pos = {"rms": np.sqrt((0.0025 + 0.01 + 0 + 0.01 + 0.0004) / 5), "median": 0.05,
                 "p95": 0.1, "max": 0.1}  # the 95th percentile lies between the two 0.1s
@@ -109,7 +109,7 @@ def test_tracking_errors_by_hand():
             assert got["all"]["z"][key] == pytest.approx(value, abs=1e-15)
     assert out["vehicles"][0]["under"] == {"rows": 0, "pos": None, "z": None}
     assert not out["ended_early"] and out["seconds"] == pytest.approx(0.05)
-    assert tracking_errors(flight, duration=0.02)["vehicles"][0]["all"]["rows"] == 2  # rows at 0 and 0.01 s
+    assert tracking_summary(flight, duration=0.02)["vehicles"][0]["all"]["rows"] == 2  # rows at 0 and 0.01 s
     json.dumps(out)
 
 
@@ -205,4 +205,4 @@ def test_bad_input_is_named(tmp_path):
     bad = _flight([_hover([0.0, 0.0, 1.4]), _hover([0.0, 0.0, 1.0])], 0.1)
     bad.meta["kinds"] = [CF]
     with pytest.raises(ConfigError, match=r"meta 'kinds' names 1 vehicles, the log holds 2"):
-        tracking_errors(bad)
+        tracking_summary(bad)

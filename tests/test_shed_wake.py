@@ -19,7 +19,8 @@ from downwash_core.params import GRAVITY, QUAD
 from downwash_core.vehicles import get_vehicle
 from sim.fields import MomentumWake
 from sim.fields import momentum, shed_kernels
-from sim.fields.shed import ShedWake, WakeState, _nearest_segments, _nearest_segments_numpy
+from sim.fields.shed import ShedWake, WakeState
+from sim.fields.shed_centreline import nearest_segments, nearest_segments_numpy
 from sim.vehicle_params import pair_field
 
 HOVER = QUAD.mass * GRAVITY  # N, the paper quad's hover thrust
@@ -208,7 +209,7 @@ def test_compiled_search_equals_its_numpy_reference():
     origin = TOP + rng.normal(0, 0.05, (3, 3, 3))
     newest = (state.cursor - 1) % state.shape[2]
     args = (points, origin, state.pos, state.valid, state.age, newest)
-    for got, want in zip(_nearest_segments(*args), _nearest_segments_numpy(*args)):
+    for got, want in zip(nearest_segments(*args), nearest_segments_numpy(*args)):
         np.testing.assert_array_equal(got, want)
 
 

@@ -31,15 +31,26 @@ READABLE = {  # the passes the readable path calls from Python (and `Simulator.t
     "_wind_force_kernel": PHYSICS_LAYOUTS, "_true_states_kernel": PHYSICS_LAYOUTS,
     "_hold_kernel": 1, "_wind_sense_kernel": 1, "_wind_advance_kernel": 1,
 }
-FUSED = {"_FUSED_KERNELS[0]": PHYSICS_LAYOUTS, "_FUSED_KERNELS[1]": PHYSICS_LAYOUTS}  # without, with wind
+FUSED = {"FUSED_KERNELS[0]": PHYSICS_LAYOUTS, "FUSED_KERNELS[1]": PHYSICS_LAYOUTS}  # without, with wind
 # When this process compiles the fused kernel (its cache is stale or absent), each pass it calls gains
 # one signature per physics layout at most (one chunk's slices of the state arrays); loaded from the
 # cache, none.
 FUSED_CALLEES_AT_MOST = {
     "_sense_kernel": PHYSICS_LAYOUTS, "_actuate_kernel": PHYSICS_LAYOUTS, "_status_kernel": PHYSICS_LAYOUTS,
+    "_sense_law_kernel": PHYSICS_LAYOUTS,  # (a sensor's compiled law, sim.sensor_contract: typed, never run here)
     "_wind_force_kernel": PHYSICS_LAYOUTS, "_hold_kernel": PHYSICS_LAYOUTS, "_wind_sense_kernel": PHYSICS_LAYOUTS,
     "_wind_advance_kernel": PHYSICS_LAYOUTS, "_step_rows": 1, "_copy_into": 1, "_row_view": 1,
     "_true_states_kernel": PHYSICS_LAYOUTS,  # (`Simulator.true_states`, from Python)
+    "_published": 1,
+    # the stages (sim.tick_stages): those given the physics state, or the velocities relative to the air
+    # (with wind: the wind's buffer; without: the row's), once per layout of it; the others once
+    "sense_stage": PHYSICS_LAYOUTS, "actuate_stage": PHYSICS_LAYOUTS, "wind_force_stage": PHYSICS_LAYOUTS,
+    "monitor_stage": PHYSICS_LAYOUTS, "predict_stage": 2, "_predict_world": 2, "field_stage": 2, "wind_stage": 1,
+    "control_stage": 1, "physics_stage": 1,
+    # the bundle makers once each; the table's typed views once per shape tuple's type (its constants' too)
+    **dict.fromkeys(("world_bundle", "vehicles_bundle", "inputs_bundle", "buffers_bundle", "wind_bundle",
+                     "prediction_bundle", "control_bundle", "stepping_bundle", "monitor_bundle", "_i64"), 1),
+    "_f64": 10,
 }
 
 
@@ -54,9 +65,9 @@ def fly_and_count(fast: bool) -> dict[str, int]:
     from downwash.predictor import LearnedPredictor
     from downwash.support import SUPPORT_FEATURES, Support
     from downwash_trajectories import Hover, Lemniscate, stack
-    from sim import fused, passes
+    from sim import fused, passes, tick_stages
     from sim.field import DownwashField
-    from sim.fused import _STEP_CALLER, _STEP_ROWS, _STEP_SERIAL
+    from sim.fused_abi import STEP_CALLER, STEP_ROWS, STEP_SERIAL
     from sim.predictor import OraclePredictor, PerWorldPredictor, ZeroPredictor
     from sim.scene import build_scene
     from sim.simulator import Simulator
@@ -78,7 +89,7 @@ def fly_and_count(fast: bool) -> dict[str, int]:
                                 n_threads=n_threads)
                 assert (sim._plan is not None) == fast
                 if fast:
-                    assert sim._plan.stepping == (_STEP_SERIAL if W == 1 else _STEP_ROWS)
+                    assert sim._plan.stepping == (STEP_SERIAL if W == 1 else STEP_ROWS)
                 V = sim.V
                 for k in range(12):  # 4 predictor periods; actions as the envs give them, one not C-ordered
                     residual = np.full((W, V, 3), 0.1) if k % 3 == 1 else None
@@ -89,14 +100,14 @@ def fly_and_count(fast: bool) -> dict[str, int]:
                     sim.physics.set_body_mass(np.array([0]), scene.body_ids[1:], np.array([[0.8]]))
                     for _ in range(3):
                         sim.tick()
-                    assert not fast or sim._plan.stepping == _STEP_CALLER
+                    assert not fast or sim._plan.stepping == STEP_CALLER
     counts = {}
-    for module in (passes, fused):
+    for module in (passes, fused, tick_stages):
         for name, obj in vars(module).items():
             if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == module.__name__:
                 counts[name] = len(obj.signatures)
-    for i, kernel in enumerate(fused._FUSED_KERNELS):
-        counts[f"_FUSED_KERNELS[{i}]"] = len(kernel.signatures)
+    for i, kernel in enumerate(fused.FUSED_KERNELS):
+        counts[f"FUSED_KERNELS[{i}]"] = len(kernel.signatures)
     return counts
 
 
@@ -112,7 +123,7 @@ def test_the_readable_path_compiles_each_pass_once_per_physics_layout():
     counts = _counts_in_a_fresh_process(fast=False)
     got = {name: counts[name] for name in READABLE}
     assert got == READABLE, f"a pass was compiled for more argument types than expected: {got}"
-    assert counts["_FUSED_KERNELS[0]"] == counts["_FUSED_KERNELS[1]"] == 0
+    assert counts["FUSED_KERNELS[0]"] == counts["FUSED_KERNELS[1]"] == 0
 
 
 def test_the_fused_path_compiles_each_variant_once_per_physics_layout():

@@ -439,6 +439,47 @@ def test_bad_names_and_actions():
         vec.reset(options={"reset_mask": np.zeros(2, bool)})
 
 
+def test_vector_env_array_api_equals_its_dict_api():
+    """`reset_arrays` / `step_arrays` (the SB3 adapter's path) are `reset` / `step` without the per-agent dicts:
+    the same observations, rewards, ends and info columns on twin envs, through a truncation and the next-step
+    autoreset; a NaN action is refused with the dict path's message (naming the agent), a wrong shape too."""
+    W, opts = 3, {"preset": "stack4", "duration": 0.1, "random_phase": True, "randomize": {"mass": 0.1}}
+    twins = SwarmVectorEnv(W, n_threads=1, **opts), SwarmVectorEnv(W, n_threads=1, **opts)
+    by_dict, by_array = twins
+    agents = by_dict.possible_agents
+    obs, infos = by_dict.reset(seed=4)
+    arr_obs, mask = by_array.reset_arrays(seed=4)
+    assert mask.all() and arr_obs.dtype == np.float32 and arr_obs.shape == (W, len(agents), obs_dim(3))
+    for i, a in enumerate(agents):
+        np.testing.assert_array_equal(arr_obs[:, i], obs[a])
+        for key, column in by_array.episode_arrays.items():
+            np.testing.assert_array_equal(column[:, i], infos[a][key], err_msg=key)
+    rng = np.random.default_rng(1)
+    for _ in range(8):  # 5 steps to the time limit, then the autoreset step, then on
+        actions = rng.uniform(-1.2, 1.2, (W, len(agents), 3)).astype(np.float32)
+        obs, rewards, terms, truncs, infos = by_dict.step({a: actions[:, i] for i, a in enumerate(agents)})
+        result = by_array.step_arrays(actions)
+        for i, a in enumerate(agents):
+            np.testing.assert_array_equal(result.obs[:, i], obs[a])
+            np.testing.assert_array_equal(result.outcome.info["reward"][:, i], rewards[a])
+            assert np.array_equal(result.terminated, terms[a]) and np.array_equal(result.truncated, truncs[a])
+            assert np.array_equal(result.resetting, infos[a]["autoreset"])
+            for key, value in infos[a].items():
+                if key != "autoreset":
+                    column = by_array.episode_arrays.get(key, result.outcome.info.get(key))
+                    np.testing.assert_array_equal(column[:, i], value, err_msg=key)
+    bad = np.zeros((W, len(agents), 3), np.float32)
+    bad[1, 2, 0] = np.inf
+    with pytest.raises(ValueError) as from_dict:
+        by_dict.step({a: bad[:, i] for i, a in enumerate(agents)})
+    with pytest.raises(ValueError) as from_array:
+        by_array.step_arrays(bad)
+    assert str(from_array.value) == str(from_dict.value) and "action of follower_2" in str(from_array.value)
+    with pytest.raises(ValueError, match=r"expected shape \(3, 3, 3\) \(worlds, agents, action\), got \(3, 2, 3\)"):
+        by_array.step_arrays(bad[:, :2])
+    assert np.array_equal(by_array.simulator.t, by_dict.simulator.t)  # neither refusal stepped
+
+
 def test_step_before_the_first_reset_raises_reset_needed():
     """Neither swarm env steps an episode it never started: gymnasium's ResetNeeded (also a RuntimeError, as
     the ParallelEnv raised before), saying to reset first; the vector env names the worlds never reset."""

@@ -114,6 +114,88 @@ def test_slots_equal_the_native_vector_env_across_a_reset():
     assert np.array_equal(obs, flat(n_obs)) and np.array_equal(rewards, flat(n_rewards).astype(np.float32))
 
 
+def _readable_step(native, actions):
+    """What the adapter's step returns, written out slot by slot on the native env's dict API: slot w*A + i is
+    agent i of world w; an ended world is reset in the same step (its slots get terminal_observation and
+    TimeLimit.truncated; reset_infos the new episode's info). Returns obs, rewards, dones, infos and
+    {slot: new reset info}."""
+    agents = native.possible_agents
+    W, A = native.n_worlds, len(agents)
+    per_world = actions.reshape(W, A, 3)
+    obs, rewards, terms, truncs, infos = native.step({a: per_world[:, i] for i, a in enumerate(agents)})
+    out_obs, out_rewards, out_dones, out_infos = [], [], [], []
+    for w in range(W):
+        for a in agents:
+            out_obs.append(obs[a][w].copy())
+            out_rewards.append(np.float32(rewards[a][w]))
+            out_dones.append(bool(terms[a][w] or truncs[a][w]))
+            info = {}
+            for key, value in infos[a].items():
+                if key != "autoreset":
+                    info[key] = value[w].item() if value.ndim == 1 else value[w]
+            info["TimeLimit.truncated"] = bool(truncs[a][w] and not terms[a][w])
+            out_infos.append(info)
+    ended = np.array([bool(terms[agents[0]][w] or truncs[agents[0]][w]) for w in range(W)])
+    new_reset_infos = {}
+    if ended.any():
+        new_obs, new_infos = native.reset(options={"reset_mask": ended})
+        for w in np.flatnonzero(ended):
+            for i, a in enumerate(agents):
+                slot = w * A + i
+                out_infos[slot]["terminal_observation"] = out_obs[slot]
+                out_obs[slot] = new_obs[a][w].copy()
+                new_reset_infos[slot] = {k: v[w].item() for k, v in new_infos[a].items() if k != "autoreset"}
+    return (np.stack(out_obs), np.array(out_rewards, np.float32), np.array(out_dones), out_infos,
+            new_reset_infos)
+
+
+def _assert_same_info(got, expected):
+    assert list(got) == list(expected)  # the same keys, in the same order
+    for key, value in expected.items():
+        if isinstance(value, np.ndarray):
+            assert isinstance(got[key], np.ndarray) and got[key].dtype == value.dtype, key
+            assert np.array_equal(got[key], value), key
+        else:
+            assert type(got[key]) is type(value) and got[key] == value, (key, got[key], value)
+
+
+def test_step_equals_a_readable_slot_by_slot_construction():
+    """The adapter's whole-array step against `_readable_step` on a native env of the same seed, over random
+    actions through terminations (a tight tracking box) and time limits, with drawn phases and vehicle scales:
+    the same observations, rewards, dones, info dicts (keys, order, value types) and reset infos."""
+    from downwash_envs.swarm import SwarmVectorEnv
+
+    options = {"duration": 0.16, "max_tracking_error": 0.05, "action_bound": 15.0, "random_phase": True,
+               "randomize": {"mass": 0.1, "motor_lag": 0.2}}
+    W = 3
+    venv = make_vec_env(W, seed=11, n_threads=1, **options)
+    native = SwarmVectorEnv(W, n_threads=1, **options)
+    obs = venv.reset()
+    native_obs, native_infos = native.reset(seed=11)
+    agents, A = native.possible_agents, len(native.possible_agents)
+    assert np.array_equal(obs, np.stack([native_obs[a] for a in agents], axis=1).reshape(W * A, -1))
+    for slot in range(W * A):
+        w, a = divmod(slot, A)
+        expected = {k: v[w].item() for k, v in native_infos[agents[a]].items() if k != "autoreset"}
+        _assert_same_info(venv.reset_infos[slot], expected)
+    terminated = truncated = 0
+    for actions in _actions(12, 30, W * A):
+        obs, rewards, dones, infos = venv.step(actions)
+        r_obs, r_rewards, r_dones, r_infos, r_reset_infos = _readable_step(native, actions)
+        assert obs.dtype == np.float32 and obs.shape == r_obs.shape and np.array_equal(obs, r_obs)
+        assert rewards.dtype == np.float32 and np.array_equal(rewards, r_rewards)
+        assert dones.dtype == np.bool_ and np.array_equal(dones, r_dones)
+        assert isinstance(infos, list) and len(infos) == W * A
+        for got, expected in zip(infos, r_infos):
+            _assert_same_info(got, expected)
+        for slot, expected in r_reset_infos.items():
+            _assert_same_info(venv.reset_infos[slot], expected)
+        terminated += sum(d and not i["TimeLimit.truncated"] for d, i in zip(dones, infos))
+        truncated += sum(i["TimeLimit.truncated"] for i in infos)
+    assert terminated > 0 and truncated > 0  # both kinds of end were compared
+    assert {"mass_scale", "motor_lag_scale"} <= set(infos[0]) and venv.reset_infos[0]["phase"] > 0.0
+
+
 def test_slots_equal_supersuit_on_the_same_seeds():
     """The adapter is a drop-in for SuperSuit's vector env of ParallelEnv copies: the same slot order, the same
     numbers (copy w of SuperSuit's reset(seed=s) is SwarmEnv.reset(seed=s + w), world w here)."""

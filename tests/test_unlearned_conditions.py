@@ -9,7 +9,7 @@ import torch
 from controllers.integral import IntegralLQR
 from controllers.lqr import FeedbackLinearisedLQR, LQRConfig
 from downwash.checkpoint import save_checkpoint
-from downwash.conditions import (CONDITIONS, OBSERVED, data_variant, fly_conditions, learned, make_controller,
+from downwash.conditions import (CONDITIONS, OBSERVED, data_variant, fly_conditions, learned, condition_controller,
                                  make_predictor, parse_conditions)
 from downwash.registry import make_model
 from downwash_core.errors import ConfigError
@@ -50,11 +50,11 @@ def test_the_names_parse_and_map_to_their_components(tmp_path):
     observed = make_predictor("equivariant_dob", None, checkpoints)
     assert isinstance(observed, DisturbanceObserver) and type(observed.inner).__name__ == "LearnedPredictor"
     lqr = FeedbackLinearisedLQR(LQRConfig(max_tilt_deg=30.0))
-    integral = make_controller("integral", lqr)
+    integral = condition_controller("integral", lqr)
     assert isinstance(integral, IntegralLQR) and integral.config == lqr.config
-    assert make_controller("baseline", lqr) is lqr and make_controller("dob") is None
+    assert condition_controller("baseline", lqr) is lqr and condition_controller("dob") is None
     with pytest.raises(ConfigError, match="integral"):
-        make_controller("integral", object())
+        condition_controller("integral", object())
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ acceleration is not logged, so the feed-forward is the central differences of ``
 simulator, each vehicle of its own registered kind (``meta["kinds"]``) and starting where the real
 one was at the first logged tick (the reference's first sample is the logged state: the simulator
 starts each vehicle at its reference's t = 0 state; from the next logged sample on it is the
-recorded setpoint). `tracking_errors` reads real and simulated logs with one code path: the
+recorded setpoint). `tracking_summary` reads real and simulated logs with one code path: the
 error is ``pos_est - ref_pos`` (the real log has no truth; the simulated estimate follows the simulated
 truth to about a millimetre: 0.7 mm RMS on a replayed swap). `compare_tracking` puts them side by side
 per flight and pooled by interaction; `fly_real_model` flies held-out flights' setpoints with no
@@ -57,7 +57,7 @@ from sim.logs import FlightLog
 from sim.metrics import CRASH_PENALTY, planned_ticks
 from sim.scene import Scene, build_scene
 
-__all__ = ["DIFFERENCES", "CRAZYFLIE_PD", "crazyflie_stiff_lqr", "flight_reference", "replay_in_sim", "under_another", "tracking_errors", "error_stats",
+__all__ = ["DIFFERENCES", "CRAZYFLIE_PD", "crazyflie_stiff_lqr", "flight_reference", "replay_in_sim", "under_another", "tracking_summary", "error_stats",
            "compare_tracking", "fly_real_model"]
 
 # The Crazyflie firmware's Mellinger controller's default position gains (bitcraze/crazyflie-firmware,
@@ -190,7 +190,7 @@ def error_stats(dist: np.ndarray, dz: np.ndarray) -> dict[str, Any]:
     }
 
 
-def tracking_errors(log: FlightLog, duration: float | None = None) -> dict[str, Any]:
+def tracking_summary(log: FlightLog, duration: float | None = None) -> dict[str, Any]:
     """Tracking errors of every vehicle of a real or simulated log, by one code path (module doc):
     per vehicle its name, kind and `error_stats` over all rows, the rows under another and the rows
     alone; with the log's status, how long it covers (s) and whether it ended early. duration: only
@@ -269,7 +269,7 @@ class _Pool:
 
 
 def _ended(name: str, seed: int, errors: dict[str, Any], condition: str | None = None) -> dict[str, Any]:
-    """The record of a simulated world that ended early, from its `tracking_errors`."""
+    """The record of a simulated world that ended early, from its `tracking_summary`."""
     out = {"flight": name, "seed": seed, "status": errors["status"], "message": errors["message"],
            "seconds": errors["seconds"]}
     return out if condition is None else {"condition": condition, **out}
@@ -279,7 +279,7 @@ def compare_tracking(real_flights: Sequence[Any], field: Any, *, predictor: Any 
                      duration: float | None = None, controller: Any = None, **components: Any) -> dict[str, Any]:
     """Real against simulated tracking, per flight and pooled: each real flight (a `FlightLog` or a
     (FlightRef, FlightLog) pair) is replayed (`replay_in_sim`, one world per seed) against `field`, and
-    `tracking_errors` of the real log and of every simulated one are given side by side, over the same
+    `tracking_summary` of the real log and of every simulated one are given side by side, over the same
     window (the first `duration` s; default each flight's whole length). ``pooled`` holds, for "under"
     and "alone" (and per kind, "<kind>/under"), the distribution over every row of every vehicle of
     every flight (and seed): {"real": ..., "sim": ...}. Worlds that ended early are listed under
@@ -294,12 +294,12 @@ def compare_tracking(real_flights: Sequence[Any], field: Any, *, predictor: Any 
         sims = []
         for seed, L in zip(seeds, logs):
             sim_pool.add(L, window)
-            errors = tracking_errors(L, window)
+            errors = tracking_summary(L, window)
             sims.append({"seed": int(seed), **errors})
             if errors["ended_early"]:
                 ended.append(_ended(name, int(seed), errors))
         per_flight.append({"flight": name, "kinds": _kinds(flight), "seconds": window,
-                           "real": tracking_errors(flight, window), "sim": sims})
+                           "real": tracking_summary(flight, window), "sim": sims})
     real, sim = real_pool.stats(), sim_pool.stats()
     pooled = {k: {"real": real.get(k), "sim": sim.get(k)} for k in sorted(set(real) | set(sim))}
     return {"field": describe(field), "controller": describe(controller) if controller is not None else "LQR (default)",
@@ -372,7 +372,7 @@ def _score(name: str, flight: FlightLog, window: float, logs: dict[str, list[Fli
         for seed, L in zip(seeds, condition_logs):
             one.add(L, window)
             pools.setdefault(c, _Pool()).add(L, window, flight)
-            errors = tracking_errors(L, window)
+            errors = tracking_summary(L, window)
             if errors["ended_early"]:
                 ended.append(_ended(name, int(seed), errors, c))
         row[c] = _rms(one.stats().get("under"))

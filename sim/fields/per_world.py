@@ -33,7 +33,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.provenance import describe
 from sim.field import pairwise_field, pairwise_forces
-from sim.field_memory import is_stateful
+from sim.field_memory import is_stateful_field
 from sim.vehicle_params import pair_field
 
 __all__ = ["PerWorldFields"]
@@ -53,7 +53,7 @@ class PerWorldFields:
         if not fields:
             raise ConfigError("PerWorldFields: expected one field per world, got none")
         for w, f in enumerate(fields):
-            if is_stateful(f):
+            if is_stateful_field(f):
                 raise ConfigError(f"PerWorldFields: fields[{w}] ({type(f).__name__}) has memory; allowed: "
                                   "stateless fields (a field with memory batches its own state over worlds)")
             if not callable(f):

@@ -76,7 +76,8 @@ Units: m, m/s, s, N; forces (W, V, V, 3) m/s^2, world frame, z up. Cost: O(W V N
 `step`, O(W V^2 N) per `forces`. Both are compiled (`sim.fields.shed_kernels`, numba, the
 laws and tables handed over as arrays), beside their NumPy reference (`compiled=False`:
 `_step_reference`, `_forces_reference`, whose arithmetic they repeat in order, so that the two
-agree to the bit on an AVX2 CPU). Median per call on a 2-core AMD EPYC, step + forces: one world
+agree to the bit on an AVX2 CPU). The elements' state and the search along the centreline (3)
+are `sim.fields.shed_centreline`'s. Median per call on a 2-core AMD EPYC, step + forces: one world
 8.5 + 8 us for 2 vehicles, 12 + 22 us for 5 (NumPy: 0.15 + 0.6 ms, 0.15 + 0.63 ms); 64 worlds
 0.19 + 0.15 ms for 2, 0.47 + 1.3 ms for 5 (NumPy: 0.5 + 1.1, 1.1 + 3.9 ms). What is left of
 `forces` is the law's transcendental functions (12 pow per pair, 3 or 4 per rotor of the ring).
@@ -95,7 +96,6 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
-from downwash_core.jit import njit
 from downwash_core.params import GRAVITY
 from downwash_core.validate import count, number
 from downwash_core.vehicles import get_vehicle
@@ -103,42 +103,20 @@ import sim.fields.momentum as _momentum
 import sim.fields.shed_kernels as _kernels
 from sim.fields.kinds import pair_field
 from sim.fields.momentum import MomentumWake
+from sim.fields.shed_centreline import TINY as _TINY
+from sim.fields.shed_centreline import Local as _Local
+from sim.fields.shed_centreline import WakeState, nearest
+from sim.fields.shed_centreline import air as _air
 
 __all__ = ["ShedWake", "WakeState"]
 
 _MAX_ELEMENTS = 100_000  # -, per vehicle: a cap on the ring buffer's memory
 _ROUND = 1e-9  # -, relative slack on the shedding clock and the age limit (accumulated rounding)
-_TINY = 1e-300  # m^2, a zero-length segment projects onto its start
 _TABLE_S = (1e-5, 1e4)  # m, the travel table's depths (geometric), beyond any wake's max_age
 _TABLE_POINTS = 10_000  # -, spacing ratio 1.002: s(age) within 1e-6 (relative) of quadrature
 _ESTIMATE = np.zeros((0, 0))  # the compiled step's "no thrust given" (each kind's estimate)
 _STILL = np.zeros((0, 3))  # the compiled passes' "no wind"
 _LEVEL = np.eye(3)  # a level leader's attitude: its thrust estimate is the hover thrust times thrust_scale
-
-
-@dataclass
-class WakeState:
-    """The shed elements of W worlds x V vehicles, N per vehicle (a ring buffer), mutated by `ShedWake.step`.
-
-    pos (W, V, N, 3) m, world frame: element centres; axis (W, V, N, 3) -, unit, downstream
-    (the shedding vehicle's -n at shedding); depth (W, V, N) m: travelled depth s; thrust
-    (W, V, N) N: the shedding thrust; age (W, V, N) s; valid (W, V, N) bool; cursor (W,) int:
-    the slot the next element goes to; clock (W,) s: time since the last shedding.
-    """
-
-    pos: np.ndarray
-    axis: np.ndarray
-    depth: np.ndarray
-    thrust: np.ndarray
-    age: np.ndarray
-    valid: np.ndarray
-    cursor: np.ndarray
-    clock: np.ndarray
-
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        """(W, V, N)."""
-        return self.valid.shape
 
 
 class _Source(NamedTuple):
@@ -161,17 +139,6 @@ class _Source(NamedTuple):
         """m, the travelled depth of elements of this thrust (N) and age (s): G^-1(kappa v_h(T) age)."""
         travelled = (kappa * self.vh_per_sqrt_thrust) * np.sqrt(np.maximum(thrust, 0.0)) * age
         return np.interp(travelled, self.reduced, self.s)
-
-
-class _Local(NamedTuple):
-    """The wake of each source at each point, from the nearest point c of its centreline; (W, Vs, P, ...)."""
-
-    s: np.ndarray  # m, travelled depth at c
-    thrust: np.ndarray  # N
-    axis: np.ndarray  # (..., 3) -, unit, downstream
-    tangent: np.ndarray  # (..., 3) -, unit: the centreline's direction at c
-    offset: np.ndarray  # (..., 3) m, p - c
-    active: np.ndarray  # bool: the source has a wake and p is below its rotor plane
 
 
 @dataclass(frozen=True)
@@ -383,43 +350,10 @@ class ShedWake:
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 3 or points.shape[0] != W or points.shape[2] != 3:
             raise ConfigError(f"points: expected (W, P, 3) = ({W}, P, 3) but found {points.shape}")
-        loc = self._nearest(state, pos, rot, points)
+        loc = nearest(state, pos, rot, points)
         r2 = _dot(loc.offset, loc.offset)
         axial, radial = self._per_source(lambda src, s, r2, T: src.law._velocity(s, r2, T), loc.s, r2, loc.thrust)
         return _air(axial, radial, loc, loc.offset)
-
-    def _nearest(self, state: WakeState, pos, rot, points, compiled: bool = True) -> _Local:
-        """The nearest point of each source's centreline polyline to each point (W, P, 3).
-
-        Segment 0 runs from the rotor plane to the newest element, segment 1 + i from the element in
-        ring slot i to the next older one, in slot i - 1 (the newest follows the oldest: no segment)."""
-        W, V, N = state.shape
-        newest = (state.cursor - 1) % N  # (W,)
-        find = _nearest_segments if compiled else _nearest_segments_numpy
-        seg, tj = find(points, pos, state.pos, state.valid, state.age, newest)  # (W, V, P)
-        ring = seg > 0
-        w_i, v_i = np.arange(W)[:, None, None], np.arange(V)[None, :, None]
-        first = np.where(ring, seg - 1, newest[:, None, None])  # the slot at each end (where a ring segment)
-        second = np.where(ring, (seg - 2) % N, newest[:, None, None])
-        n = rot[..., :, 2]
-        T_newest = state.thrust[np.arange(W), :, newest]  # (W, V) N
-
-        def lerp(x, at_plane):  # x (W, V, N[, 3]) per element, at_plane (W, V[, 3]): the value at the nearest point
-            vec = x.ndim == 4
-            x0 = np.where(ring[..., None] if vec else ring, x[w_i, v_i, first], at_plane[:, :, None])
-            return x0 + (tj[..., None] if vec else tj) * (x[w_i, v_i, second] - x0)
-
-        start = np.where(ring[..., None], state.pos[w_i, v_i, first], pos[:, :, None])
-        seg_vec = state.pos[w_i, v_i, second] - start  # (W, V, P, 3) m
-        offset = points[:, None] - (start + tj[..., None] * seg_vec)  # m, p - c
-        axis = lerp(state.axis, -n)
-        axis = axis / np.sqrt(_dot(axis, axis))[..., None]
-        seg_len = np.sqrt(_dot(seg_vec, seg_vec))[..., None]
-        tangent = np.where(seg_len > 0.0, seg_vec / np.maximum(seg_len, _TINY), axis)
-        above = _dot(points[:, None] - pos[:, :, None], n[:, :, None]) > 0.0  # above the source's rotor plane
-        active = state.valid[np.arange(W), :, newest][..., None] & ~above  # the newest is valid iff any is
-        return _Local(lerp(state.depth, np.zeros((W, V))), lerp(state.thrust, T_newest), axis, tangent, offset,
-                      active)
 
     # ------------------------------------------------------------------ the force
     def forces(self, state: WakeState, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray,
@@ -458,7 +392,7 @@ class ShedWake:
         pos, vel = _array("pos", pos, (W, V, 3)), _array("vel", vel, (W, V, 3))
         rot = _array("rot", rot, (W, V, 3, 3))
         v_rel = vel if wind is None else vel - _array("wind", wind, (W, 3))[:, None, :]
-        loc = self._nearest(state, pos, rot, pos)  # (W, Vs, Vt, ...)
+        loc = nearest(state, pos, rot, pos)  # (W, Vs, Vt, ...)
         keep = loc.active & ~np.eye(V, dtype=bool)  # pairs in a wake; a vehicle's own wake left out
         K = self.law.ring_points
         azimuth = (np.arange(K) + 0.5) * (2.0 * math.pi / K)  # the law's ring, from the body x axis
@@ -514,75 +448,6 @@ class ShedWake:
             raise ConfigError(f"state: {N} elements per vehicle, this wake keeps {self._n} (rate_hz * max_age)")
         self._check_vehicles(V)
         return W, V, N
-
-
-def _air(axial: np.ndarray, radial_over_r: np.ndarray, loc: _Local, offset: np.ndarray) -> np.ndarray:
-    """u = U d + (V / r) r_perp (m/s), r_perp the offset less its part along the centreline; 0 where inactive."""
-    perp = offset - _dot(offset, loc.tangent)[..., None] * loc.tangent
-    u = axial[..., None] * loc.axis + radial_over_r[..., None] * perp
-    return np.where(loc.active[..., None], u, 0.0)
-
-
-@njit
-def _nearest_segments(points, origin, elem, valid, age, newest):  # pragma: no cover - compiled
-    """The nearest segment of each source's polyline to each point, compiled: (W, V, P) index and parameter t.
-
-    points (W, P, 3) m; origin (W, V, 3) m, the rotor planes; elem (W, V, N, 3) m, valid (W, V, N),
-    age (W, V, N) s, the ring; newest (W,) its newest slot. Segments as `ShedWake._nearest`; the
-    first of equally near ones; (0, 0) where a source has none. `_nearest_segments_numpy` is the reference."""
-    W, P = points.shape[0], points.shape[1]
-    V, N = valid.shape[1], valid.shape[2]
-    seg_out = np.zeros((W, V, P), np.int64)
-    t_out = np.zeros((W, V, P))
-    for w in range(W):
-        k = newest[w]
-        for v in range(V):
-            for p in range(P):
-                best, best_j, best_t = np.inf, 0, 0.0
-                for j in range(N + 1):
-                    if j == 0:
-                        if not valid[w, v, k]:
-                            continue
-                        a, b = origin[w, v], elem[w, v, k]
-                    else:
-                        i = j - 1
-                        i1 = i - 1 if i > 0 else N - 1
-                        if not (valid[w, v, i] and valid[w, v, i1] and age[w, v, i1] > age[w, v, i]):
-                            continue
-                        a, b = elem[w, v, i], elem[w, v, i1]
-                    sx, sy, sz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-                    rx, ry, rz = points[w, p, 0] - a[0], points[w, p, 1] - a[1], points[w, p, 2] - a[2]
-                    t = (rx * sx + ry * sy + rz * sz) / max(sx * sx + sy * sy + sz * sz, _TINY)
-                    t = min(max(t, 0.0), 1.0)
-                    ox, oy, oz = rx - t * sx, ry - t * sy, rz - t * sz
-                    d2 = ox * ox + oy * oy + oz * oz
-                    if d2 < best:
-                        best, best_j, best_t = d2, j, t
-                seg_out[w, v, p] = best_j
-                t_out[w, v, p] = best_t
-    return seg_out, t_out
-
-
-def _nearest_segments_numpy(points, origin, elem, valid, age, newest):
-    """The readable reference of `_nearest_segments`: every segment at once, (3, W, V, P, N + 1)."""
-    W, V, N = valid.shape
-    older = lambda a: np.roll(a, 1, axis=2)  # slot i - 1 at i
-    pick = lambda a: a[np.arange(W), :, newest][:, :, None]  # (W, V, 1, ...)
-    ok = np.concatenate([pick(valid), valid & older(valid) & (older(age) > age)], axis=2)  # (W, V, N + 1)
-    a = np.concatenate([origin[:, :, None], elem], axis=2)  # (W, V, N + 1, 3)
-    b = np.concatenate([pick(elem), older(elem)], axis=2)
-    seg = np.moveaxis(b - a, -1, 0)[:, :, :, None, :]  # (3, W, V, 1, N + 1)
-    rel = np.moveaxis(points, -1, 0)[:, :, None, :, None] - np.moveaxis(a, -1, 0)[:, :, :, None, :]
-    t = np.clip(_dot_first(rel, seg) / np.maximum(_dot_first(seg, seg), _TINY), 0.0, 1.0)
-    off = rel - t * seg
-    j = np.argmin(np.where(ok[:, :, None, :], _dot_first(off, off), np.inf), axis=-1)
-    tj = np.where(ok.any(axis=-1)[..., None], np.take_along_axis(t, j[..., None], axis=3)[..., 0], 0.0)
-    return j, tj
-
-
-def _dot_first(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Dot product over the first axis (3, ...), summed in index order as `downwash_core.geometry.dot`."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def _array(name: str, x: Any, shape: tuple[int, ...], finite: bool = True) -> np.ndarray:

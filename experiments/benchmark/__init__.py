@@ -1,0 +1,250 @@
+"""Speed of the simulation stack, as ratios measured in one run.
+
+    python -m experiments.benchmark [--quick]
+
+Every measurement runs once per round (`--repeats` rounds), each right after a window of bare
+mj_step of its scene; a ratio is the median over rounds of the pair's ratio, a rate the median
+over rounds (see `run`). `targets` holds the project's speed targets for four of the ratios.
+
+Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop),
+closed_loop_serial_steps_per_s, real_time_factor_serial and serial_over_bare (one
+flight, the full stack with the trained equivariant model at 45 Hz, the stack a
+user runs), closed_loop_batched_world_steps_per_s (64 worlds on all cores) and
+batched_over_bare; the same with the oracle predictor under *_oracle; the same
+flights on the simulator's readable path (`Simulator(fast=False)`, the compiled
+passes around Python calls, as before the fused tick) under *_readable, so that one
+run shows what the fused tick gains; the same flights in the wake with memory (`--field shed`,
+`sim.fields.shed`, whose state is stepped on the readable path) under *_shed, its cost in the
+loop; the same flights with the model behind the guard (`downwash.guard`, its pass in the fused
+tick, a support that holds the flights, so that it passes the prediction through: the same flight
+plus the guard's work) under *_guarded, and their ratios to the model alone
+(guarded_over_unguarded_serial, guarded_over_unguarded_batched); the predictor's cost per call, the
+training time and the envs' speed: env_steps_per_s_single (one `gymnasium.make` env, wrappers included)
+and env_single_physics_over_bare (its physics steps per second over bare), likewise for the
+native vector env of 64 worlds; mujoco_batch_world_steps_per_s and mujoco_batch_over_bare
+(`mujoco.batch.Batch.step` of 64 worlds alone, no control: the ceiling of the batched
+ratios on the machine measured). For the 5-vehicle preset (`formation5`, every wake on every
+vehicle) with the equivariant deep sets (`deepsets_equivariant`, a model of sets, four
+neighbours each): bare_mj_step_per_s_formation5 (plain mj_step of that scene),
+formation5_serial_over_bare and formation5_batched_over_bare; the same with the trained
+equivariant model summed over neighbours under formation5_*_summed. A controller of the labs through the
+public compiled-controller contract (`controllers.compiled`: the Crazyflie firmware's Mellinger controller,
+the oracle predictor) under *_mellinger, and its speed over the built-in LQR's with the same predictor,
+compiled_controller_over_builtin_{serial,batched}.
+Against MuJoCo's own batched stepping of the same scene (`mujoco.rollout.Rollout`, the simulator's
+threads, the same worlds, no control; `MujocoRollout`), measured in the same rounds right beside our
+batched flight of that scene, in alternating order: mujoco_rollout_world_steps_per_s,
+mujoco_rollout_over_bare and batched_over_mujoco_rollout (the pair: our batched ratio over the
+rollout's, round by round, median) and the same under formation5_*; for the swarm below,
+swarm_mujoco_rollout_world_steps_per_s and swarm_native_over_mujoco_rollout (the native adapter's
+world-steps per second, swarm_world_steps_per_s_native, over the rollout's of its scene).
+RL glue: stable-baselines3's PPO rollout collection (the policy's forward pass and the
+env steps) through the native vector env and its adapter, through Gymnasium's
+SyncVectorEnv of single envs (the same adapter) and through SB3's own DummyVecEnv, 16
+worlds each, alternated: sb3_rollout_steps_per_s_{native,sync,dummy},
+sb3_native_over_sync and sb3_native_over_dummy (medians of the paired ratios; torch at
+one thread, as the examples run it), and the same under *_torch_default_threads.
+The multi-agent swarm (`swarm_rollouts`): agent steps per second of random actions through the
+native SB3 adapter (`downwash_envs.swarm_sb3`, every world on one batched simulator) and through
+SuperSuit's vector env of ParallelEnv copies (one simulator each, stepped in turn), the same
+preset and worlds, alternated: swarm_agent_steps_per_s_{native,native_one_thread,supersuit},
+swarm_native_over_supersuit and swarm_native_one_thread_over_supersuit (medians of the paired ratios).
+Sharing the cores (`contention`): env_learner_loops_per_s (16 worlds and an Adam update of a
+small MLP per step, torch at its default threads) with the env's default threads over
+n_threads=1 (env_learner_threads_over_one_thread), and two processes of 64 worlds at once:
+the slower one's rate over one alone (two_processes_share_of_solo), each also with
+n_threads=1 (*_one_thread).
+Nothing here is a pass/fail test: the numbers are written down and printed.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from downwash_core.params import RATES
+# the measurements (LEADER and start_data: re-exported, as before the measuring functions had a module)
+from experiments.benchmark.measures import (LEADER, MujocoRollout, bare_mj_step_per_s, closed_loop_sim,  # noqa: F401
+                                            closed_loop_steps_per_s, contention, deepsets_equivariant,
+                                            mujoco_batch_steps_per_s, predictor_us_per_call, sb3_rollouts, start_data,
+                                            swarm_rollouts, train_equivariant)
+from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_table, load_field, out_lock, parse_args,
+                                setup_logging, write_results, script)
+
+
+@dataclass(frozen=True)
+class BenchmarkArgs(CommonArgs):
+    seconds: float = arg(20.0, "simulated seconds per window of one flight (and of bare mj_step); a batched "
+                               "window flies 4 / worlds of it", gt=0.0, le=FLIGHT_SECONDS_MAX)
+    worlds: int = arg(64, "worlds in the batched measurement (a sanity bound: memory grows with the worlds)", ge=1,
+                      le=4096)
+    repeats: int = arg(15, "rounds: each measurement once per round, paired with a bare window (medians reported)",
+                       ge=1, le=1000)
+
+
+# The project's targets for the ratios, written into results.json beside the measurements.
+TARGETS = {"serial_over_bare": 0.8, "batched_over_bare": 1.7, "formation5_serial_over_bare": 0.5,
+           "formation5_batched_over_bare": 1.5, "batched_over_mujoco_rollout": 0.9,
+           "formation5_batched_over_mujoco_rollout": 0.6, "env_single_physics_over_bare": 0.3,
+           "sb3_native_over_sync": 2.0, "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
+           "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9,
+           "swarm_native_over_supersuit": 3.0, "compiled_controller_over_builtin_serial": 0.9,
+           "compiled_controller_over_builtin_batched": 0.9}
+
+
+def run(args: BenchmarkArgs) -> dict:
+    """Every measurement once per round, `repeats` rounds, each right after a bare mj_step window of
+    its scene. This machine switches between a fast and a slow state every second or so (bare
+    mj_step windows of 50 ms measure about 165k or 270k steps/s), so a ratio is the median over
+    rounds of (rate / the bare rate just before it): both halves of a pair see the same state.
+    Rates are medians over the rounds."""
+    import mujoco
+
+    from controllers.crazyflie import MellingerController
+    from downwash.guard import GuardedPredictor
+    from downwash.support import Support
+    from downwash.predictor import LearnedPredictor
+    from downwash_envs.evaluation import env_steps_per_s_single, env_steps_per_s_vector
+    from sim.predictor import OraclePredictor
+    from sim.fields.registry import make_field
+    from sim.presets import make_preset
+    from sim.scene import build_scene
+
+    field = load_field(args.field)
+    seconds = 1.0 if args.quick else args.seconds
+    repeats = 1 if args.quick else args.repeats
+    worlds = min(args.worlds, 8) if args.quick else args.worlds
+    physics_dt = build_scene().model.opt.timestep
+    n_bare = int(seconds / physics_dt)
+    n_env = n_bare // 20  # env steps per window: about the wall time of a bare window
+
+    r: dict[str, Any] = {"cpu_count": os.cpu_count(), "mujoco": mujoco.__version__, "quick": args.quick}
+    # The stack a user runs has a trained model in the loop: train the equivariant model first
+    # (on the field's own samples) and fly it; the oracle's figures follow under *_oracle.
+    seconds_train, model, support = train_equivariant(0.5 if args.quick else 17.0, field)
+    held = Support(support.lo - 10.0, support.hi + 10.0, support.margin)  # (its data's, widened to hold the flights)
+    r["train_seconds_equivariant_full"] = seconds_train
+    learned = LearnedPredictor(model, clamp=6.0)
+    five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
+    shed = make_field("shed")  # the wake with memory: the same flights with its state stepped (readable path)
+    sets = LearnedPredictor(deepsets_equivariant(), clamp=6.0)
+    batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
+    flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
+        "closed_loop_serial_steps_per_s": (closed_loop_sim(1, field, learned), seconds),
+        "closed_loop_batched_world_steps_per_s": (closed_loop_sim(worlds, field, learned), batched_seconds),
+        "closed_loop_serial_steps_per_s_oracle": (closed_loop_sim(1, field, OraclePredictor(field)), seconds),
+        "closed_loop_batched_world_steps_per_s_oracle": (
+            closed_loop_sim(worlds, field, OraclePredictor(field)), batched_seconds),
+        "closed_loop_serial_steps_per_s_readable": (closed_loop_sim(1, field, learned, fast=False), seconds),
+        "closed_loop_batched_world_steps_per_s_readable": (
+            closed_loop_sim(worlds, field, learned, fast=False), batched_seconds),
+        "closed_loop_serial_steps_per_s_guarded": (closed_loop_sim(1, field, GuardedPredictor(learned, held)), seconds),
+        "closed_loop_batched_world_steps_per_s_guarded": (
+            closed_loop_sim(worlds, field, GuardedPredictor(learned, held)), batched_seconds),
+        "closed_loop_serial_steps_per_s_shed": (closed_loop_sim(1, shed, learned), seconds),
+        "closed_loop_batched_world_steps_per_s_shed": (closed_loop_sim(worlds, shed, learned), batched_seconds),
+        "closed_loop_serial_steps_per_s_mellinger": (
+            closed_loop_sim(1, field, OraclePredictor(field), controller=MellingerController()), seconds),
+        "closed_loop_batched_world_steps_per_s_mellinger": (
+            closed_loop_sim(worlds, field, OraclePredictor(field), controller=MellingerController()), batched_seconds),
+        "formation5_serial_world_steps_per_s": (closed_loop_sim(1, field, sets, preset=five), seconds),
+        "formation5_batched_world_steps_per_s": (closed_loop_sim(worlds, field, sets, preset=five), batched_seconds),
+        "formation5_serial_world_steps_per_s_summed": (closed_loop_sim(1, field, learned, preset=five), seconds),
+        "formation5_batched_world_steps_per_s_summed": (
+            closed_loop_sim(worlds, field, learned, preset=five), batched_seconds),
+    }
+    rollouts = {"mujoco_rollout_world_steps_per_s": MujocoRollout(worlds),
+                "formation5_mujoco_rollout_world_steps_per_s": MujocoRollout(worlds, five)}
+    beside = {"closed_loop_batched_world_steps_per_s": "mujoco_rollout_world_steps_per_s",
+              "formation5_batched_world_steps_per_s": "formation5_mujoco_rollout_world_steps_per_s"}
+    per_env_step = RATES.physics_per_control
+    # key: (rate in physics steps per s (the envs': env steps x steps per env step), whose bare it is paired with)
+    measure: dict[str, tuple[Any, Any]] = {
+        "mujoco_batch_world_steps_per_s": (lambda: mujoco_batch_steps_per_s(worlds, n_bare * 4), None),
+    }
+    for key, (f, s) in flights.items():
+        preset = five if key.startswith("formation5") else None
+        if key in beside:  # MuJoCo's rollout of the scene, the same world-steps, next to our flight
+            measure[beside[key]] = (lambda m=rollouts[beside[key]]: m.steps_per_s(n_bare * 4), preset)
+        measure[key] = (lambda f=f, s=s: closed_loop_steps_per_s(f, s), preset)
+    measure.update({
+        "env_steps_per_s_single": (lambda: env_steps_per_s_single(n_env, repeats=1) * per_env_step, None),
+        "env_steps_per_s_vector64": (
+            lambda: env_steps_per_s_vector(worlds, max(1, n_env // worlds * 4), repeats=1) * per_env_step, None),
+    })
+    rates: dict[str, list[float]] = {key: [] for key in ("bare_mj_step_per_s", "bare_mj_step_per_s_formation5", *measure)}
+    ratios: dict[str, list[float]] = {key: [] for key in measure}
+    for i in range(repeats):
+        for key in alternate(list(measure), beside, i):
+            fn, preset = measure[key]
+            bare = bare_mj_step_per_s(n_bare, preset)
+            rate = fn()
+            rates["bare_mj_step_per_s" if preset is None else "bare_mj_step_per_s_formation5"].append(bare)
+            rates[key].append(rate)
+            ratios[key].append(rate / bare)
+    for m in rollouts.values():
+        m.close()
+    r.update({key: float(np.median(v)) for key, v in rates.items()})
+    for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
+        r[key] /= per_env_step
+    ratio = {key: float(np.median(v)) for key, v in ratios.items()}
+    for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
+        r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
+        r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
+    for name in ("serial", "batched"):  # what the guard costs: within 10 % of the model alone
+        r[f"guarded_over_unguarded_{name}"] = r[f"{name}_over_bare_guarded"] / r[f"{name}_over_bare"]
+        # a controller through the public compiled contract (controllers.compiled) against the built-in LQR
+        r[f"{name}_over_bare_mellinger"] = ratio[f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}"
+                                                 f"_per_s_mellinger"]
+        r[f"compiled_controller_over_builtin_{name}"] = r[f"{name}_over_bare_mellinger"] / r[f"{name}_over_bare_oracle"]
+    for suffix in ("", "_oracle"):
+        r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
+    r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
+    for ours, theirs in beside.items():  # each against its bare window, so a round's state cancels
+        prefix = "formation5_" if ours.startswith("formation5") else ""
+        r[f"{prefix}mujoco_rollout_over_bare"] = ratio[theirs]
+        r[f"{prefix}batched_over_mujoco_rollout"] = float(np.median(np.array(ratios[ours]) / np.array(ratios[theirs])))
+    for name in ("serial", "batched"):
+        for suffix in ("", "_summed"):
+            r[f"formation5_{name}_over_bare{suffix}"] = ratio[f"formation5_{name}_world_steps_per_s{suffix}"]
+    r["env_single_physics_over_bare"] = ratio["env_steps_per_s_single"]
+    r["env_vector64_physics_over_bare"] = ratio["env_steps_per_s_vector64"]
+    r["rounds"] = repeats
+    r["batched_worlds"] = worlds
+    r["predictor_us_per_call_batch64"] = predictor_us_per_call(learned, 64, 50 if args.quick else 2000)
+    r["predictor_us_per_call_batch1"] = predictor_us_per_call(learned, 1, 50 if args.quick else 2000)
+    r.update(sb3_rollouts(4 if args.quick else 16, 16 if args.quick else 256, 1 if args.quick else 3))
+    r.update(swarm_rollouts(4 if args.quick else 16, 16 if args.quick else 200, 1 if args.quick else 5))
+    r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
+    r["targets"] = dict(TARGETS)
+    return r
+
+
+def alternate(keys: list[str], beside: dict[str, str], round_index: int) -> list[str]:
+    """`keys` in order, with each pair of `beside` (our flight: MuJoCo's rollout just before it) swapped on
+    every other round, so that neither side of a pair always runs first."""
+    if round_index % 2 == 0:
+        return keys
+    out = list(keys)
+    for ours, theirs in beside.items():
+        i, j = out.index(ours), out.index(theirs)
+        out[i], out[j] = out[j], out[i]
+    return out
+
+
+def main(argv=None) -> dict:
+    setup_logging()
+    args = parse_args(BenchmarkArgs, "benchmark", argv, __doc__)
+    with out_lock(args, "benchmark"):
+        results = run(args)
+        path = write_results(args.out, results, args)
+    rows = [[k, v] for k, v in results.items() if isinstance(v, float)]
+    print(format_table(rows, ["key", "value"]))
+    print(f"\nwrote {path}")
+    return results
+
+
+cli = script(main)  # the console script (pyproject.toml); `python -m experiments.benchmark` runs __main__.py
