@@ -113,6 +113,10 @@ def render_guard_criteria(found: dict[str, dict]) -> str | None:
     note = ("" if not r["retention_unknown"] else
             f" {r['retention_unknown']} settings written before results said whether a model's kinds were in its "
             "data are not judged for retention.")
+    outdoor = sum(1 for k in ("never_worse", "retention") for w, _, _ in r[k]["misses"] if "outdoor" in w)
+    why = ("" if not outdoor else
+           f"\n\n{outdoor} of the misses are outdoors. Why the guard keeps little of an indoor model's gain there, "
+           "measured flight by flight: [design notes, the guard outdoors](design-notes.md#the-guard-outdoors).")
     return ("The guard's criteria over every setting of every results file (model by model, the guarded "
             f"condition against its unguarded twin).{note}\n\n"
-            + markdown_table(["criterion", "settings judged", "missed", "misses"], rows))
+            + markdown_table(["criterion", "settings judged", "missed", "misses"], rows) + why)
