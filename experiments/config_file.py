@@ -9,7 +9,7 @@ tunes, each mapping onto the library's own settings:
     [sim]       sim.simulator.SimConfig, its plain numbers: the failure checks and the noise block
     [training]  downwash.train.TrainConfig: the training the experiment runs (the seed is --seed)
     [guard]     downwash.guard.GuardedPredictor's settings (GUARD_DEFAULTS): its guarded conditions
-    [safety]    reserved: no safety layer is configurable yet, so the table is refused
+    [safety]    sim.safety.SafetyConfig: the safety layer, which the table (or --safety) turns on
 
 An experiment applies the tables its options class names (`config_tables`); any other table,
 an unknown key, a value of the wrong type or out of range stops the run before any work. The
@@ -106,12 +106,12 @@ TABLES = {
         "fast_prior": Key(float, "prior of the fast sums, (m/s^2)^2", _POSITIVE),
     }, {"predictor_hz": "the predictor's rate is the simulator's"}),
     "safety": Table("sim.safety.SafetyConfig", {
-        "vertical_gap": Key(float, "the least vertical separation of a stacked pair, m", {"gt": 0.0, "le": 10.0}),
-        "stack_radius": Key(float, "a pair closer than this horizontally is stacked, m", {"gt": 0.0, "le": 10.0}),
-        "min_distance": Key(float, "the least distance of any pair, m", {"gt": 0.0, "le": 10.0}),
+        "inflation": Key(float, "the factor on each pair's collision ellipsoid its barrier keeps out of",
+                         {"ge": 1.0, "le": 100.0}),
         "ground_clearance": Key(float, "the least height of a vehicle's centre, m", {"ge": 0.0, "le": 100.0}),
         "k0": Key(float, "the barrier's gain on h, 1/s^2", {"gt": 0.0, "le": 1e4}),
         "k1": Key(float, "the barrier's gain on h', 1/s (at least 2 sqrt(k0))", {"gt": 0.0, "le": 1e3}),
+        "bandwidth": Key(float, "of the filter's own disturbance estimate, rad/s", {"gt": 0.0, "le": 1e3}),
         "thrust_fraction": Key(float, "of a vehicle's full thrust the filter may command", {"gt": 0.0, "le": 1.0}),
     }),
 }
@@ -307,7 +307,7 @@ def resolved_tables(args: Any) -> dict[str, dict[str, Any]]:
 
     out = {}
     for name in getattr(type(args), "config_tables", ()):
-        if name == "safety":  # (written only with --safety: without it a [safety] table is refused)
+        if name == "safety":  # (written only where the layer flies: --safety or a [safety] table)
             safety = components.safety_config(args)
             if safety is None:
                 continue

@@ -28,8 +28,8 @@ and, of what the simulator derives when it binds, only what the simulator hands 
   `tab`, sensor_fn 0: none); its episode's offsets `mocap_offset` in `tab`;
 - the physics: a single MjData or a `mujoco.batch.Batch` whose stepping functions are found
   (`sim.physics`), and buffers laid out as the kernel reads them (else `_NoPlan`).
-A safety filter (`sim.safety`) flies with every plan: its C function (`SafetyFilter.address`) and
-constants by address in `tab` (safety_fn 0: none).
+A safety filter (`sim.safety`) flies with every plan: its C function (`SafetyFilter.address`),
+constants and per-world estimates (`SafetyFilter.state`) by address in `tab` (safety_fn 0: none).
 
 A `_Plan` holds the kernel's tables (`sim.fused.TAB`, `FC`) and every array they address,
 so the addresses stay valid for the plan's lifetime; the simulator rebuilds it when a
@@ -246,7 +246,8 @@ class _Plan:
                         seen_t=guard.seen_t)
         safety = self.safety = bound.safety_filter  # (kept: its constants and C function, by address)
         if safety is not None:
-            keep.update(safety_params=safety.params, safety_lower=safety.lower, safety_upper=safety.upper)
+            keep.update(safety_params=safety.params, safety_lower=safety.lower, safety_upper=safety.upper,
+                        safety_state=safety.state)  # (its estimates: the readable path's too)
         # the truth's and the oracle's compiled forms (sim.field_contract), kept with their constants, by address;
         # a scene flies them as given: every pair's factor 1.0
         self.laws = field_law, oracle_law = laws

@@ -2,18 +2,45 @@
 
 In a tight vertical stack a vehicle that sags under an under-predicted wake can fall onto the one below. The
 filter takes the controller's commanded accelerations u_nom (W, V, 3) m/s^2 of every vehicle of every world
-and returns the nearest commands (least squares) that keep, with the double-integrator model p'' = u + f_hat
-(the controller's own: f_hat is the held prediction) and the estimated states the controller uses,
+and returns the nearest commands (least squares) that keep, with the double-integrator model p'' = u + f and
+the estimated states the controller uses,
 
-- every stacked pair's vertical gap (horizontal distance under `stack_radius`):
-  h = s (z_i - z_j) - vertical_gap, s = +1 when i is the upper one;
-- every pair's distance: h = |p_i - p_j| - min_distance;
+- every pair out of its collision ellipsoid inflated by `inflation` (the simulator's own: each pair's lateral
+  and vertical radii a, c, `sim.vehicle_params.collision_radii`, handed to the filter when it is built):
+  h = q - inflation with q = sqrt((dx^2 + dy^2) / a^2 + dz^2 / c^2), dp = p_i - p_j; the simulator counts a
+  collision at q < 1, so the bound is what it checks, scaled;
 - every vehicle's height: h = z_i - ground_clearance.
 
 Each barrier is of second order (exponential, HOCBF), since a position has relative degree 2:
-h'' + k1 h' + k0 h >= 0, linear in the commands. k1 >= 2 sqrt(k0) (real poles -l1, -l2 of
-s^2 + k1 s + k0): from a state with h >= 0 and h' + l1 h >= 0 (l1 the smaller root) the barrier
-keeps h >= 0, and one control period of constant acceleration keeps it too (tests/test_safety.py).
+h'' + k1 h' + k0 h >= 0. With M = diag(1/a^2, 1/a^2, 1/c^2) and dv, da the relative velocity and acceleration,
+q^2 = dp.M dp, so q q' = dp.M dv and q q'' = dp.M da + dv.M dv - q'^2: with g = |M dp| and n = M dp / g,
+
+    q' = dp.M dv / q,    q'' = (g / q) n.da + (dv.M dv - q'^2) / q,    da = u_i - u_j + f_i - f_j,
+
+linear in the commands (the sphere's h'' = n.da + (|dv|^2 - (n.dv)^2) / r is the case a = c = 1). Each pair's
+row is written with the unit normal n: n.(u_i - u_j) >= -(q / g) (k1 q' + k0 h + (dv.M dv - q'^2) / q) - n.df,
+in m/s^2 like the ground's and the box's rows (q / g is a length: c for a pair straight above another, so
+there the barrier is the vertical gap's, dz'' + k1 dz' + k0 (dz - inflation c) >= 0). k1 >= 2 sqrt(k0) (real
+poles -l1, -l2 of s^2 + k1 s + k0): from a state with h >= 0 and h' + l1 h >= 0 (l1 the smaller root) the
+barrier keeps h >= 0, and one control period of constant acceleration keeps it too (tests/test_safety.py).
+
+The drift f is uncertain: f_hat, the controller's held prediction, may under- or mis-predict a wake (a model
+outside its data), and then a barrier trusting it lets the stack close. So the filter keeps its own estimate
+d of what each vehicle feels, from what it measures at the control rate, as `sim.observer` does:
+
+    d_meas = (v_est(t_k) - v_est(t_k-1)) / dt - u(t_k-1),    d <- d + (1 - exp(-bandwidth dt)) (d_meas - d),
+
+u(t_k-1) the command it let through the tick before as feedback linearisation and the rotors realise it
+(`realised`: within the tilt cone, above the thrust floor, below the vehicle's full thrust; a saturated
+vehicle's shortfall counted as a disturbance would wind the estimate up, the filter asking ever more of the
+vehicle that cannot give it), dt the control period (the first call after a reset only records). Each barrier
+takes the more restrictive of the two: for a pair min(n.(f_hat_i - f_hat_j),
+n.(d_i - d_j)) in place of n.df, for the ground min(f_hat_z, d_z). Where the model is right both agree up to
+the estimate's lag and noise; where it is wrong the measured force still holds the barrier. The estimate lives
+in `SafetyFilter.state` ((W, V, STATE_WIDTH): d, the last v_est, the last realised command, whether one was seen), one
+row per world and vehicle, cleared by `SafetyFilter.reset` with the simulator's worlds; the fused tick gets it
+by address (the C function's last argument), so both paths of the simulator share it.
+
 Pairwise constraints couple the vehicles of a world, so each world is one QP:
 
     min |u - u_nom|^2  s.t.  A u >= b  (the barriers)  and  lower <= u <= upper  (`actuator_box`)
@@ -24,60 +51,78 @@ and adds the most violated constraint at a time, so a command that violates no b
 (`controllers.lqr`: the tilt limit, the floor MIN_THRUST_G, a `thrust_fraction` of each vehicle's full
 thrust), widened to include u_nom itself: the filter never clips a command it leaves alone, nor moves one out
 of the box. Where the box makes the barriers infeasible together, a barrier that cannot be met with those
-already held is left unmet (counted; the vehicles do what their thrust allows).
+already held is left unmet (counted; the vehicles do what their thrust allows), and the solution is brought
+back into the widened box (the solver may leave a box row unmet instead, depending on the order it meets
+them: the box holds, a command beyond it would not be realised).
 
 Two paths, one algorithm: `SafetyFilter.reference` in NumPy (`np.linalg.solve` on the active normals) and
-`cbf_filter_kernel`, compiled (a small Cholesky, no BLAS: the same bits on every CPU), tested equal.
+`cbf_filter_kernel`, compiled (a small Cholesky, no BLAS: the same bits on every CPU), tested equal; the
+estimate's update is the same arithmetic on both (`estimate_step`, bit for bit).
 `Simulator(..., safety=SafetyConfig())` runs the compiled one on both of its paths (`SafetyFilter.apply`; the
 fused tick through `safety_function`, a C function).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import numbers
 from dataclasses import asdict, dataclass
 from typing import Any, Sequence
 
-import numba
 import numpy as np
-from numba import carray
-from numba import types as nbt
 
 from controllers.lqr import MAX_TILT_DEG, MIN_THRUST_G, FeedbackLinearisedLQR, attitude_setpoint
 from downwash_core.errors import ConfigError
-from downwash_core.jit import njit
-from downwash_core.params import GRAVITY
+from downwash_core.params import GRAVITY, RATES
 from downwash_core.validate import number
+from sim.observer import DEFAULT_BANDWIDTH
+from sim.safety_kernels import (DEPENDENT, MAX_STEPS, MIN_Q, N_PARAMS, SAFETY_SIGNATURE, STATE_WIDTH, TOLERANCE,
+                                cbf_filter_kernel, safety_function)
 
-__all__ = ["SafetyConfig", "SafetyFilter", "safety_filter", "actuator_box", "constraint_rows", "solve_qp",
-           "cbf_filter_kernel", "SAFETY_SIGNATURE", "safety_function", "TOLERANCE", "DEPENDENT", "N_PARAMS"]
-
-TOLERANCE = 1e-9  # m/s^2: a barrier counts as violated (active) only by more than this
-DEPENDENT = 1e-10  # a normal whose squared part outside the active normals' span is below this share is dependent
-_MIN_RANGE = 1e-9  # m: two vehicles closer than this have no direction, so no distance barrier
-_MAX_STEPS = 10  # the solver's steps per world, per row and command: far beyond a QP's need (rounding cannot loop it)
-N_PARAMS = 8  # the packed settings (`SafetyConfig.packed`): the six numbers, then TOLERANCE and DEPENDENT
+__all__ = ["SafetyConfig", "SafetyFilter", "safety_filter", "actuator_box", "constraint_rows", "estimate_step",
+           "record_step", "realised", "pack_params", "solve_qp", "cbf_filter_kernel", "SAFETY_SIGNATURE",
+           "safety_function", "TOLERANCE",
+           "DEPENDENT", "N_PARAMS", "STATE_WIDTH"]
 
 # name, unit, lowest, highest, lowest excluded
-_RANGES = (("vertical_gap", "m", 0.0, 10.0, True), ("stack_radius", "m", 0.0, 10.0, True),
-           ("min_distance", "m", 0.0, 10.0, True), ("ground_clearance", "m", 0.0, 100.0, False),
-           ("k0", "1/s^2", 0.0, 1e4, True), ("k1", "1/s", 0.0, 1e3, True), ("thrust_fraction", "-", 0.0, 1.0, True))
+_RANGES = (("inflation", "-", 1.0, 100.0, False), ("ground_clearance", "m", 0.0, 100.0, False),
+           ("k0", "1/s^2", 0.0, 1e4, True), ("k1", "1/s", 0.0, 1e3, True), ("bandwidth", "rad/s", 0.0, 1e3, True),
+           ("thrust_fraction", "-", 0.0, 1.0, True))
 
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """The CBF filter's settings (module docstring). The defaults: a stack's gap no closer than the
-    experiments' closest (downwash_core.params.SEPARATION_RANGE, 0.3 m), pairs no closer than two paper
-    quads' collision radius (0.26 m) and a bit, a double pole at 2 rad/s (the approach's time constant 0.5 s)."""
+    """The CBF filter's settings (module docstring). Why the defaults are what they are:
 
-    vertical_gap: float = 0.3  # m, the least vertical separation of a stacked pair
-    stack_radius: float = 0.3  # m, a pair closer than this horizontally is stacked
-    min_distance: float = 0.27  # m, the least distance of any pair
+    inflation 2.5: between the barrier's surface and a collision lies (inflation - 1) times the pair's
+    ellipsoid, and that margin must hold what the filter's model p'' = u + f misses. In crazyflie_stack (the
+    tightest preset: four Crazyflies 0.25 m apart, c = 4.3 cm) two Crazyflies' relative acceleration differs
+    from the model's by 1 to 3 m/s^2 for 0.1 to 0.3 s: the estimate lags a wake that changes with the geometry,
+    the motors lag 30 ms, a vehicle at its thrust limit does not realise its command. A barrier settles a
+    constant error d about d / k0 inside its surface (2 m/s^2 / 64 = 3 cm, the pair's whole vertical radius)
+    and a transient goes further: with 1.5 (2 cm of margin for two Crazyflies) and 2, Crazyflies still
+    collided in the swarm's crazyflie_stack flights (7 and 1 of its 250 under the linear law); with 2.5
+    (6.4 cm; 12 cm for two paper quads, 0.40 m for an X500 over a paper quad) no vehicles collided in any of
+    the swarm's flights. More costs the flights that fly safely: a bound above about 2.7 reaches the
+    formations' ordinary flights (their baselines come to 2.7 to 3 times their ellipsoids), and 2.5 already
+    holds back the flights a wrong model carries to 2.3 (a 2 % change of their mean error).
+    k0 64, k1 16 (a double pole at 8 rad/s, the time constant 0.125 s): the barrier acts once a pair closes
+    faster than about l1 h (l1 the slower pole), so the faster the poles, the later and shorter it acts, and
+    the smaller the displacement d / k0 of a model error; at 4 and 6 rad/s (inflation 2.5 to 3) it acted on
+    formation5's clean flights (mean errors changed by 2.6 to 6 %), at 8 rad/s no more. The limits: the
+    braking the barrier asks near its surface, about l1^2 h, stays within what the box gives a pair (7 m/s^2
+    down, 3.6 to 10 up) for the h of a few centimetres where it acts; and 8 rad/s is well below what the loop
+    carries (a control period of 20 ms, 0.16 rad of phase at 8 rad/s, the motors' 30 ms another 0.24).
+    bandwidth 8 rad/s: `sim.observer.DEFAULT_BANDWIDTH`, chosen on the training flights for the observer that
+    measures the same force from the same signals (a time constant of 0.125 s, as fast as the barrier's poles).
+    ground_clearance 0.1 m and thrust_fraction 0.9: as before (the ground check is at 0.03 m; the rest of the
+    thrust is the attitude's)."""
+
+    inflation: float = 2.5  # -, the factor on each pair's collision ellipsoid that its barrier keeps out of
     ground_clearance: float = 0.1  # m, the least height of a vehicle's centre
-    k0: float = 4.0  # 1/s^2, the barrier's gain on h
-    k1: float = 4.0  # 1/s, its gain on h' (>= 2 sqrt(k0): real poles)
+    k0: float = 64.0  # 1/s^2, the barrier's gain on h
+    k1: float = 16.0  # 1/s, its gain on h' (>= 2 sqrt(k0): real poles)
+    bandwidth: float = DEFAULT_BANDWIDTH  # rad/s, of the filter's own disturbance estimate (`sim.observer`'s)
     thrust_fraction: float = 0.9  # -, of a vehicle's full thrust the filter may command (the rest: the attitude's)
 
     def __post_init__(self) -> None:
@@ -97,15 +142,35 @@ class SafetyConfig:
         root = math.sqrt(max(self.k1 * self.k1 - 4.0 * self.k0, 0.0))
         return (self.k1 - root) / 2.0, (self.k1 + root) / 2.0
 
-    def packed(self) -> np.ndarray:
-        """(N_PARAMS,) float64, as the compiled filter reads them."""
-        return np.array([self.vertical_gap, self.stack_radius, self.min_distance, self.ground_clearance, self.k0,
-                         self.k1, TOLERANCE, DEPENDENT], dtype=np.float64)
-
     def describe(self) -> dict[str, Any]:
         """Class, settings and method (JSON-serialisable), for logs and provenance."""
         return {"type": type(self).__name__, **asdict(self), "barrier": "h'' + k1 h' + k0 h >= 0",
+                "pair": "h = sqrt((dx^2 + dy^2) / a^2 + dz^2 / c^2) - inflation, a, c: the pair's collision radii",
+                "drift": "per barrier the more restrictive of f_hat and the filter's own estimate of the force felt",
                 "solver": "dual active set (Goldfarb-Idnani), least squares on the commands", "tolerance": TOLERANCE}
+
+
+def pack_params(config: SafetyConfig, radius_xy: Any, radius_z: Any, max_thrust: Any, dt: float = RATES.control_dt,
+                max_tilt: float = math.radians(MAX_TILT_DEG),
+                min_vertical: float = MIN_THRUST_G * GRAVITY) -> np.ndarray:
+    """(N_PARAMS + 2 V V + V,) float64, as the compiled filter reads them: the scalars (N_PARAMS), then each pair's
+    lateral and vertical collision radii (V, V) m each, row by row, then each vehicle's full specific thrust
+    max_thrust (V,) m/s^2 (its rotors' T/W g: `realised`); dt s, the period between the filter's calls (the
+    estimate's measurement); max_tilt rad and min_vertical m/s^2, feedback linearisation's limits."""
+    xy, z = (np.asarray(r, dtype=np.float64) for r in (radius_xy, radius_z))
+    top = np.asarray(max_thrust, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[0] != xy.shape[1] or z.shape != xy.shape or top.shape != xy.shape[:1]:
+        raise ConfigError(f"safety: expected each pair's collision radii as two (V, V) arrays and each vehicle's "
+                          f"thrust as (V,), got shapes {xy.shape}, {z.shape} and {top.shape}")
+    off = ~np.eye(len(xy), dtype=bool)
+    if not (np.isfinite(xy[off]).all() and np.isfinite(z[off]).all() and (xy[off] > 0).all() and (z[off] > 0).all()):
+        raise ConfigError("safety: each pair's collision radii must be finite and > 0 m")
+    if not (isinstance(dt, numbers.Real) and math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"safety: dt: expected a finite number > 0 s, got {dt!r}")
+    gain = 1.0 - math.exp(-config.bandwidth * float(dt))  # the estimate's step per tick (`sim.observer`'s filter)
+    head = [config.inflation, config.ground_clearance, config.k0, config.k1, gain, float(dt), TOLERANCE, DEPENDENT,
+            math.tan(max_tilt), float(min_vertical)]
+    return np.concatenate([np.array(head, dtype=np.float64), xy.reshape(-1), z.reshape(-1), top])
 
 
 def actuator_box(config: SafetyConfig, quads: Sequence[Any], max_tilt: float = math.radians(MAX_TILT_DEG),
@@ -133,42 +198,94 @@ def actuator_box(config: SafetyConfig, quads: Sequence[Any], max_tilt: float = m
 # ----------------------------------------------------------------------------- the readable path
 
 
-def constraint_rows(config: SafetyConfig, lower: np.ndarray, upper: np.ndarray, pos: np.ndarray, vel: np.ndarray,
-                    f_hat: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _radii(params: np.ndarray, V: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each pair's lateral and vertical radii (V, V) from the packed params."""
+    return (params[N_PARAMS:N_PARAMS + V * V].reshape(V, V),
+            params[N_PARAMS + V * V:N_PARAMS + 2 * V * V].reshape(V, V))
+
+
+def estimate_step(params: np.ndarray, vel: np.ndarray, state: np.ndarray) -> None:
+    """The estimate's update at a call, in place on state (W, V, STATE_WIDTH), from vel (W, V, 3) the estimated
+    velocities now: where a command was seen the tick before and the measurement is finite,
+    d <- d + gain (d_meas - d), d_meas = (v - v_last) / dt - u_last (module doc). Readable; the kernel's bits."""
+    gain, dt = params[4], params[5]
+    d = state[..., 0:3]
+    meas = (vel - state[..., 3:6]) / dt - state[..., 6:9]
+    ok = (state[..., 9] != 0.0) & np.isfinite(meas).all(axis=-1)
+    state[..., 0:3] = np.where(ok[..., None], d + gain * (meas - d), d)
+
+
+def realised(params: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(W, V, 3) m/s^2: the accelerations the commands u (W, V, 3) give, as feedback linearisation and the rotors
+    realise them (`controllers.lqr.attitude_setpoint`'s limits, then the thrust): the vertical specific force at
+    least min_vertical, the lateral within the tilt cone, the whole specific force at most the vehicle's full
+    thrust (its direction kept: attitude first). The estimate measures the force felt against these, not against
+    the commands: a saturated vehicle's shortfall is no disturbance, and counting it as one winds the estimate up
+    (the filter, trusting it, asks ever more of the saturated vehicle). A command within the limits is returned as
+    it is, bit for bit. Readable; the kernel's bits."""
+    tan_tilt, floor = params[8], params[9]
+    V = u.shape[-2]
+    top = params[N_PARAMS + 2 * V * V:N_PARAMS + 2 * V * V + V]
+    fz = u[..., 2] + GRAVITY
+    low = fz < floor
+    fx, fy, fz = u[..., 0], u[..., 1], np.where(low, floor, fz)
+    nxy = np.sqrt(fx * fx + fy * fy)
+    limit = tan_tilt * fz
+    tilted = nxy > limit
+    nxy = np.where(tilted, nxy, 1.0)
+    fx, fy = np.where(tilted, fx * limit / nxy, fx), np.where(tilted, fy * limit / nxy, fy)
+    t = np.sqrt(fx * fx + fy * fy + fz * fz)
+    over = t > top
+    scale = top / np.where(over, t, 1.0)
+    fx, fy, fz = np.where(over, fx * scale, fx), np.where(over, fy * scale, fy), np.where(over, fz * scale, fz)
+    out = np.stack([fx, fy, fz - GRAVITY], axis=-1)
+    return np.where((low | tilted | over)[..., None], out, u)
+
+
+def record_step(params: np.ndarray, vel: np.ndarray, u: np.ndarray, state: np.ndarray) -> None:
+    """After a call: the velocities it saw and what the commands it let through realise (`realised`), for the next
+    call's measurement."""
+    state[..., 3:6], state[..., 6:9], state[..., 9] = vel, realised(params, u), 1.0
+
+
+def constraint_rows(params: np.ndarray, lower: np.ndarray, upper: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                    f_hat: np.ndarray, u: np.ndarray, estimate: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Every world's constraints A[w] x >= b[w] on its commands x = u[w].reshape(3 V): A (W, m, 3 V), b (W, m),
-    m = 2 P + 7 V for the P = V (V - 1) / 2 pairs. Rows: for each pair i < j in turn, its vertical row (a stacked
-    pair's) and its distance row; each vehicle's ground row; each command's lower and upper bound (the box
-    widened to include u). A row that does not apply (a pair not stacked) is zero with b = -inf."""
+    m = P + 7 V for the P = V (V - 1) / 2 pairs. Rows: each pair i < j in turn (its ellipsoid); each vehicle's
+    ground row; each command's lower and upper bound (the box widened to include u). A pair at one point has no
+    row (zero, b = -inf). params: `SafetyFilter.params`; estimate (W, V, 3): the filter's d (None: zero)."""
     W, V = pos.shape[:2]
     I, J = np.triu_indices(V, 1)
     P, n = len(I), 3 * V
-    k0, k1 = config.k0, config.k1
-    A, b = np.zeros((W, 2 * P + 7 * V, n)), np.full((W, 2 * P + 7 * V), -np.inf)
-    dp, dv, df = pos[:, I] - pos[:, J], vel[:, I] - vel[:, J], f_hat[:, I] - f_hat[:, J]  # (W, P, 3), i minus j
-    vertical, distance = 2 * np.arange(P), 2 * np.arange(P) + 1
-    # vertical: h = s dz - gap, with s = +1 when i is above j
-    stacked = np.sqrt(dp[..., 0] * dp[..., 0] + dp[..., 1] * dp[..., 1]) < config.stack_radius
-    s = np.where(dp[..., 2] >= 0.0, 1.0, -1.0)
-    A[:, vertical, 3 * I + 2], A[:, vertical, 3 * J + 2] = np.where(stacked, s, 0.0), np.where(stacked, -s, 0.0)
-    h, hd = s * dp[..., 2] - config.vertical_gap, s * dv[..., 2]
-    b[:, vertical] = np.where(stacked, -k1 * hd - k0 * h - s * df[..., 2], -np.inf)
-    # distance: h = r - d, h' = n.dv, h'' = n.da + (|dv|^2 - (n.dv)^2) / r
-    r = np.sqrt(dp[..., 0] * dp[..., 0] + dp[..., 1] * dp[..., 1] + dp[..., 2] * dp[..., 2])
-    apart = r > _MIN_RANGE
-    normal = dp / np.where(apart, r, 1.0)[..., None]
-    hd = (normal * dv).sum(axis=-1)
-    bend = ((dv * dv).sum(axis=-1) - hd * hd) / np.where(apart, r, 1.0)
-    for k in range(3):
-        A[:, distance, 3 * I + k] = np.where(apart, normal[..., k], 0.0)
-        A[:, distance, 3 * J + k] = np.where(apart, -normal[..., k], 0.0)
-    b[:, distance] = np.where(apart, -k1 * hd - k0 * (r - config.min_distance) - (normal * df).sum(axis=-1) - bend,
-                              -np.inf)
+    inflation, zmin, k0, k1 = params[0], params[1], params[2], params[3]
+    radius_xy, radius_z = _radii(params, V)
+    d = np.zeros_like(f_hat) if estimate is None else estimate
+    A, b = np.zeros((W, P + 7 * V, n)), np.full((W, P + 7 * V), -np.inf)
+    dp, dv, df, dd = pos[:, I] - pos[:, J], vel[:, I] - vel[:, J], f_hat[:, I] - f_hat[:, J], d[:, I] - d[:, J]
+    a2, c2 = radius_xy[I, J] * radius_xy[I, J], radius_z[I, J] * radius_z[I, J]  # (P,)
+    # the pair's ellipsoid: q = sqrt(dp.M dp), M dp = (gx, gy, gz) = g n (module doc)
+    gx, gy, gz = dp[..., 0] / a2, dp[..., 1] / a2, dp[..., 2] / c2
+    q = np.sqrt(dp[..., 0] * gx + dp[..., 1] * gy + dp[..., 2] * gz)
+    g = np.sqrt(gx * gx + gy * gy + gz * gz)
+    apart = q > MIN_Q
+    gs = np.where(apart, g, 1.0)
+    nx, ny, nz = gx / gs, gy / gs, gz / gs
+    qs = np.where(apart, q, 1.0)
+    qd = (gx * dv[..., 0] + gy * dv[..., 1] + gz * dv[..., 2]) / qs
+    bend = ((dv[..., 0] * dv[..., 0] + dv[..., 1] * dv[..., 1]) / a2 + dv[..., 2] * dv[..., 2] / c2 - qd * qd) / qs
+    drift = np.minimum(nx * df[..., 0] + ny * df[..., 1] + nz * df[..., 2],
+                       nx * dd[..., 0] + ny * dd[..., 1] + nz * dd[..., 2])
+    for k, nk in enumerate((nx, ny, nz)):
+        A[:, np.arange(P), 3 * I + k] = np.where(apart, nk, 0.0)
+        A[:, np.arange(P), 3 * J + k] = np.where(apart, -nk, 0.0)
+    b[:, :P] = np.where(apart, -(qs / gs) * (k1 * qd + k0 * (q - inflation) + bend) - drift, -np.inf)
     # ground: h = z - clearance
-    ground = 2 * P + np.arange(V)
+    ground = P + np.arange(V)
     A[:, ground, 3 * np.arange(V) + 2] = 1.0
-    b[:, ground] = -f_hat[..., 2] - k1 * vel[..., 2] - k0 * (pos[..., 2] - config.ground_clearance)
+    b[:, ground] = -np.minimum(f_hat[..., 2], d[..., 2]) - k1 * vel[..., 2] - k0 * (pos[..., 2] - zmin)
     # the box, widened to include the nominal command
-    x, bound = u.reshape(W, n), 2 * P + V + 2 * np.arange(n)
+    x, bound = u.reshape(W, n), P + V + 2 * np.arange(n)
     A[:, bound, np.arange(n)], A[:, bound + 1, np.arange(n)] = 1.0, -1.0
     b[:, bound] = np.minimum(lower.reshape(n), x)
     b[:, bound + 1] = -np.maximum(upper.reshape(n), x)
@@ -208,7 +325,9 @@ def solve_qp(A: np.ndarray, b: np.ndarray, u: np.ndarray, max_steps: int) -> tup
             drop = int(np.argmin(ratios)) if active else -1
             t1 = ratios[drop] if active else np.inf  # the step at which an active multiplier reaches zero
             zz = z @ z
-            t2 = (b[p] - a @ x) / zz if zz > DEPENDENT * (a @ a) else np.inf  # the step that meets p
+            # the step that meets p (none when a_p lies in the active normals' span, or n of them are active already:
+            # near-dependent normals, three pairs of a column, could otherwise pass the test by rounding)
+            t2 = (b[p] - a @ x) / zz if zz > DEPENDENT * (a @ a) and len(active) < len(x) else np.inf
             t = min(t1, t2)
             if t == np.inf:  # p is infeasible with the active constraints
                 unmet[p] = True
@@ -225,256 +344,101 @@ def solve_qp(A: np.ndarray, b: np.ndarray, u: np.ndarray, max_steps: int) -> tup
     return x, int(unmet.sum())
 
 
-# ----------------------------------------------------------------------------- the compiled path
-
-
-@njit
-def _dot(a, b, n):
-    out = 0.0
-    for c in range(n):
-        out += a[c] * b[c]
-    return out
-
-
-@njit
-def _world_rows(params, lower, upper, p, v, f, x, A, b):
-    """One world's rows of `constraint_rows` into A (m, n), b (m,), in the same order; x (n,) its nominal commands."""
-    V = p.shape[0]
-    gap, radius, dmin, zmin, k0, k1 = params[0], params[1], params[2], params[3], params[4], params[5]
-    A[:, :] = 0.0
-    row = 0
-    for i in range(V):
-        for j in range(i + 1, V):
-            dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
-            if np.sqrt(dx * dx + dy * dy) < radius:  # stacked: the vertical gap
-                s = 1.0 if dz >= 0.0 else -1.0
-                A[row, 3 * i + 2], A[row, 3 * j + 2] = s, -s
-                h, hd = s * dz - gap, s * (v[i, 2] - v[j, 2])
-                b[row] = -k1 * hd - k0 * h - s * (f[i, 2] - f[j, 2])
-            else:
-                b[row] = -np.inf
-            r = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if r > _MIN_RANGE:  # the distance
-                nx, ny, nz = dx / r, dy / r, dz / r
-                vx, vy, vz = v[i, 0] - v[j, 0], v[i, 1] - v[j, 1], v[i, 2] - v[j, 2]
-                hd = nx * vx + ny * vy + nz * vz
-                bend = (vx * vx + vy * vy + vz * vz - hd * hd) / r
-                A[row + 1, 3 * i], A[row + 1, 3 * i + 1], A[row + 1, 3 * i + 2] = nx, ny, nz
-                A[row + 1, 3 * j], A[row + 1, 3 * j + 1], A[row + 1, 3 * j + 2] = -nx, -ny, -nz
-                b[row + 1] = (-k1 * hd - k0 * (r - dmin) - (nx * (f[i, 0] - f[j, 0]) + ny * (f[i, 1] - f[j, 1])
-                                                            + nz * (f[i, 2] - f[j, 2])) - bend)
-            else:
-                b[row + 1] = -np.inf
-            row += 2
-    for i in range(V):  # the ground
-        A[row, 3 * i + 2] = 1.0
-        b[row] = -f[i, 2] - k1 * v[i, 2] - k0 * (p[i, 2] - zmin)
-        row += 1
-    for q in range(3 * V):  # the box, widened to include the nominal command
-        A[row, q], A[row + 1, q] = 1.0, -1.0
-        b[row], b[row + 1] = min(lower[q // 3, q % 3], x[q]), -max(upper[q // 3, q % 3], x[q])
-        row += 2
-
-
-@njit
-def _project(A, active, q, p, n, G, L, r, z):
-    """r = (N^T N)^-1 N^T a_p and z = a_p - N r for the q active normals N (Cholesky of N^T N); False when
-    N^T N is not numerically positive definite."""
-    for k in range(q):
-        r[k] = _dot(A[active[k]], A[p], n)
-        for l in range(k + 1):
-            G[k, l] = _dot(A[active[k]], A[active[l]], n)
-    for k in range(q):  # L L^T = G, lower triangular
-        d = G[k, k]
-        for l in range(k):
-            d -= L[k, l] * L[k, l]
-        if not d > 0.0:
-            return False
-        L[k, k] = np.sqrt(d)
-        for i in range(k + 1, q):
-            e = G[i, k]
-            for l in range(k):
-                e -= L[i, l] * L[k, l]
-            L[i, k] = e / L[k, k]
-    for k in range(q):  # L y = N^T a_p, then L^T r = y (r holds y, then r)
-        e = r[k]
-        for l in range(k):
-            e -= L[k, l] * r[l]
-        r[k] = e / L[k, k]
-    for k in range(q - 1, -1, -1):
-        e = r[k]
-        for l in range(k + 1, q):
-            e -= L[l, k] * r[l]
-        r[k] = e / L[k, k]
-    for c in range(n):
-        e = A[p, c]
-        for k in range(q):
-            e -= r[k] * A[active[k], c]
-        z[c] = e
-    return True
-
-
-@njit
-def _solve_world(A, b, m, n, x, tol, dependent, max_steps, active, lam, r, z, G, L, is_active, unmet):
-    """`solve_qp` on one world's rows, compiled (scratch arrays given); x in place; returns the unmet count."""
-    for j in range(m):
-        is_active[j] = False
-        unmet[j] = False
-    q, steps, n_unmet = 0, 0, 0
-    while steps < max_steps:
-        p, worst = -1, -tol
-        for j in range(m):
-            if not (is_active[j] or unmet[j]):
-                s = _dot(A[j], x, n) - b[j]
-                if s < worst:
-                    p, worst = j, s
-        if p < 0:
-            break
-        lam_p = 0.0
-        while steps < max_steps:
-            steps += 1
-            if not _project(A, active, q, p, n, G, L, r, z):
-                unmet[p] = True
-                n_unmet += 1
-                break
-            t1, drop = np.inf, -1
-            for k in range(q):
-                if r[k] > 0.0 and lam[k] / r[k] < t1:
-                    t1, drop = lam[k] / r[k], k
-            zz = _dot(z, z, n)
-            t2 = (b[p] - _dot(A[p], x, n)) / zz if zz > dependent * _dot(A[p], A[p], n) else np.inf
-            t = min(t1, t2)
-            if t == np.inf:
-                unmet[p] = True
-                n_unmet += 1
-                break
-            if t2 < np.inf:
-                for c in range(n):
-                    x[c] = x[c] + t * z[c]
-            for k in range(q):
-                lam[k] = lam[k] - t * r[k]
-            lam_p += t
-            if t2 <= t1:
-                active[q], lam[q], is_active[p] = p, lam_p, True
-                q += 1
-                break
-            is_active[active[drop]] = False
-            for k in range(drop, q - 1):
-                active[k], lam[k] = active[k + 1], lam[k + 1]
-            q -= 1
-    return n_unmet
-
-
-@njit
-def cbf_filter_kernel(params, lower, upper, pos, vel, f_hat, u, counts):
-    """The filter, compiled: u (W, V, 3) m/s^2 in place, from pos, vel (W, V, 3) (estimates) and f_hat (W, V, 3);
-    params (N_PARAMS,) (`SafetyConfig.packed`), lower, upper (V, 3) (`actuator_box`). Adds to counts (2,) int64
-    the worlds whose commands changed and the barriers left unmet. A world whose nominal commands violate no
-    barrier is not written."""
-    W, V = pos.shape[0], pos.shape[1]
-    n = 3 * V
-    m = V * (V - 1) + 7 * V
-    A, b, x = np.empty((m, n)), np.empty(m), np.empty(n)
-    active, lam, r, z = np.empty(n, np.int64), np.empty(n), np.empty(n), np.empty(n)
-    G, L = np.empty((n, n)), np.empty((n, n))
-    is_active, unmet = np.empty(m, np.bool_), np.empty(m, np.bool_)
-    tol, dependent = params[6], params[7]
-    for w in range(W):
-        for q in range(n):
-            x[q] = u[w, q // 3, q % 3]
-        _world_rows(params, lower, upper, pos[w], vel[w], f_hat[w], x, A, b)
-        violated = False
-        for j in range(m):
-            if _dot(A[j], x, n) - b[j] < -tol:
-                violated = True
-                break
-        if not violated:
-            continue
-        counts[1] += _solve_world(A, b, m, n, x, tol, dependent, _MAX_STEPS * (m + n), active, lam, r, z, G, L,
-                                  is_active, unmet)
-        changed = False
-        for q in range(n):
-            changed = changed or x[q] != u[w, q // 3, q % 3]
-            u[w, q // 3, q % 3] = x[q]
-        counts[0] += changed
-
-
-# void f(n_worlds, n_vehicles, pos, vel, f_hat, u, params, lower, upper, counts, unused): the fused tick calls it
-# by address with the argument types of `sim.predictor.PREDICTOR_SIGNATURE` (pointers as addresses)
-_F64P, _I64P = nbt.CPointer(nbt.float64), nbt.CPointer(nbt.int64)
-SAFETY_SIGNATURE = nbt.void(nbt.int64, nbt.int64, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _F64P, _I64P, _F64P)
-
-
-def _safety_c(n_worlds, n_veh, pos, vel, f_hat, u, params, lower, upper, counts, unused):
-    shape = (n_worlds, n_veh, 3)
-    cbf_filter_kernel(carray(params, (N_PARAMS,)), carray(lower, (n_veh, 3)), carray(upper, (n_veh, 3)), carray(pos, shape),
-                      carray(vel, shape), carray(f_hat, shape), carray(u, shape), carray(counts, (2,)))
-
-
-@functools.lru_cache(maxsize=1)
-def safety_function() -> Any:
-    """`cbf_filter_kernel` as a C function of `SAFETY_SIGNATURE` (a numba cfunc, compiled at the first use,
-    then cached on disk); kept alive here for the process."""
-    return numba.cfunc(SAFETY_SIGNATURE, cache=True, nopython=True)(_safety_c)
-
-
 # ----------------------------------------------------------------------------- the filter
 
 
-def safety_filter(config: SafetyConfig | None, quads: Sequence[Any], controller: Any) -> SafetyFilter | None:
+def safety_filter(config: SafetyConfig | None, vehicle_params: Any, controller: Any, n_worlds: int,
+                  dt: float = RATES.control_dt, previous: SafetyFilter | None = None) -> SafetyFilter | None:
     """A simulator's filter for `config` (None: none; ConfigError for anything else) under `controller`'s feedback
-    linearisation limits (its `max_tilt`, `min_vertical` where it has them, else the LQR's defaults)."""
+    linearisation limits (its `max_tilt`, `min_vertical` where it has them, else the LQR's defaults), for the
+    scene's vehicles and each pair's collision ellipsoid (`vehicle_params`: `quads`, `collision_xy`,
+    `collision_z`, `sim.vehicle_params.VehicleParams`), n_worlds worlds called every dt s. `previous` (the
+    filter this one replaces when the simulator binds again): its estimates carry over where the shape agrees."""
+    if config is None:
+        return None
     tilt = getattr(controller, "max_tilt", math.radians(MAX_TILT_DEG))
     floor = getattr(controller, "min_vertical", MIN_THRUST_G * GRAVITY)
-    return None if config is None else SafetyFilter(config, quads, tilt, floor)
+    out = SafetyFilter(config, vehicle_params.quads, vehicle_params.collision_xy, vehicle_params.collision_z, tilt,
+                       floor, dt=dt, n_worlds=n_worlds)
+    if isinstance(previous, SafetyFilter) and previous.state.shape == out.state.shape:
+        out.state[:] = previous.state
+    return out
 
 
 class SafetyFilter:
-    """The CBF filter for a scene's vehicles (`quads`, each with its `thrust_to_weight`) under a feedback
-    linearisation with limits `max_tilt` (rad) and `min_vertical` (m/s^2): `actuator_box`."""
+    """The CBF filter for a scene's vehicles (`quads`, each with its `thrust_to_weight`) and each pair's collision
+    ellipsoid (radius_xy, radius_z (V, V) m: `sim.vehicle_params.collision_radii`), under a feedback linearisation
+    with limits `max_tilt` (rad) and `min_vertical` (m/s^2) (`actuator_box`), called every dt s on n_worlds
+    worlds: `state` (n_worlds, V, STATE_WIDTH) holds each world's and vehicle's estimate (module doc)."""
 
-    def __init__(self, config: SafetyConfig, quads: Sequence[Any], max_tilt: float = math.radians(MAX_TILT_DEG),
-                 min_vertical: float = MIN_THRUST_G * GRAVITY):
+    def __init__(self, config: SafetyConfig, quads: Sequence[Any], radius_xy: Any, radius_z: Any,
+                 max_tilt: float = math.radians(MAX_TILT_DEG), min_vertical: float = MIN_THRUST_G * GRAVITY, *,
+                 dt: float = RATES.control_dt, n_worlds: int = 1):
         if not isinstance(config, SafetyConfig):
             raise ConfigError(f"safety: expected a sim.safety.SafetyConfig or None, got {type(config).__name__}")
         self.config = config
         self.max_tilt, self.min_vertical = float(max_tilt), float(min_vertical)
         self.lower, self.upper = actuator_box(config, quads, self.max_tilt, self.min_vertical)
-        self.params = config.packed()
+        V = len(quads)
+        if np.shape(radius_xy) != (V, V) or np.shape(radius_z) != (V, V):
+            raise ConfigError(f"safety: expected each pair's collision radii as ({V}, {V}) arrays for {V} vehicles, "
+                              f"got {np.shape(radius_xy)} and {np.shape(radius_z)}")
+        self.params = pack_params(config, radius_xy, radius_z, [q.thrust_to_weight * GRAVITY for q in quads], dt,
+                                  self.max_tilt, self.min_vertical)
+        self.state = np.zeros((int(n_worlds), V, STATE_WIDTH))
+
+    def reset(self, worlds: Any = None) -> None:
+        """These worlds (None: all) start afresh: no estimate, nothing measured (the simulator's reset calls it)."""
+        self.state[slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)] = 0.0
 
     @property
     def address(self) -> int:
         """The address of the compiled filter's C function (`safety_function`), for the fused tick."""
         return int(safety_function().address)
 
-    def filter_into(self, pos: np.ndarray, vel: np.ndarray, f_hat: np.ndarray, u: np.ndarray) -> tuple[int, int]:
-        """The compiled filter on u (W, V, 3) float64 in place; returns (worlds changed, barriers left unmet)."""
+    def filter_into(self, pos: np.ndarray, vel: np.ndarray, f_hat: np.ndarray, u: np.ndarray,
+                    state: np.ndarray | None = None) -> tuple[int, int]:
+        """The compiled filter on u (W, V, 3) float64 in place, its estimate in `state` (W, V, STATE_WIDTH), updated
+        (None: the filter's own, `self.state`, of the simulator's worlds); returns (worlds changed, barriers left
+        unmet)."""
+        state = self.state if state is None else state
+        if state.shape != (*u.shape[:2], STATE_WIDTH):
+            raise ConfigError(f"safety: the estimate's state has shape {state.shape}, the commands {u.shape}")
         counts = np.zeros(2, np.int64)
-        cbf_filter_kernel(self.params, self.lower, self.upper, pos, vel, f_hat, u, counts)
+        cbf_filter_kernel(self.params, self.lower, self.upper, pos, vel, f_hat, u, counts, state)
         return int(counts[0]), int(counts[1])
 
-    def __call__(self, pos: np.ndarray, vel: np.ndarray, u: np.ndarray, f_hat: np.ndarray | None = None) -> np.ndarray:
-        """The filtered commands (W, V, 3) m/s^2, compiled (a fresh array)."""
+    def __call__(self, pos: np.ndarray, vel: np.ndarray, u: np.ndarray, f_hat: np.ndarray | None = None,
+                 state: np.ndarray | None = None) -> np.ndarray:
+        """The filtered commands (W, V, 3) m/s^2, compiled (a fresh array); state (W, V, STATE_WIDTH) the estimate's,
+        updated in place (None: a fresh one, nothing measured: the estimate is zero)."""
         out = np.array(u, dtype=np.float64, order="C")
         pos, vel = (np.ascontiguousarray(a, dtype=np.float64) for a in (pos, vel))
         f_hat = np.zeros_like(out) if f_hat is None else np.ascontiguousarray(f_hat, dtype=np.float64)
-        self.filter_into(pos, vel, f_hat, out)
+        self.filter_into(pos, vel, f_hat, out, np.zeros((*out.shape[:2], STATE_WIDTH)) if state is None else state)
         return out
 
     def reference(self, pos: np.ndarray, vel: np.ndarray, u: np.ndarray, f_hat: np.ndarray | None = None,
-                  ) -> tuple[np.ndarray, int]:
-        """The filtered commands (W, V, 3) and the barriers left unmet, in NumPy (the readable form)."""
+                  state: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+        """The filtered commands (W, V, 3) and the barriers left unmet, in NumPy (the readable form); state as for
+        a call (updated in place as the compiled filter updates it)."""
         u = np.asarray(u, dtype=np.float64)
-        f_hat = np.zeros_like(u) if f_hat is None else np.asarray(f_hat, dtype=np.float64)
-        A, b = constraint_rows(self.config, self.lower, self.upper, np.asarray(pos, float), np.asarray(vel, float),
-                               f_hat, u)
         W, V = u.shape[:2]
+        f_hat = np.zeros_like(u) if f_hat is None else np.asarray(f_hat, dtype=np.float64)
+        state = np.zeros((W, V, STATE_WIDTH)) if state is None else state
+        vel = np.asarray(vel, float)
+        estimate_step(self.params, vel, state)
+        A, b = constraint_rows(self.params, self.lower, self.upper, np.asarray(pos, float), vel, f_hat, u,
+                               state[..., 0:3])
         x = u.reshape(W, 3 * V)
         out, unmet = u.copy(), 0
         violated = np.flatnonzero(((A @ x[..., None])[..., 0] - b < -TOLERANCE).any(axis=1))
         for w in violated:  # one QP per world: its pairs couple its vehicles
-            solved, missed = solve_qp(A[w], b[w], x[w], _MAX_STEPS * sum(A[w].shape))
-            out[w], unmet = solved.reshape(V, 3), unmet + missed
+            solved, missed = solve_qp(A[w], b[w], x[w], MAX_STEPS * sum(A[w].shape))
+            solved = np.minimum(np.maximum(solved.reshape(V, 3), np.minimum(self.lower, u[w])),
+                                np.maximum(self.upper, u[w]))  # into the widened box, as the kernel
+            out[w], unmet = solved, unmet + missed
+        record_step(self.params, vel, out, state)
         return out, unmet
 
     def apply(self, controller: Any, state: Any, ref: Any, f_hat: np.ndarray, out: Any, lookahead: float) -> int:
@@ -482,7 +446,7 @@ class SafetyFilter:
         (the `controllers.lqr.Setpoint` buffers) and redo feedback linearisation where it acted; returns the
         worlds changed. A `FeedbackLinearisedLQR` (stateless) runs its own step again with the filtered command as
         the override, as the fused tick does; any other controller gets `attitude_setpoint` on the changed
-        vehicles, towards the heading of its own set-point."""
+        vehicles, towards the heading of its own set-point. The estimate is the filter's own (`self.state`)."""
         exact = type(controller) is FeedbackLinearisedLQR
         nominal = None if exact else out.acc.copy()
         changed, _ = self.filter_into(state.pos, state.vel, f_hat, out.acc)

@@ -275,7 +275,8 @@ class Simulator(FusedTicks, ReadableTicks):
                                    self.vehicle_params.names)
         self._scene_predictor = memory_oracle(self._memory, self._scene_predictor) or self._scene_predictor
         self._predictor_state = is_stateful(self._scene_predictor)
-        self._safety_filter = safety_filter(self.safety, self.vehicle_params.quads, self.controller)  # None: off
+        self._safety_filter = safety_filter(self.safety, self.vehicle_params, self.controller, self.W, r.control_dt,
+                                            self.__dict__.get("_safety_filter"))  # None: off; its estimates kept
         self._turbulence_intensity = float(self.turbulence.intensity)
         if self._wind_on:
             mean, sigma, length, axes, min_airspeed = self.wind.kernel_constants()

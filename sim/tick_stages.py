@@ -54,6 +54,7 @@ from sim.fused_abi import (
 from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _sense_law_kernel, _status_kernel,
                         _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
 from sim.predictor import GUARD_STATE_WIDTH
+from sim.safety_kernels import STATE_WIDTH as _SAFETY_STATE_WIDTH
 
 World = namedtuple("World", [
     "n_worlds", "V", "w0", "w1", "layout", "noise", "cursor", "pos_est", "vel_est", "t", "next_prediction", "due",
@@ -213,7 +214,7 @@ def control_bundle(tab, w0, w1):
     return Control(
         tab[T_CONTROLLER_FN], tab[T_CONTROLLER_PARAMS],
         tab[T_CONTROLLER_STATE] + 8 * V * tab[T_CONTROLLER_WIDTH] * w0, tab[T_SAFETY_FN], tab[T_SAFETY_PARAMS],
-        tab[T_SAFETY_LOWER], tab[T_SAFETY_UPPER], tab[T_SAFETY_STATE],
+        tab[T_SAFETY_LOWER], tab[T_SAFETY_UPPER], tab[T_SAFETY_STATE] + 8 * V * _SAFETY_STATE_WIDTH * w0,
         tab[T_GUARD], _f64(tab[T_GUARD_APPLIED], (n, V, 1), w0, w1), tab[T_PW_GUARDED],
         _i64(tab[T_PW_GUARD_APPLIED], n, w0, w1), tab[T_ROW_T], tab[T_ROW_REF_POS],
         tab[T_ROW_REF_VEL], tab[T_ROW_REF_ACC], tab[T_ROW_F_HAT], tab[T_ROW_GUARD])
@@ -367,7 +368,7 @@ def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
         counts = np.zeros(2, np.int64)  # with the filtered command as override, as the readable path
         call_predictor(c.safety_fn, W, V, kin[3].ctypes.data, kin[4].ctypes.data, f_hat.ctypes.data,
                         u_cmd.ctypes.data, c.safety_params, c.safety_lower, c.safety_upper, counts.ctypes.data,
-                        c.safety_state)  # (unused by the filter)
+                        c.safety_state)  # the chunk's rows of its estimates
         if counts[0] != 0:
             no, yes = actions < 0, actions >= 0  # (False, True, not literals: the call's types as above)
             _command_setpoint_kernel(*state, inputs.residual, u_cmd, no, yes, *limits)

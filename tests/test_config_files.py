@@ -104,12 +104,12 @@ def test_the_safety_table_maps_onto_the_safety_layer_and_needs_safety_on():
     cls = args_class("lemniscate")
     assert components.safety_config(cls()) is None
     assert components.safety_config(cls(safety=True)) == SafetyConfig()
-    on = cls(safety=True, tables={"safety": {"vertical_gap": 0.25, "k1": 5.0}})
-    assert components.safety_config(on) == SafetyConfig(vertical_gap=0.25, k1=5.0)
-    assert components.flight_components(on)["safety"] == SafetyConfig(vertical_gap=0.25, k1=5.0)
+    on = cls(safety=True, tables={"safety": {"inflation": 2.0, "k1": 20.0}})
+    assert components.safety_config(on) == SafetyConfig(inflation=2.0, k1=20.0)
+    assert components.flight_components(on)["safety"] == SafetyConfig(inflation=2.0, k1=20.0)
     # a [safety] table turns it on (TOML cannot hold safety = true beside it), and the config written says so
-    assert components.safety_config(cls(tables={"safety": {"vertical_gap": 0.25}})) == SafetyConfig(vertical_gap=0.25)
-    text = dumps({}, {"safety": {"vertical_gap": 0.25}}, "")
+    assert components.safety_config(cls(tables={"safety": {"inflation": 2.0}})) == SafetyConfig(inflation=2.0)
+    text = dumps({}, {"safety": {"inflation": 2.0}}, "")
     assert "[safety]" in text and "safety = " not in text
     with pytest.raises(ConfigError, match=r"\[safety\]: SafetyConfig.k1"):  # the class's own check, named by table
         components.safety_config(cls(safety=True, tables={"safety": {"k0": 100.0, "k1": 1.0}}))
@@ -174,7 +174,7 @@ def test_tables_are_read_checked_and_normalised(tmp_path):
     ("[guard]\nrecover = 2\n", ["[guard] unknown key 'recover'", "allowed: recovery, bound"]),
     ("[training]\nmax_epochs = 5\n", ["[training]: this experiment does not apply downwash.train.TrainConfig",
                                      "refused rather than ignored", "the tables it applies: [lqr], [sim], [guard], [safety]"]),
-    ("[safety]\nmin_separation = 0.3\n", ["[safety] unknown key 'min_separation'", "allowed: vertical_gap"]),
+    ("[safety]\nmin_separation = 0.3\n", ["[safety] unknown key 'min_separation'", "allowed: inflation"]),
     ("[controller]\nq = 1\n", ["controller = {'q': 1}: expected a string, got a TOML table", "--controller"]),
 ])
 def test_a_bad_table_is_one_line_naming_the_table_the_key_and_what_is_allowed(tmp_path, capsys, text, expected):

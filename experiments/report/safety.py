@@ -48,9 +48,9 @@ def render_swarm_safety(r: dict, label: str) -> str:
                          f"`{worst}` {crash_cell(entry[worst]['crash_rate'], n)}" if entry[worst]["crash_rate"] else "none"])
     s = r.get("provenance", {}).get("safety") or {}
     return "\n\n".join([
-        f"The swarm experiment flown with the safety layer (`--safety`: vertical gap {s.get('vertical_gap')} m within "
-        f"{s.get('stack_radius')} m laterally, distance {s.get('min_distance')} m, height {s.get('ground_clearance')} m, "
-        f"k0 {s.get('k0')}, k1 {s.get('k1')}), {n} flights per cell (`{label}`):",
+        f"The swarm experiment flown with the safety layer (`--safety`: each pair's collision ellipsoid inflated "
+        f"{s.get('inflation')} times, height {s.get('ground_clearance')} m, k0 {s.get('k0')}, k1 {s.get('k1')}, its "
+        f"estimate's bandwidth {s.get('bandwidth')} rad/s), {n} flights per cell (`{label}`):",
         markdown_table(["law", "preset", "baseline crashes", "most crashes"], rows)])
 
 
