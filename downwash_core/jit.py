@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numba
 
-__all__ = ["njit", "source_stamp", "install_locator", "KERNEL_PACKAGES", "first_use_marker", "announce_first_compile",
+__all__ = ["njit", "njit_inline", "source_stamp", "install_locator", "KERNEL_PACKAGES", "first_use_marker", "announce_first_compile",
            "mark_compiled"]
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,12 @@ _ROOT = Path(__file__).resolve().parents[1]
 def njit(fn):
     """Compile `fn` in nopython mode, cached on disk, without fast-math reassociation."""
     return numba.njit(cache=True, fastmath=False, nogil=True)(fn)
+
+
+def njit_inline(fn):
+    """`njit`, and inlined into every compiled caller (numba's IR inlining): a stage of the fused tick
+    costs no call, and its bundles of arrays are not passed by value (a single world's tick is short)."""
+    return numba.njit(cache=True, fastmath=False, nogil=True, inline="always")(fn)
 
 
 @lru_cache(maxsize=1)

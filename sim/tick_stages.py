@@ -27,7 +27,7 @@ import numpy as np
 from numba import carray
 
 from controllers.lqr import _command_setpoint_kernel
-from downwash_core.jit import njit
+from downwash_core.jit import njit, njit_inline
 from sim.field import _pairwise_kernel
 from sim.fused_abi import (
     F_DT, F_GROUND, F_INTENSITY, F_KF_P, F_KF_V, F_LOOKAHEAD, F_MAX_DISTANCE, F_MIN_AIRSPEED, F_MIN_VERTICAL,
@@ -120,7 +120,7 @@ def _i64(address, n, w0, w1):
 # ----------------------------------------------------------------------------- the bundles (the table, read once)
 
 
-@njit
+@njit_inline
 def world_bundle(tab, w0, w1):
     n, V = tab[T_W], tab[T_V]
     return World(
@@ -137,7 +137,7 @@ def world_bundle(tab, w0, w1):
         Sensing(tab[T_SENSOR_FN], tab[T_SENSOR_PARAMS], tab[T_SENSOR_STATE] + 8 * V * tab[T_SENSOR_WIDTH] * w0))
 
 
-@njit
+@njit_inline
 def vehicles_bundle(tab):
     V = tab[T_V]
     return Vehicles(carray(f64p(tab[T_AP_GAIN]), (V, 14, 4)), carray(f64p(tab[T_MAX_THRUST]), (V,)),
@@ -146,7 +146,7 @@ def vehicles_bundle(tab):
                     tab[T_FIELD_PARAMS], tab[T_FIELD_FN_SCALE])
 
 
-@njit
+@njit_inline
 def inputs_bundle(tab, row, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override, w0, w1):
     n, V = tab[T_W], tab[T_V]
     u_cmd = _row_view(row, tab[T_ROW_U_CMD], n, V * 3, w0, w1).reshape((w1 - w0, V, 3))
@@ -154,7 +154,7 @@ def inputs_bundle(tab, row, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, re
                   residual[w0:w1], override[w0:w1], u_cmd)
 
 
-@njit
+@njit_inline
 def buffers_bundle(tab, row, first, w0, w1):
     """The sub-tick's kinematics and forces: the log row's fields on the first autopilot tick (which writes
     the row, and its time), the plan's scratch buffers on the later ones."""
@@ -177,7 +177,7 @@ def buffers_bundle(tab, row, first, w0, w1):
     return Buffers(kin, quat, quat_est, yaw, applied, mean)
 
 
-@njit
+@njit_inline
 def wind_bundle(tab, row, first, w0, w1):
     n, V = tab[T_W], tab[T_V]
     W, V3 = w1 - w0, V * 3
@@ -193,7 +193,7 @@ def wind_bundle(tab, row, first, w0, w1):
                 carray(f64p(tab[T_WIND_AXES]), (3, 3)), carray(f64p(tab[T_DRAG_GAIN]), (V,)))
 
 
-@njit
+@njit_inline
 def prediction_bundle(tab, w0, w1):
     n = tab[T_W]
     return Prediction(
@@ -208,7 +208,7 @@ def prediction_bundle(tab, w0, w1):
         tab[T_ORACLE_FN], tab[T_ORACLE_PARAMS], tab[T_FIELD_FN_SCALE])
 
 
-@njit
+@njit_inline
 def control_bundle(tab, w0, w1):
     n, V = tab[T_W], tab[T_V]
     return Control(
@@ -220,7 +220,7 @@ def control_bundle(tab, w0, w1):
         tab[T_ROW_REF_VEL], tab[T_ROW_REF_ACC], tab[T_ROW_F_HAT], tab[T_ROW_GUARD])
 
 
-@njit
+@njit_inline
 def stepping_bundle(tab):
     n = tab[T_W]
     warnings_size = FATAL_MAX * tab[T_WARNING_STRIDE] + 1
@@ -231,7 +231,7 @@ def stepping_bundle(tab):
         carray(i32p(tab[T_WARNINGS]), (warnings_size,)), tab[T_WARNING_STRIDE])
 
 
-@njit
+@njit_inline
 def monitor_bundle(tab, w0, w1):
     n, V = tab[T_W], tab[T_V]
     V3 = 3 * V
@@ -247,7 +247,7 @@ def monitor_bundle(tab, w0, w1):
 # ----------------------------------------------------------------------------- the stages
 
 
-@njit
+@njit_inline
 def sense_stage(fc, world, physics, buf):
     """Motion capture and the Kalman filter (`sim.passes._sense_kernel`, or `_sense_law_kernel` with a sensor's
     compiled law, `sim.sensor_contract`); returns how many worlds' prediction is due."""
@@ -265,7 +265,7 @@ def sense_stage(fc, world, physics, buf):
     )
 
 
-@njit
+@njit_inline
 def wind_stage(fc, world, wind, buf):
     """The gusts felt (the air's velocity and the drag) and advanced; returns the velocities relative to the air."""
     vel = buf.kin[1]
@@ -297,7 +297,7 @@ def _predict_world(p, vehicles, buf, vel_air, world, w):
                 pred[w, i, k] = 0.0
 
 
-@njit
+@njit_inline
 def predict_stage(fc, p, vehicles, world, buf, vel_air):
     """The predictor at its rate (due worlds), the guard's pass over it, then the hold into f_hat."""
     pos, rot, pred, kin = buf.kin[0], world.rot, world.pred, buf.kin
@@ -323,7 +323,7 @@ def predict_stage(fc, p, vehicles, world, buf, vel_air):
     _hold_kernel(world.f_hat, pred, world.due, world.next_prediction, fc[F_PRED_PERIOD])
 
 
-@njit
+@njit_inline
 def field_stage(vehicles, world, buf, vel_air):
     """The ground-truth wakes: every pair's mean push into buf.mean, the paper field's (`sim.field._pairwise_kernel`)
     or a field's compiled form's (`sim.field_contract`: its C function, on these worlds' C-contiguous rows)."""
@@ -335,7 +335,7 @@ def field_stage(vehicles, world, buf, vel_air):
                                               vehicles.field_scale))
 
 
-@njit
+@njit_inline
 def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
     """The controller (the LQR's kernel or a compiled form, `controllers.compiled`), the safety filter, and the
     tick's fields of the row (time, reference, f_hat, the guard's applied fraction)."""
@@ -383,7 +383,7 @@ def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
                                      else np.nan)
 
 
-@njit
+@njit_inline
 def actuate_stage(fc, vehicles, world, physics, buf, u_cmd):
     """The autopilot, the mixer and the forces: rotors, the wakes' and turbulence's pushes (`_actuate_kernel`)."""
     _actuate_kernel(
@@ -394,13 +394,13 @@ def actuate_stage(fc, vehicles, world, physics, buf, u_cmd):
     )
 
 
-@njit
+@njit_inline
 def wind_force_stage(vehicles, world, physics, wind):
     """The gusts' drag, added to the forces."""
     _wind_force_kernel(physics.xfrc, world.layout, vehicles.mass, wind.wind_acc)
 
 
-@njit
+@njit_inline
 def physics_stage(s, world, chunk):
     """The physics' steps of one autopilot tick: mj_step on the single world's MjData, or each world's state
     row stepped in this thread's scratch MjData (`_step_rows`); nothing when the caller steps it."""
@@ -437,7 +437,7 @@ def _step_rows(s, active, w0, w1, data, data_warnings):
                 s.batch_warnings[w0 + w, i, 1] += scratch[i, 1]
 
 
-@njit
+@njit_inline
 def monitor_stage(fc, s, m, world, physics, row):
     """The end of a complete tick: which worlds diverged (MuJoCo's fatal warnings), the status pass (ground,
     distance, collisions); then the guard's monitor on the row (its observe). Returns how many worlds ended."""
