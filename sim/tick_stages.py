@@ -17,6 +17,8 @@ Stages, in a tick's order: `sense_stage` (motion capture and the Kalman filter),
 (the controller at its rate, the safety filter, the row), `actuate_stage` (autopilot, mixer,
 turbulence), `physics_stage`, `monitor_stage` (status and the guard's monitor). Each calls the
 passes the readable path calls (`sim.passes`), in the same order, so both paths fly the same bits.
+The stages and bundle makers are inlined into the tick (`downwash_core.jit.njit_inline`): called as
+functions, with their bundles passed by value, they cost a single world's tick 13 % of its speed.
 """
 
 from __future__ import annotations

@@ -278,14 +278,15 @@ def test_train_trains_with_the_training_table(tmp_path, monkeypatch):
 def test_swarm_guards_its_conditions_with_the_guard_table(monkeypatch):
     """experiments.swarm builds its guarded conditions with the [guard] settings (the models stubbed out)."""
     import downwash.checkpoint
-    import downwash.guard
+    import downwash.conditions
     import downwash.predictor
     from experiments.swarm import SwarmArgs, _predictors
 
     made = []
     monkeypatch.setattr(downwash.checkpoint, "wrap_pairwise", lambda *a, **k: "pairwise")
     monkeypatch.setattr(downwash.predictor, "LearnedPredictor", lambda model, **k: ("learned", model))
-    monkeypatch.setattr(downwash.guard, "GuardedPredictor", lambda p, **kw: made.append(kw) or ("guarded", p))
+    # the one condition-to-predictor factory the swarm uses (downwash.conditions.make_predictor) guards with it
+    monkeypatch.setattr(downwash.conditions, "GuardedPredictor", lambda p, **kw: made.append(kw) or ("guarded", p))
     guard = components.guard_settings(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
     out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None,
                       {"summed_pairwise": Path("p.pt")}, None, guard)
