@@ -75,7 +75,8 @@ class LearnedPredictor:
       registered kind): selection, model and clamp in one compiled pass, float64, which the
       simulator's fused tick calls without leaving compiled code (`compiled()`); "numpy" (the
       default for a kind without a compiled form): the model's float64 NumPy twin
-      (``numpy_forward``), the compiled pass's readable reference; "torch": the frozen torch
+      (``numpy_forward``), the compiled pass's readable reference; "torch" (the default for a
+      network with layers the twin does not have, only linear layers and ReLUs): the frozen torch
       model under ``torch.inference_mode``, the twin's readable reference, 2-5x slower on these
       small batches. All three agree to float64 rounding (tests).
     neighbours: the neighbour set of a per-neighbour model (a checkpoint brings its own).
@@ -110,10 +111,14 @@ class LearnedPredictor:
                            expect_aggregation)
         kind = model.model.kind
         memory = isinstance(model.model, SummedPairwise) and model.model.pairwise.memory
-        if backend is None:
-            backend = "compiled" if kind in COMPILED_KINDS and not memory else "numpy"
+        twin = _has_numpy_twin(model.model)  # its layers folded into float64 arrays: the twin's and the compiled pass's
+        if backend is None:  # the fastest form the model has
+            backend = "compiled" if kind in COMPILED_KINDS and not memory and twin else "numpy" if twin else "torch"
         if backend not in self.BACKENDS:
             raise ConfigError(f"backend: expected one of {list(self.BACKENDS)}, got {backend!r}")
+        if backend != "torch" and not twin:
+            raise ConfigError(f"backend: {backend!r} runs networks of linear layers and ReLUs; this model has other "
+                              "layers: use 'torch' (the default for it)")
         if backend == "compiled" and (kind not in COMPILED_KINDS or memory):
             what = f"a {model.model.pairwise.kind!r} model (it reads its history)" if memory else repr(kind)
             raise ConfigError(f"backend: {what} has no compiled form (kinds with one: {sorted(COMPILED_KINDS)}, "
@@ -250,6 +255,16 @@ class LearnedPredictor:
                 if self.num_threads is not None:
                     torch.set_num_threads(old_threads)
         return out if self.clamp is None else clamp_magnitude(out, self.clamp)
+
+
+def _has_numpy_twin(model: Any) -> bool:
+    """Whether the model's NumPy twin can be built: its networks are of the layers the twin has
+    (`downwash.numpy_mlp`: (spectral) linear layers and ReLUs)."""
+    try:
+        copy.deepcopy(model).eval().numpy_forward()
+    except TypeError:  # a layer the twin does not have (numpy_mlp names it)
+        return False
+    return True
 
 
 def _lags_in_calls(predictor_hz: float) -> list[int]:

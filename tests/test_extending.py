@@ -147,6 +147,62 @@ def test_the_model_recipe_trains_saves_loads_and_flies_two_vehicles_and_many(tmp
         registry.PAIRWISE_KINDS.pop(cls.kind, None)
 
 
+def test_a_model_of_other_layers_flies_its_torch_model_as_the_page_says(tmp_path):
+    """The recipe's model with a Tanh and a LayerNorm (layers the NumPy twin and the compiled pass do not
+    have): trained, checkpointed, and flown by LearnedPredictor on its torch form, the prediction its own."""
+    import torch
+    from torch import nn
+
+    import downwash.registry as registry
+    import downwash.train as train
+    from downwash.checkpoint import load_checkpoint, save_checkpoint
+    from downwash.models import DownwashModel
+    from downwash.predictor import LearnedPredictor
+    from downwash_core.errors import ConfigError
+    from downwash_core.state import VehicleStates
+
+    class SmoothEquivariant(DownwashModel):
+        kind = "equivariant_smooth"
+        ALLOWED_FEATURE_SETS = ("5", "6")
+        DEFAULT_FEATURE_SET = "5"
+        n_outputs = 2
+        default_lr = 5e-2
+
+        def __init__(self, feature_set=None):
+            super().__init__(feature_set)
+            self.net = nn.Sequential(nn.Linear(self.n_features, 32), nn.LayerNorm(32), nn.Tanh(), nn.Linear(32, 2))
+
+        def architecture(self):
+            return {}
+
+    registry.register(SmoothEquivariant)
+    try:
+        torch.manual_seed(0)
+        model, _ = train.train_model("equivariant_smooth", _field_samples(3000, np.random.default_rng(0)), None,
+                                     train.TrainConfig(max_epochs=3, min_steps=0))
+        save_checkpoint(tmp_path / "smooth.pt", model, {})
+        loaded, _ = load_checkpoint(tmp_path / "smooth.pt", expect_kind="equivariant_smooth")
+        predictor = LearnedPredictor(loaded)
+        assert predictor.backend == "torch"  # the page's promise: no twin, no compiled pass, the torch model
+        for backend in ("compiled", "numpy"):  # refused, naming the one that runs it
+            with pytest.raises(ConfigError, match="use 'torch'"):
+                LearnedPredictor(loaded, backend=backend)
+        rng = np.random.default_rng(1)
+        pos = np.stack([np.broadcast_to(LEADER, (4, 3)), LEADER + rng.uniform(-0.3, 0.3, (4, 3)) - [0, 0, 0.7]], 1)
+        states = VehicleStates(pos, rng.normal(0, 0.2, (4, 2, 3)), np.broadcast_to(np.eye(3), (4, 2, 3, 3)).copy())
+        got = predictor(states, states)
+        with torch.no_grad():  # the follower's prediction: the model on its pair with the leader
+            own = loaded.double()(*(torch.as_tensor(x) for x in (pos[:, 1] - pos[:, 0], states.vel[:, 0],
+                                                               states.vel[:, 1], states.rot[:, 0]))).numpy()
+        np.testing.assert_allclose(got[:, 1], own, rtol=1e-9, atol=1e-9)
+        assert np.abs(got[:, 1]).max() > 0.1 and (got[:, 0] == 0).all()  # the leader feels no wake from below
+        log = _flight(2.0, predictor=LearnedPredictor(loaded))  # and it flies, on the readable path
+        assert log.ok and np.abs(log["f_hat"][-10:, int(log.meta["follower"])]).max() > 0.1
+    finally:
+        registry.MODEL_KINDS.pop("equivariant_smooth", None)
+        registry.PAIRWISE_KINDS.pop("equivariant_smooth", None)
+
+
 def test_the_controller_recipe_flies_a_hover(monkeypatch):
     blocks = _blocks("A new controller")
     namespace: dict = {}
