@@ -138,11 +138,16 @@ def test_benchmark_quick(workdir):
                 "closed_loop_batched_world_steps_per_s", "batched_over_bare", "serial_over_bare_guarded",
                 "batched_over_bare_guarded", "guarded_over_unguarded_serial", "guarded_over_unguarded_batched",
                 "mujoco_rollout_world_steps_per_s", "batched_over_mujoco_rollout",
-                "formation5_mujoco_rollout_world_steps_per_s", "formation5_batched_over_mujoco_rollout"):
+                "formation5_mujoco_rollout_world_steps_per_s", "formation5_batched_over_mujoco_rollout",
+                "compiled_controller_over_builtin_serial", "compiled_field_over_builtin_batched",
+                "mellinger_over_builtin_serial"):
         assert r[key] > 0
+    # the user's components of docs/extending.md flew: their rates are their own, not the built-in ones'
+    assert r["closed_loop_serial_steps_per_s_pd_recipe"] != r["closed_loop_serial_steps_per_s_oracle"]
     if "swarm_agent_steps_per_s_native" in r:  # the swarm is measured with the `rl` extra only
         assert r["swarm_mujoco_rollout_world_steps_per_s"] > 0 and r["swarm_native_over_mujoco_rollout"] > 0
-    assert {"batched_over_mujoco_rollout", "formation5_batched_over_mujoco_rollout"} <= set(r["targets"])
+    assert {"batched_over_mujoco_rollout", "formation5_batched_over_mujoco_rollout",
+            "compiled_field_over_builtin_serial"} <= set(r["targets"])
 
 
 @pytest.mark.parametrize(

@@ -1,23 +1,14 @@
 """The recipes of docs/extending.md, run as written: a new field, a new model kind and a new
 controller each do what the page says they do (a recipe that drifts from the code fails here)."""
 
-import re
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
+from experiments.benchmark.recipes import docs_blocks as _blocks  # the page's python blocks, by section
+
 LEADER = np.array([0.0, 0.0, 2.5])
-
-
-def _blocks(section: str) -> list[str]:
-    """The python code blocks of a `## section` of the page, in order (indented ones included)."""
-    text = DOC.read_text()
-    body = text.split(f"## {section}\n", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"^( *)```python\n(.*?)^\1```", body, flags=re.S | re.M)
-    return [re.sub(rf"(?m)^{indent}", "", code) for indent, code in blocks]
 
 
 def _flight(duration=2.0, **components):

@@ -2,14 +2,13 @@
 fused tick, bit for bit as its readable path, over several worlds with resets and actions; its compiled law is
 its NumPy law to rounding; a compiled form the kernel cannot read is refused before any flight."""
 
-import re
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from downwash_core.errors import ConfigError
+from experiments.benchmark.recipes import docs_blocks
 from downwash_trajectories import Hover, Lemniscate, stack
 from sim.field import pairwise_field, pairwise_forces
 from sim.field_contract import CompiledField, field_law
@@ -17,21 +16,14 @@ from sim.predictor import OraclePredictor
 from sim.scene import build_scene
 from sim.simulator import Simulator
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 LEADER = np.array([0.0, 0.0, 2.5])
-
-
-def _field_blocks() -> list[str]:
-    body = DOC.read_text().split("## A new field\n", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"^( *)```python\n(.*?)^\1```", body, flags=re.S | re.M)
-    return [re.sub(rf"(?m)^{indent}", "", code) for indent, code in blocks]
 
 
 @pytest.fixture(scope="module")
 def recipe(tmp_path_factory):
     """The page's field and its compiled form, as the modules mypkg.fields and mypkg.compiled_fields (numba
     caches by file)."""
-    blocks = _field_blocks()
+    blocks = docs_blocks("A new field")
     plain, compiled = blocks[1], blocks[3]
     assert plain.startswith("# mypkg/fields.py") and compiled.startswith("# mypkg/compiled_fields.py")
     root = tmp_path_factory.mktemp("recipe")

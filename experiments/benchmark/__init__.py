@@ -27,10 +27,13 @@ ratios on the machine measured). For the 5-vehicle preset (`formation5`, every w
 vehicle) with the equivariant deep sets (`deepsets_equivariant`, a model of sets, four
 neighbours each): bare_mj_step_per_s_formation5 (plain mj_step of that scene),
 formation5_serial_over_bare and formation5_batched_over_bare; the same with the trained
-equivariant model summed over neighbours under formation5_*_summed. A controller of the labs through the
-public compiled-controller contract (`controllers.compiled`: the Crazyflie firmware's Mellinger controller,
-the oracle predictor) under *_mellinger, and its speed over the built-in LQR's with the same predictor,
-compiled_controller_over_builtin_{serial,batched}.
+equivariant model summed over neighbours under formation5_*_summed. A user's components through the
+public compiled contracts, as docs/extending.md writes them (`experiments.benchmark.recipes`), each with
+the oracle predictor: the PD controller (`controllers.compiled`) under *_pd_recipe and its speed over the
+built-in LQR's, compiled_controller_over_builtin_{serial,batched}; the Gaussian jet (`sim.field_contract`,
+its oracle too) under *_jet_recipe and its speed over the paper field's, compiled_field_over_builtin_*;
+and the labs' Crazyflie Mellinger controller, through the same contract, under *_mellinger and
+mellinger_over_builtin_* (a different law, with more work per tick than the LQR).
 Against MuJoCo's own batched stepping of the same scene (`mujoco.rollout.Rollout`, the simulator's
 threads, the same worlds, no control; `MujocoRollout`), measured in the same rounds right beside our
 batched flight of that scene, in alternating order: mujoco_rollout_world_steps_per_s,
@@ -71,6 +74,7 @@ from experiments.benchmark.measures import (LEADER, MujocoRollout, bare_mj_step_
                                             closed_loop_steps_per_s, contention, deepsets_equivariant,
                                             mujoco_batch_steps_per_s, predictor_us_per_call, sb3_rollouts, start_data,
                                             swarm_rollouts, train_equivariant)
+from experiments.benchmark.recipes import load_recipes
 from experiments.common import (FLIGHT_SECONDS_MAX, CommonArgs, arg, format_table, load_field, out_lock, parse_args,
                                 setup_logging, write_results, script)
 
@@ -92,7 +96,8 @@ TARGETS = {"serial_over_bare": 0.8, "batched_over_bare": 1.7, "formation5_serial
            "sb3_native_over_sync": 2.0, "env_learner_threads_over_one_thread": 1.0, "two_processes_share_of_solo": 0.4,
            "guarded_over_unguarded_serial": 0.9, "guarded_over_unguarded_batched": 0.9,
            "swarm_native_over_supersuit": 3.0, "compiled_controller_over_builtin_serial": 0.9,
-           "compiled_controller_over_builtin_batched": 0.9}
+           "compiled_controller_over_builtin_batched": 0.9, "compiled_field_over_builtin_serial": 0.9,
+           "compiled_field_over_builtin_batched": 0.9}
 
 
 def run(args: BenchmarkArgs) -> dict:
@@ -131,6 +136,8 @@ def run(args: BenchmarkArgs) -> dict:
     five = make_preset("formation5")  # the 5-vehicle preset, against its own bare step
     shed = make_field("shed")  # the wake with memory: the same flights with its state stepped (readable path)
     sets = LearnedPredictor(deepsets_equivariant(), clamp=6.0)
+    recipes = load_recipes()  # a user's controller and field with compiled forms, as docs/extending.md writes them
+    jet = recipes.CompiledGaussianJet()
     batched_seconds = seconds * 4 / worlds  # a batched window: about the wall time of a serial one on 2 cores
     flights = {  # key: (the flight, which continues from round to round; simulated seconds per window)
         "closed_loop_serial_steps_per_s": (closed_loop_sim(1, field, learned), seconds),
@@ -146,6 +153,13 @@ def run(args: BenchmarkArgs) -> dict:
             closed_loop_sim(worlds, field, GuardedPredictor(learned, held)), batched_seconds),
         "closed_loop_serial_steps_per_s_shed": (closed_loop_sim(1, shed, learned), seconds),
         "closed_loop_batched_world_steps_per_s_shed": (closed_loop_sim(worlds, shed, learned), batched_seconds),
+        "closed_loop_serial_steps_per_s_pd_recipe": (
+            closed_loop_sim(1, field, OraclePredictor(field), controller=recipes.CompiledPD()), seconds),
+        "closed_loop_batched_world_steps_per_s_pd_recipe": (
+            closed_loop_sim(worlds, field, OraclePredictor(field), controller=recipes.CompiledPD()), batched_seconds),
+        "closed_loop_serial_steps_per_s_jet_recipe": (closed_loop_sim(1, jet, OraclePredictor(jet)), seconds),
+        "closed_loop_batched_world_steps_per_s_jet_recipe": (
+            closed_loop_sim(worlds, jet, OraclePredictor(jet)), batched_seconds),
         "closed_loop_serial_steps_per_s_mellinger": (
             closed_loop_sim(1, field, OraclePredictor(field), controller=MellingerController()), seconds),
         "closed_loop_batched_world_steps_per_s_mellinger": (
@@ -196,10 +210,14 @@ def run(args: BenchmarkArgs) -> dict:
         r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
     for name in ("serial", "batched"):  # what the guard costs: within 10 % of the model alone
         r[f"guarded_over_unguarded_{name}"] = r[f"{name}_over_bare_guarded"] / r[f"{name}_over_bare"]
-        # a controller through the public compiled contract (controllers.compiled) against the built-in LQR
-        r[f"{name}_over_bare_mellinger"] = ratio[f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}"
-                                                 f"_per_s_mellinger"]
-        r[f"compiled_controller_over_builtin_{name}"] = r[f"{name}_over_bare_mellinger"] / r[f"{name}_over_bare_oracle"]
+        # a user's controller and field through the public compiled contracts (controllers.compiled,
+        # sim.field_contract), and the lab's Mellinger controller, against the built-in LQR and field
+        for what in ("pd_recipe", "jet_recipe", "mellinger"):
+            r[f"{name}_over_bare_{what}"] = ratio[f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}"
+                                                  f"_per_s_{what}"]
+        r[f"compiled_controller_over_builtin_{name}"] = r[f"{name}_over_bare_pd_recipe"] / r[f"{name}_over_bare_oracle"]
+        r[f"compiled_field_over_builtin_{name}"] = r[f"{name}_over_bare_jet_recipe"] / r[f"{name}_over_bare_oracle"]
+        r[f"mellinger_over_builtin_{name}"] = r[f"{name}_over_bare_mellinger"] / r[f"{name}_over_bare_oracle"]
     for suffix in ("", "_oracle"):
         r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
     r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
