@@ -12,6 +12,7 @@ import functools
 import glob
 import logging
 import os
+import threading
 
 import mujoco
 import mujoco.batch
@@ -20,7 +21,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 
-__all__ = ["Physics", "make_physics", "mj_step_address", "resolve_threads", "usable_cores", "available_memory",
+__all__ = ["Physics", "make_physics", "mj_step_address", "profiling_timer_off", "resolve_threads", "usable_cores", "available_memory",
            "check_world_memory", "world_bytes", "MEMORY_FRACTION"]
 
 log = logging.getLogger(__name__)
@@ -215,6 +216,51 @@ def mj_step_address() -> int | None:
     if path is None:
         return None
     return int(ctypes.cast(ctypes.CDLL(path).mj_step, ctypes.c_void_p).value)
+
+
+class _ProfilingTimerOff:
+    """MuJoCo's profiling timer off while a simulator steps (a context manager; `profiling_timer_off()`).
+
+    The mujoco bindings install a timer callback (`mjcb_time`) at import, so that `MjData.timer`
+    records how long each stage of `mj_step` takes (the viewer's profiler shows it): a clock read at
+    the start and end of every stage, a large share of a small scene's step (benchmark:
+    bare_mj_step_per_s against bare_mj_step_per_s_no_timer). The simulator never reads those timings:
+    it clears the callback while it steps and puts back what was there when it leaves. Entries are
+    counted, so simulators ticking in several threads at once give the callback back when the last
+    one leaves. The physics is the same bit for bit (the callback only reads a clock); the timers of a
+    simulator's worlds stay zero, and a callback of a user's own is also off during a tick.
+    Without a libmujoco to reach, a no-op."""
+
+    def __init__(self, path: str | None):
+        try:
+            self._slot = None if path is None else ctypes.c_void_p.in_dll(ctypes.CDLL(path), "mjcb_time")
+        except ValueError:  # a library without the symbol
+            self._slot = None
+        self._lock = threading.Lock()
+        self._depth = 0
+        self._saved: int | None = None
+
+    def __enter__(self) -> None:
+        if self._slot is None:
+            return
+        with self._lock:
+            if self._depth == 0:
+                self._saved, self._slot.value = self._slot.value, None
+            self._depth += 1
+
+    def __exit__(self, *exc: object) -> None:
+        if self._slot is None:
+            return
+        with self._lock:
+            self._depth -= 1
+            if self._depth == 0:
+                self._slot.value = self._saved
+
+
+@functools.lru_cache(maxsize=1)
+def profiling_timer_off() -> _ProfilingTimerOff:
+    """The process's one switch of MuJoCo's profiling timer (`with profiling_timer_off(): ...`)."""
+    return _ProfilingTimerOff(_libmujoco_path())
 
 
 @functools.lru_cache(maxsize=1)

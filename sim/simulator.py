@@ -62,7 +62,7 @@ from sim.field_memory import kept_memory, memory_oracle
 from sim.estimation import MocapKalmanFilter
 from sim.field import DownwashField, check_field
 from sim.passes import _Sensed, _status_kernel, _true_states_kernel
-from sim.physics import check_world_memory, make_physics
+from sim.physics import check_world_memory, make_physics, profiling_timer_off
 from sim.plan import PlanInputs, _compiled_controller, _make_plan
 from sim.predictor import Predictor, ZeroPredictor, is_stateful
 from sim.safety import SafetyConfig, safety_filter
@@ -429,8 +429,9 @@ class Simulator(FusedTicks, ReadableTicks):
             if plan is not None and plan.revision != self.physics.revision:  # set_body_mass changed the worlds
                 self._bind()
                 plan = self._plan
-            row = self._tick_fused(plan, residual, override) if plan is not None else self._tick_readable(residual,
-                                                                                                         override)
+            with profiling_timer_off():  # (MuJoCo's profiling timer: see sim.physics)
+                row = self._tick_fused(plan, residual, override) if plan is not None \
+                    else self._tick_readable(residual, override)
             if self._observe is not None:  # (after each tick, sim.predictor; None where the plan's kernel runs it)
                 self._observe(row["t"], row["vel_est"], row["u_cmd"])
             self.__dict__["row"] = row  # (not a bound input: skips __setattr__, once per tick)

@@ -253,3 +253,45 @@ def test_a_predictor_that_observes_sees_each_ticks_row_of_its_own_worlds(scene):
     for k, (t, vel_est, u_cmd) in enumerate(seen):
         for name, got in (("t", t), ("vel_est", vel_est), ("u_cmd", u_cmd)):
             np.testing.assert_array_equal(got, np.stack([logs[w][name][k] for w in (1, 3)]))
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_a_tick_steps_without_mujocos_profiling_timer_and_gives_it_back(scene, fast):
+    """The simulator turns the bindings' timer callback off while it steps (sim.physics.profiling_timer_off):
+    a timer of the user's own is not called during a tick, and is called again by mj_step after it."""
+    import mujoco
+
+    ref = stack([Hover(LEADER, n_worlds=1), Hover(LEADER - [0, 0, 0.6], n_worlds=1)])
+    sim = Simulator(scene, ref, [0], fast=fast)  # one world: a batch of MuJoCo's refuses a Python callback
+    calls = []
+    mujoco.set_mjcb_time(lambda: calls.append(1) or 0.0)
+    try:
+        sim.tick()
+        assert (sim._plan is not None) == fast
+        before = len(calls)
+        for _ in range(3):
+            sim.tick()
+        assert len(calls) == before  # 30 physics steps per world, no clock read
+        data = mujoco.MjData(scene.model)
+        mujoco.mj_step(scene.model, data)
+        assert len(calls) > before  # given back
+    finally:
+        mujoco.set_mjcb_time(None)  # the bindings' own timer again
+
+
+def test_the_profiling_timer_switch_counts_its_entries():
+    """Simulators in several threads: the callback comes back when the last one leaves, not the first."""
+    import ctypes
+
+    from sim.physics import _libmujoco_path, profiling_timer_off
+
+    slot = ctypes.c_void_p.in_dll(ctypes.CDLL(_libmujoco_path()), "mjcb_time")
+    original = slot.value
+    switch = profiling_timer_off()
+    switch.__enter__()
+    switch.__enter__()  # a second simulator, another thread
+    assert slot.value is None
+    switch.__exit__(None, None, None)
+    assert slot.value is None  # the other one still steps
+    switch.__exit__(None, None, None)
+    assert slot.value == original

@@ -4,9 +4,13 @@
 
 Every measurement runs once per round (`--repeats` rounds), each right after a window of bare
 mj_step of its scene; a ratio is the median over rounds of the pair's ratio, a rate the median
-over rounds (see `run`). `targets` holds the project's speed targets for four of the ratios.
+over rounds (see `run`). `targets` holds the project's speed targets for some of the ratios.
 
-Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop),
+Keys: bare_mj_step_per_s (the same scene, plain mj_step in a Python loop, as a user's loop runs it:
+with the timer callback the mujoco bindings install for MjData.timer), bare_mj_step_per_s_no_timer
+(the same loop with that timer off, as the simulator steps: `sim.physics.profiling_timer_off`) and
+the ratios against it, *_over_bare_no_timer and *_over_mujoco_rollout_no_timer (MuJoCo's rollout
+with the timer off too: physics against physics),
 closed_loop_serial_steps_per_s, real_time_factor_serial and serial_over_bare (one
 flight, the full stack with the trained equivariant model at 45 Hz, the stack a
 user runs), closed_loop_batched_world_steps_per_s (64 worlds on all cores) and
@@ -183,22 +187,29 @@ def run(args: BenchmarkArgs) -> dict:
         preset = five if key.startswith("formation5") else None
         if key in beside:  # MuJoCo's rollout of the scene, the same world-steps, next to our flight
             measure[beside[key]] = (lambda m=rollouts[beside[key]]: m.steps_per_s(n_bare * 4), preset)
+            measure[beside[key] + "_no_timer"] = (
+                lambda m=rollouts[beside[key]]: m.steps_per_s(n_bare * 4, timer=False), preset)
         measure[key] = (lambda f=f, s=s: closed_loop_steps_per_s(f, s), preset)
     measure.update({
         "env_steps_per_s_single": (lambda: env_steps_per_s_single(n_env, repeats=1) * per_env_step, None),
         "env_steps_per_s_vector64": (
             lambda: env_steps_per_s_vector(worlds, max(1, n_env // worlds * 4), repeats=1) * per_env_step, None),
     })
-    rates: dict[str, list[float]] = {key: [] for key in ("bare_mj_step_per_s", "bare_mj_step_per_s_formation5", *measure)}
+    bares = [f"bare_mj_step_per_s{scene}{timer}" for scene in ("", "_formation5") for timer in ("", "_no_timer")]
+    rates: dict[str, list[float]] = {key: [] for key in (*bares, *measure)}
     ratios: dict[str, list[float]] = {key: [] for key in measure}
+    no_timer: dict[str, list[float]] = {key: [] for key in measure}  # over the bare step without MuJoCo's timer
     for i in range(repeats):
         for key in alternate(list(measure), beside, i):
             fn, preset = measure[key]
-            bare = bare_mj_step_per_s(n_bare, preset)
+            scene = "" if preset is None else "_formation5"
+            bare, bare_no_timer = bare_mj_step_per_s(n_bare, preset), bare_mj_step_per_s(n_bare, preset, timer=False)
             rate = fn()
-            rates["bare_mj_step_per_s" if preset is None else "bare_mj_step_per_s_formation5"].append(bare)
+            rates[f"bare_mj_step_per_s{scene}"].append(bare)
+            rates[f"bare_mj_step_per_s{scene}_no_timer"].append(bare_no_timer)
             rates[key].append(rate)
             ratios[key].append(rate / bare)
+            no_timer[key].append(rate / bare_no_timer)
     for m in rollouts.values():
         m.close()
     r.update({key: float(np.median(v)) for key, v in rates.items()})
@@ -225,6 +236,14 @@ def run(args: BenchmarkArgs) -> dict:
         prefix = "formation5_" if ours.startswith("formation5") else ""
         r[f"{prefix}mujoco_rollout_over_bare"] = ratio[theirs]
         r[f"{prefix}batched_over_mujoco_rollout"] = float(np.median(np.array(ratios[ours]) / np.array(ratios[theirs])))
+        r[f"{prefix}batched_over_mujoco_rollout_no_timer"] = float(
+            np.median(np.array(ratios[ours]) / np.array(ratios[theirs + "_no_timer"])))
+    # the same flights against MuJoCo without its profiling timer, which the simulator turns off while it steps
+    for key, name in (("closed_loop_serial_steps_per_s", "serial_over_bare_no_timer"),
+                      ("closed_loop_batched_world_steps_per_s", "batched_over_bare_no_timer"),
+                      ("formation5_serial_world_steps_per_s", "formation5_serial_over_bare_no_timer"),
+                      ("formation5_batched_world_steps_per_s", "formation5_batched_over_bare_no_timer")):
+        r[name] = float(np.median(no_timer[key]))
     for name in ("serial", "batched"):
         for suffix in ("", "_summed"):
             r[f"formation5_{name}_over_bare{suffix}"] = ratio[f"formation5_{name}_world_steps_per_s{suffix}"]

@@ -9,6 +9,7 @@ imported inside the functions (a fast `--help`).
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -41,16 +42,20 @@ def start_data(preset: Any = None) -> tuple[Any, Any]:
     return scene.model, data
 
 
-def bare_mj_step_per_s(n_steps: int, preset: Any = None) -> float:
+def bare_mj_step_per_s(n_steps: int, preset: Any = None, timer: bool = True) -> float:
     """Plain mj_step of the two-vehicle scene (or of `preset`'s, its vehicles at their start), in a
-    Python loop: what a user's own loop around MuJoCo costs."""
+    Python loop: what a user's own loop around MuJoCo costs. timer=False: with the bindings' profiling
+    timer off, as the simulator steps (`sim.physics.profiling_timer_off`)."""
     import mujoco
 
+    from sim.physics import profiling_timer_off
+
     model, data = start_data(preset)
-    t0 = time.perf_counter()
-    for _ in range(n_steps):
-        mujoco.mj_step(model, data)
-    return n_steps / (time.perf_counter() - t0)
+    with profiling_timer_off() if not timer else contextlib.nullcontext():
+        t0 = time.perf_counter()
+        for _ in range(n_steps):
+            mujoco.mj_step(model, data)
+        return n_steps / (time.perf_counter() - t0)
 
 
 def mujoco_batch_steps_per_s(n_worlds: int, n_steps: int) -> float:
@@ -93,8 +98,14 @@ class MujocoRollout:
         self.models = [self.model] * n_worlds
         self.steps_per_s(n_worlds)  # first-call costs
 
-    def steps_per_s(self, n_steps: int) -> float:
-        """World steps per wall second of one rollout of about `n_steps` world steps in all."""
+    def steps_per_s(self, n_steps: int, timer: bool = True) -> float:
+        """World steps per wall second of one rollout of about `n_steps` world steps in all; timer=False:
+        with the bindings' profiling timer off, as the simulator steps."""
+        if not timer:
+            from sim.physics import profiling_timer_off
+
+            with profiling_timer_off():
+                return self.steps_per_s(n_steps)
         nstep = max(1, n_steps // self.n_worlds)
         t0 = time.perf_counter()
         self.pool.rollout(self.models, self.data, self.initial, nstep=nstep, skip_checks=True)
