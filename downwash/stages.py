@@ -37,7 +37,7 @@ from downwash_core.errors import ConfigError, DataError
 from downwash_core.io import remove_temporaries
 from downwash_core.locks import folder_lock
 from downwash_core.provenance import differences, fingerprint
-from downwash_core.roles import VEHICLE_NAMES, Role
+from downwash_core.roles import SCENE_VEHICLE_NAMES, Role
 from downwash.datasets import concatenate, load_dataset
 from downwash.manifest import (check_logs, integrity_error, listed_logs, load_manifest_file, log_record, read_manifest,
                                write_manifest)
@@ -118,7 +118,7 @@ class Stage:
 
     def scene(self):
         """A leader over the followers, top first, each of its kind."""
-        return build_scene([(VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER)
+        return build_scene([(SCENE_VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER)
                             for i in range(self.n_vehicles)], kinds=list(self.kinds) or None)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Role", "DEFAULT_VEHICLES", "VEHICLE_NAMES", "MIN_VEHICLES", "MAX_VEHICLES"]
+__all__ = ["Role", "DEFAULT_VEHICLES", "SCENE_VEHICLE_NAMES", "MIN_VEHICLES", "MAX_VEHICLES"]
 
 
 class Role(str, enum.Enum):
@@ -18,5 +18,5 @@ class Role(str, enum.Enum):
 DEFAULT_VEHICLES: tuple[tuple[str, Role], ...] = (("alpha", Role.LEADER), ("bravo", Role.FOLLOWER))
 
 # Names of the vehicles of an N-vehicle scene, top of a stack first (NATO alphabet, as the paper's two).
-VEHICLE_NAMES: tuple[str, ...] = ("alpha", "bravo", "charlie", "delta", "echo", "foxtrot", "golf", "hotel")
-MIN_VEHICLES, MAX_VEHICLES = 1, len(VEHICLE_NAMES)  # a scene holds 1-8 vehicles (a swarm preset 2-8)
+SCENE_VEHICLE_NAMES: tuple[str, ...] = ("alpha", "bravo", "charlie", "delta", "echo", "foxtrot", "golf", "hotel")
+MIN_VEHICLES, MAX_VEHICLES = 1, len(SCENE_VEHICLE_NAMES)  # a scene holds 1-8 vehicles (a swarm preset 2-8)

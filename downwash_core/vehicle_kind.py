@@ -19,11 +19,11 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.params import GRAVITY, QUAD, QuadParams
 
-__all__ = ["VehicleKind", "ThrustMap", "AIR_DENSITY", "N_ROTORS", "NAME_PATTERN"]
+__all__ = ["VehicleKind", "ThrustMap", "AIR_DENSITY", "N_ROTORS", "KIND_NAME_PATTERN"]
 
-AIR_DENSITY = 1.225  # kg/m^3, ISA sea level (the same as sim.wind.AIR_DENSITY; a test ties them)
+AIR_DENSITY = 1.225  # kg/m^3, ISA sea level (sim.wind drags the airframes in it)
 N_ROTORS = 4  # -, every kind is a quadrotor in an X (the scene's vehicle and the mixer have four rotors)
-NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")  # a kind's name: lower case letters, digits, underscores
+KIND_NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")  # a kind's name: lower case letters, digits, underscores
 _QUAD_FIELDS = tuple(f.name for f in fields(QuadParams))
 # N/m^2, the paper quad's disc loading (`paper_quad` is QUAD, float for float): the reference of
 # `so2_strength_scale` in `VehicleKind.describe`
@@ -85,7 +85,7 @@ class VehicleKind(QuadParams):
 
     def __post_init__(self) -> None:
         label = f"vehicle {self.name!r}"
-        if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
+        if not isinstance(self.name, str) or not KIND_NAME_PATTERN.match(self.name):
             raise ConfigError(f"vehicle name: expected lower case letters, digits and underscores, got {self.name!r}")
         for key in ("mass", "arm_length", "rotor_radius", "thrust_to_weight", "motor_time_constant",
                     "yaw_moment_coeff"):

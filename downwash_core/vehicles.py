@@ -56,7 +56,7 @@ from downwash_core.errors import ConfigError
 from downwash_core.params import QuadParams
 from downwash_core.registry import Registry
 from downwash_core.vehicle_catalog import CRAZYFLIE_2_1, CRAZYFLIE_LARGE, PAPER_QUAD, X500
-from downwash_core.vehicle_kind import AIR_DENSITY, N_ROTORS, NAME_PATTERN, ThrustMap, VehicleKind
+from downwash_core.vehicle_kind import AIR_DENSITY, KIND_NAME_PATTERN, N_ROTORS, ThrustMap, VehicleKind
 
 __all__ = [
     "VehicleKind", "ThrustMap", "VEHICLES", "VEHICLE_NAMES", "DEFAULT_VEHICLE", "PAPER_QUAD", "CRAZYFLIE_2_1",
@@ -67,7 +67,7 @@ __all__ = [
 ]
 
 
-VEHICLES = Registry("vehicle", group="vehicles", objects=True, name_pattern=NAME_PATTERN.pattern,
+VEHICLES = Registry("vehicle", group="vehicles", objects=True, name_pattern=KIND_NAME_PATTERN.pattern,
                     name_rule="lower case letters, digits and underscores")  # name -> VehicleKind
 DEFAULT_VEHICLE = PAPER_QUAD.name
 

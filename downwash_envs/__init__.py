@@ -92,12 +92,12 @@ del _id, _kwargs, _steps
 _LAZY = {
     **dict.fromkeys(("DownwashFollowerEnv", "DownwashFollowerVectorEnv"), "downwash_envs.follower"),
     **dict.fromkeys(("evaluate_lqr", "env_steps_per_s_single", "env_steps_per_s_vector"), "downwash_envs.evaluation"),
-    **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "markdown_table"), "downwash_envs.observation"),
+    **dict.fromkeys(("OBSERVATION", "OBS_DIM", "OBS_SLICES", "observation_table"), "downwash_envs.observation"),
     **dict.fromkeys(("REWARD_TERMS",), "downwash_envs.reward"),
     **dict.fromkeys(("SwarmEnv", "SwarmVectorEnv", "parallel_env"), "downwash_envs.swarm"),  # needs the multiagent extra
     **dict.fromkeys(("logs_video", "write_conditions_video"), "downwash_envs.video"),  # needs the video extra
     **dict.fromkeys((
-        "FollowerConfig", "make_config", "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS",
+        "FollowerConfig", "make_config", "ACTION_MODES", "ENV_REFERENCES", "ENV_REFERENCE_KWARGS", "PREDICTORS",
         "CONTROL_HZ_ALLOWED", "DEFAULT_MAX_EPISODE_STEPS", "DEFAULT_FIELD_RANDOMIZATION", "FIELD_RANDOMIZABLE",
         "VEHICLE_RANDOMIZABLE",
     ), "downwash_envs.config"),

@@ -35,7 +35,7 @@ from downwash_trajectories import REFERENCE_KWARGS as _SHAPED_REFERENCE_KWARGS
 from downwash_trajectories import make_reference, random_passes
 
 __all__ = [
-    "ACTION_MODES", "REFERENCES", "REFERENCE_KWARGS", "PREDICTORS", "CONTROL_HZ_ALLOWED",
+    "ACTION_MODES", "ENV_REFERENCES", "ENV_REFERENCE_KWARGS", "PREDICTORS", "CONTROL_HZ_ALLOWED",
     "DEFAULT_ACTION_BOUND", "MAX_ACTION_BOUND", "MIN_FOLLOWER_HEIGHT", "DEFAULT_MAX_EPISODE_STEPS",
     "FIELD_RANDOMIZABLE", "DEFAULT_FIELD_RANDOMIZATION", "MASS_SCALE_RANGE", "FIELD_SCALE_RANGE",
     "FIELD_KNOBS", "REWARD_WEIGHTS", "REFERENCE_LIMITS", "VEHICLE_RANDOMIZABLE", "VEHICLE_SPREAD_MAX",
@@ -59,12 +59,12 @@ DEFAULT_MAX_EPISODE_STEPS = 500  # env steps (10 s at 50 Hz)
 # `downwash_trajectories.make_reference`, plus "passes" (per-episode `random_passes` patterns), whose
 # parameters are random_passes' keywords except those the env sets itself.
 _PASSES_SET_BY_ENV = ("rng", "n_worlds", "center", "depth_range", "n_segments", "start")
-REFERENCE_KWARGS = MappingProxyType({
+ENV_REFERENCE_KWARGS = MappingProxyType({
     # the follower's paths beneath a hovering leader (the moving-leader references are not for it)
     **{name: _SHAPED_REFERENCE_KWARGS[name] for name in ("hover", "lemniscate", "transect")},
     "passes": tuple(p for p in inspect.signature(random_passes).parameters if p not in _PASSES_SET_BY_ENV),
 })
-REFERENCES = tuple(REFERENCE_KWARGS)  # hover, lemniscate, transect, passes
+ENV_REFERENCES = tuple(ENV_REFERENCE_KWARGS)  # hover, lemniscate, transect, passes
 # Limits on the reference's shape, so that the observation bounds are never reached.
 REFERENCE_LIMITS = MappingProxyType({"extent": 5.0, "speed": 5.0, "acc": 10.0})  # m from below the leader, m/s, m/s^2
 
@@ -259,15 +259,15 @@ def _validate(c: FollowerConfig) -> None:
     choice("action_mode", c.action_mode, ACTION_MODES)
     if c.action_bound is not None:
         number_option("action_bound", c.action_bound, "m/s^2", 0.0, MAX_ACTION_BOUND, lo_open=True)
-    choice("reference", c.reference, REFERENCES)
+    choice("reference", c.reference, ENV_REFERENCES)
     if c.reference_kwargs is not None:
         if not isinstance(c.reference_kwargs, Mapping):
             raise ConfigError(f"reference_kwargs: expected a dict, got {type(c.reference_kwargs).__name__}")
-        unknown = sorted(set(c.reference_kwargs) - set(REFERENCE_KWARGS[c.reference]))
+        unknown = sorted(set(c.reference_kwargs) - set(ENV_REFERENCE_KWARGS[c.reference]))
         if unknown:
             raise ConfigError(
                 f"reference_kwargs: unknown {unknown} for reference {c.reference!r}; "
-                f"allowed: {', '.join(REFERENCE_KWARGS[c.reference])}"
+                f"allowed: {', '.join(ENV_REFERENCE_KWARGS[c.reference])}"
             )
         lim = REFERENCE_LIMITS
         for k, v in c.reference_kwargs.items():  # every shape parameter is a number or numbers

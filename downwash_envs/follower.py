@@ -54,7 +54,7 @@ class DownwashFollowerEnv(FollowerEnvBase, gym.Env):
     Box, float32, (30,); the vehicle's own knowledge: positions and velocities are
     the Kalman-filtered motion-capture estimates at the observation time, attitudes
     the onboard (true) ones; the reference is sampled at the same time. The layout
-    is `downwash_envs.observation.OBSERVATION` (this table is `downwash_envs.observation.markdown_table()`,
+    is `downwash_envs.observation.OBSERVATION` (this table is `downwash_envs.observation.observation_table()`,
     which a test checks):
 
     | index | name            | meaning                                           | unit  | frame | bound |

@@ -2,10 +2,10 @@
 
 `OBSERVATION` lists the entries in order; the observation vector (float64,
 `OBS_DIM` values) is their concatenation. `OBS_SLICES` (index ranges),
-`obs_bounds` (the Box bounds) and `markdown_table` (the table in
+`obs_bounds` (the Box bounds) and `observation_table` (the table in
 `downwash_envs.follower.DownwashFollowerEnv`'s docstring and docs/envs.md, which tests compare
 with it) all read this one tuple, so adding or changing an entry changes them all. The
-helpers behind them (`layout_slices`, `layout_bounds`, `table_row`, `format_table`) serve
+helpers behind them (`layout_slices`, `layout_bounds`, `table_row`, `layout_table`) serve
 any layout of `ObsEntry`s: the swarm env's too (`downwash_envs.swarm_task`).
 
 Positions and velocities are the vehicle's own knowledge (Kalman-filtered motion
@@ -20,8 +20,8 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = [
-    "ObsEntry", "OBSERVATION", "OBS_DIM", "OBS_SLICES", "obs_bounds", "markdown_table",
-    "layout_slices", "layout_bounds", "table_row", "format_table",
+    "ObsEntry", "OBSERVATION", "OBS_DIM", "OBS_SLICES", "obs_bounds", "observation_table",
+    "layout_slices", "layout_bounds", "table_row", "layout_table",
 ]  # fmt: skip
 
 
@@ -82,7 +82,7 @@ def table_row(index: str, e: ObsEntry, name: str | None = None) -> tuple[str, ..
     return (index, e.name if name is None else name, e.meaning, e.unit, e.frame, bound)
 
 
-def format_table(rows: list[tuple[str, ...]]) -> str:
+def layout_table(rows: list[tuple[str, ...]]) -> str:
     """Rows of `table_row` as a markdown table under its header; columns padded to their widest
     cell, no trailing newline."""
     header = ("index", "name", "meaning", "unit", "frame", "bound")
@@ -95,11 +95,11 @@ def format_table(rows: list[tuple[str, ...]]) -> str:
     return "\n".join([line(header), rule, *(line(r) for r in rows)])
 
 
-def markdown_table() -> str:
+def observation_table() -> str:
     """The observation as a markdown table: index, name, meaning, unit, frame, bound
     ("b": the action bound). Columns padded to their widest cell; no trailing newline."""
     rows = []
     for e in OBSERVATION:
         s = OBS_SLICES[e.name]
         rows.append(table_row(f"{s.start}-{s.stop - 1}" if e.size > 1 else f"{s.start}", e))
-    return format_table(rows)
+    return layout_table(rows)

@@ -44,7 +44,7 @@ neighbour slots, one per other vehicle (the leader included), nearest first by t
 estimated distance |dp| (ties in scene order); slots beyond the V - 1 others are
 padding, all zero with mask 0; with K < V - 1 only the K nearest are seen. Slot k
 (k = 0 .. K-1) starts at index 21 + 10 k. The layout is `observation_layout(K)`; this
-table is `markdown_table()` (a test checks it):
+table is `swarm_observation_table()` (a test checks it):
 
 | index        | name            | meaning                                             | unit  | frame | bound |
 |--------------|-----------------|-----------------------------------------------------|-------|-------|-------|
@@ -135,8 +135,8 @@ from downwash_envs.base import (
 from downwash_envs.config import make_config  # noqa: F401  (the shared options' validation, as before the split)
 from downwash_envs.swarm_task import (  # noqa: F401  (the task's names, importable from here as before)
     NEIGHBOUR_DIM, NEIGHBOUR_OBSERVATION, OWN_DIM, OWN_OBSERVATION, SHARED_OPTIONS, SwarmConfig, SwarmEpisode,
-    SwarmWorlds, _observe_kernel, agent_names, draw_swarm_episode, episode_info, make_swarm_config, markdown_table,
-    neighbour_block, obs_bounds, obs_dim, obs_slices, observation, observation_layout, own_block,
+    SwarmWorlds, _observe_kernel, agent_names, draw_swarm_episode, episode_info, make_swarm_config, neighbour_block,
+    obs_dim, obs_slices, observation, observation_layout, own_block, swarm_obs_bounds, swarm_observation_table,
 )
 from sim.aggregation import DEFAULT_AGGREGATION
 from sim.physics import check_world_memory
@@ -145,7 +145,7 @@ from sim.simulator import Simulator  # noqa: F401  (as before the split: tests r
 
 __all__ = [
     "SHARED_OPTIONS", "OWN_OBSERVATION", "NEIGHBOUR_OBSERVATION", "OWN_DIM", "NEIGHBOUR_DIM",
-    "observation_layout", "obs_dim", "obs_slices", "obs_bounds", "markdown_table",
+    "observation_layout", "obs_dim", "obs_slices", "swarm_obs_bounds", "swarm_observation_table",
     "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
     "draw_swarm_episode",
     "agent_names", "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env", "env",

@@ -32,7 +32,7 @@ from downwash_envs.config import (
     REWARD_WEIGHTS, FollowerConfig, build_field, make_config, number_option, predictor_of, unknown_options_error,
 )
 from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
-from downwash_envs.observation import OBSERVATION, ObsEntry, format_table, layout_bounds, layout_slices, table_row
+from downwash_envs.observation import OBSERVATION, ObsEntry, layout_table, layout_bounds, layout_slices, table_row
 from downwash_envs.reward import REWARD_TERMS
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
 from sim.neighbours import NeighbourSet, select_into, select_neighbours
@@ -43,7 +43,7 @@ from downwash_trajectories import Cached, TimeShifted
 
 __all__ = [
     "SHARED_OPTIONS", "OWN_OBSERVATION", "NEIGHBOUR_OBSERVATION", "OWN_DIM", "NEIGHBOUR_DIM",
-    "observation_layout", "obs_dim", "obs_slices", "obs_bounds", "markdown_table",
+    "observation_layout", "obs_dim", "obs_slices", "swarm_obs_bounds", "swarm_observation_table",
     "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
     "draw_swarm_episode", "episode_info", "agent_names", "SwarmStep", "SwarmWorlds",
 ]  # fmt: skip
@@ -89,12 +89,12 @@ def obs_slices(max_neighbours: int) -> dict[str, slice]:
     return layout_slices(observation_layout(max_neighbours))
 
 
-def obs_bounds(max_neighbours: int, action_bound: float) -> tuple[np.ndarray, np.ndarray]:
+def swarm_obs_bounds(max_neighbours: int, action_bound: float) -> tuple[np.ndarray, np.ndarray]:
     """(low, high), each (obs_dim(K),) float64; `action_bound` (m/s^2) bounds last_action."""
     return layout_bounds(observation_layout(max_neighbours), action_bound)
 
 
-def markdown_table() -> str:
+def swarm_observation_table() -> str:
     """The layout as a markdown table (index, name, meaning, unit, frame, bound; "b": the action
     bound), slot k written symbolically; columns padded to their widest cell, no trailing newline."""
     rows, start = [], 0
@@ -107,7 +107,7 @@ def markdown_table() -> str:
         index = base + (f"+({offset}-{offset + e.size - 1})" if e.size > 1 else (f"+{offset}" if offset else ""))
         rows.append(table_row(index, e, name=f"nk_{e.name}"))
         offset += e.size
-    return format_table(rows)
+    return layout_table(rows)
 
 
 def own_block(
@@ -394,7 +394,7 @@ class SwarmWorlds(TaskWorlds):
         super().__init__(task, scene, agent_index, [SwarmEpisode(0, 0.0)] * int(n_worlds), n_threads,
                          field=cfg.field, predictor=predictor, **extra)
         self.obs_shape = (agent_index.size, obs_dim(self.K))
-        self.obs_low, self.obs_high = obs_bounds(self.K, self.bound)
+        self.obs_low, self.obs_high = swarm_obs_bounds(self.K, self.bound)
 
     def new_episode(self, rng: np.random.Generator) -> SwarmEpisode:
         return draw_swarm_episode(rng, self.cfg)

@@ -37,10 +37,10 @@ from numba import carray
 from downwash_core.jit import njit
 from sim import fork_join
 from sim.fused_abi import STEP_CALLER, T_NSUB, T_V, T_W, f64p, i64p
-from sim.tick_stages import (Physics, actuate_stage, buffers_bundle, control_bundle, control_stage, field_stage, inputs_bundle,
-                             monitor_bundle, monitor_stage, physics_stage, predict_stage, prediction_bundle,
-                             sense_stage, stepping_bundle, vehicles_bundle, wind_bundle, wind_force_stage,
-                             wind_stage, world_bundle)
+from sim.tick_stages import (PhysicsArrays, actuate_stage, buffers_bundle, control_bundle, control_stage, field_stage,
+                             inputs_bundle, monitor_bundle, monitor_stage, physics_stage, predict_stage,
+                             prediction_bundle, sense_stage, stepping_bundle, vehicles_bundle, wind_bundle,
+                             wind_force_stage, wind_stage, world_bundle)
 
 __all__ = ["FUSED_KERNELS"]
 
@@ -110,7 +110,7 @@ def _make_fused_kernel(with_wind: bool):
                 n_taken += 1
                 w0, w1 = chunks[ci, 0], chunks[ci, 1]  # this chunk's worlds, with this thread's scratch MjData
                 world, prediction = world_bundle(tab, w0, w1), prediction_bundle(tab, w0, w1)
-                physics = Physics(qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1])
+                physics = PhysicsArrays(qpos[w0:w1], qvel[w0:w1], ctrl[w0:w1], xfrc[w0:w1])
                 inputs = inputs_bundle(tab, row, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, residual, override,
                                        w0, w1)
                 for sub in range(sub_start, sub_stop):

@@ -315,6 +315,7 @@ class _Plan:
                 tab["row_" + slot] = self.row_layout[name][0]
         self.tab = np.array([tab[name] for name in TAB], dtype=np.int64)
         self.chunks = chunks
+        self.own_chunks = chunks[0]  # the calling thread's (a view made once, not each tick)
         self.n_threads = n_threads
         limits = sim.controller if lqr else None  # (the LQR's limits; a compiled form keeps its own in params)
         fc = {

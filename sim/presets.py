@@ -47,7 +47,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
 from downwash_core.registry import Registry
-from downwash_core.roles import MAX_VEHICLES, VEHICLE_NAMES, Role
+from downwash_core.roles import MAX_VEHICLES, SCENE_VEHICLE_NAMES, Role
 from downwash_core.vehicles import PAPER_QUAD, VEHICLES
 from sim.scene import Scene, build_scene, check_clearance, resolve_kinds
 from sim.vehicle_params import collision_radii
@@ -126,7 +126,7 @@ class Preset:
 
 
 def _roles(n: int) -> tuple[tuple[str, Role], ...]:
-    return tuple((VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER) for i in range(n))
+    return tuple((SCENE_VEHICLE_NAMES[i], Role.LEADER if i == 0 else Role.FOLLOWER) for i in range(n))
 
 
 def _stack(n: int = 3, spacing: float = 0.6) -> Preset:

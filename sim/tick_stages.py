@@ -7,7 +7,7 @@ into named tuples of typed arrays; the stages take bundles, never the table:
   `Sensing`, the sensor's compiled law when it has one (`sim.sensor_contract`; fn 0: the family's pass);
 - `Vehicles`: each vehicle's and pair's constants (`sim.vehicle_params`), the gain, the field's (the paper
   field's constants, or a compiled form's C function, `sim.field_contract`);
-- `Physics`: the caller's physics state of the chunk's worlds; `Inputs`: the tick's reference and
+- `PhysicsArrays`: the caller's physics state of the chunk's worlds; `Inputs`: the tick's reference and
   actions; `Buffers`: the sub-tick's kinematics and forces (the log row's on the first sub-tick);
 - `Wind`, `Prediction`, `Control`, `Stepping`, `Monitor`: what the wind, the predictor and guard,
   the controller and safety filter, the physics stepping and the end-of-tick checks need.
@@ -65,7 +65,7 @@ World = namedtuple("World", [
 Sensing = namedtuple("Sensing", ["fn", "params", "state"])  # a sensor's compiled law: addresses (state: at w0)
 Vehicles = namedtuple("Vehicles", ["ap_gain", "max_thrust", "mass", "field_scale", "Kt", "field_packed", "field_fn",
                                    "field_params", "field_fn_scale"])
-Physics = namedtuple("Physics", ["qpos", "qvel", "ctrl", "xfrc"])
+PhysicsArrays = namedtuple("PhysicsArrays", ["qpos", "qvel", "ctrl", "xfrc"])
 Inputs = namedtuple("Inputs", ["ref_pos", "ref_vel", "ref_acc", "ref_yaw", "ref_yaw_rate", "residual", "override",
                                "u_cmd"])
 Buffers = namedtuple("Buffers", ["kin", "quat", "quat_est", "yaw", "applied", "mean"])

@@ -47,7 +47,7 @@ class FusedTicks:
             refs = tuple(kernel_array(x) for x in refs)
         args = plan.leading_args + refs + (residual, override, actions, flat)
         sub, diverged, n_ended = 0, None, 0
-        chunks = plan.chunks
+        chunks = plan.own_chunks
         caller_steps = plan.stepping == STEP_CALLER
         while sub < n_sub:
             if self._cursor_max >= block:
@@ -56,7 +56,7 @@ class FusedTicks:
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
             if plan.n_threads == 1:
-                n_ended = plan.kernel(*args, sub, stop, chunks[0], NO_CONTROL, fork_join.SOLO)
+                n_ended = plan.kernel(*args, sub, stop, chunks, NO_CONTROL, fork_join.SOLO)
             else:
                 n_ended = self._run_threads(plan, args, sub, stop)
             self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
@@ -78,7 +78,7 @@ class FusedTicks:
         if helpers is None or not helpers.alive or helpers.key != (plan.kernel, plan.n_threads):
             helpers = self._start_helpers(plan)  # first use, or a forked child (no threads of its own)
         ctl, role = (helpers.ctl, fork_join.MAIN) if helpers.start_tick() else (NO_CONTROL, fork_join.SOLO)
-        return helpers.end_tick(plan.kernel(*args, sub, stop, plan.chunks[0], ctl, role), stop - sub)
+        return helpers.end_tick(plan.kernel(*args, sub, stop, plan.own_chunks, ctl, role), stop - sub)
 
     def _start_helpers(self, plan: _Plan) -> fork_join.Helpers:
         """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever

@@ -68,6 +68,7 @@ from downwash_core.jit import njit
 from downwash_core.params import LEADER_POSITION
 from downwash_core.validate import number
 from downwash_core.numerics import matmul_rows, matvec
+from downwash_core.vehicle_kind import AIR_DENSITY  # kg/m^3, ISA sea level: the one definition
 
 __all__ = [
     "DrydenWind", "AirframeDrag", "AIRFRAME", "AIR_DENSITY", "drag_acceleration", "wind_at", "FT", "KT",
@@ -81,7 +82,6 @@ MAX_ALTITUDE = 1000.0 * FT  # m, 1000 ft: the low-altitude model's upper limit
 PRESETS_KT = {"light": 15.0, "moderate": 30.0, "severe": 45.0}  # W20, kt (MIL-F-8785C)
 _SQRT3 = math.sqrt(3.0)
 _C_AXIS = np.array([[1.0, 0.0], [_SQRT3, 1.0 - _SQRT3], [_SQRT3, 1.0 - _SQRT3]])  # (3, 2) gust = C x per axis
-AIR_DENSITY = 1.225  # kg/m^3, ISA sea level
 
 
 @dataclass(frozen=True)

@@ -126,14 +126,14 @@ def test_docs_architecture_table_lists_every_module():
 
 
 def test_docs_observation_table_is_the_generated_one():
-    """docs/envs.md holds `downwash_envs.observation.markdown_table()` verbatim (paste its output there)."""
-    from downwash_envs.observation import markdown_table
+    """docs/envs.md holds `downwash_envs.observation.observation_table()` verbatim (paste its output there)."""
+    from downwash_envs.observation import observation_table
 
-    assert markdown_table() in (ROOT / "docs" / "envs.md").read_text()
+    assert observation_table() in (ROOT / "docs" / "envs.md").read_text()
 
 
 def test_docs_swarm_observation_table_is_the_generated_one():
-    """docs/envs.md holds `downwash_envs.swarm.markdown_table()` verbatim (paste its output there)."""
-    from downwash_envs.swarm import markdown_table
+    """docs/envs.md holds `downwash_envs.swarm.swarm_observation_table()` verbatim (paste its output there)."""
+    from downwash_envs.swarm import swarm_observation_table
 
-    assert markdown_table() in (ROOT / "docs" / "envs.md").read_text()
+    assert swarm_observation_table() in (ROOT / "docs" / "envs.md").read_text()

@@ -29,7 +29,7 @@ from downwash_envs import (
     env_steps_per_s_vector,
     evaluate_lqr,
 )
-from downwash_envs.observation import OBS_SLICES, markdown_table
+from downwash_envs.observation import OBS_SLICES, observation_table
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OBS = {"dp": slice(0, 3), "pos_error": slice(9, 12), "vel_error": slice(12, 15),
@@ -310,8 +310,8 @@ def test_docstring_observation_table_is_the_layout():
     lines = doc.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| index |"))
     end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
-    assert "\n".join(lines[start:end]) == markdown_table()
-    assert markdown_table().count("\n") == 1 + len(downwash_envs.OBSERVATION)  # header, rule, one row per entry
+    assert "\n".join(lines[start:end]) == observation_table()
+    assert observation_table().count("\n") == 1 + len(downwash_envs.OBSERVATION)  # header, rule, one row per entry
     assert f"({OBS_DIM},)" in doc
 
 

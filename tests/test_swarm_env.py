@@ -247,7 +247,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     ref.pos, ref.vel, ref.acc = (rng.normal(size=(W, V, 3)) * 20 for _ in range(3))  # some beyond the bounds
     agents = np.arange(1, V) if seed % 2 else rng.permutation(V)[: max(1, V // 2)]
     last = rng.normal(size=(W, len(agents), 3))
-    low, high = swarm.obs_bounds(K, 5.0)
+    low, high = swarm.swarm_obs_bounds(K, 5.0)
     want = swarm.observation(pos, vel, rot, ref, agents, last, K, low, high)
     got = np.empty_like(want)
     swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, last, low, high, got)
@@ -316,7 +316,7 @@ def test_env_observation_is_the_documented_layout_of_the_estimated_state():
 
 
 def test_docstring_table_is_the_generated_one():
-    assert swarm.markdown_table() in swarm.__doc__
+    assert swarm.swarm_observation_table() in swarm.__doc__
 
 
 # ----------------------------------------------------------------------------- physics
