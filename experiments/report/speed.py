@@ -17,7 +17,10 @@ def _speed_summary(r: dict) -> list[list[str]]:
         if r.get(key) is not None:
             rows.append([what, fmt(r[key], sig), note])
 
-    add("one flight (two vehicles, 500 Hz physics, the full stack), times real time", "real_time_factor_serial")
+    add("one flight (two vehicles, 500 Hz physics, the full stack), times real time", "real_time_factor_serial",
+        "" if r.get("serial_over_bare_no_timer") is None else
+        f"{fmt(r.get('serial_over_bare'), 3)}x one bare `mj_step` loop, {fmt(r['serial_over_bare_no_timer'], 3)}x "
+        "one without MuJoCo's profiling timer (the simulator steps without it)")
     add(f"{worlds} worlds in one batch, world-steps/s", "closed_loop_batched_world_steps_per_s",
         f"{fmt(r.get('batched_over_bare'), 3)}x one bare `mj_step` loop")
     add(f"MuJoCo's own batched stepping (`mujoco.batch`), {worlds} worlds, no control at all, world-steps/s",
@@ -30,9 +33,11 @@ def _speed_summary(r: dict) -> list[list[str]]:
             (f"the swarm env as a `VecEnv` ({r.get('swarm_preset')}, {r.get('swarm_worlds')} worlds)",
              "swarm_world_steps_per_s_native", "swarm_", "swarm_native_over_mujoco_rollout")):
         if r.get(ratio) is not None:
+            no_timer = r.get(ratio + "_no_timer")  # (older files have none)
             add(f"{what} in one batch against MuJoCo's own rollout of the same scene (`mujoco.rollout`, no control), "
                 "world-steps/s", ours, f"{fmt(r[ratio], 3)}x of MuJoCo's rollout "
-                f"({fmt(r.get(prefix + 'mujoco_rollout_world_steps_per_s'))} world-steps/s)")
+                f"({fmt(r.get(prefix + 'mujoco_rollout_world_steps_per_s'))} world-steps/s)"
+                + ("" if no_timer is None else f"; {fmt(no_timer, 3)}x of it with its profiling timer off too"))
     add("the single env (`gym.make`), steps/s", "env_steps_per_s_single", "an env step is 0.02 s of flight")
     add(f"the native vector env, {worlds} worlds, steps/s", "env_steps_per_s_vector64_solo")
     add(f"stable-baselines3 PPO's rollout through the native vector env, {r.get('sb3_worlds')} worlds, steps/s",
