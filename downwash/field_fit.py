@@ -44,7 +44,7 @@ from sim.fields.registry import FIELDS
 from sim.vehicle_params import pair_field
 
 __all__ = ["PairStates", "FittedField", "DEFAULT_FIT", "FRAME_KINDS", "ENV_SCALABLE", "ENV_FACTOR_RANGE",
-           "pair_states", "predict", "fit_field", "bootstrap_fit", "write_fitted", "load_fitted",
+           "pair_states", "field_forces", "fit_field", "bootstrap_fit", "write_fitted", "load_fitted",
            "randomization_ranges", "compare_forces"]
 
 # Fitted by default (a strength and a width), bounds in each parameter's unit. so2: on-axis strength m/s^2,
@@ -111,7 +111,7 @@ def _fit_spec(entry: Any, params: Sequence[str] | None, bounds: Mapping[str, Any
             default_field)
 
 
-def predict(field: Any, states: PairStates) -> np.ndarray:
+def field_forces(field: Any, states: PairStates) -> np.ndarray:
     """(N, 3) m/s^2, world frame: `field` (a field object or a `FittedField`) scaled for each sample's
     pair of kinds (`sim.vehicle_params.pair_field`) on the leader's and follower's states."""
     field = field.make() if isinstance(field, FittedField) else field
@@ -143,7 +143,7 @@ class _Problem:
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         values = self.values(x)
-        r = (predict(self.entry.make(**self.base, **values), self.states) - self.states.y).ravel()
+        r = (field_forces(self.entry.make(**self.base, **values), self.states) - self.states.y).ravel()
         if not np.all(np.isfinite(r)):
             raise ConfigError(f"field {self.entry.name!r} with {values}: non-finite predictions")
         return r
@@ -217,7 +217,7 @@ def fit_field(name: str, states: PairStates, params: Sequence[str] | None = None
     fixed = {k: getattr(field, k) for k in entry.params if k not in fitted}
     return FittedField(
         base=name, params=fitted, fixed={k: (v.item() if isinstance(v, np.generic) else v) for k, v in fixed.items()},
-        bounds=bounds, rmse_before=_rmse(predict(default_field, states) - states.y),
+        bounds=bounds, rmse_before=_rmse(field_forces(default_field, states) - states.y),
         rmse_after=_rmse(problem.residual(sol.x)), n_samples=len(states), n_flights=states.n_flights,
         data_digest=states.data_digest, selection=dict(states.selection), source=states.source, loss=loss,
         f_scale=float(f_scale), optimizer={"nfev": int(sol.nfev), "max_nfev": max_nfev, "status": int(sol.status),
@@ -349,7 +349,7 @@ def compare_forces(field: Any, states: PairStates, bins: Mapping[str, Sequence[f
             raise ConfigError(f"bins[{k!r}]: expected at least two increasing edges (m) of {', '.join(_EDGES)}")
     if len(states) == 0:
         raise DataError("compare_forces: no samples")
-    pred = predict(field, states)
+    pred = field_forces(field, states)
     up = states.p_a[:, 2] - states.p_b[:, 2]
     lateral = np.linalg.norm(states.p_a[:, :2] - states.p_b[:, :2], axis=1)
     per_flight = [{"flight": states.flight_names[f], "n": int(i.sum()), "rmse": _rmse(pred[i] - states.y[i]),

@@ -135,8 +135,9 @@ from downwash_envs.base import (
 from downwash_envs.config import make_config  # noqa: F401  (the shared options' validation, as before the split)
 from downwash_envs.swarm_task import (  # noqa: F401  (the task's names, importable from here as before)
     NEIGHBOUR_DIM, NEIGHBOUR_OBSERVATION, OWN_DIM, OWN_OBSERVATION, SHARED_OPTIONS, SwarmConfig, SwarmEpisode,
-    SwarmWorlds, _observe_kernel, agent_names, draw_swarm_episode, episode_info, make_swarm_config, neighbour_block,
-    obs_dim, obs_slices, observation, observation_layout, own_block, swarm_obs_bounds, swarm_observation_table,
+    SwarmWorlds, _observe_kernel, agent_names, draw_swarm_episode, make_swarm_config, neighbour_block, obs_dim,
+    obs_slices, observation_layout, own_block, swarm_episode_info, swarm_obs_bounds, swarm_observation,
+    swarm_observation_table,
 )
 from sim.aggregation import DEFAULT_AGGREGATION
 from sim.physics import check_world_memory
@@ -146,7 +147,7 @@ from sim.simulator import Simulator  # noqa: F401  (as before the split: tests r
 __all__ = [
     "SHARED_OPTIONS", "OWN_OBSERVATION", "NEIGHBOUR_OBSERVATION", "OWN_DIM", "NEIGHBOUR_DIM",
     "observation_layout", "obs_dim", "obs_slices", "swarm_obs_bounds", "swarm_observation_table",
-    "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
+    "own_block", "neighbour_block", "swarm_observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
     "draw_swarm_episode",
     "agent_names", "SwarmWorlds", "SwarmEnv", "SwarmVectorEnv", "parallel_env", "env",
 ]  # fmt: skip
@@ -223,7 +224,7 @@ class SwarmEnv(_SwarmBase, ParallelEnv):
         self._elapsed = 0
         self.agents = list(self.possible_agents)
         obs = self._worlds.observe()[0]
-        infos = episode_info(ep, len(self.agents))
+        infos = swarm_episode_info(ep, len(self.agents))
         return {a: obs[i] for i, a in enumerate(self.possible_agents)}, dict(zip(self.agents, infos))
 
     def step(self, actions: Mapping[str, Any]):
@@ -282,14 +283,14 @@ class SwarmVectorEnv(_SwarmBase, VectorAutoreset):
         self.n_worlds = N
         self.agents = list(self.possible_agents)  # every agent always has a row; ended worlds autoreset
         self._init_autoreset(N)
-        # each world's episode info (`episode_info`), (W, A) per key; reported with every step
+        # each world's episode info (`swarm_episode_info`), (W, A) per key; reported with every step
         A, spreads = len(self.agents), self.config.task.vehicle_spreads
         self._episode_info = {"sim_seed": np.zeros((N, A), np.int64), "phase": np.zeros((N, A)),
                               **{f"{k}_scale": np.ones((N, A)) for k in spreads}}
 
     def _record_episodes(self, worlds: np.ndarray, episodes: list[SwarmEpisode]) -> None:
         for w, ep in zip(worlds, episodes):
-            for i, info in enumerate(episode_info(ep, len(self.agents))):
+            for i, info in enumerate(swarm_episode_info(ep, len(self.agents))):
                 for key, value in info.items():
                     self._episode_info[key][w, i] = value
 

@@ -8,7 +8,7 @@ aggregation law (`sim.aggregation`). The envs (`downwash_envs.swarm`: the Pettin
 agents, the observation, the reward and the options.
 
 Here: the options (`SwarmConfig`, `make_swarm_config`), the observation layout and its
-table, the readable observation (`own_block`, `neighbour_block`, `observation`) and its
+table, the readable observation (`own_block`, `neighbour_block`, `swarm_observation`) and its
 compiled twin `_observe_kernel`, the episodes (`draw_swarm_episode`), and the agents' names.
 
 Shapes: W worlds, V vehicles, A agents (the followers), K neighbour slots, D = obs_dim(K);
@@ -44,8 +44,8 @@ from downwash_trajectories import Cached, TimeShifted
 __all__ = [
     "SHARED_OPTIONS", "OWN_OBSERVATION", "NEIGHBOUR_OBSERVATION", "OWN_DIM", "NEIGHBOUR_DIM",
     "observation_layout", "obs_dim", "obs_slices", "swarm_obs_bounds", "swarm_observation_table",
-    "own_block", "neighbour_block", "observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
-    "draw_swarm_episode", "episode_info", "agent_names", "SwarmStep", "SwarmWorlds",
+    "own_block", "neighbour_block", "swarm_observation", "SwarmConfig", "make_swarm_config", "SwarmEpisode",
+    "draw_swarm_episode", "swarm_episode_info", "agent_names", "SwarmStep", "SwarmWorlds",
 ]  # fmt: skip
 
 # The FollowerConfig options that mean the same here (validated by downwash_envs.config); the
@@ -158,7 +158,7 @@ def neighbour_block(
     return out
 
 
-def observation(
+def swarm_observation(
     pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, ref: Any, agents: np.ndarray,
     last_action: np.ndarray, max_neighbours: int, low: np.ndarray, high: np.ndarray,
 ) -> np.ndarray:
@@ -175,7 +175,7 @@ def observation(
 
 @njit
 def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, last_action, low, high, out):
-    """Compiled `observation`, written into out (W, A, D); the same arithmetic, world by world.
+    """Compiled `swarm_observation`, written into out (W, A, D); the same arithmetic, world by world.
 
     pos, vel (W, V, 3) estimated; rot (W, V, 3, 3); ref_* (W, V, 3); agents (A,); last_action
     (W, A, 3); low, high (D,). The neighbours are `sim.neighbours.select_into`'s (the compiled
@@ -330,7 +330,7 @@ def draw_swarm_episode(rng: np.random.Generator, cfg: SwarmConfig) -> SwarmEpiso
     return SwarmEpisode(sim_seed, u * cfg.preset.duration if cfg.random_phase else 0.0, vehicle)
 
 
-def episode_info(ep: SwarmEpisode, n_agents: int) -> list[dict[str, Any]]:
+def swarm_episode_info(ep: SwarmEpisode, n_agents: int) -> list[dict[str, Any]]:
     """Each agent's reset info: ``sim_seed``, ``phase`` (s) and, with `randomize`, its drawn
     factors ``mass_scale``, ``inertia_scale``, ``motor_lag_scale`` (plain Python numbers)."""
     common = {"sim_seed": ep.sim_seed, "phase": ep.phase}

@@ -16,7 +16,7 @@ from experiments.common import one_line
 from experiments.options import DEFAULT_CONTROLLER
 
 __all__ = ["table", "built", "lqr_config", "sim_config", "safety_config", "flight_components", "check_controller",
-           "controller_record", "flown_record", "training_config", "guard_settings"]
+           "controller_record", "flown_record", "training_config", "guard_config"]
 
 A = TypeVar("A")
 
@@ -121,7 +121,7 @@ def training_config(args: Any) -> Any:
     return built("training", dataclasses.replace, train_config(args.seed, args.quick), **table(args, "training"))
 
 
-def guard_settings(args: Any) -> dict[str, float]:
+def guard_config(args: Any) -> dict[str, float]:
     """The keywords of the experiment's `downwash.guard.GuardedPredictor`s: `GUARD_DEFAULTS` with the
     [guard] table's values."""
     from downwash.guard import GUARD_DEFAULTS

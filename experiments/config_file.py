@@ -16,7 +16,7 @@ an unknown key, a value of the wrong type or out of range stops the run before a
 keys and ranges here are static copies, so that a bad file answers without the heavy imports;
 tests/test_config_files.py ties them to the classes. The tables' values reach the library
 through the builders of `experiments.common` (`lqr_config`, `sim_config`, `training_config`,
-`guard_settings`), the one place each experiment makes those settings.
+`guard_config`), the one place each experiment makes those settings.
 
 Every run writes `config.toml` beside its results.json in --out (atomically): every option's
 final value (defaults and what --quick gave included) and every table the experiment applies,
@@ -319,7 +319,7 @@ def resolved_tables(args: Any) -> dict[str, dict[str, Any]]:
         elif name == "training":
             settings = dataclasses.asdict(components.training_config(args))
         else:
-            settings = components.guard_settings(args)
+            settings = components.guard_config(args)
         keys = TABLES[name].keys
         out[name] = {k: _plain(v) for k, v in settings.items() if k in keys and v is not None}
     return out

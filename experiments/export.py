@@ -59,7 +59,7 @@ from typing import Any, Sequence
 
 from experiments.common import OneLineParser, run_main, script
 
-__all__ = ["FORMATS", "MCAP_LAYOUT", "LOG_SUFFIXES", "Export", "build_parser", "vehicle_signals", "plan_exports",
+__all__ = ["FORMATS", "MCAP_LAYOUT", "LOG_SUFFIXES", "Export", "command_parser", "vehicle_signals", "plan_exports",
            "export_logs", "main", "cli"]
 
 FORMATS = {"csv": ".csv", "parquet": ".parquet", "mcap": ".mcap"}  # --format -> the output's suffix
@@ -97,7 +97,7 @@ class Export:
     sha256: str
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="python -m experiments.export", description=__doc__.split("\n\n")[0],
                            allow_abbrev=False)
     parser.add_argument("logs", metavar="LOG", nargs="+",
@@ -290,7 +290,7 @@ def export_logs(logs: Sequence[str | os.PathLike], fmt: str, out: str | os.PathL
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
     """Parse the arguments and export; an expected error is one line (`run_main`)."""
-    args = build_parser().parse_args(argv)  # --debug: run_main re-raises expected errors
+    args = command_parser().parse_args(argv)  # --debug: run_main re-raises expected errors
     written = export_logs(args.logs, args.format, args.out, args.force)
     for path in written:
         print(f"wrote {path}")

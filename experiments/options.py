@@ -20,13 +20,15 @@ from downwash_core.errors import ConfigError
 __all__ = [
     "PAIRWISE_KINDS", "CONDITIONS", "DEFAULT_CONDITIONS", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS",
     "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "CONTROLLER_NAMES", "DEFAULT_CONTROLLER", "FIELD_CHOICES",
-    "SEED_COUNT_MAX", "WIND_HELP", "RegisteredNames",
+    "SEED_COUNT_MAX", "WIND_HELP", "RegisteredNames", "PLUGIN_GROUP", "GUARDED", "UNLEARNED",
     "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
     "in_range", "range_words",
 ]
 
 
 PLUGIN_GROUP = "downwash_testbed.plugins"  # downwash_core.registry.PLUGIN_GROUP
+GUARDED = "_guarded"  # downwash.conditions.GUARDED: the suffix of a guarded learned condition
+UNLEARNED = ("integral", "dob")  # downwash.conditions.UNLEARNED: the non-learned compensations
 
 
 @functools.lru_cache(maxsize=1)

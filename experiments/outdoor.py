@@ -39,7 +39,7 @@ from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, S
                                 ProgressBar, arg, check_options, field_check, format_table, load_field, load_wind,
                                 names_check, one_of, out_lock, parse_args, resolve_pipeline, run_main,
                                 seed_count_check, setup_logging, wind_check, write_results, script)
-from experiments.components import check_controller, flight_components, flown_record, guard_settings
+from experiments.components import check_controller, flight_components, flown_record, guard_config
 
 __all__ = ["OutdoorArgs", "LEADERS", "LEADER_SPEED_RANGE", "run", "main"]
 
@@ -196,7 +196,7 @@ def run(args: OutdoorArgs) -> dict:
     from sim.scene import build_scene
 
     conditions = _validate(args)
-    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
+    components, guard = flight_components(args), guard_config(args)  # the tables, checked before any flight
     trained = _trained(args)
     wind = load_wind(args.wind)
     p = resolve_pipeline(args, models=learned(conditions))

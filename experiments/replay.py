@@ -37,7 +37,7 @@ from typing import Any, Callable, NoReturn, Sequence
 
 from experiments.common import OneLineParser, run_main, script
 
-__all__ = ["MAX_FPS", "VIDEO_FPS", "VIDEO_SIZE", "build_parser", "replay_log", "replay_video", "main", "cli"]
+__all__ = ["MAX_FPS", "VIDEO_FPS", "VIDEO_SIZE", "command_parser", "replay_log", "replay_video", "main", "cli"]
 
 MAX_FPS = 60.0  # window syncs per second at most: a fast replay skips rows instead
 VIDEO_FPS = 25.0  # frames per second of --video by default
@@ -69,7 +69,7 @@ def _bounded(kind: Callable[[str], Any], lo: float, hi: float, what: str) -> Cal
     return parse
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(  # one-line usage errors, as every experiment's
         prog="python -m experiments.replay", allow_abbrev=False,
         description="Replay a flight log (.npz) in MuJoCo's interactive viewer, or write it as an mp4 with "
@@ -228,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Parse the arguments, load the log, replay it in the window (returns the number of window syncs)
     or write it with --video (returns the number of frames). Bad arguments or a bad log exit with
     status 2 and one line naming the argument, before any window opens or frame is rendered."""
-    parser = build_parser()
+    parser = command_parser()
     args = parser.parse_args(argv)
     from downwash_core.errors import ConfigError, LogError
     from sim.logs import load_log

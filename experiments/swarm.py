@@ -39,7 +39,7 @@ from downwash_core.errors import ConfigError
 from experiments.common import (AGGREGATIONS, FLIGHT_SECONDS_MAX, PRESETS, SEED_COUNT_MAX, FlightArgs, ProgressBar,
                                 arg, check_options, format_table, out_lock, parse_args, resolve_pipeline, run_main,
                                 seed_count_check, setup_logging, write_results, script)
-from experiments.components import check_controller, flight_components, flown_record, guard_settings
+from experiments.components import check_controller, flight_components, flown_record, guard_config
 
 __all__ = ["SwarmArgs", "conditions", "run", "main"]
 
@@ -169,7 +169,7 @@ def run(args: SwarmArgs) -> dict:
     from sim.metrics import aggregate_conditions, follower_metrics
 
     presets, laws = _validate(args)
-    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
+    components, guard = flight_components(args), guard_config(args)  # the tables, checked before any flight
     if args.video:
         from downwash_envs.video import check_video_output  # imageio and an OpenGL context only when asked for
 

@@ -28,7 +28,7 @@ from experiments.common import (CONDITIONS, DEFAULT_CONDITIONS, FLIGHT_SECONDS_M
                                 FlightArgs, ProgressBar, arg, check_options, format_table, load_wind, names_check,
                                 out_lock, parse_args, resolve_pipeline, seed_count_check, setup_logging, wind_check,
                                 write_results)
-from experiments.components import check_controller, flight_components, flown_record, guard_settings
+from experiments.components import check_controller, flight_components, flown_record, guard_config
 
 __all__ = ["TRACKS", "TrackingArgs", "run", "main"]
 
@@ -105,7 +105,7 @@ def run(track: str, args: Any) -> dict:
 
     spec = TRACKS[track]
     conditions = _validate(args)
-    components, guard = flight_components(args), guard_settings(args)  # the tables, checked before any flight
+    components, guard = flight_components(args), guard_config(args)  # the tables, checked before any flight
     wind = load_wind(args.wind)
     scene = build_scene()
     if args.video:

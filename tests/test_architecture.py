@@ -78,6 +78,53 @@ def test_no_module_grows_past_the_limit():
     assert not shrunk, f"{shrunk}: now within {MAX_MODULE_LINES} lines; remove from OVER_THE_LIMIT"
 
 
+PACKAGES = ("downwash_core", "downwash_trajectories", "controllers", "sim", "downwash", "downwash_envs", "experiments")
+# public names defined in more than one module on purpose, each with why
+DEFINED_TWICE = {
+    "VEHICLE_NAMES": "experiments.vehicles lists the kinds without importing the stack (tests/test_vehicles.py ties it)",
+    "make_vec_env": "each SB3 adapter module's own factory (downwash_envs.sb3 the follower's, swarm_sb3 the swarm's)",
+}
+
+
+def _exported_definitions(path: Path) -> set[str]:
+    """The names of `__all__` that the module itself defines (a def, a class or an assignment), not imports."""
+    tree = ast.parse(path.read_text())
+    exported: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            # a literal list; a lazy package's (['ENV_IDS', *_LAZY]): its literal names, the rest it imports
+            items = node.value.elts if isinstance(node.value, ast.List) else []
+            exported = {ast.literal_eval(e) for e in items if isinstance(e, ast.Constant)}
+    defined = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            defined.add(node.name)
+        elif isinstance(node, ast.Assign):
+            defined.update(t.id for t in node.targets if isinstance(t, ast.Name))
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            defined.add(node.target.id)
+    return defined & exported
+
+
+def test_one_public_name_has_one_definition():
+    """A public name means one thing: no two modules define it, except the static copies of
+    experiments.options (tests/test_cli.py ties each to its source), an experiment's own commands
+    (no experiment imports another) and the few in DEFINED_TWICE."""
+    where: dict[str, list[str]] = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            for name in _exported_definitions(path):
+                where.setdefault(name, []).append(path.relative_to(ROOT).as_posix())
+    commands = set(where.get("main", []))  # the experiments' commands
+    twice = {
+        name: paths for name, paths in where.items()
+        if len(paths) > 1 and name not in DEFINED_TWICE
+        and not (len(paths) == 2 and "experiments/options.py" in paths)
+        and not all(p in commands for p in paths)
+    }
+    assert not twice, f"defined in more than one module: {twice}; rename one, or import it from the other"
+
+
 def _nesting(node, depth=0):
     """The deepest nesting of blocks (for, while, if, with, try) inside `node`."""
     blocks = (ast.For, ast.While, ast.If, ast.With, ast.Try)

@@ -95,6 +95,9 @@ def test_static_choices_match_their_registries():
     from experiments import options
 
     assert options.PLUGIN_GROUP == PLUGIN_GROUP
+    from downwash.conditions import GUARDED, UNLEARNED
+
+    assert options.GUARDED == GUARDED and options.UNLEARNED == UNLEARNED
 
 
 # ----------------------------------------------------------------------------- --config

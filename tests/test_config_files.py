@@ -247,7 +247,7 @@ def test_the_builders_apply_the_training_and_guard_tables():
     grid = grid_of(EfficiencyArgs(seed=3, quick=True, trials=2, tables={"training": {"batch_size": 64}}))
     assert [grid.config(s).batch_size for s in grid.seeds] == [64, 64] and grid.config(5).seed == 5
     assert grid.config(5) == dataclasses.replace(train_config(5, True), batch_size=64)
-    assert components.guard_settings(SwarmArgs(tables={"guard": {"bound": 4.0, "skeptic": math.inf}})) == {
+    assert components.guard_config(SwarmArgs(tables={"guard": {"bound": 4.0, "skeptic": math.inf}})) == {
         **GUARD_DEFAULTS, "bound": 4.0, "skeptic": math.inf}
 
 
@@ -287,7 +287,7 @@ def test_swarm_guards_its_conditions_with_the_guard_table(monkeypatch):
     monkeypatch.setattr(downwash.predictor, "LearnedPredictor", lambda model, **k: ("learned", model))
     # the one condition-to-predictor factory the swarm uses (downwash.conditions.make_predictor) guards with it
     monkeypatch.setattr(downwash.conditions, "GuardedPredictor", lambda p, **kw: made.append(kw) or ("guarded", p))
-    guard = components.guard_settings(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
+    guard = components.guard_config(SwarmArgs(tables={"guard": {"recovery": 2.0}}))
     out = _predictors(["baseline", "summed_pairwise", "summed_pairwise_guarded"], None, None,
                       {"summed_pairwise": Path("p.pt")}, None, guard)
     assert out[2] == ("guarded", ("learned", "pairwise")) and made == [guard] and guard["recovery"] == 2.0
@@ -343,7 +343,7 @@ def test_transect_and_outdoor_take_the_guard_table(tmp_path):
     path = _toml(tmp_path, "[guard]\nskeptic = inf\nmonitor = 0.5\n")
     for cls, name in ((args_class("transect"), "transect"), (OutdoorArgs, "outdoor")):
         args = parse_args(cls, name, ["--config", str(path), "--out", str(tmp_path / "o")])
-        assert components.guard_settings(args) == {**components.guard_settings(cls()), "skeptic": math.inf, "monitor": 0.5}
+        assert components.guard_config(args) == {**components.guard_config(cls()), "skeptic": math.inf, "monitor": 0.5}
 
 
 def test_the_sweep_trains_its_cells_with_the_training_table(tmp_path, monkeypatch):

@@ -19,7 +19,7 @@ from downwash_core.params import QUAD
 from downwash_core.vehicles import get_vehicle
 from downwash_envs import DownwashFollowerVectorEnv
 from downwash_envs.config import FIELD_RANDOMIZABLE, FollowerConfig, build_field, randomizable_constants
-from downwash.field_fit import PairStates, bootstrap_fit, predict, randomization_ranges, write_fitted
+from downwash.field_fit import PairStates, bootstrap_fit, field_forces, randomization_ranges, write_fitted
 from sim.field import DownwashField, pairwise_field, pairwise_forces
 from sim.fields.per_world import PerWorldFields
 from sim.fields.registry import make_field
@@ -195,7 +195,7 @@ def _fit_states(seed: int, n_flights: int = 4, per_flight: int = 80) -> PairStat
         vehicle=np.zeros(n, int), types=np.full(n, "S2S"), kinds=(kind,),
         flight_names=tuple(f"f{i}" for i in range(n_flights)),
         flight_digests=tuple(f"{i:064x}" for i in range(n_flights)), selection={"synthetic": seed})
-    y = predict(make_field("momentum", thrust_scale=0.7, spreading_rate=0.12), states)
+    y = field_forces(make_field("momentum", thrust_scale=0.7, spreading_rate=0.12), states)
     return dataclasses.replace(states, y=y + rng.normal(0, 0.05, (n, 3)))
 
 

@@ -19,7 +19,7 @@ from downwash_core.geometry import quat_to_mat
 from downwash_core.provenance import describe
 from downwash_core.vehicles import VEHICLES, get_vehicle
 from downwash.field_fit import (ENV_SCALABLE, ENV_FACTOR_RANGE, FittedField, PairStates, bootstrap_fit,
-                                compare_forces, fit_field, load_fitted, pair_states, predict, randomization_ranges,
+                                compare_forces, fit_field, load_fitted, pair_states, field_forces, randomization_ranges,
                                 write_fitted)
 from downwash.real_logs.convert import real_flight, vehicle_arrays
 from sim.field import DownwashField
@@ -55,7 +55,7 @@ def synthetic_states(name: str, seed: int, n_flights: int = 12, per_flight: int 
         row=np.tile(np.arange(per_flight), n_flights), vehicle=np.zeros(n, int), types=np.full(n, "S2S"),
         kinds=(SMALL, LARGE), flight_names=tuple(f"f{i}" for i in range(n_flights)),
         flight_digests=tuple(f"{i:064x}" for i in range(n_flights)), selection={"synthetic": seed})
-    y = predict(make_field(name, **(truth or TRUE[name])), states) + rng.normal(0, NOISE, (n, 3))
+    y = field_forces(make_field(name, **(truth or TRUE[name])), states) + rng.normal(0, NOISE, (n, 3))
     return PairStates(**{**_fields(states), "y": y})
 
 
@@ -67,7 +67,7 @@ def _standard_errors(name: str, states: PairStates, truth: dict) -> dict:
     """sigma sqrt(diag((J^T J)^-1)) at the truth, J by central differences of the prediction."""
     cols = []
     for p, v in truth.items():
-        hi, lo = (predict(make_field(name, **{**truth, p: v * (1 + s)}), states) for s in (1e-4, -1e-4))
+        hi, lo = (field_forces(make_field(name, **{**truth, p: v * (1 + s)}), states) for s in (1e-4, -1e-4))
         cols.append(((hi - lo) / (2e-4 * v)).ravel())
     J = np.stack(cols, axis=1)
     return dict(zip(truth, NOISE * np.sqrt(np.diag(np.linalg.inv(J.T @ J)))))
@@ -130,7 +130,7 @@ def test_fitted_spec_round_trip(tmp_path):
     field = resolve_fitted_spec(str(path))
     plain = make_field("so2", **fit.params)
     test = synthetic_states("so2", seed=6, n_flights=2)
-    np.testing.assert_array_equal(predict(field, test), predict(plain, test))
+    np.testing.assert_array_equal(field_forces(field, test), field_forces(plain, test))
     assert isinstance(field, DownwashField) and field == resolve_fitted_spec(str(path))  # one class per record
     info = describe(field)["fitted"]
     assert info["data_digest"] == states.data_digest and info["base"] == "so2"
@@ -159,7 +159,7 @@ def test_fitted_spec_through_the_registry(tmp_path):
     path = write_fitted(tmp_path / "m.json", fit)
     field = resolve_field_spec(f"fitted:{path}")
     test = synthetic_states("momentum", seed=8, n_flights=1, per_flight=50)
-    np.testing.assert_array_equal(predict(field, test), predict(make_field("momentum", **fit.params), test))
+    np.testing.assert_array_equal(field_forces(field, test), field_forces(make_field("momentum", **fit.params), test))
 
 
 def test_randomization_ranges():

@@ -248,7 +248,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     agents = np.arange(1, V) if seed % 2 else rng.permutation(V)[: max(1, V // 2)]
     last = rng.normal(size=(W, len(agents), 3))
     low, high = swarm.swarm_obs_bounds(K, 5.0)
-    want = swarm.observation(pos, vel, rot, ref, agents, last, K, low, high)
+    want = swarm.swarm_observation(pos, vel, rot, ref, agents, last, K, low, high)
     got = np.empty_like(want)
     swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, last, low, high, got)
     np.testing.assert_array_equal(got, want)

@@ -14,12 +14,12 @@ import math
 from typing import Any
 
 from experiments.common import CONTROLLER_NAMES
+from experiments.options import UNLEARNED
 from experiments.report.formatting import crash_cell, fmt, markdown_table, ordered, pct, short
 
-__all__ = ["UNLEARNED", "paired_interval", "render_learning_over_baselines", "render_field_baselines",
+__all__ = ["paired_interval", "render_learning_over_baselines", "render_field_baselines",
            "render_swarm_baselines", "render_observer_bandwidth", "render_controller_table"]
 
-UNLEARNED = ("integral", "dob")
 _ERROR = "pos_err_3d_mean"
 # two-sided 97.5 % quantiles of Student's t by degrees of freedom (scipy.stats.t.ppf(0.975, df)), so the
 # report needs no scipy; beyond the table the normal quantile

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from experiments.options import GUARDED
 from experiments.report.formatting import markdown_table, pct, short
 
-__all__ = ["GUARDED", "WORSE_FLOOR", "RETAIN", "RETAIN_ABOVE", "settings_points", "guard_criteria",
+__all__ = ["WORSE_FLOOR", "RETAIN", "RETAIN_ABOVE", "settings_points", "guard_criteria",
            "render_guard_criteria"]
 
-GUARDED = "_guarded"
 WORSE_FLOOR = -0.02  # the least improvement over the baseline a guarded condition may have
 RETAIN, RETAIN_ABOVE = 0.9, 0.10  # the share of an unguarded gain above RETAIN_ABOVE the guard keeps
 
