@@ -479,7 +479,9 @@ class Registry(Mapping[str, Any]):
         """(name, {typed params}) of a spec NAME[:KEY=VALUE,...] ("" is the default, if any); ConfigError."""
         label = label or self.label
         if not isinstance(spec, str):
-            raise ConfigError(f"{label}: expected a {self.kind} spec NAME[:KEY=VALUE,...], got {type(spec).__name__}")
+            article = "an" if self.kind[:1] in "aeiou" else "a"
+            raise ConfigError(f"{label}: expected {article} {self.kind} spec NAME[:KEY=VALUE,...], got "
+                              f"{type(spec).__name__}")
         text = spec.strip() or (self.default or "")
         head, _, tail = text.partition(":")
         if head not in self:

@@ -1,4 +1,4 @@
-"""List every registered component: fields, models, vehicles, presets, sensors and controllers.
+"""List every registered component: fields, models, vehicles, presets, sensors, controllers and aggregation laws.
 
     python -m experiments.registry                      # every kind
     python -m experiments.registry --kind fields        # one kind (or a comma list)
@@ -14,7 +14,6 @@ change nothing, and --field is refused. The models' listing imports torch.
 from __future__ import annotations
 
 import importlib
-import inspect
 import textwrap
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -33,6 +32,7 @@ KINDS = {
     "presets": ("sim.presets", "PRESETS"),
     "sensors": ("sim.sensors", "SENSORS"),
     "controllers": ("controllers.registry", "CONTROLLERS"),
+    "aggregations": ("sim.aggregation", "AGGREGATIONS"),
 }
 
 
@@ -47,14 +47,7 @@ class RegistryArgs(CommonArgs):
 def _entries(kind: str) -> list[dict[str, Any]]:
     """The kind's registry's listing (plugins loaded)."""
     module, name = KINDS[kind]
-    registry = getattr(importlib.import_module(module), name)
-    if hasattr(registry, "listing"):
-        return registry.listing()
-    # a plain {name: factory} mapping (a registry not yet on downwash_core.registry): names and first doc lines
-    doc = inspect.getdoc(importlib.import_module(module)) or ""
-    lines = {line.split()[0]: " ".join(line.split()[1:]) for line in doc.splitlines() if line.startswith("    ")}
-    return [{"name": n, "description": lines.get(n) or (inspect.getdoc(f) or "").split("\n")[0], "params": {},
-             "plugin": None} for n, f in registry.items()]
+    return getattr(importlib.import_module(module), name).listing()
 
 
 def listing(kinds: Sequence[str] | None = None) -> dict[str, Any]:

@@ -47,7 +47,6 @@ combine it, compiled on the (W, V, 3) hot path, with a readable NumPy twin
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -57,9 +56,9 @@ from downwash_core import libm
 from downwash_core.errors import ConfigError
 from downwash_core.geometry import dot as _dot
 from downwash_core.jit import njit
+from downwash_core.registry import Registry
 from downwash_core.validate import number
 from sim.field import pairwise_field, pairwise_forces
-from sim.fields.registry import field_parameters
 
 __all__ = [
     "LinearSuperposition",
@@ -72,7 +71,6 @@ __all__ = [
     "wake_field",
 ]
 
-_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
 
 
 def _describe(law: Any) -> dict[str, Any]:
@@ -303,62 +301,22 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-AGGREGATIONS: dict[str, type] = {
-    "linear": LinearSuperposition,
-    "velocity": VelocitySuperposition,
-    "shielding": WakeShielding,
-}
 DEFAULT_AGGREGATION = "linear"
+# name -> the law's class; specs in the registries' grammar (`downwash_core.registry`)
+AGGREGATIONS = Registry("aggregation", objects=True, default=DEFAULT_AGGREGATION, name_pattern=r"[a-z][a-z0-9_]*",
+                        name_rule="lowercase letters, digits and underscores")
+AGGREGATIONS.register("linear", LinearSuperposition, "the sum of the pairwise forces (the paper's assumption)")
+AGGREGATIONS.register("velocity", VelocitySuperposition, "the wakes' velocities superpose; the force goes as |v|^p")
+AGGREGATIONS.register("shielding", WakeShielding, "a vehicle in a wake's way shields those below it")
 
 
 # ----------------------------------------------------------------------------- selecting a law
 
 
 def parse_aggregation_spec(spec: str, label: str = "aggregation") -> tuple[str, dict[str, Any]]:
-    """(NAME, {typed params}) from "NAME" or "NAME:KEY=VALUE[,...]" ("" is the default).
-
-    The grammar of `sim.fields.registry`'s field specs, for registered names only.
-    ConfigError (prefixed with `label`) naming the allowed names or parameters.
-    """
-    if not isinstance(spec, str):
-        raise ConfigError(f"{label}: expected a spec string NAME[:KEY=VALUE,...], got {type(spec).__name__}; "
-                          f"allowed names: {', '.join(AGGREGATIONS)}")
-    spec = spec.strip() or DEFAULT_AGGREGATION
-    head, colon, tail = spec.partition(":")
-    head = head.strip()
-    if head not in AGGREGATIONS:
-        raise ConfigError(f"{label}: unknown {head!r}; allowed: {', '.join(AGGREGATIONS)}")
-    kinds = field_parameters(AGGREGATIONS[head])
-    allowed = ", ".join(kinds) if kinds else "none"
-    params: dict[str, Any] = {}
-    for item in filter(None, (x.strip() for x in tail.split(","))) if colon else ():
-        key, eq, text = item.partition("=")
-        key = key.strip()
-        if not eq:
-            raise ConfigError(f"{label}: {spec!r}: parameters of {head!r} are KEY=VALUE, got {item!r}; "
-                              f"allowed keys: {allowed}")
-        if key not in kinds:
-            raise ConfigError(f"{label}: {head!r} has no parameter {key!r}; allowed: {allowed}")
-        if key in params:
-            raise ConfigError(f"{label}: {spec!r}: parameter {key!r} given twice")
-        params[key] = _convert(label, head, key, kinds[key], text)
-    return head, params
-
-
-def _convert(label: str, name: str, key: str, kind: type, text: str) -> Any:
-    value = text.strip()
-    if kind is bool:
-        if value.lower() in _TRUE + _FALSE:
-            return value.lower() in _TRUE
-        raise ConfigError(f"{label}: {name} parameter {key}={text!r}: expected a bool "
-                          f"({'/'.join(_TRUE)} or {'/'.join(_FALSE)})")
-    try:
-        out = int(value) if kind is int else float(value)
-    except ValueError:
-        raise ConfigError(f"{label}: {name} parameter {key}={text!r}: expected a number") from None
-    if not math.isfinite(out):
-        raise ConfigError(f"{label}: {name} parameter {key}={text!r}: must be finite")
-    return out
+    """(NAME, {typed params}) from "NAME" or "NAME:KEY=VALUE[,...]" ("" is the default): `AGGREGATIONS.parse`,
+    the grammar of every registry. ConfigError (prefixed with `label`) naming the allowed names or parameters."""
+    return AGGREGATIONS.parse(spec, label)
 
 
 def make_aggregation(name: str) -> Any:
@@ -367,11 +325,7 @@ def make_aggregation(name: str) -> Any:
     "" is the default (`DEFAULT_AGGREGATION`). ConfigError naming the allowed names,
     parameters or range, before any work.
     """
-    head, params = parse_aggregation_spec(name)
-    try:
-        return AGGREGATIONS[head](**params)
-    except ConfigError as e:  # a value the law rejects: say which spec
-        raise ConfigError(f"aggregation {name.strip()!r}: {e}") from e
+    return AGGREGATIONS.resolve(name)
 
 
 # ----------------------------------------------------------------------------- the simulator's call

@@ -259,7 +259,8 @@ def test_an_installed_plugin_s_field_and_vehicle_are_registered_and_fly(site):
 def test_the_listing_command_lists_every_kind_with_the_plugin_s_entries(site, tmp_path):
     proc = _python(site, "-m", "experiments.registry", "--out", str(tmp_path / "all"))
     results = json.loads((tmp_path / "all" / "results.json").read_text())
-    assert set(results["registry"]) == {"fields", "models", "vehicles", "presets", "sensors", "controllers"}
+    assert set(results["registry"]) == {"fields", "models", "vehicles", "presets", "sensors", "controllers",
+                                        "aggregations"}
     assert all(results["registry"][kind] for kind in results["registry"])
     fields = {e["name"]: e for e in results["registry"]["fields"]}
     assert fields["demo-gust"]["plugin"] == "demo" and fields["so2"]["plugin"] is None
