@@ -87,6 +87,7 @@ from downwash.ensemble_network import _aligned_stack, _forward, _Layer, _layers,
 from downwash.ensemble_settle import _settle_models
 from downwash.features import assemble
 from downwash.models import PAIRWISE_KINDS, DeepSNMLP, DownwashModel
+from downwash.registry import MODEL_KINDS
 from downwash.train import TrainConfig, training_kernels
 
 __all__ = ["train_ensemble"]
@@ -137,8 +138,9 @@ def train_ensemble(
     (naming ``datasets[i]``); FloatingPointError naming the member whose
     validation loss is not finite (which ends the whole ensemble).
     """
-    if kind not in PAIRWISE_KINDS:
-        raise ConfigError(f"model kind: expected one of the per-neighbour kinds {sorted(PAIRWISE_KINDS)}, got {kind!r}")
+    if kind not in PAIRWISE_KINDS and MODEL_KINDS[kind]:  # (an unknown kind: the registry's error)
+        raise ConfigError(f"model kind {kind!r}: an ensemble is of per-neighbour kinds, one of "
+                          f"{', '.join(PAIRWISE_KINDS)}")
     if not isinstance(datasets, (list, tuple)):
         raise ConfigError(f"datasets: expected a list of data sets (one per member), got {type(datasets).__name__}")
     if not datasets:

@@ -130,7 +130,8 @@ def test_global_rng_untouched():
     [
         (lambda d: train_ensemble("shallow", []), "datasets: empty list"),
         (lambda d: train_ensemble("shallow", d), "datasets: expected a list"),
-        (lambda d: train_ensemble("huge", [d]), "model kind.*huge"),
+        (lambda d: train_ensemble("huge", [d]), "model kind: unknown 'huge'; allowed: shallow, deep"),
+        (lambda d: train_ensemble("deepsets", [d]), "model kind 'deepsets': an ensemble is of per-neighbour kinds"),
         (lambda d: train_ensemble("shallow", [d, d], [SMALL]), "configs: got 1 configs for 2 data sets"),
         (lambda d: train_ensemble("shallow", [d, d], ["fast", SMALL]), r"configs\[0\]: expected a TrainConfig"),
         (lambda d: train_ensemble("shallow", [d, d], seeds=[1]), "seeds: got 1 seeds for 2 data sets"),

@@ -424,7 +424,7 @@ def test_training_argument_errors():
     data = synthetic_set(n_flights=2, n=50)
     with pytest.raises(ConfigError, match="no training of its own.*wrap_pairwise"):
         train_model("summed_pairwise", data)
-    with pytest.raises(ConfigError, match="model kind: expected one of"):
+    with pytest.raises(ConfigError, match="model kind: unknown 'transformer'; allowed: shallow, deep"):
         train_model("transformer", data)
     other = synthetic_set(n_flights=1, n=50, K=3)
     with pytest.raises(DataError, match="neighbour set"):

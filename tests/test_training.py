@@ -121,7 +121,7 @@ def test_train_config_and_input_errors():
     data = field_dataset(400, np.random.default_rng(6), n_flights=1)
     with pytest.raises(ValueError, match="need at least 2 flights"):
         train_model("equivariant", data, None, FAST)
-    with pytest.raises(ValueError, match="model kind: expected one of"):
+    with pytest.raises(ValueError, match="model kind: unknown 'linear'; allowed: shallow, deep"):
         train_model("linear", field_dataset(400, np.random.default_rng(6), n_flights=2), None, FAST)
     bad = dataclasses.replace(data, y=np.full((400, 3), np.nan))
     with pytest.raises(ValueError, match=r"train.y: contains non-finite values"):
