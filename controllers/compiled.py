@@ -43,7 +43,7 @@ import numpy as np
 from numba import carray
 from numba import types as nbt
 
-from controllers.lqr import _setpoint_one
+from controllers.lqr import setpoint_one
 from downwash_core.jit import njit
 
 __all__ = ["CONTROLLER_SIGNATURE", "CompiledController", "controller_function", "run_step", "finish_one"]
@@ -108,4 +108,4 @@ def finish_one(acc, w, i, residual, override, use_residual, use_override, yaw_de
         if use_override and np.isfinite(override[w, i, k]):
             a = override[w, i, k]
         acc[w, i, k] = a
-    return _setpoint_one(acc[w, i, 0], acc[w, i, 1], acc[w, i, 2], yaw_des, tan_tilt, min_vertical, rot[w, i])
+    return setpoint_one(acc[w, i, 0], acc[w, i, 1], acc[w, i, 2], yaw_des, tan_tilt, min_vertical, rot[w, i])

@@ -220,7 +220,7 @@ class FeedbackLinearisedLQR:
         where that is finite; then feedback linearisation towards the heading
         yaw + yaw_rate * lookahead (s). Writes into the buffers of `out`.
         """
-        _command_setpoint_kernel(
+        command_setpoint_kernel(
             state.pos, state.vel, state.yaw, ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate, f_hat,
             f_hat if residual is None else residual, f_hat if override is None else override,  # (unread when None)
             residual is not None, override is not None, self._Kt, lookahead, math.tan(self.max_tilt),
@@ -252,12 +252,12 @@ def _attitude_setpoint_kernel(acc, yaw, tan_tilt, min_vertical):
     thrust = np.empty(n)
     rot = np.empty((n, 3, 3))
     for i in range(n):
-        thrust[i] = _setpoint_one(acc[i, 0], acc[i, 1], acc[i, 2], yaw[i], tan_tilt, min_vertical, rot[i])
+        thrust[i] = setpoint_one(acc[i, 0], acc[i, 1], acc[i, 2], yaw[i], tan_tilt, min_vertical, rot[i])
     return thrust, rot
 
 
 @njit
-def _setpoint_one(ax, ay, az, yaw, tan_tilt, min_vertical, rot):
+def setpoint_one(ax, ay, az, yaw, tan_tilt, min_vertical, rot):
     """One vehicle of `attitude_setpoint`: writes R_d into rot (3, 3), returns the thrust (m/s^2)."""
     fx, fy, fz = ax, ay, max(az + GRAVITY, min_vertical)
     nxy = np.sqrt(fx * fx + fy * fy)
@@ -278,7 +278,7 @@ def _setpoint_one(ax, ay, az, yaw, tan_tilt, min_vertical, rot):
 
 
 @njit
-def _command_setpoint_kernel(
+def command_setpoint_kernel(
     pos, vel, yaw, ref_pos, ref_vel, ref_acc, ref_yaw, ref_yaw_rate, f_hat, residual, override, use_residual,
     use_override, Kt, lookahead, tan_tilt, min_vertical, acc_out, yaw_rate_out, thrust_out, rot_out,
 ):
@@ -308,6 +308,6 @@ def _command_setpoint_kernel(
                 else:
                     yaw_rate_out[w, i] = ref_yaw_rate[w, i] - fb
             yaw_des = yaw[w, i] + yaw_rate_out[w, i] * lookahead
-            thrust_out[w, i] = _setpoint_one(
+            thrust_out[w, i] = setpoint_one(
                 acc_out[w, i, 0], acc_out[w, i, 1], acc_out[w, i, 2], yaw_des, tan_tilt, min_vertical, rot_out[w, i]
             )

@@ -135,7 +135,7 @@ from downwash_envs.base import (
 from downwash_envs.config import make_config  # noqa: F401  (the shared options' validation, as before the split)
 from downwash_envs.swarm_task import (  # noqa: F401  (the task's names, importable from here as before)
     NEIGHBOUR_DIM, NEIGHBOUR_OBSERVATION, OWN_DIM, OWN_OBSERVATION, SHARED_OPTIONS, SwarmConfig, SwarmEpisode,
-    SwarmWorlds, _observe_kernel, agent_names, draw_swarm_episode, make_swarm_config, neighbour_block, obs_dim,
+    SwarmWorlds, observe_kernel, agent_names, draw_swarm_episode, make_swarm_config, neighbour_block, obs_dim,
     obs_slices, observation_layout, own_block, swarm_episode_info, swarm_obs_bounds, swarm_observation,
     swarm_observation_table,
 )

@@ -9,7 +9,7 @@ agents, the observation, the reward and the options.
 
 Here: the options (`SwarmConfig`, `make_swarm_config`), the observation layout and its
 table, the readable observation (`own_block`, `neighbour_block`, `swarm_observation`) and its
-compiled twin `_observe_kernel`, the episodes (`draw_swarm_episode`), and the agents' names.
+compiled twin `observe_kernel`, the episodes (`draw_swarm_episode`), and the agents' names.
 
 Shapes: W worlds, V vehicles, A agents (the followers), K neighbour slots, D = obs_dim(K);
 positions m, velocities m/s, accelerations and actions m/s^2, all world frame, z up.
@@ -164,7 +164,7 @@ def swarm_observation(
 ) -> np.ndarray:
     """(W, A, obs_dim(K)): the readable observation (own block, neighbour slots), clipped to
     [low, high] with NaN (a diverged world) read as 0; `SwarmWorlds` runs its compiled twin
-    `_observe_kernel`, which a test compares with this bit for bit."""
+    `observe_kernel`, which a test compares with this bit for bit."""
     W, A = pos.shape[0], len(agents)
     own = own_block(pos, vel, rot, ref, agents, last_action)
     nb = neighbour_block(pos, vel, rot, agents, max_neighbours).reshape(W, A, max_neighbours * NEIGHBOUR_DIM)
@@ -174,7 +174,7 @@ def swarm_observation(
 
 
 @njit
-def _observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, last_action, low, high, out):
+def observe_kernel(pos, vel, rot, ref_pos, ref_vel, ref_acc, agents, last_action, low, high, out):
     """Compiled `swarm_observation`, written into out (W, A, D); the same arithmetic, world by world.
 
     pos, vel (W, V, 3) estimated; rot (W, V, 3, 3); ref_* (W, V, 3); agents (A,); last_action
@@ -466,7 +466,7 @@ class SwarmWorlds(TaskWorlds):
     # ---------------------------------------------------------------- observation (`observe`: the engine's)
     def _observe_into(self, rot: np.ndarray, ref: Any, out: np.ndarray) -> None:
         sim = self.sim
-        _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index,
+        observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.agent_index,
                         self.last_action, self.obs_low, self.obs_high, out)
 
     def camera_targets(self, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ single envs step for step.
 
 The reward and termination are the engine's (`downwash_envs.reward`, shared with the swarm
 task; re-exported here). The observation is `observation` and its compiled twin
-`_observe_kernel`.
+`observe_kernel`.
 
 Shapes: W worlds, V vehicles (the scene's leader and follower); positions m,
 velocities m/s, accelerations and actions m/s^2, all world frame, z up.
@@ -219,7 +219,7 @@ class FollowerWorlds(TaskWorlds):
     # ---------------------------------------------------------------- observation (`observe`: the engine's)
     def _observe_into(self, rot: np.ndarray, ref: Any, out: np.ndarray) -> None:
         sim = self.sim
-        _observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.i_leader, self.i_follower,
+        observe_kernel(sim.pos_est, sim.vel_est, rot, ref.pos, ref.vel, ref.acc, self.i_leader, self.i_follower,
                         self.last_action[:, 0], self.obs_low, self.obs_high, out)
 
     def camera_targets(self, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -237,7 +237,7 @@ def observation(
 ) -> np.ndarray:
     """(W, OBS_DIM): the readable observation in `downwash_envs.observation.OBSERVATION`'s layout, clipped to
     [low, high], NaN (only a diverged world's) read as 0; `FollowerWorlds` runs its compiled twin
-    `_observe_kernel`, which a test compares with this bit for bit.
+    `observe_kernel`, which a test compares with this bit for bit.
 
     pos_est, vel_est: (W, V, 3) m, m/s estimated; rot: (W, V, 3, 3) true attitudes; ref: a
     RefSample of (W, V, ...) arrays; leader, follower: vehicle indices; last_action (W, 3) m/s^2.
@@ -268,7 +268,7 @@ def observation(
 
 
 @njit
-def _observe_kernel(pos_est, vel_est, rot, ref_pos, ref_vel, ref_acc, leader, follower, last_action, low, high, out):
+def observe_kernel(pos_est, vel_est, rot, ref_pos, ref_vel, ref_acc, leader, follower, last_action, low, high, out):
     """Compiled `observation`, written into out (W, OBS_DIM) (a test checks the two bit for bit)."""
     L, F = leader, follower
     for w in range(out.shape[0]):

@@ -1,7 +1,7 @@
 """The fused tick: a whole controller tick of the loop as ONE compiled call.
 
 The fast path of `sim.simulator.Simulator` (`fast=True`, the default, taken when every
-component has a compiled form: see `sim.plan._make_plan`) runs each controller tick
+component has a compiled form: see `sim.plan.make_plan`) runs each controller tick
 through `_fused_kernel` (made by `_make_fused_kernel`; one variant with and one without
 the wind stages, `FUSED_KERNELS`). The tick is a short composition of compiled stages over
 typed bundles (`sim.tick_stages`): sensing and estimation, wind, prediction and guard, the
@@ -17,7 +17,7 @@ have models of their own (`set_body_mass`) is stepped by the batch between one c
 autopilot tick (`STEP_CALLER`).
 
 Per call the kernel gets two tables instead of some hundred arguments (`sim.fused_abi`: their
-layouts and the intrinsics that read them); `sim.plan._Plan` fills them and keeps every
+layouts and the intrinsics that read them); `sim.plan.Plan` fills them and keeps every
 addressed array alive, and `sim.tick_stages` reads them once per chunk into bundles. The
 tick's log row is one flat array (`sim.rows`) that the first autopilot tick writes.
 

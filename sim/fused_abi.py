@@ -4,7 +4,7 @@ their addresses into typed arrays and C calls.
 Per call the kernel (`sim.fused`) gets two tables instead of some hundred arguments (numba checks
 each argument's type on every call, ~0.15 us each): `tab` (int64: sizes, codes, buffer addresses,
 row offsets; its entries are named by `TAB` and indexed by the `_T_*` constants) and `fc` (float64
-constants, `FC` and `_F_*`). `sim.plan._Plan` fills them and keeps every addressed array alive;
+constants, `FC` and `_F_*`). `sim.plan.Plan` fills them and keeps every addressed array alive;
 `sim.tick_stages` reads them once per chunk of worlds into typed bundles, the only place that does.
 """
 
@@ -14,10 +14,10 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from sim.physics import _FATAL_0, _FATAL_1, _FATAL_2
+from sim.physics import FATAL_0, FATAL_1, FATAL_2
 
 # Raw addresses into typed pointers, and calls of C functions by address, for the fused
-# kernel. Every address comes from an array or object that the `_Plan` keeps alive.
+# kernel. Every address comes from an array or object that the `Plan` keeps alive.
 
 
 def _pointer_intrinsic(dtype: types.Type):
@@ -35,7 +35,7 @@ f64p, i64p, i32p, boolp = (_pointer_intrinsic(t) for t in (types.float64, types.
 
 
 _VOIDP = ir.IntType(8).as_pointer()
-FATAL_MAX = max(_FATAL_0, _FATAL_1, _FATAL_2)
+FATAL_MAX = max(FATAL_0, FATAL_1, FATAL_2)
 
 
 @intrinsic

@@ -6,15 +6,15 @@ calls (predictor, field, reference, controller); the fused kernel (`sim.fused`) 
 the very same passes inside one compiled call. As NumPy on these small arrays,
 per-call overhead cost several times MuJoCo's own step.
 
-- `_sense_kernel`: the true state, the sensor's sample (`sim.sensors`), the Kalman update;
-  `_sense_law_kernel` the same with a sensor's compiled law (`sim.sensor_contract`) for the sample;
-- `_wind_sense_kernel`, `_wind_advance_kernel`, `_wind_force_kernel`: the air velocity
+- `sense_kernel`: the true state, the sensor's sample (`sim.sensors`), the Kalman update;
+  `sense_law_kernel` the same with a sensor's compiled law (`sim.sensor_contract`) for the sample;
+- `wind_sense_kernel`, `wind_advance_kernel`, `wind_force_kernel`: the air velocity
   at each vehicle and its drag, the next gust state, the drag into `xfrc_applied`;
-- `_hold_kernel`: the 45 Hz prediction, held;
-- `_actuate_kernel`: field and turbulence into `xfrc_applied`, the autopilot into
+- `hold_kernel`: the 45 Hz prediction, held;
+- `actuate_kernel`: field and turbulence into `xfrc_applied`, the autopilot into
   `ctrl`, the Kalman prediction, the clocks;
-- `_status_kernel`: after a controller tick, which worlds diverged or collided;
-- `_true_states_kernel`: the true states, for `Simulator.true_states`.
+- `status_kernel`: after a controller tick, which worlds diverged or collided;
+- `true_states_kernel`: the true states, for `Simulator.true_states`.
 
 The math stays in its module (`controllers.autopilot.rotor_thrusts`, `sim.sensors`,
 `sim.estimation.kf_update` / `kf_predict`, `sim.turbulence.OUTurbulence`, `sim.wind`);
@@ -45,9 +45,9 @@ _OK, _DIVERGED, _GROUND, _VEHICLE = (int(s) for s in (Status.OK, Status.DIVERGED
 _QPOS, _QVEL, _BODY, _ACT = 0, 1, 2, 3  # free joint in qpos, in qvel, body id, 4 actuator ids
 
 
-class _Sensed(NamedTuple):
-    """What one autopilot tick senses and applies, batched (W, V, ...): the outputs of `_sense_kernel`
-    and `_actuate_kernel`. On the readable path the first tick of a controller period writes into
+class Sensed(NamedTuple):
+    """What one autopilot tick senses and applies, batched (W, V, ...): the outputs of `sense_kernel`
+    and `actuate_kernel`. On the readable path the first tick of a controller period writes into
     fresh arrays (they become the log row), later ones reuse."""
 
     kin: np.ndarray  # (5, W, V, 3): true position m, true velocity m/s, mocap position m, KF position, KF velocity m/s
@@ -59,13 +59,13 @@ class _Sensed(NamedTuple):
     applied: np.ndarray  # (W, V, 3) m/s^2, the field applied (mean + turbulence)
 
     @classmethod
-    def empty(cls, W: int, V: int) -> "_Sensed":
+    def empty(cls, W: int, V: int) -> "Sensed":
         return cls(np.empty((5, W, V, 3)), np.empty((W, V, 4)), np.empty((W, V, 3, 3)), np.empty((W, V, 4)),
                    np.empty((W, V, 3, 3)), np.empty((W, V)), np.empty((W, V, 3)))
 
 
 @njit
-def _sense_kernel(
+def sense_kernel(
     qpos, qvel, layout, noise, cursor, sigma_p, sigma_att, offset, gain_p, gain_v,
     pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw_meas,
 ):
@@ -117,17 +117,17 @@ def _sense_kernel(
 
 
 @njit
-def _sense_law_kernel(
+def sense_law_kernel(
     qpos, qvel, layout, noise, cursor, law_fn, law_params, law_state, offset, gain_p, gain_v,
     pos_est, vel_est, t, next_prediction, due, kin, quat, rot, quat_est, rot_est, yaw_meas,
 ):
-    """`_sense_kernel` with the sample taken by a sensor's compiled law (`sim.sensor_contract`).
+    """`sense_kernel` with the sample taken by a sensor's compiled law (`sim.sensor_contract`).
 
     law_fn: the address of its C function of `SENSOR_SIGNATURE`; law_params, law_state: the addresses
     of its constants and of these worlds' first row of its state (W, V, S). The law maps the true
     positions kin[0] and attitudes quat, the sample's normals (columns 0:6 of each world's noise
     block at its cursor, gathered (W, V, 6)) and offset (W, V, 3) m into the measurement kin[2] and
-    quat_est; the rest is `_sense_kernel`'s, in its order. Every array is C-contiguous over these
+    quat_est; the rest is `sense_kernel`'s, in its order. Every array is C-contiguous over these
     worlds (a chunk of whole worlds of the fused tick, or all of them). Returns how many worlds are due.
     """
     W, V = pos_est.shape[0], pos_est.shape[1]
@@ -162,7 +162,7 @@ def _sense_law_kernel(
 
 
 @njit
-def _true_states_kernel(qpos, qvel, layout, pos, vel, rot):
+def true_states_kernel(qpos, qvel, layout, pos, vel, rot):
     """pos, vel (W, V, 3) and rot (W, V, 3, 3) from qpos (W, nq), qvel (W, nv) at the addresses of
     layout (V, 7); the attitude as `downwash_core.geometry.quat_to_mat_fast` (no normalisation)."""
     for w in range(pos.shape[0]):
@@ -175,7 +175,7 @@ def _true_states_kernel(qpos, qvel, layout, pos, vel, rot):
 
 
 @njit
-def _hold_kernel(f_hat, pred, due, next_prediction, period):
+def hold_kernel(f_hat, pred, due, next_prediction, period):
     """Take the new prediction (W, V, 3) m/s^2 where due (W,) and schedule the next (s), in place."""
     for w in range(f_hat.shape[0]):
         if due[w]:
@@ -186,7 +186,7 @@ def _hold_kernel(f_hat, pred, due, next_prediction, period):
 
 
 @njit
-def _actuate_kernel(
+def actuate_kernel(
     field_on, noise, cursor, turb, decay, diffusion, intensity, mass, xfrc, layout,
     qvel, rot_des, yaw_rate_des, thrust_acc, mass_believed, ap_gain, max_thrust, ctrl,
     pos_est, vel_est, dt, t, active,
@@ -240,7 +240,7 @@ def _actuate_kernel(
 
 
 @njit
-def _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, wind_acc):
+def wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, wind_acc):
     """The wind at every vehicle from each world's gust state state (W, 3, 2) m/s.
 
     axes (3, 3), mean (3,) m/s: `DrydenWind.kernel_constants`; gain (V,) 1/m: each vehicle's
@@ -263,7 +263,7 @@ def _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, wind_acc):
 
 
 @njit
-def _wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, min_airspeed, A, B):
+def wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, min_airspeed, A, B):
     """Advance each world's gust state (W, 3, 2) one autopilot tick of dt (s), in place.
 
     The time scales come from the airspeed |mean_i v_i - mean wind| (floored at
@@ -283,7 +283,7 @@ def _wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, min
 
 
 @njit
-def _wind_force_kernel(xfrc, layout, mass, wind_acc):
+def wind_force_kernel(xfrc, layout, mass, wind_acc):
     """Add the wind drag mass[i] * wind_acc (W, V, 3) m/s^2 (N, world frame; mass (V,) kg) to xfrc (W, nbody, 6)."""
     for w in range(wind_acc.shape[0]):
         for i in range(wind_acc.shape[1]):
@@ -293,7 +293,7 @@ def _wind_force_kernel(xfrc, layout, mass, wind_acc):
 
 
 @njit
-def _status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distance, ground, radius_xy, radius_z, status):
+def status_kernel(qpos, layout, qvel, diverged, active, tick_index, max_distance, ground, radius_xy, radius_z, status):
     """Count the tick of active worlds (tick_index (W,), in place) and write into status (W,)
     the `Status` codes of those that end now (OK elsewhere).
 

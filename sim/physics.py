@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 _FATAL_WARNINGS = np.array(
     [int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQVEL), int(mujoco.mjtWarning.mjWARN_BADQACC)]
 )
-_FATAL_0, _FATAL_1, _FATAL_2 = (int(i) for i in _FATAL_WARNINGS)
+FATAL_0, FATAL_1, FATAL_2 = (int(i) for i in _FATAL_WARNINGS)
 # the single world's step result, shared read-only (no allocation at 100 Hz)
 _DIVERGED_1, _FINE_1 = np.ones(1, bool), np.zeros(1, bool)
 _DIVERGED_1.flags.writeable = _FINE_1.flags.writeable = False
@@ -74,7 +74,7 @@ class Physics:
         raise NotImplementedError
 
 
-class _SerialPhysics(Physics):
+class SerialPhysics(Physics):
     def __init__(self, model: mujoco.MjModel):
         self.model = model
         self.data = mujoco.MjData(model)
@@ -89,7 +89,7 @@ class _SerialPhysics(Physics):
         if active[0]:
             mujoco.mj_step(self.model, self.data, nstep=nstep)
         n = self._warnings  # three scalar reads: a fancy-indexed check cost ~4x more per step
-        return _DIVERGED_1 if n[_FATAL_0] or n[_FATAL_1] or n[_FATAL_2] else _FINE_1
+        return _DIVERGED_1 if n[FATAL_0] or n[FATAL_1] or n[FATAL_2] else _FINE_1
 
     def reset(self, worlds: np.ndarray) -> None:
         if len(worlds):
@@ -385,5 +385,5 @@ def make_physics(model: mujoco.MjModel, n_worlds: int, n_threads: int = 0) -> Ph
         raise ValueError(f"n_worlds: expected >= 1, got {n_worlds}")
     n_threads = resolve_threads(n_threads)
     if n_worlds == 1:
-        return _SerialPhysics(model)
+        return SerialPhysics(model)
     return _BatchPhysics(model, n_worlds, n_threads)

@@ -1,15 +1,15 @@
 """The fused path's plan: whether a simulator's components can fly it, and its bound tables.
 
-`_make_plan(sim, bound)` decides, each time a `sim.simulator.Simulator` binds its components,
-between the fused compiled tick (`sim.fused`) and the readable path: it returns a `_Plan`
+`make_plan(sim, bound)` decides, each time a `sim.simulator.Simulator` binds its components,
+between the fused compiled tick (`sim.fused`) and the readable path: it returns a `Plan`
 when every component has a compiled form, else None. It reads the simulator's public attributes
 and, of what the simulator derives when it binds, only what the simulator hands it as `bound`
 (`PlanInputs`, a frozen view). The fused path needs
 
 - the controller: exactly `controllers.lqr.FeedbackLinearisedLQR` (any `LQRConfig`; not a
   subclass, which may override `command_setpoint`), whose gains and limits run as
-  `controllers.lqr._command_setpoint_kernel`, or one with a compiled form (`controllers.compiled`:
-  ``compiled_controller(W, V)``, not with the safety layer), see `_compiled_controller`;
+  `controllers.lqr.command_setpoint_kernel`, or one with a compiled form (`controllers.compiled`:
+  ``compiled_controller(W, V)``, not with the safety layer), see `flies_compiled_controller`;
 - the autopilot: a `controllers.autopilot.Autopilot` (its per-vehicle tables, `Autopilot.tables`);
 - the field: a `sim.field.DownwashField` with scalar constants and linear aggregation
   (`_packed_field`), whose pairwise sum is `DownwashField.pairwise` with the scene's
@@ -31,7 +31,7 @@ and, of what the simulator derives when it binds, only what the simulator hands 
 A safety filter (`sim.safety`) flies with every plan: its C function (`SafetyFilter.address`),
 constants and per-world estimates (`SafetyFilter.state`) by address in `tab` (safety_fn 0: none).
 
-A `_Plan` holds the kernel's tables (`sim.fused.TAB`, `FC`) and every array they address,
+A `Plan` holds the kernel's tables (`sim.fused.TAB`, `FC`) and every array they address,
 so the addresses stay valid for the plan's lifetime; the simulator rebuilds it when a
 component is replaced (assigning the attribute does) or the physics' models change.
 The worlds of a batch are split into chunks for the helper threads (`_chunk_sizes`).
@@ -55,7 +55,7 @@ from sim.field_contract import CompiledField, checked_field
 from sim.fused import FUSED_KERNELS
 from sim.fused_abi import (FATAL_MAX, FC, PRED_C, PRED_ORACLE, PRED_PER_WORLD, PRED_ZERO, STEP_CALLER, STEP_ROWS,
                            STEP_SERIAL, TAB)
-from sim.physics import _SerialPhysics
+from sim.physics import SerialPhysics
 from sim.predictor import (CompiledGuard, CompiledPredictor, OraclePredictor, PerWorldPredictor, ZeroPredictor,
                            is_stateful)
 from sim.rows import row_layout
@@ -107,7 +107,7 @@ class _NoPlan(Exception):
     """A buffer is not laid out as the fused kernel reads it: the readable path runs instead."""
 
 
-def _compiled_controller(controller: Any) -> bool:
+def flies_compiled_controller(controller: Any) -> bool:
     """Whether `controller` runs inside the fused kernel: exactly a `FeedbackLinearisedLQR` (its gains
     and limits are read into the plan), or a controller with a compiled form, ``compiled_controller(W, V)``
     (`controllers.compiled`); any other controller, an LQR subclass included, runs in Python."""
@@ -125,12 +125,12 @@ def _c_array(a: Any, dtype: Any, name: str, leading: tuple[int, ...] = ()) -> np
     return a
 
 
-def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
+def make_plan(sim: Any, bound: PlanInputs) -> Plan | None:
     """The fused path's plan for simulator `sim`, whose bound state is `bound`, when every component
     has a compiled form (see the module docstring), else None: the readable path."""
     field_packed = _packed_field(sim.field, sim.aggregation)
     field_law = None if field_packed is not None else _compiled_field(sim.field, sim.aggregation, sim.vehicle_params)
-    if (field_packed is None and field_law is None) or not _compiled_controller(sim.controller):
+    if (field_packed is None and field_law is None) or not flies_compiled_controller(sim.controller):
         return None
     if type(sim.controller) is not FeedbackLinearisedLQR and bound.safety_filter is not None:
         return None  # the safety layer redoes the LQR's own step (controllers.compiled)
@@ -143,7 +143,7 @@ def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
             return None
         guarded, guard = parts
     ph, n_threads = sim.physics, 1
-    if isinstance(ph, _SerialPhysics):
+    if isinstance(ph, SerialPhysics):
         stepping, native = STEP_SERIAL, ph.native_step()
         if native is None:
             return None
@@ -177,16 +177,16 @@ def _make_plan(sim: Any, bound: PlanInputs) -> _Plan | None:
             return None
         code = PRED_C
     try:
-        return _Plan(sim, bound, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world,
+        return Plan(sim, bound, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world,
                      guard, (field_law, oracle_law))
     except _NoPlan:
         return None
 
 
-class _Plan:
+class Plan:
     """The fast path's bound state: the tables of `_fused_kernel` and every array they address.
 
-    Built from a simulator's current components and bound state (`_make_plan`); holding the
+    Built from a simulator's current components and bound state (`make_plan`); holding the
     arrays here keeps every address in the tables valid for the plan's lifetime.
     chunks: (n_threads, n, 4) int64, the n world ranges (`_chunk_sizes`) as thread t runs them, with
     its scratch MjData (see `_make_fused_kernel`); the threads take the ranges in turn from one
@@ -218,7 +218,7 @@ class _Plan:
             "kin": np.empty((5, W, V, 3)), "quat": np.empty((W, V, 4)), "rot": np.empty((W, V, 3, 3)),
             "quat_est": np.empty((W, V, 4)), "rot_est": np.empty((W, V, 3, 3)), "yaw": np.empty((W, V)),
             "applied": np.empty((W, V, 3)), "mean": np.empty((W, V, 3)), "pred": np.empty((W, V, 3)),
-            "Kt": np.ascontiguousarray(sim.controller._Kt if lqr else np.zeros((7, 4)), dtype=np.float64),
+            "Kt": np.ascontiguousarray(sim.controller.K.T if lqr else np.zeros((7, 4)), dtype=np.float64),
             "field_packed": np.zeros(16) if field_packed is None else field_packed,
             "oracle_packed": oracle_packed, "gust": sim.gust_state, "wind_noise": bound.wind_noise,
             "wind_mean": wind_consts[0], "wind_sigma": wind_consts[1], "wind_length": wind_consts[2],
@@ -410,7 +410,7 @@ def _per_world_tables(predictor: Any, W: int, vehicles: Any, bound: Any = None) 
 
 def _packed_field(field: Any, aggregation: Any) -> np.ndarray | None:
     """A field's constants for the fused kernel (`DownwashField` with scalar constants and linear
-    aggregation, whose `pairwise` is `_pairwise_kernel`), else None."""
+    aggregation, whose `pairwise` is `sim.field_kernels.pairwise_kernel`), else None."""
     if aggregation is not None and not isinstance(aggregation, LinearSuperposition):
         return None
     if not isinstance(field, DownwashField) or type(field).pairwise is not DownwashField.pairwise:

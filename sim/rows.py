@@ -26,7 +26,7 @@ _ROW_FIELDS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 _WIND_ROW_FIELDS = (("wind", ("V", 3)), ("wind_acc", ("V", 3)))
 _GUARD_ROW_FIELDS = (("applied", ("V",)),)  # a guard's applied fraction (`sim.predictor`)
-# Storage order in the flat row: the five (W, V, 3) kinematic arrays of `_Sensed.kin`
+# Storage order in the flat row: the five (W, V, 3) kinematic arrays of `Sensed.kin`
 # first and contiguous (the sense pass writes them as one (5, W, V, 3) block).
 _ROW_STORAGE = ("pos", "vel", "mocap_pos", "pos_est", "vel_est", "t", "quat", "quat_est", "yaw_est", "field_applied",
                 "ref_pos", "ref_vel", "ref_acc", "u_cmd", "f_hat", "field_mean", "wind", "wind_acc", "applied")

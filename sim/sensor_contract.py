@@ -1,7 +1,7 @@
 """A sensor's compiled law: the contract by which a sensor outside the family of `sim.sensors` flies.
 
 The sense pass runs the family of `sim.sensors` itself (white noise and an episode's offset,
-`sim.passes._sense_kernel`); a sensor of any other law (dropouts, outliers, a latency) joins both
+`sim.passes.sense_kernel`); a sensor of any other law (dropouts, outliers, a latency) joins both
 paths through one C function of `SENSOR_SIGNATURE`, which it returns from ``compiled_sensor(W, V)``
 as a `CompiledSensorLaw`:
 
@@ -15,7 +15,7 @@ as a `CompiledSensorLaw`:
   allocates it: a sensor is a setting that simulators share); params (P,) float64: its constants;
 - m_pos (W, V, 3) m and m_quat (W, V, 4): the measurement, written in full.
 
-Every pointer is C-contiguous. The sense pass (`sim.passes._sense_law_kernel`) calls it once per
+Every pointer is C-contiguous. The sense pass (`sim.passes.sense_law_kernel`) calls it once per
 autopilot tick with a block of whole worlds (state offset to the block's first world), on the readable
 path and inside the fused tick alike, so both fly the same bits (tests/test_sensor_contract.py); the
 law must treat worlds independently. At each reset of world w the simulator sets the world's rows

@@ -5,7 +5,7 @@ the Kalman filter (`sim.estimation`) turns the positions into the estimates the 
 flies on, and the controller's heading, the learned models and the labels use the measured
 attitude. The sensor is chosen by `SimConfig.mocap` (default `MocapConfig()`, the `mocap`
 entry). Every sensor here is of one family, which the compiled sense pass
-(`sim.passes._sense_kernel`, inside the fused tick too) runs with the sensor's `compiled()`
+(`sim.passes.sense_kernel`, inside the fused tick too) runs with the sensor's `compiled()`
 constants and the per-episode offsets the simulator draws at each reset:
 
     position:  m = p + position_std * xi_p + offset     xi_p ~ N(0, I3), fresh each sample

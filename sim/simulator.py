@@ -31,11 +31,11 @@ and filters, `controllers.lab_common`) is reset with its worlds too.
 
 Two paths, one behaviour, over the modules below this one: `sim.passes` (the compiled passes of one autopilot
 tick, shared by both paths), `sim.fused` (the fused tick: a whole controller tick as ONE compiled call, one
-variant with and one without the wind passes), `sim.plan` (whether the components can fly it, `_make_plan`,
-and its bound tables, `_Plan`) and `sim.rows` (a tick's log row: a `Row` on the fused path, a dict on the
+variant with and one without the wind passes), `sim.plan` (whether the components can fly it, `make_plan`,
+and its bound tables, `Plan`) and `sim.rows` (a tick's log row: a `Row` on the fused path, a dict on the
 other). The readable path (`_tick_readable`, of `sim.ticks.ReadableTicks`) runs each autopilot tick as the
 passes around the pluggable Python calls (predictor, field, reference, controller); the fast path
-(`_tick_fused`, of `sim.ticks.FusedTicks`, when `_make_plan` finds a compiled form for every component) calls
+(`_tick_fused`, of `sim.ticks.FusedTicks`, when `make_plan` finds a compiled form for every component) calls
 the fused kernel, with a batch's worlds in chunks for this thread and its helper threads (`sim.fork_join`). The plan is rebuilt when a component is replaced (assigning the
 attribute does). tests/test_fast_path.py checks that both paths fly bit-identical logs.
 """
@@ -61,9 +61,9 @@ from downwash_core.status import Status
 from sim.field_memory import kept_memory, memory_oracle
 from sim.estimation import MocapKalmanFilter
 from sim.field import DownwashField, check_field
-from sim.passes import _Sensed, _status_kernel, _true_states_kernel
+from sim.passes import Sensed, status_kernel, true_states_kernel
 from sim.physics import check_world_memory, make_physics, profiling_timer_off
-from sim.plan import PlanInputs, _compiled_controller, _make_plan
+from sim.plan import PlanInputs, flies_compiled_controller, make_plan
 from sim.predictor import Predictor, ZeroPredictor, is_stateful
 from sim.safety import SafetyConfig, safety_filter
 from sim.scene import Scene
@@ -241,7 +241,7 @@ class Simulator(FusedTicks, ReadableTicks):
         self._cursor = np.zeros(W, np.int64)
         self._cursor_max = 0  # max(self._cursor), kept as a Python int (no reduction per tick)
         self._due = np.zeros(W, bool)
-        self._reused = _Sensed.empty(W, V)  # buffers of the second and later autopilot ticks
+        self._reused = Sensed.empty(W, V)  # buffers of the second and later autopilot ticks
         self._wind_reused = tuple(np.empty((W, V, 3)) for _ in range(3))  # air, vel_air, wind_acc, likewise
         self._rot_des = np.empty((W, V, 3, 3))  # body to world, set by the 50 Hz control
         self._yaw_rate_des = np.empty((W, V))  # rad/s
@@ -300,9 +300,9 @@ class Simulator(FusedTicks, ReadableTicks):
             self._ap_gain, self._max_thrust, self.physics.ctrl,
             self.pos_est, self.vel_est, cfg.rates.autopilot_dt, self.t, self.active,
         )
-        self._plan = _make_plan(self, PlanInputs(**{k: getattr(self, "_" + k) for k in PlanInputs.names()})) if self.fast else None
+        self._plan = make_plan(self, PlanInputs(**{k: getattr(self, "_" + k) for k in PlanInputs.names()})) if self.fast else None
         self._observe = None if getattr(self._plan, "monitors", False) else getattr(self._scene_predictor, "observe", None)
-        if self.fast and not _compiled_controller(self.controller) and not self.__dict__.get("_warned_readable"):
+        if self.fast and not flies_compiled_controller(self.controller) and not self.__dict__.get("_warned_readable"):
             self.__dict__["_warned_readable"] = True  # once per simulator
             log.warning("Simulator: the controller %s has no compiled form (the fused tick runs "
                         "controllers.lqr.FeedbackLinearisedLQR and controllers with compiled_controller), so this "
@@ -317,7 +317,7 @@ class Simulator(FusedTicks, ReadableTicks):
         (world frame, over the ground) and attitudes (W, V, 3, 3) body to world."""
         W, V = self.W, self.V
         pos, vel, rot = np.empty((W, V, 3)), np.empty((W, V, 3)), np.empty((W, V, 3, 3))
-        _true_states_kernel(self.physics.qpos, self.physics.qvel, self._layout, pos, vel, rot)
+        true_states_kernel(self.physics.qpos, self.physics.qvel, self._layout, pos, vel, rot)
         return VehicleStates(pos, vel, rot)
 
     # ------------------------------------------------------------------ reset
@@ -444,7 +444,7 @@ class Simulator(FusedTicks, ReadableTicks):
         """Count the tick for active worlds; end those that diverged or collided (they keep their rows)."""
         cfg = self.cfg
         status = self._status_new
-        n_ended = _status_kernel(
+        n_ended = status_kernel(
             self.physics.qpos, self._layout, self.physics.qvel, diverged, self.active, self.tick_index,
             cfg.max_distance, cfg.ground_clearance, self.vehicle_params.collision_xy, self.vehicle_params.collision_z,
             status,

@@ -28,12 +28,12 @@ from collections import namedtuple
 import numpy as np
 from numba import carray
 
-from controllers.lqr import _command_setpoint_kernel
+from controllers.lqr import command_setpoint_kernel
 from downwash_core.jit import njit, njit_inline
-from sim.field import _pairwise_kernel
+from sim.field_kernels import pairwise_kernel
 from sim.fused_abi import (
     F_DT, F_GROUND, F_INTENSITY, F_KF_P, F_KF_V, F_LOOKAHEAD, F_MAX_DISTANCE, F_MIN_AIRSPEED, F_MIN_VERTICAL,
-    F_OU_A, F_OU_B, F_PRED_PERIOD, F_SIGMA_ATT, F_SIGMA_P, F_TAN_TILT, _FATAL_0, _FATAL_1, _FATAL_2, FATAL_MAX,
+    F_OU_A, F_OU_B, F_PRED_PERIOD, F_SIGMA_ATT, F_SIGMA_P, F_TAN_TILT, FATAL_0, FATAL_1, FATAL_2, FATAL_MAX,
     PRED_C, PRED_ORACLE, PRED_PER_WORLD, PRED_ZERO, STEP_ROWS, STEP_SERIAL, T_ACTIVE, T_AIR, T_AP_GAIN, T_APPLIED,
     T_BATCH_WARNINGS, T_BLOCK, T_CONTROLLER_FN, T_CONTROLLER_PARAMS, T_CONTROLLER_STATE, T_CONTROLLER_WIDTH,
     T_CURSOR, T_DATA, T_DIVERGED, T_DRAG_GAIN, T_DUE, T_F_HAT, T_FIELD_FN, T_FIELD_FN_SCALE, T_FIELD_ON,
@@ -53,8 +53,8 @@ from sim.fused_abi import (
     T_YAW, T_YAW_RATE_DES, boolp, call_controller, call_field, call_mj_step, call_monitor, call_predictor,
     call_state, f64p, i32p, i64p,
 )
-from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _sense_law_kernel, _status_kernel,
-                        _wind_advance_kernel, _wind_force_kernel, _wind_sense_kernel)
+from sim.passes import (actuate_kernel, hold_kernel, sense_kernel, sense_law_kernel, status_kernel,
+                        wind_advance_kernel, wind_force_kernel, wind_sense_kernel)
 from sim.predictor import GUARD_STATE_WIDTH
 from sim.safety_kernels import STATE_WIDTH as _SAFETY_STATE_WIDTH
 
@@ -251,16 +251,16 @@ def monitor_bundle(tab, w0, w1):
 
 @njit_inline
 def sense_stage(fc, world, physics, buf):
-    """Motion capture and the Kalman filter (`sim.passes._sense_kernel`, or `_sense_law_kernel` with a sensor's
+    """Motion capture and the Kalman filter (`sim.passes.sense_kernel`, or `sense_law_kernel` with a sensor's
     compiled law, `sim.sensor_contract`); returns how many worlds' prediction is due."""
     s = world.sensor
     if s.fn != 0:
-        return _sense_law_kernel(
+        return sense_law_kernel(
             physics.qpos, physics.qvel, world.layout, world.noise, world.cursor, s.fn, s.params, s.state,
             world.mocap_offset, fc[F_KF_P], fc[F_KF_V], world.pos_est, world.vel_est, world.t, world.next_prediction,
             world.due, buf.kin, buf.quat, world.rot, buf.quat_est, world.rot_est, buf.yaw,
         )
-    return _sense_kernel(
+    return sense_kernel(
         physics.qpos, physics.qvel, world.layout, world.noise, world.cursor, fc[F_SIGMA_P], fc[F_SIGMA_ATT],
         world.mocap_offset, fc[F_KF_P], fc[F_KF_V], world.pos_est, world.vel_est, world.t, world.next_prediction,
         world.due, buf.kin, buf.quat, world.rot, buf.quat_est, world.rot_est, buf.yaw,
@@ -271,8 +271,8 @@ def sense_stage(fc, world, physics, buf):
 def wind_stage(fc, world, wind, buf):
     """The gusts felt (the air's velocity and the drag) and advanced; returns the velocities relative to the air."""
     vel = buf.kin[1]
-    _wind_sense_kernel(wind.gust, wind.axes, wind.mean, wind.drag_gain, vel, wind.air, wind.vel_air, wind.wind_acc)
-    _wind_advance_kernel(wind.gust, wind.noise, world.cursor, vel, fc[F_DT], wind.mean, wind.sigma, wind.length,
+    wind_sense_kernel(wind.gust, wind.axes, wind.mean, wind.drag_gain, vel, wind.air, wind.vel_air, wind.wind_acc)
+    wind_advance_kernel(wind.gust, wind.noise, world.cursor, vel, fc[F_DT], wind.mean, wind.sigma, wind.length,
                          fc[F_MIN_AIRSPEED], np.empty((3, 2, 2)), np.empty((3, 2, 2)))
     return wind.vel_air
 
@@ -283,7 +283,7 @@ def _predict_world(p, vehicles, buf, vel_air, world, w):
     pos, rot, pred, kin, V = buf.kin[0], world.rot, world.pred, buf.kin, world.V
     code = p.pw_code[w]
     if code == PRED_ORACLE:
-        _copy_into(pred[w:w + 1], _pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1], p.pw_oracle[w],
+        _copy_into(pred[w:w + 1], pairwise_kernel(pos[w:w + 1], vel_air[w:w + 1], rot[w:w + 1], p.pw_oracle[w],
                                                    vehicles.field_scale))
     elif code == PRED_C:  # one world: its rows of C-contiguous (W, ...) arrays
         call_predictor(p.pw_fn[w], 1, V, kin[3][w].ctypes.data, kin[4][w].ctypes.data, world.rot_est[w].ctypes.data,
@@ -310,7 +310,7 @@ def predict_stage(fc, p, vehicles, world, buf, vel_air):
         call_field(p.oracle_fn, W, world.V, pos.ctypes.data, vel_air.ctypes.data, rot.ctypes.data, p.oracle_scale,
                    p.oracle_params, pred.ctypes.data)
     elif p.kind == PRED_ORACLE:
-        _copy_into(pred, _pairwise_kernel(pos, vel_air, rot, p.oracle_packed, vehicles.field_scale))
+        _copy_into(pred, pairwise_kernel(pos, vel_air, rot, p.oracle_packed, vehicles.field_scale))
     elif p.kind == PRED_PER_WORLD:  # world by world, each its own predictor, as PerWorldPredictor
         for w in range(W):
             _predict_world(p, vehicles, buf, vel_air, world, w)
@@ -322,18 +322,18 @@ def predict_stage(fc, p, vehicles, world, buf, vel_air):
             p.guard_fn, W, world.V, kin[3].ctypes.data, kin[4].ctypes.data, world.rot_est.ctypes.data,
             world.due.ctypes.data, pred.ctypes.data, p.guard_state, p.guard_applied, p.guard_params, p.guard_iparams,
         )
-    _hold_kernel(world.f_hat, pred, world.due, world.next_prediction, fc[F_PRED_PERIOD])
+    hold_kernel(world.f_hat, pred, world.due, world.next_prediction, fc[F_PRED_PERIOD])
 
 
 @njit_inline
 def field_stage(vehicles, world, buf, vel_air):
-    """The ground-truth wakes: every pair's mean push into buf.mean, the paper field's (`sim.field._pairwise_kernel`)
+    """The ground-truth wakes: every pair's mean push into buf.mean, the paper field's (`sim.field_kernels.pairwise_kernel`)
     or a field's compiled form's (`sim.field_contract`: its C function, on these worlds' C-contiguous rows)."""
     if vehicles.field_fn != 0:
         call_field(vehicles.field_fn, world.w1 - world.w0, world.V, buf.kin[0].ctypes.data, vel_air.ctypes.data,
                    world.rot.ctypes.data, vehicles.field_fn_scale, vehicles.field_params, buf.mean.ctypes.data)
     else:
-        _copy_into(buf.mean, _pairwise_kernel(buf.kin[0], vel_air, world.rot, vehicles.field_packed,
+        _copy_into(buf.mean, pairwise_kernel(buf.kin[0], vel_air, world.rot, vehicles.field_packed,
                                               vehicles.field_scale))
 
 
@@ -364,7 +364,7 @@ def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
             world.rot_des.ctypes.data,
         )
     else:
-        _command_setpoint_kernel(*state, inputs.residual, inputs.override, (actions & 1) != 0, (actions & 2) != 0,
+        command_setpoint_kernel(*state, inputs.residual, inputs.override, (actions & 1) != 0, (actions & 2) != 0,
                                  *limits)
     if c.safety_fn != 0:  # the CBF filter (sim.safety.SAFETY_SIGNATURE), then the LQR's step again
         counts = np.zeros(2, np.int64)  # with the filtered command as override, as the readable path
@@ -373,7 +373,7 @@ def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
                         c.safety_state)  # the chunk's rows of its estimates
         if counts[0] != 0:
             no, yes = actions < 0, actions >= 0  # (False, True, not literals: the call's types as above)
-            _command_setpoint_kernel(*state, inputs.residual, u_cmd, no, yes, *limits)
+            command_setpoint_kernel(*state, inputs.residual, u_cmd, no, yes, *limits)
     _copy_into(_row_view(row, c.row_f_hat, n, 3 * V, w0, w1).reshape((W, V, 3)), f_hat)
     if c.guard:
         _copy_into(_row_view(row, c.row_guard, n, V, w0, w1).reshape((W, V, 1)), c.guard_applied)
@@ -387,8 +387,8 @@ def control_stage(fc, c, vehicles, world, buf, inputs, row, actions):
 
 @njit_inline
 def actuate_stage(fc, vehicles, world, physics, buf, u_cmd):
-    """The autopilot, the mixer and the forces: rotors, the wakes' and turbulence's pushes (`_actuate_kernel`)."""
-    _actuate_kernel(
+    """The autopilot, the mixer and the forces: rotors, the wakes' and turbulence's pushes (`actuate_kernel`)."""
+    actuate_kernel(
         world.field_on, world.noise, world.cursor, world.turb, fc[F_OU_A], fc[F_OU_B], fc[F_INTENSITY],
         vehicles.mass, physics.xfrc, world.layout, physics.qvel, world.rot_des, world.yaw_rate_des,
         world.thrust_acc, world.mass_believed, vehicles.ap_gain, vehicles.max_thrust, physics.ctrl,
@@ -399,7 +399,7 @@ def actuate_stage(fc, vehicles, world, physics, buf, u_cmd):
 @njit_inline
 def wind_force_stage(vehicles, world, physics, wind):
     """The gusts' drag, added to the forces."""
-    _wind_force_kernel(physics.xfrc, world.layout, vehicles.mass, wind.wind_acc)
+    wind_force_kernel(physics.xfrc, world.layout, vehicles.mass, wind.wind_acc)
 
 
 @njit_inline
@@ -446,13 +446,13 @@ def monitor_stage(fc, s, m, world, physics, row):
     W = world.w1 - world.w0
     if s.mode == STEP_SERIAL:  # MuJoCo's warning counts: int32, every warning_stride-th one
         step = s.warning_stride
-        m.diverged[0] = s.warnings[_FATAL_0 * step] > 0 or s.warnings[_FATAL_1 * step] > 0 or \
-            s.warnings[_FATAL_2 * step] > 0
+        m.diverged[0] = s.warnings[FATAL_0 * step] > 0 or s.warnings[FATAL_1 * step] > 0 or \
+            s.warnings[FATAL_2 * step] > 0
     else:
         for w in range(W):  # as sim.physics._mark_fatal: counts since the world's reset
             c = s.batch_warnings[world.w0 + w]
-            m.diverged[w] = c[_FATAL_0, 1] > 0 or c[_FATAL_1, 1] > 0 or c[_FATAL_2, 1] > 0
-    ended = _status_kernel(physics.qpos, world.layout, physics.qvel, m.diverged, world.active, m.tick_index,
+            m.diverged[w] = c[FATAL_0, 1] > 0 or c[FATAL_1, 1] > 0 or c[FATAL_2, 1] > 0
+    ended = status_kernel(physics.qpos, world.layout, physics.qvel, m.diverged, world.active, m.tick_index,
                            fc[F_MAX_DISTANCE], fc[F_GROUND], m.radius_xy, m.radius_z, m.status_new)
     if m.fn != 0:  # the guard's monitor on these worlds' row: t, vel_est (the row's kin block, slot 4) and u_cmd
         base = row.ctypes.data

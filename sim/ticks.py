@@ -19,9 +19,9 @@ from downwash_core.state import VehicleStates
 from sim import fork_join
 from sim.aggregation import wake_field
 from sim.fused_abi import FC, STEP_CALLER, TAB
-from sim.passes import (_actuate_kernel, _hold_kernel, _sense_kernel, _sense_law_kernel, _Sensed, _wind_advance_kernel,
-                        _wind_force_kernel, _wind_sense_kernel)
-from sim.plan import _Plan
+from sim.passes import (actuate_kernel, hold_kernel, sense_kernel, sense_law_kernel, Sensed, wind_advance_kernel,
+                        wind_force_kernel, wind_sense_kernel)
+from sim.plan import Plan
 from sim.rows import Row
 
 __all__ = ["FusedTicks", "ReadableTicks", "kernel_array", "as_batch"]
@@ -34,7 +34,7 @@ class FusedTicks:
 
     _helpers: Any
 
-    def _tick_fused(self, plan: _Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
+    def _tick_fused(self, plan: Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
         """One controller tick through `_fused_kernel` (see the module docstring)."""
         ref = self.reference(self.t)
         flat = np.empty(plan.row_size)
@@ -70,7 +70,7 @@ class FusedTicks:
             self._end_worlds(self._status_new)
         return Row(flat, plan.row_layout)
 
-    def _run_threads(self, plan: _Plan, args: tuple, sub: int, stop: int) -> int:
+    def _run_threads(self, plan: Plan, args: tuple, sub: int, stop: int) -> int:
         """Autopilot ticks sub..stop-1 on this thread and the helpers (`sim.fork_join`); returns how
         many worlds ended. The helpers serve every plan of this simulator (a plan is rebuilt
         when a component changes, e.g. at each autoreset of an env with randomised fields)."""
@@ -80,7 +80,7 @@ class FusedTicks:
         ctl, role = (helpers.ctl, fork_join.MAIN) if helpers.start_tick() else (NO_CONTROL, fork_join.SOLO)
         return helpers.end_tick(plan.kernel(*args, sub, stop, plan.own_chunks, ctl, role), stop - sub)
 
-    def _start_helpers(self, plan: _Plan) -> fork_join.Helpers:
+    def _start_helpers(self, plan: Plan) -> fork_join.Helpers:
         """Threads 1..n-1, each serving ticks with its own chunk table and scratch MjData, whatever
         the plan (each tick's tables come through the control block). What they hold must not
         refer to the simulator, which stops them when it is collected."""
@@ -120,19 +120,19 @@ class ReadableTicks:
             first = sub == 0
             if self._cursor_max >= self._noise.shape[1]:
                 self._refill_used()
-            sensed = _Sensed.empty(W, V) if first else self._reused  # the first tick's arrays become the row
+            sensed = Sensed.empty(W, V) if first else self._reused  # the first tick's arrays become the row
             kin, quat, rot, quat_est, rot_est, yaw, applied = sensed
             pos, vel, mocap, pos_est, vel_est = kin
             # motion capture (the family's law, or a sensor's compiled law: sim.sensor_contract) and Kalman update
-            sense = _sense_kernel if self._sensor_law is None else _sense_law_kernel
+            sense = sense_kernel if self._sensor_law is None else sense_law_kernel
             n_due = sense(*self._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
 
             # the wind at each vehicle, its drag, and the next gust state; the wakes see vel - u_air
             vel_air = vel
             if wind:
                 air, vel_air, wind_acc = tuple(np.empty((W, V, 3)) for _ in range(3)) if first else self._wind_reused
-                _wind_sense_kernel(self.gust_state, *self._wind_sense_consts, vel, air, vel_air, wind_acc)
-                _wind_advance_kernel(self.gust_state, self._wind_noise, self._cursor, vel, *self._wind_advance_consts)
+                wind_sense_kernel(self.gust_state, *self._wind_sense_consts, vel, air, vel_air, wind_acc)
+                wind_advance_kernel(self.gust_state, self._wind_noise, self._cursor, vel, *self._wind_advance_consts)
 
             # downwash field, applied as an external force until the next autopilot tick (a wake with memory
             # steps first, carried by the air); before the predictor, whose oracle may read it
@@ -143,7 +143,7 @@ class ReadableTicks:
             if n_due:
                 pred = self._scene_predictor(VehicleStates(pos_est, vel_est, rot_est), VehicleStates(pos, vel_air, rot),
                                              **({"due": self._due} if self._predictor_state else {}))
-                _hold_kernel(self.f_hat, as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
+                hold_kernel(self.f_hat, as_batch(pred, (W, V, 3)), self._due, self.next_prediction, self._prediction_period)
 
             if first:  # the LQR and feedback linearisation at 50 Hz
                 ref = self.reference(self.t)
@@ -165,9 +165,9 @@ class ReadableTicks:
                     row["applied"] = np.array(fraction, dtype=np.float64)
 
             # field and turbulence into xfrc_applied, autopilot into ctrl, Kalman prediction, clocks
-            _actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
+            actuate_kernel(*self._actuate_args, mean, applied, rot, cmd_acc)
             if wind:
-                _wind_force_kernel(ph.xfrc_applied, self._layout, self.vehicle_params.mass, wind_acc)
+                wind_force_kernel(ph.xfrc_applied, self._layout, self.vehicle_params.mass, wind_acc)
             self.__dict__["_cursor_max"] += 1
             d = ph.step(r.physics_per_autopilot, self.active)
             diverged = d if diverged is None else diverged | d

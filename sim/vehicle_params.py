@@ -7,12 +7,12 @@ vehicle (V,) or per ordered pair (V_leader, V_follower):
 
 | array | shape | what | read by |
 |---|---|---|---|
-| `mass` | (V,) kg | the field's and the wind's accelerations into forces; the controller's model at start | `_actuate_kernel`, `_wind_force_kernel` |
-| `drag_gain` | (V,) 1/m | the wind's drag, rho C_d A_ref a / (2 m), a = `airframe_area_scale` | `_wind_sense_kernel` |
+| `mass` | (V,) kg | the field's and the wind's accelerations into forces; the controller's model at start | `actuate_kernel`, `wind_force_kernel` |
+| `drag_gain` | (V,) 1/m | the wind's drag, rho C_d A_ref a / (2 m), a = `airframe_area_scale` | `wind_sense_kernel` |
 | `hover_thrust` | (V,) N | each rotor's thrust at reset (a level hover) | `Simulator.reset` |
-| `Autopilot.tables` | (V, 14, 4), (V,) N | the attitude loop through each vehicle's inertia, mixer and rotor limit | `_actuate_kernel` |
-| `field_scale` | (V, V) - | the paper's law's factor per pair, `so2_pair_scale` | `sim.field._pairwise_kernel` |
-| `collision_xy`, `collision_z` | (V, V) m | `SimConfig`'s ellipsoid (two paper quads') times the pair's mean `size_scale` | `_status_kernel` |
+| `Autopilot.tables` | (V, 14, 4), (V,) N | the attitude loop through each vehicle's inertia, mixer and rotor limit | `actuate_kernel` |
+| `field_scale` | (V, V) - | the paper's law's factor per pair, `so2_pair_scale` | `sim.field_kernels.pairwise_kernel` |
+| `collision_xy`, `collision_z` | (V, V) m | `SimConfig`'s ellipsoid (two paper quads') times the pair's mean `size_scale` | `status_kernel` |
 
 The numbers are per vehicle and the same in every world: the envs' per-episode randomisation
 (`downwash_envs.engine.VehicleModel`) changes the worlds' true bodies through

@@ -651,7 +651,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     states (leader and follower in either scene slot), entries beyond their bounds, a diverged
     (NaN) world; and each entry where OBS_SLICES puts it."""
     from downwash_envs.observation import obs_bounds
-    from downwash_envs.task import _observe_kernel, observation
+    from downwash_envs.task import observe_kernel, observation
     from downwash_trajectories import RefSample
 
     rng = np.random.default_rng(seed)
@@ -667,7 +667,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     low, high = obs_bounds(5.0)
     want = observation(pos, vel, rot, ref, leader, follower, last, low, high)
     got = np.empty_like(want)
-    _observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, leader, follower, last, low, high, got)
+    observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, leader, follower, last, low, high, got)
     np.testing.assert_array_equal(got, want)
     assert (want == low).any() and (want == high).any() and np.isfinite(want).all()
     assert np.all(want[3, OBS_SLICES["dp"]] == 0.0)  # the diverged world's NaN reads 0

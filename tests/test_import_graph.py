@@ -154,7 +154,7 @@ def test_the_scan_finds_every_package_and_resolves_relative_and_package_imports(
     graph = import_graph()
     assert {"sim.simulator", "sim.fields", "sim.fields.registry", "experiments.report"} <= set(graph)
     assert "sim.plan" in graph["sim.simulator"] and "controllers.lqr" in graph["sim.plan"]
-    assert "sim.fields" in graph["sim.aggregation"]  # importing sim.fields.registry runs sim.fields first
+    assert "sim.fields" in graph["downwash.field_fit"]  # importing sim.fields.registry runs sim.fields first
     assert "sim.fields" not in graph["sim.fields.shed"]  # (its own package is running already)
     toy = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert cycles(toy) == [{"a", "b", "c"}] and _one_cycle(toy, {"a", "b", "c"}) == ["a", "b", "c", "a"]
@@ -221,29 +221,12 @@ def all_private_reads() -> set[tuple[str, str]]:
 KNOWN_PRIVATE_READS = {
     # the simulation stack: the loop's modules (sim.simulator -> sim.plan -> sim.fused -> sim.passes), split
     # from one module, share their kernels and table layouts under these names, as do the tests
-    ("sim.simulator", ("_status_kernel", "_true_states_kernel", "_Sensed")):
-        "sim.passes' compiled passes, which the readable path calls",
-    ("sim.ticks", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_sense_law_kernel", "_wind_advance_kernel",
-                   "_wind_force_kernel", "_wind_sense_kernel", "_Sensed")):
-        "sim.passes' compiled passes, which the readable path calls",
-    ("sim.simulator", ("_make_plan", "_compiled_controller")): "sim.plan's plan and its fast-path test",
-    ("sim.ticks", ("_Plan",)): "sim.plan's plan, which the fused path runs",
-    ("sim.plan", ("_SerialPhysics",)): "sim.physics' single-world physics, which the fused tick steps itself",
-    ("sim.plan", ("_Kt",)): "controllers.lqr.FeedbackLinearisedLQR's transposed gain, which the fused tick runs",
     ("sim.plan", ("_address",)): "MuJoCo's MjData._address: the scratch data the fused tick steps by address",
-    ("sim.tick_stages", ("_actuate_kernel", "_hold_kernel", "_sense_kernel", "_sense_law_kernel", "_status_kernel",
-                         "_wind_advance_kernel", "_wind_force_kernel", "_wind_sense_kernel")):
-        "sim.passes' compiled passes, as sim.simulator",
-    ("sim.tick_stages", ("_pairwise_kernel",)): "sim.field's compiled pairwise sum, called inside the fused tick",
-    ("sim.tick_stages", ("_command_setpoint_kernel",)): "controllers.lqr's compiled control step",
-    ("sim.tick_stages", ("_FATAL_0", "_FATAL_1", "_FATAL_2")): "sim.physics' MuJoCo warnings that end a world",
-    ("sim.fused_abi", ("_FATAL_0", "_FATAL_1", "_FATAL_2")): "sim.physics' MuJoCo warnings, for the table's layout",
     ("sim.physics", ("_address", "_models")): "MuJoCo's MjModel/MjData._address and Batch._models",
     ("sim.fields.shed", ("_velocity", "_BLEND", "_C_STAR", "_C_SMALL")):
         "sim.fields.momentum's induced velocity and its constants, which the shed wake reuses",
     ("sim.fields.shed_kernels", ("_d0", "_drag_law", "_radius_eq", "_vh_follower", "_vh_per_sqrt_thrust")):
         "MomentumWake's derived constants, packed for the compiled passes",
-    ("controllers.compiled", ("_setpoint_one",)): "controllers.lqr's compiled feedback linearisation of one vehicle",
     ("downwash_core.jit", ("_locator_classes", "_downwash_stamp")): "numba's cache locators, extended in place",
     ("downwash_trajectories.combinators", ("_group_into", "_sample_into")):
         "the primitives' batched sampling hooks, which the combinators call",
@@ -270,7 +253,6 @@ KNOWN_PRIVATE_READS = {
     ("downwash_envs.config", ("_own_predictor",)): "a cache the envs keep on their owner object",
     ("downwash_envs.evaluation", ("_setup_learn",)): "stable-baselines3's callback set-up",
     ("downwash_envs.rendering", ("_MUJOCO_GL",)): "MuJoCo's chosen GL back end",
-    ("downwash_envs.swarm", ("_observe_kernel",)): "downwash_envs.swarm_task's compiled observation",
     ("downwash_envs.video_tiles", ("_FOLLOWER_RGBA", "_LEADER_RGBA", "_REF_RGBA", "_TINTED_GEOMS")):
         "downwash_envs.rendering's colours",
     ("downwash_envs.viewer", ("_MJPYTHON",)): "MuJoCo's viewer: whether it runs under mjpython",

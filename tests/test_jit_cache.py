@@ -66,7 +66,7 @@ def test_the_stamp_covers_every_kernel_package_and_only_ours():
     assert len(stamped) == 3
     import sim.passes
 
-    locator = sim.passes._actuate_kernel._cache._impl.locator
+    locator = sim.passes.actuate_kernel._cache._impl.locator
     assert getattr(type(locator), "_downwash_stamp", False) and locator.get_source_stamp() == jit.source_stamp()
     for package in jit.KERNEL_PACKAGES:
         assert (ROOT / package / "__init__.py").exists(), package

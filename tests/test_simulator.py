@@ -129,8 +129,8 @@ def test_fused_kernels_equal_the_readable_components(scene):
     perturb_quat (the motion-capture attitude), MocapKalmanFilter, the turbulence law and
     Autopilot, on random states (bit for bit where the arithmetic is the same)."""
     from downwash_core.geometry import perturb_quat, quat_to_mat, yaw_of
-    from sim.passes import _actuate_kernel, _sense_kernel
-    from sim.simulator import _Sensed
+    from sim.passes import actuate_kernel, sense_kernel
+    from sim.simulator import Sensed
 
     W, V = 3, scene.n_vehicles
     sim = Simulator(scene, _lemniscate(W), [1, 2, 3], field_enabled=np.array([True, False, True]))
@@ -147,9 +147,9 @@ def test_fused_kernels_equal_the_readable_components(scene):
     cursor = sim._cursor.copy()
     noise = sim._noise[np.arange(W), cursor]  # (W, V, 9)
 
-    kin, quat, rot, quat_est, rot_est, yaw, _ = _Sensed.empty(W, V)
+    kin, quat, rot, quat_est, rot_est, yaw, _ = Sensed.empty(W, V)
     sim.t[:], sim.next_prediction[:] = [0.0, 0.1, 0.2], [0.0, 0.2, 0.1]
-    n_due = _sense_kernel(*sim._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
+    n_due = sense_kernel(*sim._sense_args, kin, quat, rot, quat_est, rot_est, yaw)
     pos, vel = ph.qpos[:, sim._pos_idx], ph.qvel[:, sim._vel_idx]
     mocap = pos + sim.cfg.mocap.position_noise * noise[..., :3]
     est = sim.kf.update(prior_p, prior_v, mocap)
@@ -177,7 +177,7 @@ def test_fused_kernels_equal_the_readable_components(scene):
     sim.active[:] = [True, True, False]
     t0 = sim.t.copy()
     sim._rot_des[:], sim._yaw_rate_des[:], sim._thrust_acc[:] = rot_des, yaw_rate, thrust
-    _actuate_kernel(*sim._actuate_args, mean, applied, rot, cmd_acc)
+    actuate_kernel(*sim._actuate_args, mean, applied, rot, cmd_acc)
     mean_want = mean_in * sim.field_enabled[:, None, None]
     turb = sim.turbulence.step(turb0, noise[..., 6:9], sim.cfg.rates.autopilot_dt)
     applied_want = sim.turbulence.apply(mean_want, turb)

@@ -27,20 +27,20 @@ ROOT = Path(__file__).resolve().parent.parent
 # other kernel once. Nothing else may add a signature.
 PHYSICS_LAYOUTS = 2
 READABLE = {  # the passes the readable path calls from Python (and `Simulator.true_states`)
-    "_sense_kernel": PHYSICS_LAYOUTS, "_actuate_kernel": PHYSICS_LAYOUTS, "_status_kernel": PHYSICS_LAYOUTS,
-    "_wind_force_kernel": PHYSICS_LAYOUTS, "_true_states_kernel": PHYSICS_LAYOUTS,
-    "_hold_kernel": 1, "_wind_sense_kernel": 1, "_wind_advance_kernel": 1,
+    "sense_kernel": PHYSICS_LAYOUTS, "actuate_kernel": PHYSICS_LAYOUTS, "status_kernel": PHYSICS_LAYOUTS,
+    "wind_force_kernel": PHYSICS_LAYOUTS, "true_states_kernel": PHYSICS_LAYOUTS,
+    "hold_kernel": 1, "wind_sense_kernel": 1, "wind_advance_kernel": 1,
 }
 FUSED = {"FUSED_KERNELS[0]": PHYSICS_LAYOUTS, "FUSED_KERNELS[1]": PHYSICS_LAYOUTS}  # without, with wind
 # When this process compiles the fused kernel (its cache is stale or absent), each pass it calls gains
 # one signature per physics layout at most (one chunk's slices of the state arrays); loaded from the
 # cache, none.
 FUSED_CALLEES_AT_MOST = {
-    "_sense_kernel": PHYSICS_LAYOUTS, "_actuate_kernel": PHYSICS_LAYOUTS, "_status_kernel": PHYSICS_LAYOUTS,
-    "_sense_law_kernel": PHYSICS_LAYOUTS,  # (a sensor's compiled law, sim.sensor_contract: typed, never run here)
-    "_wind_force_kernel": PHYSICS_LAYOUTS, "_hold_kernel": PHYSICS_LAYOUTS, "_wind_sense_kernel": PHYSICS_LAYOUTS,
-    "_wind_advance_kernel": PHYSICS_LAYOUTS, "_step_rows": 1, "_copy_into": 1, "_row_view": 1,
-    "_true_states_kernel": PHYSICS_LAYOUTS,  # (`Simulator.true_states`, from Python)
+    "sense_kernel": PHYSICS_LAYOUTS, "actuate_kernel": PHYSICS_LAYOUTS, "status_kernel": PHYSICS_LAYOUTS,
+    "sense_law_kernel": PHYSICS_LAYOUTS,  # (a sensor's compiled law, sim.sensor_contract: typed, never run here)
+    "wind_force_kernel": PHYSICS_LAYOUTS, "hold_kernel": PHYSICS_LAYOUTS, "wind_sense_kernel": PHYSICS_LAYOUTS,
+    "wind_advance_kernel": PHYSICS_LAYOUTS, "_step_rows": 1, "_copy_into": 1, "_row_view": 1,
+    "true_states_kernel": PHYSICS_LAYOUTS,  # (`Simulator.true_states`, from Python)
     "_published": 1,
     # the stages (sim.tick_stages): those given the physics state, or the velocities relative to the air
     # (with wind: the wind's buffer; without: the row's), once per layout of it; the others once

@@ -235,7 +235,7 @@ def test_the_env_sees_the_neighbour_sets_the_data_and_predictor_see():
 
 @pytest.mark.parametrize("seed", range(6))
 def test_compiled_observation_equals_the_readable_one(seed):
-    """`_observe_kernel` against `observation` (own block + neighbour_block), bit for bit, over random
+    """`observe_kernel` against `observation` (own block + neighbour_block), bit for bit, over random
     states with exact distance ties (positions in whole metres) and a diverged (NaN) world."""
     rng = np.random.default_rng(seed)
     W, V = 4, int(rng.integers(2, 9))
@@ -250,7 +250,7 @@ def test_compiled_observation_equals_the_readable_one(seed):
     low, high = swarm.swarm_obs_bounds(K, 5.0)
     want = swarm.swarm_observation(pos, vel, rot, ref, agents, last, K, low, high)
     got = np.empty_like(want)
-    swarm._observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, last, low, high, got)
+    swarm.observe_kernel(pos, vel, rot, ref.pos, ref.vel, ref.acc, agents, last, low, high, got)
     np.testing.assert_array_equal(got, want)
     assert np.all(want >= low) and np.all(want <= high) and np.isfinite(want).all()
 

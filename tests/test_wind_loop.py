@@ -13,7 +13,7 @@ from sim.flight import fly
 from sim.logs import ARRAY_SPECS
 from sim.predictor import OraclePredictor
 from sim.scene import build_scene
-from sim.passes import _wind_advance_kernel, _wind_sense_kernel
+from sim.passes import wind_advance_kernel, wind_sense_kernel
 from sim.simulator import WIND_STREAM, Simulator
 from sim.wind import AIRFRAME, DrydenWind, drag_acceleration
 from downwash_trajectories import Hover, Lemniscate, stack
@@ -147,7 +147,7 @@ def test_compiled_wind_passes_equal_the_readable_law():
     air, vel_air, acc = (np.empty((W, V, 3)) for _ in range(3))
     masses = np.array([0.7, 0.0319, 2.064])  # kg, each vehicle its own drag gain (sim.vehicle_params)
     gain = np.array([AIRFRAME.gain(m) for m in masses])
-    _wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, acc)
+    wind_sense_kernel(state, axes, mean, gain, vel, air, vel_air, acc)
     want_air = np.broadcast_to(wind.wind(state)[:, None], (W, V, 3))
     np.testing.assert_allclose(air, want_air, rtol=1e-15, atol=1e-15)
     assert np.array_equal(vel_air, vel - air)
@@ -155,7 +155,7 @@ def test_compiled_wind_passes_equal_the_readable_law():
     noise = rng.normal(size=(W, 5, 3, 2))
     cursor = np.array([0, 4, 2, 1])
     want = wind.step(state, noise[np.arange(W), cursor], dt, wind.airspeed(vel.mean(axis=1)))
-    _wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, vmin, np.empty((3, 2, 2)), np.empty((3, 2, 2)))
+    wind_advance_kernel(state, noise, cursor, vel, dt, mean, sigma, length, vmin, np.empty((3, 2, 2)), np.empty((3, 2, 2)))
     np.testing.assert_allclose(state, want, rtol=1e-12, atol=1e-14)
 
 
