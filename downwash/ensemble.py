@@ -83,8 +83,8 @@ from torch.optim.adam import adam as _adam_functional
 
 from downwash_core.errors import ConfigError
 from downwash.ensemble_members import Member, Stacks, member_configs, member_vals, prepare_member
-from downwash.ensemble_network import _aligned_stack, _forward, _Layer, _layers, _pad_rows, _per_member, _round_rows
-from downwash.ensemble_settle import _settle_models
+from downwash.ensemble_network import aligned_stack, forward_members, Layer, member_layers, pad_rows, per_member, round_rows
+from downwash.ensemble_settle import settle_models
 from downwash.features import assemble
 from downwash.models import PAIRWISE_KINDS, DeepSNMLP, DownwashModel
 from downwash.registry import MODEL_KINDS
@@ -170,10 +170,10 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
     shared_val: dict[int, tuple] = {}
     members = [prepare_member(i, kind, train, val, config, feature_set, shared_val)
                for i, (train, val, config) in enumerate(zip(datasets, vals, configs))]
-    plan, _, _ = _layers(members[0].model)
+    plan, _, _ = member_layers(members[0].model)
     # rows per step are padded to a multiple of 16, so that every member's slice of every
-    # (M, rows, width) activation starts on a 64-byte boundary (see _aligned_stack)
-    width = _round_rows(max(mb.bs for mb in members))
+    # (M, rows, width) activation starts on a 64-byte boundary (see aligned_stack)
+    width = round_rows(max(mb.bs for mb in members))
     dtype = members[0].x.dtype
 
     active = list(members)
@@ -186,7 +186,7 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
             if mb.batch == 0:  # new epoch: the same permutation and gather as train_model
                 mb.shuffle(width)
             sizes.append(mb.batch_rows())
-        m_act, b_max = len(active), _round_rows(max(sizes))
+        m_act, b_max = len(active), round_rows(max(sizes))
         short = [(j, s) for j, s in enumerate(sizes) if s < b_max]
         xb, yb, bb = (
             None if active[0].epoch_data[i] is None
@@ -201,7 +201,7 @@ def _train(kind, datasets, vals, configs, progress, feature_set):
         weight = torch.where(real, inv[:, None], 0.0)[..., None]
 
         # -- forward, loss, backward -------------------------------------------------------------
-        pred = _forward(plan, stacks.params, stacks.p_views, stacks.buf_views, xb, short, training=True,
+        pred = forward_members(plan, stacks.params, stacks.p_views, stacks.buf_views, xb, short, training=True,
                         buffers=stacks.buffers)
         pred = pred * stacks.out_std + stacks.out_mean
         if bb is not None:
@@ -255,7 +255,7 @@ def _adam_step(active: list[Member], stacks: Stacks, grads: Sequence[torch.Tenso
     global _FUSED
     if _FUSED is None:
         _FUSED = _fused_adam_available()
-    grad_views = _per_member(list(grads), len(active))
+    grad_views = per_member(list(grads), len(active))
     groups: dict[tuple[float, float], list[int]] = {}
     for j, mb in enumerate(active):
         groups.setdefault((mb.current_lr(), mb.config.weight_decay), []).append(j)
@@ -282,7 +282,7 @@ def _load(mb: Member, stacks: Stacks, j: int) -> None:
             dst.copy_(src)
 
 
-def _validate(plan: list[_Layer], stacks: Stacks, active: list[Member], ending: list[int]) -> list[float]:
+def _validate(plan: list[Layer], stacks: Stacks, active: list[Member], ending: list[int]) -> list[float]:
     """Validation losses of the members at positions ``ending``, as `train_model` computes them.
 
     ``mean((decode(xv, basis_v) - yv)^2)`` in eval mode, one batched forward for all of
@@ -297,14 +297,14 @@ def _validate(plan: list[_Layer], stacks: Stacks, active: list[Member], ending: 
         else:
             p_views = [stacks.p_views[j] for j in ending]
             buf_views = [stacks.buf_views[j] for j in ending]
-            params = [_aligned_stack([views[i] for views in p_views]) for i in range(len(p_views[0]))]
+            params = [aligned_stack([views[i] for views in p_views]) for i in range(len(p_views[0]))]
             ix = torch.as_tensor(ending, dtype=torch.long)
             out_std, out_mean = stacks.out_std.index_select(0, ix), stacks.out_mean.index_select(0, ix)
-        rows = _round_rows(max(mb.xv_n.shape[0] for mb in members))
-        x = torch.stack([_pad_rows(mb.xv_n, rows) for mb in members])
-        pred = _forward(plan, params, p_views, buf_views, x, [], training=False) * out_std + out_mean
+        rows = round_rows(max(mb.xv_n.shape[0] for mb in members))
+        x = torch.stack([pad_rows(mb.xv_n, rows) for mb in members])
+        pred = forward_members(plan, params, p_views, buf_views, x, [], training=False) * out_std + out_mean
         if members[0].basis_v is not None:
-            pred = assemble(pred, torch.stack([_pad_rows(mb.basis_v, rows) for mb in members]))
+            pred = assemble(pred, torch.stack([pad_rows(mb.basis_v, rows) for mb in members]))
         return [float(torch.mean((pred[e, : mb.yv.shape[0]] - mb.yv) ** 2)) for e, mb in enumerate(members)]
 
 
@@ -367,7 +367,7 @@ def _settle_members(members: list[Member], level: int) -> None:
     own chunk: ``mv`` and ``dot`` per member, the normalisation over the stack
     (`downwash.ensemble_settle`).
     """
-    _settle_models([mb.model for mb in members])
+    settle_models([mb.model for mb in members])
     for mb in members:
         with torch.no_grad():
             mb.history["best_val_loss"] = float(torch.mean((mb.model.decode(mb.xv, mb.basis_v) - mb.yv) ** 2))

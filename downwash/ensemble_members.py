@@ -21,10 +21,10 @@ import torch
 
 from downwash_core.errors import ConfigError
 from downwash.datasets import split_by_flight
-from downwash.ensemble_network import _aligned_stack, _batch_slots, _layers, _per_member
+from downwash.ensemble_network import aligned_stack, batch_slots, member_layers, per_member
 from downwash.models import DownwashModel
 from downwash.registry import make_model
-from downwash.train import TrainConfig, _check
+from downwash.train import TrainConfig, check_dataset
 
 __all__ = ["Member", "Stacks", "member_configs", "member_vals", "prepare_member"]
 
@@ -71,7 +71,7 @@ class Member:
         """Start an epoch: train_model's permutation and gather, laid out one batch per row of slots."""
         perm = torch.randperm(self.n, generator=self.gen)
         self.epoch_data = tuple(
-            None if t is None else _batch_slots(t.index_select(0, perm), self.steps_per_epoch, self.bs, width)
+            None if t is None else batch_slots(t.index_select(0, perm), self.steps_per_epoch, self.bs, width)
             for t in (self.x, self.y, self.basis)
         )  # index_select: the same rows as train_model's x[perm], three times faster
 
@@ -91,17 +91,17 @@ class Stacks:
         # per-member views for Adam and the power iteration (in-place updates reach the stacks)
         m = params[0].shape[0]
         detached = [p.detach() for p in self.params]
-        self.p_views = _per_member(detached, m)
-        self.ea_views = _per_member(exp_avg, m)
-        self.eas_views = _per_member(exp_avg_sq, m)
+        self.p_views = per_member(detached, m)
+        self.ea_views = per_member(exp_avg, m)
+        self.eas_views = per_member(exp_avg_sq, m)
         self.step_views = [list(row.unbind(0)) for row in steps.unbind(0)]
-        self.buf_views = _per_member(buffers, m)
+        self.buf_views = per_member(buffers, m)
 
     @classmethod
     def from_members(cls, members: list[Member]) -> "Stacks":
         with torch.no_grad():
-            params = [_aligned_stack([mb.params[i].detach() for mb in members]) for i in range(len(members[0].params))]
-            buffers = [_aligned_stack([mb.buffers[i] for mb in members]) for i in range(len(members[0].buffers))]
+            params = [aligned_stack([mb.params[i].detach() for mb in members]) for i in range(len(members[0].params))]
+            buffers = [aligned_stack([mb.buffers[i] for mb in members]) for i in range(len(members[0].buffers))]
             out_std = torch.stack([mb.model.out_std for mb in members])[:, None, :]
             out_mean = torch.stack([mb.model.out_mean for mb in members])[:, None, :]
         exp_avg = [torch.zeros_like(p) for p in params]
@@ -114,7 +114,7 @@ class Stacks:
         """The stacks of the members at positions ``index`` (copies)."""
         ix = torch.as_tensor(index, dtype=torch.long)
         with torch.no_grad():
-            sel = lambda ts: [_aligned_stack(t.detach().unbind(0), index) for t in ts]  # noqa: E731
+            sel = lambda ts: [aligned_stack(t.detach().unbind(0), index) for t in ts]  # noqa: E731
             return Stacks(sel(self.params), sel(self.exp_avg), sel(self.exp_avg_sq), self.steps.index_select(0, ix),
                            sel(self.buffers), self.out_std.index_select(0, ix), self.out_mean.index_select(0, ix),
                            self.totals.index_select(0, ix))
@@ -163,12 +163,12 @@ def member_vals(n: int, val: Any) -> list[Any]:
 
 def prepare_member(i: int, kind: str, train: Any, val: Any, config: TrainConfig, feature_set, shared_val: dict) -> Member:
     """A member as `train_model` sets it up: split, model, encoding, normalisation, schedule."""
-    _check(train, f"datasets[{i}]")
+    check_dataset(train, f"datasets[{i}]")
     given = val is not None
     if not given:
         train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(config.seed))
     elif id(val) not in shared_val:
-        _check(val, f"val[{i}]")
+        check_dataset(val, f"val[{i}]")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         model = make_model(kind, feature_set)
@@ -184,7 +184,7 @@ def prepare_member(i: int, kind: str, train: Any, val: Any, config: TrainConfig,
     steps_per_epoch = math.ceil(nrows / bs)
     n_epochs = max(config.max_epochs, math.ceil(config.min_steps / steps_per_epoch))
     patience = math.ceil(config.patience * n_epochs / config.max_epochs)
-    _, params, buffers = _layers(model)
+    _, params, buffers = member_layers(model)
     member = Member(
         index=i, config=config, model=model, params=params, buffers=buffers, train=train, val=val,
         xv=xv, basis_v=basis_v, yv=yv, n=int(nrows), bs=int(bs), steps_per_epoch=steps_per_epoch,

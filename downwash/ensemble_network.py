@@ -3,8 +3,8 @@
 `downwash.ensemble.train_ensemble` trains the members of an ensemble as ONE network
 whose tensors stack theirs on dim 0: weights ``W (M, out, in)``, biases ``b (M, out)``,
 a step's batch ``x (M, B, k)``. This module holds that network: the layer plan of a
-model (`_layers`), the batched forward (`_forward`) with its two custom autograd
-functions, and the aligned stacks every member's slice lives in (`_aligned_stack`).
+model (`member_layers`), the batched forward (`forward_members`) with its two custom autograd
+functions, and the aligned stacks every member's slice lives in (`aligned_stack`).
 
 * ``shallow``, ``equivariant`` (and ``equivariant_general``): two batched layers, each
   one ``baddbmm`` over the members (`_BatchedLinear`); the output basis of an
@@ -43,7 +43,7 @@ Every batched operation was chosen to do, per member, the arithmetic that
 * Alignment: MKL's ``mv``, ``vdot`` and small ``gemm`` round differently when an
   operand or output is not 64-byte aligned (measured for 3x25 and 25x40 matrices),
   and torch's own tensors always are; so each member's slice of every stacked
-  tensor starts on a 64-byte boundary (`_aligned_stack`, batch rows in multiples
+  tensor starts on a 64-byte boundary (`aligned_stack`, batch rows in multiples
   of 16).
 """
 
@@ -56,13 +56,13 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from downwash.models import DownwashModel, _SpectralLinear
+from downwash.models import DownwashModel, SpectralLinear
 
 _ALIGN_BYTES = 64  # torch's CPU allocator aligns every tensor to 64 bytes
 _ROW_ALIGN = 16  # batch rows are padded to a multiple of this: 64 bytes of float32 per feature column
 
 
-def _aligned_stack(tensors: Sequence[torch.Tensor], index: Sequence[int] | None = None) -> torch.Tensor:
+def aligned_stack(tensors: Sequence[torch.Tensor], index: Sequence[int] | None = None) -> torch.Tensor:
     """``torch.stack(tensors[index])`` with every member's slice starting on a 64-byte boundary.
 
     MKL rounds differently for an operand or output that is not 64-byte aligned
@@ -93,11 +93,11 @@ def _aligned_empty(shape: Sequence[int], dtype: torch.dtype) -> torch.Tensor:
     return torch.empty_strided(tuple(shape), (stride, *contiguous), dtype=dtype)
 
 
-def _round_rows(rows: int) -> int:
+def round_rows(rows: int) -> int:
     return -(-rows // _ROW_ALIGN) * _ROW_ALIGN
 
 
-def _batch_slots(t: torch.Tensor, steps: int, bs: int, width: int) -> torch.Tensor:
+def batch_slots(t: torch.Tensor, steps: int, bs: int, width: int) -> torch.Tensor:
     """Rows t (n, ...) as (steps, width, ...): batch i in slot i, zero rows after its end."""
     n = t.shape[0]
     out = t.new_zeros((steps, width, *t.shape[1:]))
@@ -109,11 +109,11 @@ def _batch_slots(t: torch.Tensor, steps: int, bs: int, width: int) -> torch.Tens
     return out
 
 
-def _pad_rows(t: torch.Tensor, rows: int) -> torch.Tensor:
+def pad_rows(t: torch.Tensor, rows: int) -> torch.Tensor:
     return t if t.shape[0] == rows else torch.cat([t, t.new_zeros((rows - t.shape[0], *t.shape[1:]))])
 
 
-def _per_member(stacked: list[torch.Tensor], m: int) -> list[list[torch.Tensor]]:
+def per_member(stacked: list[torch.Tensor], m: int) -> list[list[torch.Tensor]]:
     """``[[t[j] for t in stacked] for j in range(m)]`` as views."""
     columns = [t.unbind(0) for t in stacked]
     return [[c[j] for c in columns] for j in range(m)]
@@ -157,7 +157,7 @@ class _BatchedLinear(torch.autograd.Function):
 
 
 @dataclass
-class _Layer:
+class Layer:
     """One layer of the network: ``relu``, ``linear`` or ``spectral`` (index into the parameter list)."""
 
     kind: str
@@ -170,20 +170,20 @@ class _Layer:
     n_power_iterations: int = 1
 
 
-def _layers(model: DownwashModel) -> tuple[list[_Layer], list[torch.Tensor], list[torch.Tensor]]:
+def member_layers(model: DownwashModel) -> tuple[list[Layer], list[torch.Tensor], list[torch.Tensor]]:
     """The layer plan of a model, its trainable tensors and its power-iteration buffers (in plan order)."""
-    plan: list[_Layer] = []
+    plan: list[Layer] = []
     params: list[torch.Tensor] = []
     buffers: list[torch.Tensor] = []
     for m in model.net:
         if isinstance(m, nn.ReLU):
-            plan.append(_Layer("relu"))
+            plan.append(Layer("relu"))
         elif isinstance(m, nn.Linear):
-            plan.append(_Layer("linear", len(params), len(params) + 1))
+            plan.append(Layer("linear", len(params), len(params) + 1))
             params += [m.weight, m.bias]
-        elif isinstance(m, _SpectralLinear):
+        elif isinstance(m, SpectralLinear):
             param = m.linear.parametrizations.weight[0]
-            plan.append(_Layer("spectral", len(params), len(params) + 1, len(buffers), len(buffers) + 1,
+            plan.append(Layer("spectral", len(params), len(params) + 1, len(buffers), len(buffers) + 1,
                                m.gamma, param.eps, param.n_power_iterations))
             params += [m.linear.parametrizations.weight.original, m.linear.bias]
             buffers += [param._u, param._v]
@@ -197,7 +197,7 @@ def _layers(model: DownwashModel) -> tuple[list[_Layer], list[torch.Tensor], lis
     return plan, params, buffers
 
 
-def _forward(plan: list[_Layer], params: Sequence[torch.Tensor], p_views, buf_views, x: torch.Tensor, short,
+def forward_members(plan: list[Layer], params: Sequence[torch.Tensor], p_views, buf_views, x: torch.Tensor, short,
              training: bool, buffers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
     """The stacked network on x (M, B, k): (M, B, m), normalised outputs.
 
@@ -218,7 +218,7 @@ def _forward(plan: list[_Layer], params: Sequence[torch.Tensor], p_views, buf_vi
     return h
 
 
-def _spectral_weights(layer: _Layer, w: torch.Tensor, p_views, buf_views, training: bool,
+def _spectral_weights(layer: Layer, w: torch.Tensor, p_views, buf_views, training: bool,
                       buffers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
     """``gamma W_m / sigma_m`` for every member, with torch's `spectral_norm` arithmetic per member.
 
@@ -233,21 +233,21 @@ def _spectral_weights(layer: _Layer, w: torch.Tensor, p_views, buf_views, traini
         with torch.no_grad():
             ws = [views[layer.weight] for views in p_views]
             for _ in range(layer.n_power_iterations):
-                _normalize_rows([torch.mv(wm, v) for wm, v in zip(ws, vs)], layer.eps, buffers[layer.u])
-                _normalize_rows([torch.mv(wm.H, u) for wm, u in zip(ws, us)], layer.eps, buffers[layer.v])
-    u_all = _aligned_stack(us)  # the parametrisation's clones of u, v
-    v_all = _aligned_stack(vs)
+                normalize_rows([torch.mv(wm, v) for wm, v in zip(ws, vs)], layer.eps, buffers[layer.u])
+                normalize_rows([torch.mv(wm.H, u) for wm, u in zip(ws, us)], layer.eps, buffers[layer.v])
+    u_all = aligned_stack(us)  # the parametrisation's clones of u, v
+    v_all = aligned_stack(vs)
     return _SpectralWeights.apply(w, u_all, v_all, layer.gamma)
 
 
-def _normalize_rows(rows: list[torch.Tensor], eps: float, out: torch.Tensor) -> None:
+def normalize_rows(rows: list[torch.Tensor], eps: float, out: torch.Tensor) -> None:
     """``F.normalize(rows[m], dim=0, eps=eps, out=out[m])`` for every member, as a few ops on the stack.
 
     F.normalize is ``x / x.norm(2, 0, keepdim=True).clamp_min_(eps)``: the norm of each
     row of the stack equals the norm of that vector alone (measured bit for bit for
     the widths 3-100; the ensemble tests check it end to end), the rest is elementwise.
     """
-    x = _aligned_stack(rows)
+    x = aligned_stack(rows)
     denom = torch.linalg.vector_norm(x, 2, dim=1, keepdim=True).clamp_min_(eps)
     torch.div(x, denom, out=out)
 
@@ -265,7 +265,7 @@ class _SpectralWeights(torch.autograd.Function):
     ``MvBackward0`` ``outer(g_mv, v)``; the two gradients of W added. Elementwise
     ops give the same value per element batched or not; only the reductions
     (``mv``, ``vdot``, the sum) run per member. The output's member slices are
-    64-byte aligned (see `_aligned_stack`), as the batched layer's weights must be.
+    64-byte aligned (see `aligned_stack`), as the batched layer's weights must be.
     """
 
     @staticmethod

@@ -6,7 +6,7 @@ does the same for its deep members at the end, each a real `DeepSNMLP` with its 
 state: the power iterations of one layer run for all members side by side, chunk by
 chunk as in `settle_spectral_norm` (the same chunks of iterations and stopping test
 per member), ``mv`` and ``dot`` per member and the normalisation over the stack
-(`downwash.ensemble_network._normalize_rows`), so that each member's settled vectors
+(`downwash.ensemble_network.normalize_rows`), so that each member's settled vectors
 are bit-identical to those of its own training.
 """
 
@@ -16,38 +16,38 @@ import inspect
 
 import torch
 
-from downwash.ensemble_network import _aligned_stack, _normalize_rows
-from downwash.models import DeepSNMLP, _SpectralLinear, settle_spectral_norm
+from downwash.ensemble_network import aligned_stack, normalize_rows
+from downwash.models import DeepSNMLP, SpectralLinear, settle_spectral_norm
 
 _SETTLE = inspect.signature(settle_spectral_norm).parameters  # its max_iterations and rtol
 _SETTLE_CHUNK = 20  # power iterations between two tests of convergence, as in DeepSNMLP.settle_spectral_norm
 
 
-def _settle_models(models: list[DeepSNMLP]) -> None:
+def settle_models(models: list[DeepSNMLP]) -> None:
     """`DeepSNMLP.settle_spectral_norm` of every model, layer by layer, the models side by side."""
     for i in range(len(models[0].spectral_layers())):
         _settle_layer([m.spectral_layers()[i] for m in models])
 
 
-def _settle_layer(layers: list[_SpectralLinear], max_iterations: int = _SETTLE["max_iterations"].default,
+def _settle_layer(layers: list[SpectralLinear], max_iterations: int = _SETTLE["max_iterations"].default,
                   rtol: float = _SETTLE["rtol"].default, chunk: int = _SETTLE_CHUNK) -> None:
     """`DeepSNMLP.settle_spectral_norm` for one layer of several models, side by side (the ensemble
     tests compare the settled vectors with those of `train_model`, bit for bit)."""
     params = [layer.linear.parametrizations.weight[0] for layer in layers]
     ws = [layer.linear.parametrizations.weight.original.detach() for layer in layers]
     with torch.no_grad():
-        u = _aligned_stack([p._u for p in params])
-        v = _aligned_stack([p._v for p in params])
+        u = aligned_stack([p._u for p in params])
+        v = aligned_stack([p._v for p in params])
         us, vs = u.unbind(0), v.unbind(0)
         eps = params[0].eps
         active, prev = list(range(len(layers))), [None] * len(layers)
         for _ in range(0, max_iterations, chunk):
-            uu, vv = _aligned_stack([us[j] for j in active]), _aligned_stack([vs[j] for j in active])
+            uu, vv = aligned_stack([us[j] for j in active]), aligned_stack([vs[j] for j in active])
             uus, vvs = uu.unbind(0), vv.unbind(0)
             aws = [ws[j] for j in active]
             for _ in range(chunk):
-                _normalize_rows([torch.mv(w, x) for w, x in zip(aws, vvs)], eps, uu)
-                _normalize_rows([torch.mv(w.H, x) for w, x in zip(aws, uus)], eps, vv)
+                normalize_rows([torch.mv(w, x) for w, x in zip(aws, vvs)], eps, uu)
+                normalize_rows([torch.mv(w.H, x) for w, x in zip(aws, uus)], eps, vv)
             still = []
             for k, j in enumerate(active):
                 us[j].copy_(uus[k])

@@ -160,9 +160,9 @@ class DownwashModel(nn.Module):
         """Predictions (P, 3) m/s^2 on an encoding."""
         return self.decode(enc.x, enc.basis)
 
-    def spectral_layers(self) -> list["_SpectralLinear"]:
+    def spectral_layers(self) -> list["SpectralLinear"]:
         """The spectrally normalised layers (none in the one-hidden-layer models)."""
-        return [m for m in self.modules() if isinstance(m, _SpectralLinear)]
+        return [m for m in self.modules() if isinstance(m, SpectralLinear)]
 
     def settle_spectral_norm(self) -> None:
         """Exact spectral-norm estimates (`settle_spectral_norm`); nothing to do without such layers."""
@@ -210,7 +210,7 @@ class DownwashModel(nn.Module):
         for m in self.net:
             if isinstance(m, nn.Linear):
                 layers.append((m.weight, m.bias))
-            elif isinstance(m, _SpectralLinear):
+            elif isinstance(m, SpectralLinear):
                 layers.append((m.effective_weight(), m.linear.bias))
             elif not isinstance(m, nn.ReLU):  # pragma: no cover - guards future architectures
                 raise TypeError(f"folded_layers: unsupported layer {type(m).__name__}")
@@ -361,7 +361,7 @@ class ShallowMLP(_OneHiddenLayer):
     default_lr = 3e-2
 
 
-class _SpectralLinear(nn.Module):
+class SpectralLinear(nn.Module):
     """``y = gamma (W / sigma_max(W)) x + b``: largest singular value of the effective weight = gamma.
 
     The division uses torch's `spectral_norm` parametrization (power iteration,
@@ -413,7 +413,7 @@ class DeepSNMLP(DownwashModel):
         for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
             if i:
                 layers.append(nn.ReLU())
-            layers.append(_SpectralLinear(a, b, self.gamma))
+            layers.append(SpectralLinear(a, b, self.gamma))
         self.net = nn.Sequential(*layers)
         self.settle_spectral_norm()  # start training from exact estimates (torch does only 15 iterations)
 
@@ -429,7 +429,7 @@ def settle_spectral_norm(model: nn.Module, max_iterations: int = 5000, rtol: flo
     Afterwards the stored estimate matches sigma_max(W) to about rtol, so every effective
     weight has largest singular value gamma (up to rtol) in eval mode.
     """
-    for layer in (m for m in model.modules() if isinstance(m, _SpectralLinear)):
+    for layer in (m for m in model.modules() if isinstance(m, SpectralLinear)):
         param = layer.linear.parametrizations.weight[0]
         W = layer.linear.parametrizations.weight.original
         old_n, old_mode = param.n_power_iterations, param.training

@@ -13,13 +13,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from downwash.models import _SpectralLinear
+from downwash.models import SpectralLinear
 
 __all__ = ["effective_weight64", "numpy_layers", "numpy_mlp", "MLP_ROWS"]
 
 
 @torch.no_grad()
-def effective_weight64(layer: _SpectralLinear) -> torch.Tensor:
+def effective_weight64(layer: SpectralLinear) -> torch.Tensor:
     """The eval-mode weight ``gamma W / (u . W v)`` computed in float64 from the stored estimates
     (as the float64 copy of the torch model computes it)."""
     param = layer.linear.parametrizations.weight[0]
@@ -33,7 +33,7 @@ def numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
     """[(W_i (in, out), b_i (out,)), ...] float64 of an MLP of (spectral) linear layers and ReLUs, as in eval mode."""
     layers = []
     for m in net:
-        if isinstance(m, _SpectralLinear):
+        if isinstance(m, SpectralLinear):
             w, b = effective_weight64(m), m.linear.bias
         elif isinstance(m, nn.Linear):
             w, b = m.weight, m.bias

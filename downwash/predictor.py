@@ -39,7 +39,7 @@ from downwash_core.validate import count
 from downwash.checkpoint import Checkpoint, check_expectations, load_checkpoint, wrap_pairwise
 from downwash_core.params import RATES
 from downwash.features import HISTORY_LAGS, kind_descriptors, neighbour_history, neighbour_kinds
-from downwash.models import DownwashModel, _SpectralLinear
+from downwash.models import DownwashModel, SpectralLinear
 from downwash.set_models import SetModel, SummedPairwise
 from downwash.set_fused import COMPILED_KINDS, pack_model
 from sim.neighbours import NeighbourSet, gather_neighbours, select_neighbours
@@ -54,7 +54,7 @@ def _fold_spectral(model: nn.Module) -> nn.Module:
     effective weight: the same function, without the per-call normalisation (inference only)."""
     for module in list(model.modules()):
         for name, child in list(module.named_children()):
-            if isinstance(child, _SpectralLinear):
+            if isinstance(child, SpectralLinear):
                 w = child.effective_weight()
                 plain = nn.Linear(w.shape[1], w.shape[0], dtype=w.dtype)
                 plain.weight.copy_(w)

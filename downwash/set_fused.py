@@ -335,7 +335,7 @@ _NO_NET = (np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
 
 
 def _in_out(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`pack_layers` of `downwash.set_models._numpy_layers`' [(W (in, out), b), ...] (the NumPy twin's
+    """`pack_layers` of `downwash.set_models.numpy_set_layers`' [(W (in, out), b), ...] (the NumPy twin's
     own float64 weights)."""
     return pack_layers([(w.T, b) for w, b in layers])
 
@@ -364,7 +364,7 @@ def pack_model(model: Any, neighbours: NeighbourSet, clamp: float | None = None,
     them (None: every vehicle a paper quad); a model that does not ignores them.
     KeyError for a kind without a compiled form.
     """
-    from downwash.set_models import _numpy_layers  # the twin's own weights
+    from downwash.set_models import numpy_set_layers  # the twin's own weights
 
     kind = model.kind
     entry = COMPILED_KINDS[kind]
@@ -386,11 +386,11 @@ def pack_model(model: Any, neighbours: NeighbourSet, clamp: float | None = None,
     elif kind == "deepsets_equivariant":
         extra = np.concatenate([f64(model.in_mean), f64(model.in_std), [float(model.out_scale)]])
         abi = _abi(K, feature_code(model.feature_set), model.latent, model.vectors, model.n_basis, neighbours, clamp,
-                   extra, _in_out(_numpy_layers(model.phi)), _in_out(_numpy_layers(model.rho)), table)
+                   extra, _in_out(numpy_set_layers(model.phi)), _in_out(numpy_set_layers(model.rho)), table)
     elif kind == "deepsets":
         extra = np.concatenate([f64(model.in_mean), f64(model.in_std), f64(model.out_mean), f64(model.out_std)])
-        abi = _abi(K, 0, model.latent, 0, 0, neighbours, clamp, extra, _in_out(_numpy_layers(model.phi)),
-                   _in_out(_numpy_layers(model.rho)), table)
+        abi = _abi(K, 0, model.latent, 0, 0, neighbours, clamp, extra, _in_out(numpy_set_layers(model.phi)),
+                   _in_out(numpy_set_layers(model.rho)), table)
     else:  # pragma: no cover - COMPILED_KINDS and this function list the same kinds
         raise KeyError(kind)
     return entry, CompiledPredictor(entry.address, *abi)

@@ -66,10 +66,10 @@ from downwash_core.errors import ConfigError
 from downwash_core.validate import count, positive_float
 from downwash.features import (EQUIVARIANT_FEATURE_SETS, FEATURE_SETS, KIND_FEATURES, MEMORY_FEATURE_SETS, N_BASIS, depth,
                                model_inputs)
-from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, _SpectralLinear, count_parameters, layer_widths,
+from downwash.models import (MAX_WIDTH, PAIRWISE_KINDS, DownwashModel, SpectralLinear, count_parameters, layer_widths,
                              settle_spectral_norm)
 # the NumPy twins' network, under the names downwash.set_fused takes from here
-from downwash.numpy_mlp import numpy_layers as _numpy_layers
+from downwash.numpy_mlp import numpy_layers as numpy_set_layers
 from downwash.numpy_mlp import numpy_mlp as _numpy_mlp
 
 __all__ = ["Encoded", "kind_columns", "SetModel", "SummedPairwise", "DeepSetsEquivariant", "DeepSets", "SET_KINDS"]
@@ -136,7 +136,7 @@ def _sn_mlp(widths: Sequence[int], gamma: float) -> nn.Sequential:
     for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
         if i:
             layers.append(nn.ReLU())
-        layers.append(_SpectralLinear(a, b, gamma))
+        layers.append(SpectralLinear(a, b, gamma))
     return nn.Sequential(*layers)
 
 
@@ -217,8 +217,8 @@ class SetModel(nn.Module):
         default path: a few hundred microseconds less per call than torch's per-operation cost."""
         raise NotImplementedError
 
-    def spectral_layers(self) -> list[_SpectralLinear]:
-        return [m for m in self.modules() if isinstance(m, _SpectralLinear)]
+    def spectral_layers(self) -> list[SpectralLinear]:
+        return [m for m in self.modules() if isinstance(m, SpectralLinear)]
 
     def settle_spectral_norm(self) -> None:
         """Power iterations to convergence, so eval mode bounds every layer exactly (see `DeepSNMLP`)."""
@@ -390,7 +390,7 @@ class DeepSetsEquivariant(_DeepSetsBase):
         return torch.einsum("bkc,bkcj->bj", torch.where(m, coef, 0.0), basis)
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
+        phi, rho = numpy_set_layers(self.phi), numpy_set_layers(self.rho)
         mean, std = self.in_mean.double().numpy().copy(), self.in_std.double().numpy().copy()
         scale, L, G, nb, feature_set = float(self.out_scale), self.latent, self.vectors, self.n_basis, self.feature_set
         kinds = self.kinds
@@ -454,7 +454,7 @@ class DeepSets(_DeepSetsBase):
         return torch.where(enc.mask.any(1, keepdim=True), out, 0.0)
 
     def numpy_forward(self) -> Callable[..., np.ndarray]:
-        phi, rho = _numpy_layers(self.phi), _numpy_layers(self.rho)
+        phi, rho = numpy_set_layers(self.phi), numpy_set_layers(self.rho)
         mean, std, out_mean, out_std = (getattr(self, k).double().numpy().copy()
                                         for k in ("in_mean", "in_std", "out_mean", "out_std"))
         kinds = self.kinds

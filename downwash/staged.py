@@ -68,7 +68,7 @@ from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
 from downwash.stages import ProgressFactory, Stage, fly_recorded, locked_folder
 from downwash.staged_provenance import (  # the settings and provenance, importable from here as before
-    DEPLOYED_KIND, STAGES, CollectionConfig, _load_manifest, check_checkpoint, pipeline_dirs, provenance, train_config,
+    DEPLOYED_KIND, STAGES, CollectionConfig, load_manifest, check_checkpoint, pipeline_dirs, provenance, train_config,
 )
 from downwash.train import rmse, train_model
 from sim.predictor import ZeroPredictor
@@ -214,7 +214,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     t_start = time.perf_counter()
     record = provenance(cfg, field)
     manifest_path = out / "manifest.json"
-    manifest = _load_manifest(manifest_path, record)
+    manifest = load_manifest(manifest_path, record)
     for kind in PAIRWISE_KINDS:  # never overwrite models of another provenance
         if (models_dir / f"{kind}.pt").is_file():
             check_checkpoint(models_dir / f"{kind}.pt", kind, record)
@@ -365,7 +365,7 @@ def ensure_collection(
     collection_dir = Path(collection_dir)
     with folder_lock(collection_dir, label="staged collection"):
         path = collection_dir / "manifest.json"
-        manifest = _load_manifest(path, provenance(cfg, field)) if path.is_file() else None  # raises on a mismatch
+        manifest = load_manifest(path, provenance(cfg, field)) if path.is_file() else None  # raises on a mismatch
         if manifest is not None and manifest.get("complete"):
             verify_collection(collection_dir, manifest, models_dir)
         else:

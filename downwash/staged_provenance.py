@@ -152,7 +152,7 @@ def check_checkpoint(path: str | Path, kind: str, record: dict[str, Any]) -> Non
     _warn_code(have, path)
 
 
-def _load_manifest(path: Path, record: dict) -> dict:
+def load_manifest(path: Path, record: dict) -> dict:
     if not path.is_file():
         return {"version": MANIFEST_VERSION, "provenance": record, "key": fingerprint(record), "stages": {}}
     manifest = read_manifest(path)

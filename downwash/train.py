@@ -143,7 +143,7 @@ def training_kernels(config: "TrainConfig") -> dict[str, str]:
     return kernels
 
 
-def _check(data: Any, name: str) -> None:
+def check_dataset(data: Any, name: str) -> None:
     if not isinstance(data, Dataset):
         raise TypeError(f"{name}: expected a downwash.datasets.Dataset, got {type(data).__name__}")
     if len(data) == 0:
@@ -192,10 +192,10 @@ def train_model(
     if not isinstance(config, TrainConfig):
         raise TypeError(f"config: expected a downwash.train.TrainConfig, got {type(config).__name__}")
     seed = config.seed if seed is None else count("seed", seed, 0)
-    _check(train, "train")
+    check_dataset(train, "train")
     if val is None:
         train, val = split_by_flight(train, config.val_fraction, np.random.default_rng(seed))
-    _check(val, "val")
+    check_dataset(val, "val")
     if val.neighbours != train.neighbours:
         raise DataError(f"val: neighbour set {val.neighbours.describe()}, the training set has "
                         f"{train.neighbours.describe()}")

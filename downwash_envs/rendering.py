@@ -33,10 +33,10 @@ from sim.simulator import Simulator
 
 __all__ = ["ensure_gl_backend", "offscreen_renderer", "Renderer"]
 
-_LEADER_RGBA = (0.95, 0.55, 0.05, 1.0)  # orange
-_FOLLOWER_RGBA = (0.05, 0.8, 0.9, 1.0)  # cyan
-_REF_RGBA = (0.2, 0.9, 0.2, 0.5)  # translucent green sphere at the follower's reference
-_TINTED_GEOMS = ("hull", "arm0", "arm1", "arm2", "arm3")  # names inside assets/quad.xml
+LEADER_RGBA = (0.95, 0.55, 0.05, 1.0)  # orange
+FOLLOWER_RGBA = (0.05, 0.8, 0.9, 1.0)  # cyan
+REF_RGBA = (0.2, 0.9, 0.2, 0.5)  # translucent green sphere at the follower's reference
+TINTED_GEOMS = ("hull", "arm0", "arm1", "arm2", "arm3")  # names inside assets/quad.xml
 
 
 def ensure_gl_backend() -> str:
@@ -81,8 +81,8 @@ class Renderer:
     def __init__(self, scene: Scene, width: int, height: int):
         """width, height: pixels. Raises RuntimeError naming the backends when no OpenGL context can be made."""
         model = copy.copy(scene.model)  # tinted copy; the physics model is untouched
-        for v, rgba in ((scene.leader, _LEADER_RGBA), (scene.follower, _FOLLOWER_RGBA)):
-            for g in _TINTED_GEOMS:
+        for v, rgba in ((scene.leader, LEADER_RGBA), (scene.follower, FOLLOWER_RGBA)):
+            for g in TINTED_GEOMS:
                 model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
         self.model = model
         self.leader, self.follower = scene.leader, scene.follower
@@ -107,7 +107,7 @@ class Renderer:
         if scn.ngeom < scn.maxgeom and np.all(np.isfinite(p_ref)):
             mujoco.mjv_initGeom(
                 scn.geoms[scn.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, np.array([0.03, 0.0, 0.0]),
-                np.asarray(p_ref, float), np.eye(3).ravel(), np.array(_REF_RGBA, np.float32),
+                np.asarray(p_ref, float), np.eye(3).ravel(), np.array(REF_RGBA, np.float32),
             )
             scn.ngeom += 1
         return r.render()

@@ -57,7 +57,7 @@ __all__ = [
     "check_writer", "check_video_output", "write_video", "write_conditions_video", "logs_video",
 ]
 
-_PATH_POINTS = 120  # line segments per reference path
+PATH_POINTS = 120  # line segments per reference path
 _SUFFIXES = (".mp4",)
 
 
@@ -96,7 +96,7 @@ def _check_fps(fps: Any) -> float:
     return f
 
 
-def _check_trajectories(scene: Scene, trajectories: Sequence[Trajectory]) -> list[Trajectory]:
+def check_trajectories(scene: Scene, trajectories: Sequence[Trajectory]) -> list[Trajectory]:
     """Each (T, V, 3) / (T, V, 4), V = the scene's vehicles, cut at its first non-finite row."""
     if len(trajectories) == 0:
         raise ConfigError("trajectories: expected one or more conditions, got none")
@@ -164,7 +164,7 @@ def render_frames(scene: Scene, trajectories: Sequence[Trajectory], reference: n
     current point. speed: flight seconds per video second (module docstring). Everything is
     checked before the first frame (ConfigError).
     """
-    trajectories = _check_trajectories(scene, trajectories)
+    trajectories = check_trajectories(scene, trajectories)
     speed = positive_float("speed", speed, "-")
     dt = positive_float("dt", dt, "s")
     rows = frame_rows(max(len(t.pos) for t in trajectories), dt / speed, fps)  # rows dt / speed apart in video time
@@ -186,7 +186,7 @@ def _frames(renderer: TiledRenderer, trajectories: list[Trajectory], rows: np.nd
     paths: list[np.ndarray] = []
     if ref is not None:
         points.append(ref.reshape(-1, 3))
-        keep = np.unique(np.linspace(0, len(ref) - 1, min(len(ref), _PATH_POINTS + 1)).round().astype(int))
+        keep = np.unique(np.linspace(0, len(ref) - 1, min(len(ref), PATH_POINTS + 1)).round().astype(int))
         paths = [ref[keep, v] for v in moving]
     with renderer:
         renderer.set_view(CameraView.framing(np.concatenate(points), renderer.width / renderer.height, renderer.fovy))

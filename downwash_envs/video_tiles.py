@@ -25,7 +25,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.roles import Role
 from downwash_core.validate import count, positive_float
-from downwash_envs.rendering import _FOLLOWER_RGBA, _LEADER_RGBA, _REF_RGBA, _TINTED_GEOMS, offscreen_renderer
+from downwash_envs.rendering import FOLLOWER_RGBA, LEADER_RGBA, REF_RGBA, TINTED_GEOMS, offscreen_renderer
 from sim.field import DownwashField
 from sim.scene import Scene
 
@@ -112,8 +112,8 @@ def decorated(scene: Scene, wake_vehicles: Sequence[int] | None = None, wake: tu
                                                positive_float("wake width_slope", wake[1], "-", allow_zero=True))
     model = copy.copy(scene.model)
     for v, role in enumerate(scene.roles):
-        rgba = _LEADER_RGBA if role == Role.LEADER else _FOLLOWER_RGBA
-        for g in _TINTED_GEOMS:
+        rgba = LEADER_RGBA if role == Role.LEADER else FOLLOWER_RGBA
+        for g in TINTED_GEOMS:
             model.geom_rgba[model.geom(f"{scene.vehicles[v]}/{g}").id] = rgba
     return model, vehicles, width
 
@@ -195,7 +195,7 @@ class TiledRenderer:
                 add_line(scn, a, b, self._line_px, PATH_RGBA)
         if ref_now is not None:
             for p in np.asarray(ref_now).reshape(-1, 3):
-                add_geom(scn, mujoco.mjtGeom.mjGEOM_SPHERE, (REF_RADIUS, 0, 0), p, np.eye(3), _REF_RGBA)
+                add_geom(scn, mujoco.mjtGeom.mjGEOM_SPHERE, (REF_RADIUS, 0, 0), p, np.eye(3), REF_RGBA)
         img = r.render()
         return _label(img, label, self._font) if label else img
 

@@ -223,30 +223,30 @@ def check_writable(option: str, path: str | Path, kind: str = "dir") -> Path:
 _KINDS = {"int": int, "float": float, "str": str, "bool": bool, "dict": dict}
 
 
-def _kind(f: dataclasses.Field) -> type:
+def option_type(f: dataclasses.Field) -> type:
     """The option's type (int, float, str or bool; dict: the tables), from its annotation (a type or its name)."""
     return _KINDS.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
 
 
 def option_fields(cls: Any) -> list[dataclasses.Field]:
     """The fields of an options class (or instance) that are command-line options: all but the tables."""
-    return [f for f in dataclasses.fields(cls) if _kind(f) is not dict]
+    return [f for f in dataclasses.fields(cls) if option_type(f) is not dict]
 
 
-def _option(name: str) -> str:
+def option_name(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
 def allowed_range(f: dataclasses.Field) -> str:
     """What a numeric option takes, in words: '>= 1' (an integer: argparse and the TOML reader
     check the type), 'an integer in [5, 301]', 'a finite number in (0, 3600]'."""
-    return range_words(_kind(f) is int, f.metadata.get("bounds", {}))
+    return range_words(option_type(f) is int, f.metadata.get("bounds", {}))
 
 
 def _out_of_range(f: dataclasses.Field, value: Any) -> str | None:
     """What an option expects when `value` is bad (a number not finite or outside its range, or
     refused by the field's `check`), else None."""
-    if _kind(f) in (int, float) and not isinstance(value, bool) and not in_range(value, f.metadata.get("bounds", {})):
+    if option_type(f) in (int, float) and not isinstance(value, bool) and not in_range(value, f.metadata.get("bounds", {})):
         return f"expected {allowed_range(f)}"
     check = f.metadata.get("check")
     return check(value) if check is not None else None
@@ -261,7 +261,7 @@ def check_options(args: Any) -> None:
     for f in option_fields(args):
         problem = _out_of_range(f, getattr(args, f.name))
         if problem:
-            raise ConfigError(f"{_option(f.name)}: {problem}, got {getattr(args, f.name)!r}")
+            raise ConfigError(f"{option_name(f.name)}: {problem}, got {getattr(args, f.name)!r}")
     check_tables(getattr(args, "tables", {}), type(args))
 
 
@@ -280,16 +280,16 @@ def build_parser(cls: type, name: str, description: str = "") -> argparse.Argume
                            formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
     for f in option_fields(cls):
         help_text = f.metadata.get("help", "")
-        if _kind(f) is bool:  # --no-X undoes an X = true of the config file
-            parser.add_argument(_option(f.name), action=argparse.BooleanOptionalAction, default=f.default,
+        if option_type(f) is bool:  # --no-X undoes an X = true of the config file
+            parser.add_argument(option_name(f.name), action=argparse.BooleanOptionalAction, default=f.default,
                                 help=help_text)
         else:
             notes = [f"default: {f.default}"] if f.default != "" else []
-            if _kind(f) in (int, float) and "bounds" in f.metadata:
+            if option_type(f) in (int, float) and "bounds" in f.metadata:
                 notes.append(allowed_range(f).removeprefix("an integer ").removeprefix("a finite number "))
             if "quick" in f.metadata:
                 notes.append(f"--quick: {f.metadata['quick']}")
-            parser.add_argument(_option(f.name), type=_kind(f), default=f.default,
+            parser.add_argument(option_name(f.name), type=option_type(f), default=f.default,
                                 help=f"{help_text} ({'; '.join(notes)})" if notes else help_text)
     taken = ", ".join(f"[{t}]" for t in getattr(cls, "config_tables", ()))
     parser.add_argument("--config", metavar="FILE.toml", default=None,
@@ -359,7 +359,7 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
         where = f" (from --config {ns.config})" if f.name in from_file and values[f.name] is from_file[f.name] else ""
         problem = _out_of_range(f, values[f.name])
         if problem:
-            parser.error(f"{_option(f.name)}: {problem}, got {values[f.name]!r}{where}")
+            parser.error(f"{option_name(f.name)}: {problem}, got {values[f.name]!r}{where}")
         if f.name == "out" and f.name in given and not values["out"].strip():  # else it would mean runs/<name>
             parser.error(f"--out: expected a folder path (without --out: runs/{name}), got {values['out']!r}{where}")
     if not values.get("out"):
@@ -369,7 +369,7 @@ def parse_args(cls: type[A], name: str, argv: Sequence[str] | None = None, descr
         parser.error(problem)
     for f in fields:
         if f.metadata.get("output") and values[f.name]:
-            check_writable(_option(f.name), values[f.name], f.metadata["output"])
+            check_writable(option_name(f.name), values[f.name], f.metadata["output"])
     return cls(**values, **({"tables": tables} if tables else {}))
 
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from downwash_core.errors import ConfigError
-from experiments.common import _kind, one_line, _option, option_fields
+from experiments.common import option_type, one_line, option_name, option_fields
 from experiments.options import in_range, range_words
 
 __all__ = ["TABLES", "RESERVED", "CONFIG_NAME", "CONFIG_BYTES_MAX", "Key", "list_separator", "read_file", "check_table",
@@ -123,7 +123,7 @@ def list_separator(f: dataclasses.Field) -> str | None:
     """The separator of an option that takes several values in one string, as its help states it
     (a comma list, or ';'-separated), else None: such an option also takes a TOML array."""
     help_text = f.metadata.get("help", "")
-    if _kind(f) is not str:
+    if option_type(f) is not str:
         return None
     if "';'" in help_text:
         return ";"
@@ -182,7 +182,7 @@ _EXPECTED = {bool: "a boolean (true or false)", int: "an integer", float: "a num
 
 def _option_value(key: str, value: Any, f: dataclasses.Field) -> Any:
     """An option's value from the file, of its type (an array joined for a list option)."""
-    kind, sep = _kind(f), list_separator(f)
+    kind, sep = option_type(f), list_separator(f)
     expected = _EXPECTED[kind]
     if sep is not None:
         expected = f"a string or an array of strings and numbers (joined with {sep!r})"
@@ -190,7 +190,7 @@ def _option_value(key: str, value: Any, f: dataclasses.Field) -> Any:
             value = sep.join(x if isinstance(x, str) else repr(x) for x in value)
     if not _of_kind(value, kind):
         raise ConfigError(f"{key} = {value!r}: expected {expected}, got a TOML {_toml_type(value)} "
-                          f"({_option(f.name)}: {f.metadata.get('help', '')})")
+                          f"({option_name(f.name)}: {f.metadata.get('help', '')})")
     try:
         return float(value) if kind is float else value
     except OverflowError:  # an integer beyond any float
@@ -360,7 +360,7 @@ def _value(key: str, v: Any) -> str:
         return _string(key, v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_value(key, x) for x in v) + "]"
-    raise ValueError(f"{_option(key)}: config.toml cannot hold a {type(v).__name__} ({v!r})")
+    raise ValueError(f"{option_name(key)}: config.toml cannot hold a {type(v).__name__} ({v!r})")
 
 
 _ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
@@ -375,7 +375,7 @@ def _string(key: str, s: str) -> str:
         elif ord(c) < 0x20 or ord(c) == 0x7F:
             out.append(f"\\u{ord(c):04x}")
         elif 0xD800 <= ord(c) <= 0xDFFF:  # a byte that was no UTF-8 (a path from the command line): no TOML string
-            raise ValueError(f"{_option(key)}: {s!r} holds bytes that are no UTF-8 text; config.toml (UTF-8 TOML) "
+            raise ValueError(f"{option_name(key)}: {s!r} holds bytes that are no UTF-8 text; config.toml (UTF-8 TOML) "
                              "cannot hold it")
         else:
             out.append(c)

@@ -103,7 +103,7 @@ def _flight(log: Any) -> Any:
 
     from downwash_core.errors import ConfigError
     from downwash_core.params import RATES
-    from downwash_envs.video import _PATH_POINTS, Trajectory, _check_trajectories, wake_width
+    from downwash_envs.video import PATH_POINTS, Trajectory, check_trajectories, wake_width
     from sim.scene import build_scene
 
     meta = dict(getattr(log, "meta", {}) or {})
@@ -119,14 +119,14 @@ def _flight(log: Any) -> Any:
             scene = build_scene([f"vehicle{v}" for v in range(V)])
     except ValueError as e:  # ConfigError, DataError, or a role the code does not know
         raise ConfigError(f"log: its vehicles {names} with roles {roles} do not make a scene: {e}") from e
-    (tr,) = _check_trajectories(scene, [Trajectory("log", pos, quat, bool(meta.get("field_enabled", True)))])
+    (tr,) = check_trajectories(scene, [Trajectory("log", pos, quat, bool(meta.get("field_enabled", True)))])
     t = np.asarray(log["t"], float)[: len(tr.pos)]
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise ConfigError("log: its times 't' must be finite and increasing")
     ref = np.asarray(log["ref_pos"], float)[: len(tr.pos)]
     ref_ok = np.all(np.isfinite(ref), axis=-1)  # (T, V)
     moving = [v for v in range(V) if ref_ok[:, v].all() and np.ptp(ref[:, v], axis=0).max() > 0.01]
-    keep = np.unique(np.linspace(0, len(ref) - 1, min(len(ref), _PATH_POINTS + 1)).round().astype(int))
+    keep = np.unique(np.linspace(0, len(ref) - 1, min(len(ref), PATH_POINTS + 1)).round().astype(int))
     field = meta.get("field") if isinstance(meta.get("field"), dict) else {}
     return SimpleNamespace(
         meta=meta, scene=scene, tr=tr, rel=t - t[0], ref=ref, ref_ok=ref_ok, moving=moving,

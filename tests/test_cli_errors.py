@@ -187,7 +187,7 @@ def test_every_option_that_takes_names_states_its_check():
         if cls is SweepArgs or label.startswith("report."):
             continue
         for f in dataclasses.fields(cls):
-            if common._kind(f) is str and f.name not in free and f"{label}.{f.name}" not in exempt:
+            if common.option_type(f) is str and f.name not in free and f"{label}.{f.name}" not in exempt:
                 assert f.metadata.get("check"), f"{label}.{f.name}: give it a check= that names what is allowed"
 
 
@@ -246,7 +246,7 @@ def _args_classes() -> dict[str, type]:
 def _undeclared(cls: type) -> list[str]:
     """The numeric options of `cls` that state no range (neither bounds nor a check)."""
     return [f.name for f in dataclasses.fields(cls)
-            if common._kind(f) in (int, float) and not (f.metadata.get("bounds") or f.metadata.get("check"))]
+            if common.option_type(f) in (int, float) and not (f.metadata.get("bounds") or f.metadata.get("check"))]
 
 
 def test_every_numeric_option_of_every_experiment_declares_its_range():

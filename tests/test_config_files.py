@@ -438,7 +438,7 @@ def test_every_option_of_several_values_takes_an_array_of_its_default(tmp_path):
         for f in common.option_fields(cls):
             text = f.metadata.get("help", "")
             sep = list_separator(f)
-            assert (sep is not None) == (common._kind(f) is str and ("comma list" in text or "';'" in text)), f.name
+            assert (sep is not None) == (common.option_type(f) is str and ("comma list" in text or "';'" in text)), f.name
             if sep is None or not f.default:
                 continue
             items = ", ".join(json.dumps(x) for x in f.default.split(sep))

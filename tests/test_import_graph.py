@@ -223,46 +223,24 @@ KNOWN_PRIVATE_READS = {
     # from one module, share their kernels and table layouts under these names, as do the tests
     ("sim.plan", ("_address",)): "MuJoCo's MjData._address: the scratch data the fused tick steps by address",
     ("sim.physics", ("_address", "_models")): "MuJoCo's MjModel/MjData._address and Batch._models",
-    ("sim.fields.shed", ("_velocity", "_BLEND", "_C_STAR", "_C_SMALL")):
-        "sim.fields.momentum's induced velocity and its constants, which the shed wake reuses",
     ("sim.fields.shed_kernels", ("_d0", "_drag_law", "_radius_eq", "_vh_follower", "_vh_per_sqrt_thrust")):
         "MomentumWake's derived constants, packed for the compiled passes",
     ("downwash_core.jit", ("_locator_classes", "_downwash_stamp")): "numba's cache locators, extended in place",
     ("downwash_trajectories.combinators", ("_group_into", "_sample_into")):
         "the primitives' batched sampling hooks, which the combinators call",
     # the learning stack: sibling modules share helpers
-    ("downwash.ensemble", ("_Layer", "_aligned_stack", "_forward", "_layers", "_pad_rows",
-                           "_per_member", "_round_rows")): "downwash.ensemble_network's batched network",
-    ("downwash.ensemble", ("_settle_models",)): "downwash.ensemble_settle",
-    ("downwash.ensemble_members", ("_aligned_stack", "_batch_slots", "_layers", "_per_member")):
-        "downwash.ensemble_network's batched network",
-    ("downwash.ensemble_members", ("_check",)): "downwash.train's argument checks",
-    ("downwash.ensemble_network", ("_SpectralLinear", "_u", "_v")):
-        "downwash.models' spectral layer, and torch's spectral-norm vectors",
-    ("downwash.ensemble_settle", ("_SpectralLinear", "_aligned_stack", "_normalize_rows", "_u", "_v")):
-        "downwash.models' spectral layer, downwash.ensemble_network's helpers, torch's spectral-norm vectors",
+    ("downwash.ensemble_network", ("_u", "_v")): "torch's spectral-norm vectors",
+    ("downwash.ensemble_settle", ("_u", "_v")): "torch's spectral-norm vectors",
     ("downwash.models", ("_u", "_v")): "torch's spectral-norm vectors (its power iteration, settled in place)",
-    ("downwash.set_models", ("_SpectralLinear",)): "downwash.models' spectral layer",
-    ("downwash.numpy_mlp", ("_SpectralLinear", "_u", "_v")):
-        "downwash.models' spectral layer, and torch's spectral-norm vectors",
-    ("downwash.predictor", ("_SpectralLinear",)): "downwash.models' spectral layer",
-    ("downwash.set_fused", ("_numpy_layers",)): "downwash.set_models' layers as arrays",
-    ("downwash.staged", ("_load_manifest",)): "the manifest reader of the staged collection's provenance module",
+    ("downwash.numpy_mlp", ("_u", "_v")): "torch's spectral-norm vectors",
     ("downwash.sweep", ("_load_collection",)): "downwash.sweep_cells' collection loader",
     # the envs and the command lines
     ("downwash_envs.config", ("_own_predictor",)): "a cache the envs keep on their owner object",
     ("downwash_envs.evaluation", ("_setup_learn",)): "stable-baselines3's callback set-up",
     ("downwash_envs.rendering", ("_MUJOCO_GL",)): "MuJoCo's chosen GL back end",
-    ("downwash_envs.video_tiles", ("_FOLLOWER_RGBA", "_LEADER_RGBA", "_REF_RGBA", "_TINTED_GEOMS")):
-        "downwash_envs.rendering's colours",
     ("downwash_envs.viewer", ("_MJPYTHON",)): "MuJoCo's viewer: whether it runs under mjpython",
-    ("downwash_envs.viewer", ("_PATH_RGBA", "_REF_RADIUS", "_REF_RGBA", "_add_geom", "_add_line")):
+    ("downwash_envs.viewer", ("_PATH_RGBA", "_REF_RADIUS", "_add_geom", "_add_line")):
         "downwash_envs.video's and downwash_envs.rendering's drawing helpers",
-    ("experiments.config_file", ("_kind", "_option")): "experiments.common's option helpers",
-    ("experiments.replay", ("_PATH_POINTS", "_check_trajectories")): "downwash_envs.video's trajectory helpers",
-    ("experiments.report", ("_equivariance_verdict", "_memory_verdict", "_render_one")):
-        "the report package's formatting and sections",
-    ("experiments.report.results", ("_render_one",)): "experiments.report.sections",
 }
 
 

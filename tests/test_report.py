@@ -427,7 +427,7 @@ def _outdoor_point(improvement, crash=0.0):
 def test_the_outdoor_verdicts_follow_the_numbers():
     """Memory on the shed truth at 2 m/s and above (the mean over those speeds, memory against its
     memoryless twin) and equivariance (best against best, per training data), read from the results."""
-    from experiments.report.sections import _equivariance_verdict, _memory_verdict
+    from experiments.report.sections import equivariance_verdict, memory_verdict
 
     speeds = [0.5, 2.0, 3.0]
     sweep = {"speeds": speeds, "conditions": {
@@ -439,7 +439,7 @@ def test_the_outdoor_verdicts_follow_the_numbers():
                         "equivariant": _outdoor_point(-2.0, 1.0), "deep-outdoor": _outdoor_point(0.05),
                         "equivariant-outdoor": _outdoor_point(0.4)},
          "truths": {"shed": {"sweep": sweep}}}
-    memory = _memory_verdict(r)
+    memory = memory_verdict(r)
     assert "`equivariant_memory-outdoor` 40.0 % against `equivariant_general-outdoor` 20.0 %: memory helps" in memory
     assert "`deep_memory-outdoor` 10.0 % against `deep-outdoor` 10.5 %: memory makes no clear difference" in memory
     assert "at 2, 3 m/s" in memory  # the slow point is left out
@@ -448,16 +448,16 @@ def test_the_outdoor_verdicts_follow_the_numbers():
     control = {"speeds": speeds, "conditions": {
         "equivariant_memory-outdoor": {"improvement_pos_3d": [0.0, 0.4, 0.4], "crash_rate": [0, 0, 0]},
         "equivariant_general-outdoor": {"improvement_pos_3d": [0.0, 0.3, 0.25], "crash_rate": [0, 0, 0]}}}
-    memory = _memory_verdict({**r, "truths": {"shed": {"sweep": sweep}, "momentum": {"sweep": control}}})
+    memory = memory_verdict({**r, "truths": {"shed": {"sweep": sweep}, "momentum": {"sweep": control}}})
     assert ("memory helps (+20.0 points); on the `momentum` truth, which has no memory, the same models differ by "
             "+12.5 points, so the wake's memory accounts for +7.5 points") in memory
     assert "`deep_memory-outdoor` 10.0 % against `deep-outdoor` 10.5 %: memory makes no clear difference (-0.5 " \
            "points)." in memory  # (the control lacks the deep pair: no control for it)
-    verdict = _equivariance_verdict(r)
+    verdict = equivariance_verdict(r)
     assert "indoor data, the best equivariant model `equivariant` -200.0 % against the best non-equivariant " \
            "`deep` 10.0 %: it does not pay" in verdict
     assert "`equivariant-outdoor` 40.0 % against the best non-equivariant `deep-outdoor` 5.0 %: it pays" in verdict
-    assert _memory_verdict({"conditions": {}}) is None  # no shed sweep: no statement
+    assert memory_verdict({"conditions": {}}) is None  # no shed sweep: no statement
 
 
 def test_the_worst_case_table_takes_each_models_worst_setting():

@@ -258,7 +258,7 @@ def test_compiled_step_and_forces_equal_their_numpy_reference():
 
 
 def test_compiled_twins_equal_the_momentum_law():
-    """The kernels' scalar twins of `MomentumWake.centreline`, `_velocity`, `follower_response` and
+    """The kernels' scalar twins of `MomentumWake.centreline`, `induced_velocity`, `follower_response` and
     `rotor_thrust_ratio` against the NumPy originals on random inputs (bits on an AVX2 CPU, 1e-12 allowed:
     NumPy's SIMD transcendental functions elsewhere)."""
     rng = np.random.default_rng(12)
@@ -266,19 +266,19 @@ def test_compiled_twins_equal_the_momentum_law():
             MomentumWake(virtual_origin=-0.2, ring_points=12, drag=False),
             pair_field(MomentumWake(), get_vehicle("x500"), get_vehicle("crazyflie_2_1"))]
     c = np.concatenate([rng.normal(0, 2, 400), rng.lognormal(0, 3, 100), -rng.lognormal(0, 3, 100),
-                        [0.0, 0.5, momentum._C_STAR, -1.0, 1e-300, 1e300, -1e300]])
+                        [0.0, 0.5, momentum.C_STAR, -1.0, 1e-300, 1e300, -1e300]])
     want = momentum.rotor_thrust_ratio(c)
-    got = [shed_kernels.rotor_thrust_ratio(x, momentum._C_STAR, momentum._C_SMALL) for x in c]
+    got = [shed_kernels.rotor_thrust_ratio(x, momentum.C_STAR, momentum.C_SMALL) for x in c]
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
     for law in laws:
-        jet = shed_kernels.pair_constants(law, GRAVITY, momentum.PROFILE_A, momentum._BLEND, momentum._C_STAR,
-                                          momentum._C_SMALL)
+        jet = shed_kernels.pair_constants(law, GRAVITY, momentum.PROFILE_A, momentum.BLEND, momentum.C_STAR,
+                                          momentum.C_SMALL)
         s = np.concatenate([rng.uniform(-0.2, 4.0, 200), [0.0, 1e-9, law.fade_depth, 50.0]])
         T, r2 = rng.uniform(-1.0, 30.0, s.size), rng.uniform(0.0, 0.3, s.size) * (rng.random(s.size) < 0.9)
         cl = law.centreline(s, T)
         for i in range(s.size):
             np.testing.assert_allclose(shed_kernels.centreline(s[i], T[i], jet), [x[i] for x in cl], rtol=1e-12)
-            axial, radial = law._velocity(s[i], r2[i], T[i])
+            axial, radial = law.induced_velocity(s[i], r2[i], T[i])
             np.testing.assert_allclose(shed_kernels.velocity(s[i], r2[i], T[i], jet), (axial, radial), rtol=1e-12)
         M, K = 50, law.ring_points
         n = Rotation.from_rotvec(rng.normal(0, 0.4, (M, 3))).as_matrix()[..., 2]

@@ -38,8 +38,8 @@ from experiments.report.results import (EXPERIMENTS, copy_results, load_results,
 from experiments.report.criteria import guard_criteria, render_guard_criteria
 from experiments.report.real_flights import real_model_names
 from experiments.report.safety import render_safety_comparison
-from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, _equivariance_verdict, _memory_verdict,
-                                         _render_one, render_benchmark, render_efficiency, render_error,
+from experiments.report.sections import (PAPER_RMSE, RENDER_ERRORS, equivariance_verdict, memory_verdict,
+                                         render_one, render_benchmark, render_efficiency, render_error,
                                          render_force_maps, render_machine, render_provenance, render_staged,
                                          render_tracking, render_worst_cases, worst_cases)
 
@@ -105,7 +105,7 @@ def _render_found(found: dict[str, dict], record: dict, results_dir: str | Path)
             parts.append(f"No results yet for `{name}` (`python -m experiments.{name}`, then "
                          "`python -m experiments.report`).")
             continue
-        parts += _render_one(name, found[name], record, f"{Path(results_dir).resolve().name}/{name}.json",
+        parts += render_one(name, found[name], record, f"{Path(results_dir).resolve().name}/{name}.json",
                              _file(results_dir, name))
         if name == "transect" or (name == "lemniscate" and "transect" not in found):
             parts.append(PAPER_TRACKING)
@@ -255,7 +255,7 @@ def _outdoor_headline(r: dict, link: str) -> str:
                    f"with {pct(c[twin]['crash_rate'])} crashed. Guarded models that crash: "
                    + (", ".join(f"`{k}` ({pct(c[k]['crash_rate'])})" for k in guarded if c[k]["crash_rate"]) or "none")
                    + ".")
-    out += [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
+    out += [v for v in (memory_verdict(r), equivariance_verdict(r)) if v]
     return " ".join(out)
 
 

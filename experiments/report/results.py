@@ -24,7 +24,7 @@ from typing import Any
 
 from downwash_core.errors import ConfigError
 from downwash_core.io import atomic_write_json, to_json
-from experiments.report.sections import _render_one
+from experiments.report.sections import render_one
 
 __all__ = ["EXPERIMENTS", "GOLDEN_FILES", "load_results", "code_commit", "stale_results", "machine", "copy_results",
            "read_runs", "write_copies", "write_path"]
@@ -172,7 +172,7 @@ def read_runs(runs: str | Path, results_dir: str | Path) -> dict[str, tuple[Path
         if not (path := runs / name / "results.json").is_file():
             continue
         data = _check_shape(name, _read(path), path)
-        _render_one(name, data, {}, str(path))  # a file the report cannot render stops here, before any write
+        render_one(name, data, {}, str(path))  # a file the report cannot render stops here, before any write
         loaded[name] = (path, data)
     if not loaded:
         raise ConfigError(f"--runs: {runs} holds no <name>/results.json for any of {', '.join(EXPERIMENTS)}; "

@@ -1,7 +1,7 @@
 """The results page's sections: one renderer per experiment's results file, and the machine and provenance lines.
 
 `RENDERERS` maps each experiment's name (`experiments.report.results.EXPERIMENTS`) to
-the function that renders its results as markdown; `_render_one` adds the
+the function that renders its results as markdown; `render_one` adds the
 provenance line and turns a file the renderer cannot read into a ConfigError.
 """
 
@@ -198,7 +198,7 @@ def render_outdoor(r: dict, label: str) -> str:
             parts += [f"On the `{truth}` truth, improvement over the baseline against the leader's speed:",
                       markdown_table(["condition"] + [f"{short(v)} m/s" for v in t["sweep"]["speeds"]],
                              _sweep_rows(t["sweep"]["conditions"], len(r["seeds"])))]
-    verdicts = [v for v in (_memory_verdict(r), _equivariance_verdict(r)) if v]
+    verdicts = [v for v in (memory_verdict(r), equivariance_verdict(r)) if v]
     return "\n\n".join(parts + verdicts)
 
 
@@ -245,7 +245,7 @@ def _signed(x: float) -> str:
     return f"{100 * x:+.1f} points"
 
 
-def _memory_verdict(r: dict) -> str | None:
+def memory_verdict(r: dict) -> str | None:
     """Whether memory helps on the shed-wake truth at FAST m/s and above: each model with memory against
     its memoryless twin (both trained on the outdoor stages), mean improvement over those speeds. Where
     the run also swept a truth without memory (``momentum``, else the run's own when it is not the shed
@@ -280,7 +280,7 @@ def _memory_verdict(r: dict) -> str | None:
             f"baseline at {speeds} m/s: " + "; ".join(lines) + ".")
 
 
-def _equivariance_verdict(r: dict) -> str | None:
+def equivariance_verdict(r: dict) -> str | None:
     """Whether equivariance still pays outdoors: the best equivariant against the best non-equivariant
     model of the same training data, at the run's own setting."""
     c = r["conditions"]
@@ -439,7 +439,7 @@ def render_error(where: str, what: str, e: BaseException) -> ConfigError:
     return ConfigError(f"{where}: cannot render {what} ({type(e).__name__}: {' '.join(str(e).split())})")
 
 
-def _render_one(name: str, data: dict, record: dict, label: str, where: str | None = None) -> list[str]:
+def render_one(name: str, data: dict, record: dict, label: str, where: str | None = None) -> list[str]:
     """The section of one results file and its provenance line; `label` names the file in the text,
     `where` (default `label`) in the error when it cannot be rendered."""
     try:

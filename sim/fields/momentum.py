@@ -94,10 +94,10 @@ from sim.wind import AIRFRAME, drag_acceleration
 __all__ = ["MomentumWake", "rotor_thrust_ratio", "PROFILE_A"]
 
 PROFILE_A = math.sqrt(2.0) - 1.0  # -, f(xi) = (1 + a xi^2)^-2 has f(1) = 1/2
-_BLEND = 4.0  # -, exponent of the smooth min/max joining near and far field (sharp, yet C1)
+BLEND = 4.0  # -, exponent of the smooth min/max joining near and far field (sharp, yet C1)
 _MIN_TILT_COS = 0.5  # -, the thrust estimate m g / n_z is capped at 2 m g (60 deg tilt)
-_C_STAR = -(27.0 / 4.0) ** (1.0 / 3.0)  # the cubic's discriminant changes sign here
-_C_SMALL = 0.5  # above: the sinh form, cancellation-free for large c
+C_STAR = -(27.0 / 4.0) ** (1.0 / 3.0)  # the cubic's discriminant changes sign here
+C_SMALL = 0.5  # above: the sinh form, cancellation-free for large c
 _STILL_AIR = np.zeros(3)  # m/s
 
 
@@ -111,17 +111,17 @@ def rotor_thrust_ratio(c: Any) -> np.ndarray:
     """
     c = np.asarray(c, dtype=np.float64)
     # c >= 0.5: tau = 2 sqrt(c/3) sinh(asinh((3 sqrt(3)/2) c^-1.5) / 3), ~1/c without cancellation
-    cs = np.maximum(c, _C_SMALL)
+    cs = np.maximum(c, C_SMALL)
     big = 2.0 * np.sqrt(cs / 3.0) * libm.sinh(libm.arcsinh(1.5 * math.sqrt(3.0) * libm.power(cs, -1.5)) / 3.0)
     # c_* <= c < 0.5: Cardano, one real root
-    cc = np.clip(c, _C_STAR, _C_SMALL)
+    cc = np.clip(c, C_STAR, C_SMALL)
     u = libm.cbrt(0.5 + np.sqrt(np.maximum(0.25 + libm.power(cc, 3.0) / 27.0, 0.0)))
     mid = u - cc / (3.0 * u)
     # c < c_*: three real roots, the largest (the only positive one), trigonometric form
-    m = np.maximum(-c, -_C_STAR)
+    m = np.maximum(-c, -C_STAR)
     arg = np.minimum(1.5 * math.sqrt(3.0) * libm.power(m, -1.5), 1.0)
     low = 2.0 * np.sqrt(m / 3.0) * np.cos(libm.arccos(arg) / 3.0)
-    return np.where(c >= _C_SMALL, big, np.where(c >= _C_STAR, mid, low))
+    return np.where(c >= C_SMALL, big, np.where(c >= C_STAR, mid, low))
 
 
 @dataclass(frozen=True)
@@ -213,7 +213,7 @@ class MomentumWake:
         """
         s = np.maximum(np.asarray(s, dtype=np.float64), 0.0)
         v_h = self._vh_per_sqrt_thrust * np.sqrt(np.maximum(np.asarray(thrust, dtype=np.float64), 0.0))
-        R2, p = self._radius_eq**2, _BLEND
+        R2, p = self._radius_eq**2, BLEND
         root = np.sqrt(s * s + R2)
         phi1 = 1.0 + s / root  # U_near / v_h, in [1, 2)
         dphi1 = R2 / (root * root * root)
@@ -246,10 +246,10 @@ class MomentumWake:
         s = -_dot(dp, n)
         r_vec = dp + s[..., None] * n
         T = self.leader_thrust(R_a) if thrust is None else thrust
-        axial, radial_over_r = self._velocity(s, _dot(r_vec, r_vec), T)
+        axial, radial_over_r = self.induced_velocity(s, _dot(r_vec, r_vec), T)
         return radial_over_r[..., None] * r_vec - axial[..., None] * n
 
-    def _velocity(self, s, r2, thrust):
+    def induced_velocity(self, s, r2, thrust):
         """Downstream speed U (...) m/s and V / r (...) 1/s at depth s, squared radius r2, faded."""
         U_c, b, dU_c, db = self.centreline(s, thrust)
         inv_b2 = 1.0 / (b * b)
@@ -299,9 +299,9 @@ class MomentumWake:
             a = float(self.follower_arm)
             r = np.sqrt(r2)[..., None]
             rk2 = np.maximum(r * r + a * a + (2.0 * a) * r * self._ring_cos, 0.0)  # (..., K)
-            ring_speed, _ = self._velocity(s[..., None], rk2, np.asarray(T)[..., None])
+            ring_speed, _ = self.induced_velocity(s[..., None], rk2, np.asarray(T)[..., None])
         if self.drag:
-            axial, radial_over_r = self._velocity(s, r2, T)
+            axial, radial_over_r = self.induced_velocity(s, r2, T)
             air = radial_over_r[..., None] * r_vec - axial[..., None] * n
         return np.zeros(shape + (3,)) + self.follower_response(n, v_b, ring_speed, air)
 

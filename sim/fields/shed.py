@@ -41,7 +41,7 @@ elements, a ring buffer per vehicle (N = ceil(rate_hz max_age)).
    plane (vertex 0: its position now, s = 0, axis -n now, the newest element's thrust).
    At a point p, the nearest point c on it (segment projection) gives by linear
    interpolation along that segment the travelled depth s, thrust T and axis d (renormalised);
-   r = |p - c|, and the momentum jet's profile there (the law's `_velocity`: U(s, r) and
+   r = |p - c|, and the momentum jet's profile there (the law's `induced_velocity`: U(s, r) and
    V(s, r) / r with its fade across the rotor plane) gives
        u = U d + (V / r) r_perp,   r_perp = (p - c) minus its part along the segment.
    Beyond the oldest element the wake ends: the speed falls off with the distance from
@@ -192,7 +192,7 @@ class ShedWake:
         """The laws and tables as the compiled passes read them (`sim.fields.shed_kernels`): plain arrays."""
         m = _momentum
         n_kinds = len(self._sources)
-        pair = np.stack([_kernels.pair_constants(law, GRAVITY, m.PROFILE_A, m._BLEND, m._C_STAR, m._C_SMALL)
+        pair = np.stack([_kernels.pair_constants(law, GRAVITY, m.PROFILE_A, m.BLEND, m.C_STAR, m.C_SMALL)
                          for law, _ in self._pairs]).reshape(n_kinds, n_kinds, _kernels.N_PAIR)
         source = np.zeros((n_kinds, _kernels.N_SOURCE))
         source[:, _kernels.S_TRAVEL] = [self.convection * src.vh_per_sqrt_thrust for src in self._sources]
@@ -352,7 +352,7 @@ class ShedWake:
             raise ConfigError(f"points: expected (W, P, 3) = ({W}, P, 3) but found {points.shape}")
         loc = nearest(state, pos, rot, points)
         r2 = _dot(loc.offset, loc.offset)
-        axial, radial = self._per_source(lambda src, s, r2, T: src.law._velocity(s, r2, T), loc.s, r2, loc.thrust)
+        axial, radial = self._per_source(lambda src, s, r2, T: src.law.induced_velocity(s, r2, T), loc.s, r2, loc.thrust)
         return _air(axial, radial, loc, loc.offset)
 
     # ------------------------------------------------------------------ the force
@@ -411,11 +411,11 @@ class ShedWake:
                 ring_dir = ring_dir - _dot(ring_dir, tangent)[..., None] * tangent  # at the centre's depth
                 ring = part.offset[:, None] + float(law.follower_arm) * ring_dir  # (M, K, 3) m from c
                 s, T = part.s[:, None], part.thrust[:, None]
-                axial, radial = law._velocity(s, _dot(ring, ring), T)
+                axial, radial = law.induced_velocity(s, _dot(ring, ring), T)
                 at_ring = _Local(s, T, part.axis[:, None], tangent, ring, part.active[:, None])
                 ring_speed = -_dot(_air(axial, radial, at_ring, ring), n_b[sel][:, None])  # m/s down through each
             if law.drag:
-                axial, radial = law._velocity(part.s, _dot(part.offset, part.offset), part.thrust)
+                axial, radial = law.induced_velocity(part.s, _dot(part.offset, part.offset), part.thrust)
                 air = _air(axial, radial, part, part.offset)
             out[sel] = law.follower_response(n_b[sel], v_b[sel], ring_speed, air)
         return out

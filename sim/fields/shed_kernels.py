@@ -15,7 +15,7 @@ module (numba would not see it change: `downwash_core.jit`):
         `ShedWake` from each pair's `MomentumWake` (`pair_constants`);
     per source kind `source` (Ks, N_SOURCE): kappa v_h / sqrt(T), the thrust estimate's numerator;
     its travel table `table_x` (G(s)), `table_s` (s), `table_slope` (Ks, M) as `np.interp` uses them.
-Scalar twins of `sim.fields.momentum` (`centreline`, `velocity` = `MomentumWake._velocity`,
+Scalar twins of `sim.fields.momentum` (`centreline`, `velocity` = `MomentumWake.induced_velocity`,
 `follower_response`, `rotor_thrust_ratio`) take one point; tests check them against the NumPy originals.
 """
 
@@ -27,7 +27,7 @@ import numpy as np
 
 from downwash_core.jit import njit
 
-# a pair's constants: the source's jet (MomentumWake.centreline, _velocity) ...
+# a pair's constants: the source's jet (MomentumWake.centreline, induced_velocity) ...
 J_VH, J_RADIUS, J_R2, J_K2, J_S0, J_SPREAD, J_FADE, J_BLEND, J_PROFILE = range(9)
 # ... and the target's response (MomentumWake.follower_response, rotor_thrust_ratio, drag_acceleration)
 F_ARM, F_VH, F_ROTORS, F_DRAG, F_GAIN, F_GRAVITY, F_C_STAR, F_C_SMALL = range(9, 17)
@@ -91,7 +91,7 @@ def centreline(s, thrust, jet):  # pragma: no cover - compiled
 
 @njit
 def profile(s, r2, U_c, b, dU_c, db, jet):  # pragma: no cover - compiled
-    """`MomentumWake._velocity` given the centreline at s: U (m/s) and V / r (1/s) at squared radius r2, faded."""
+    """`MomentumWake.induced_velocity` given the centreline at s: U (m/s) and V / r (1/s) at squared radius r2, faded."""
     inv_b2 = 1.0 / (b * b)
     q = 1.0 + jet[J_PROFILE] * r2 * inv_b2
     f = 1.0 / (q * q)
@@ -104,7 +104,7 @@ def profile(s, r2, U_c, b, dU_c, db, jet):  # pragma: no cover - compiled
 
 @njit
 def velocity(s, r2, thrust, jet):  # pragma: no cover - compiled
-    """`MomentumWake._velocity` at one point: U (m/s) and V / r (1/s)."""
+    """`MomentumWake.induced_velocity` at one point: U (m/s) and V / r (1/s)."""
     U_c, b, dU_c, db = centreline(s, thrust, jet)
     return profile(s, r2, U_c, b, dU_c, db, jet)
 
