@@ -223,8 +223,6 @@ KNOWN_PRIVATE_READS = {
     # from one module, share their kernels and table layouts under these names, as do the tests
     ("sim.plan", ("_address",)): "MuJoCo's MjData._address: the scratch data the fused tick steps by address",
     ("sim.physics", ("_address", "_models")): "MuJoCo's MjModel/MjData._address and Batch._models",
-    ("sim.fields.shed_kernels", ("_d0", "_drag_law", "_radius_eq", "_vh_follower", "_vh_per_sqrt_thrust")):
-        "MomentumWake's derived constants, packed for the compiled passes",
     ("downwash_core.jit", ("_locator_classes", "_downwash_stamp")): "numba's cache locators, extended in place",
     ("downwash_trajectories.combinators", ("_group_into", "_sample_into")):
         "the primitives' batched sampling hooks, which the combinators call",

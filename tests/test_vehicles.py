@@ -349,7 +349,7 @@ def test_momentum_wake_for_other_kinds_by_hand():
             assert U0 == pytest.approx(math.sqrt(T / (2 * 1.225 * 4 * math.pi * leader.rotor_radius**2)), rel=1e-12)
             assert b0 == pytest.approx(2 * leader.rotor_radius, rel=1e-5)  # the equivalent disc's radius
             assert wake.leader_thrust(np.eye(3)) == pytest.approx(T)
-            assert wake._vh_follower == pytest.approx(hover_induced_velocity(follower), rel=1e-12)
+            assert wake.vh_follower == pytest.approx(hover_induced_velocity(follower), rel=1e-12)
             assert (wake.follower_mass, wake.follower_arm) == (follower.mass, follower.arm_length)
 
 

@@ -176,13 +176,13 @@ class MomentumWake:
         follower_area = self.n_rotors * math.pi * float(self.follower_rotor_radius) ** 2
         azimuth = (np.arange(self.ring_points) + 0.5) * (2.0 * math.pi / self.ring_points)
         derived = {
-            "_vh_per_sqrt_thrust": 1.0 / math.sqrt(2.0 * rho * disk_area),  # v_h = this sqrt(T)
-            "_radius_eq": radius_eq,
-            "_d0": math.sqrt(2.0) * radius_eq,  # m, vena contracta diameter
+            "vh_per_sqrt_thrust": 1.0 / math.sqrt(2.0 * rho * disk_area),  # v_h = this sqrt(T)
+            "radius_eq": radius_eq,
+            "d0": math.sqrt(2.0) * radius_eq,  # m, vena contracta diameter
             "_hover_thrust": float(self.leader_mass) * GRAVITY,  # N
-            "_vh_follower": math.sqrt(float(self.follower_mass) * GRAVITY / (2.0 * rho * follower_area)),  # m/s
+            "vh_follower": math.sqrt(float(self.follower_mass) * GRAVITY / (2.0 * rho * follower_area)),  # m/s
             # the airframe drag law's constants (sim.wind.drag_acceleration)
-            "_drag_law": (float(self.follower_mass), float(self.drag_coefficient), float(self.drag_area), rho),
+            "drag_law": (float(self.follower_mass), float(self.drag_coefficient), float(self.drag_area), rho),
             "_ring_cos": np.cos(azimuth),  # (K,) azimuths of the rotors relative to r_vec
         }
         for name, value in derived.items():
@@ -212,20 +212,20 @@ class MomentumWake:
             dU_c/ds (1/s), db/ds (-).
         """
         s = np.maximum(np.asarray(s, dtype=np.float64), 0.0)
-        v_h = self._vh_per_sqrt_thrust * np.sqrt(np.maximum(np.asarray(thrust, dtype=np.float64), 0.0))
-        R2, p = self._radius_eq**2, BLEND
+        v_h = self.vh_per_sqrt_thrust * np.sqrt(np.maximum(np.asarray(thrust, dtype=np.float64), 0.0))
+        R2, p = self.radius_eq**2, BLEND
         root = np.sqrt(s * s + R2)
         phi1 = 1.0 + s / root  # U_near / v_h, in [1, 2)
         dphi1 = R2 / (root * root * root)
         # far field as 1 / (U / v_h): grows linearly, 0 above the virtual origin
-        k2 = 1.0 / (2.0 * float(self.decay_constant) * self._d0)
+        k2 = 1.0 / (2.0 * float(self.decay_constant) * self.d0)
         past = s > float(self.virtual_origin)
         g2 = np.maximum(s - float(self.virtual_origin), 0.0) * k2
         dg2 = np.where(past, k2, 0.0)
         pw = libm.power  # (the C library's pow, as the compiled twin: the same bits on every CPU)
         phi = pw(pw(phi1, -p) + pw(g2, p), -1.0 / p)  # U_c / v_h: smooth minimum of near and far
         dphi = pw(phi, p + 1.0) * (pw(phi1, -p - 1.0) * dphi1 - pw(g2, p - 1.0) * dg2)
-        b1 = self._radius_eq / np.sqrt(phi1)  # slipstream radius by continuity
+        b1 = self.radius_eq / np.sqrt(phi1)  # slipstream radius by continuity
         db1 = -0.5 * b1 * dphi1 / phi1
         S = float(self.spreading_rate)
         b2 = S * np.maximum(s - float(self.virtual_origin), 0.0)
@@ -323,12 +323,12 @@ class MomentumWake:
         out = np.zeros(np.broadcast_shapes(np.shape(n), np.shape(v_b)))
         if self.rotors:
             climb = _dot(v_b, n)  # m/s, the follower's own climb rate along n
-            c0 = climb / self._vh_follower
-            c_k = (ring_speed + climb[..., None]) / self._vh_follower
+            c0 = climb / self.vh_follower
+            c_k = (ring_speed + climb[..., None]) / self.vh_follower
             d_tau = rotor_thrust_ratio(c_k).mean(axis=-1) - rotor_thrust_ratio(c0)
             out = out + (GRAVITY * d_tau)[..., None] * n  # T_h / m = g
         if self.drag:
             # the wake's share: the drag in the wake minus the drag in still air
-            in_wake = drag_acceleration(air, v_b, *self._drag_law)
-            out = out + (in_wake - drag_acceleration(_STILL_AIR, v_b, *self._drag_law))
+            in_wake = drag_acceleration(air, v_b, *self.drag_law)
+            out = out + (in_wake - drag_acceleration(_STILL_AIR, v_b, *self.drag_law))
         return out

@@ -39,13 +39,13 @@ N_SOURCE = 2
 
 def pair_constants(law, gravity: float, profile_a: float, blend: float, c_star: float, c_small: float) -> np.ndarray:
     """(N_PAIR,) the constants of one `MomentumWake` as the kernels read them, each computed as the law does."""
-    mass, cd, area, rho = law._drag_law
+    mass, cd, area, rho = law.drag_law
     out = np.zeros(N_PAIR)
-    out[[J_VH, J_RADIUS, J_R2, J_K2]] = (law._vh_per_sqrt_thrust, law._radius_eq, law._radius_eq**2,
-                                         1.0 / (2.0 * float(law.decay_constant) * law._d0))
+    out[[J_VH, J_RADIUS, J_R2, J_K2]] = (law.vh_per_sqrt_thrust, law.radius_eq, law.radius_eq**2,
+                                         1.0 / (2.0 * float(law.decay_constant) * law.d0))
     out[[J_S0, J_SPREAD, J_FADE, J_BLEND, J_PROFILE]] = (float(law.virtual_origin), float(law.spreading_rate),
                                                          float(law.fade_depth), blend, profile_a)
-    out[[F_ARM, F_VH, F_ROTORS, F_DRAG]] = (float(law.follower_arm), law._vh_follower, bool(law.rotors),
+    out[[F_ARM, F_VH, F_ROTORS, F_DRAG]] = (float(law.follower_arm), law.vh_follower, bool(law.rotors),
                                            bool(law.drag))
     out[[F_GAIN, F_GRAVITY, F_C_STAR, F_C_SMALL]] = (rho * cd * area / (2.0 * mass), gravity, c_star, c_small)
     return out
