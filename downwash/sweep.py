@@ -92,7 +92,7 @@ def run_sweep(
     """
     from downwash_core.provenance import fingerprint
     from downwash.staged import ensure_collection
-    from downwash.sweep_cells import CellCache, _load_collection, plan_cells
+    from downwash.sweep_cells import CellCache, load_collection_with_digest, plan_cells
     from downwash.sweep_stats import PAPER_CLAIM, summarize_field
 
     check_execution(workers, batch, address)
@@ -105,7 +105,7 @@ def run_sweep(
     for spec in grid.fields:
         p = pipelines[spec]
         ensure_collection(p.collection_dir, p.models_dir, p.config, p.field, progress)
-        *data[spec], digest = _load_collection(p.collection_dir)
+        *data[spec], digest = load_collection_with_digest(p.collection_dir)
         collections[spec] = (fingerprint(p.record), data[spec][0].n_minutes, digest)
     cells = plan_cells(grid, collections)
     cache = CellCache(cache_dir)

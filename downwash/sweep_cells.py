@@ -74,7 +74,7 @@ from sim.fields.registry import resolve_field_spec
 
 __all__ = [
     "FULL", "CELL_VERSION", "PAPER_MINUTES", "PAPER_MODELS", "SEED_MAX", "MAX_SEEDS", "MAX_CELLS", "SweepGrid",
-    "Cell", "load_collection", "field_minutes", "plan_cells", "cell_data", "batch_cells", "run_cells", "CellCache",
+    "Cell", "load_collection", "load_collection_with_digest", "field_minutes", "plan_cells", "cell_data", "batch_cells", "run_cells", "CellCache",
 ]  # fmt: skip
 
 log = logging.getLogger("downwash.sweep")  # the sweep's logger, as before the cells had a module of their own
@@ -233,10 +233,10 @@ def load_collection(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict]
     folder holds no complete collection or its logs do not match the manifest
     (`downwash.manifest.verify_collection`: a missing, altered or unlisted log).
     """
-    return _load_collection(collection_dir)[:3]
+    return load_collection_with_digest(collection_dir)[:3]
 
 
-def _load_collection(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict, str]:
+def load_collection_with_digest(collection_dir: str | Path) -> tuple[Dataset, Dataset, dict, str]:
     """`load_collection` and the digest of its data (`downwash.manifest.collection_digest`)."""
     collection_dir = Path(collection_dir)
     manifest = read_manifest(collection_dir / "manifest.json")

@@ -44,12 +44,6 @@ from downwash_core.io import atomic_path
 from downwash_core.params import RATES
 from downwash_core.validate import count, positive_float
 from downwash_envs.video_tiles import WAKE_VIEW_DEPTH, CameraView, TiledRenderer, add_wake, wake_width
-# the drawing the viewer takes from here, under its former names
-from downwash_envs.video_tiles import PATH_RGBA as _PATH_RGBA  # noqa: F401
-from downwash_envs.video_tiles import REF_RADIUS as _REF_RADIUS  # noqa: F401
-from downwash_envs.video_tiles import add_geom as _add_geom  # noqa: F401
-from downwash_envs.video_tiles import add_line as _add_line  # noqa: F401
-from downwash_envs.video_tiles import decorated  # noqa: F401
 from sim.scene import Scene
 
 __all__ = [

@@ -38,8 +38,8 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.roles import Role
 from downwash_envs.rendering import REF_RGBA
-from downwash_envs.video import (  # add_wake: the viewer draws the wake as the videos do
-    _PATH_RGBA, _REF_RADIUS, CameraView, _add_geom, _add_line, add_wake, decorated, wake_width,
+from downwash_envs.video_tiles import (  # add_wake: the viewer draws the wake as the videos do
+    PATH_RGBA, REF_RADIUS, CameraView, add_geom, add_line, add_wake, decorated, wake_width,
 )
 from sim.scene import Scene
 from sim.simulator import Simulator
@@ -163,10 +163,10 @@ class Viewer:
                     add_wake(scn, d.xpos[b].copy(), d.xmat[b].reshape(3, 3).copy(), self.wake)
             for path in paths:
                 for a, b in zip(path[:-1], path[1:]):
-                    _add_line(scn, a, b, _LINE_PX, _PATH_RGBA)
+                    add_line(scn, a, b, _LINE_PX, PATH_RGBA)
             if ref_now is not None:
                 for p in np.asarray(ref_now, float).reshape(-1, 3):
-                    _add_geom(scn, mujoco.mjtGeom.mjGEOM_SPHERE, (_REF_RADIUS, 0, 0), p, np.eye(3), REF_RGBA)
+                    add_geom(scn, mujoco.mjtGeom.mjGEOM_SPHERE, (REF_RADIUS, 0, 0), p, np.eye(3), REF_RGBA)
         if text and hasattr(h, "set_texts"):
             h.set_texts((None, None, text, None))
         h.sync()

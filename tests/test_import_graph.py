@@ -231,14 +231,11 @@ KNOWN_PRIVATE_READS = {
     ("downwash.ensemble_settle", ("_u", "_v")): "torch's spectral-norm vectors",
     ("downwash.models", ("_u", "_v")): "torch's spectral-norm vectors (its power iteration, settled in place)",
     ("downwash.numpy_mlp", ("_u", "_v")): "torch's spectral-norm vectors",
-    ("downwash.sweep", ("_load_collection",)): "downwash.sweep_cells' collection loader",
     # the envs and the command lines
     ("downwash_envs.config", ("_own_predictor",)): "a cache the envs keep on their owner object",
     ("downwash_envs.evaluation", ("_setup_learn",)): "stable-baselines3's callback set-up",
     ("downwash_envs.rendering", ("_MUJOCO_GL",)): "MuJoCo's chosen GL back end",
     ("downwash_envs.viewer", ("_MJPYTHON",)): "MuJoCo's viewer: whether it runs under mjpython",
-    ("downwash_envs.viewer", ("_PATH_RGBA", "_REF_RADIUS", "_add_geom", "_add_line")):
-        "downwash_envs.video's and downwash_envs.rendering's drawing helpers",
 }
 
 
