@@ -85,7 +85,7 @@ def install_locator() -> bool:
             return False
     except (ImportError, AttributeError):
         return False
-    if any(getattr(c, "_downwash_stamp", False) for c in impl._locator_classes):
+    if any(getattr(c, "downwash_stamp", False) for c in impl._locator_classes):
         return True
     stamped = []
     for base in bases:
@@ -93,7 +93,7 @@ def install_locator() -> bool:
             return _base.from_function.__func__(cls, py_func, py_file) if _ours(py_file) else None
 
         stamped.append(type(f"Stamped{base.__name__}", (base,), {
-            "_downwash_stamp": True,
+            "downwash_stamp": True,
             "get_source_stamp": lambda self: source_stamp(),
             "from_function": classmethod(from_function),
         }))

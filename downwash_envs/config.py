@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+import weakref
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Mapping
@@ -471,7 +472,10 @@ def predictor_of(spec: Any, oracle: Any, owner: Any) -> Any:
     object (made once: a predictor with state, such as a guard or the observer, serves one simulator)."""
     if isinstance(spec, str) and spec != "dob":
         return oracle() if spec == "oracle" else ZeroPredictor()
-    own = getattr(owner, "_own_predictor", None)
+    own = _OWN_PREDICTORS.get(owner)
     if own is None:
-        own = owner._own_predictor = DisturbanceObserver() if spec == "dob" else copy.deepcopy(spec)
+        own = _OWN_PREDICTORS[owner] = DisturbanceObserver() if spec == "dob" else copy.deepcopy(spec)
     return own
+
+
+_OWN_PREDICTORS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # owner -> its own predictor (predictor_of)

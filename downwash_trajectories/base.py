@@ -81,9 +81,9 @@ def duration_of(period: np.ndarray) -> np.ndarray | float:
 
 
 # Stacked samples are filled in place: vec (3, W, V, 3) holds pos, vel, acc and ang (2, W, V)
-# yaw, yaw_rate, and a reference with `_sample_into(t, vec, ang, v)` writes vehicle v's
+# yaw, yaw_rate, and a reference with `sample_into(t, vec, ang, v)` writes vehicle v's
 # slots directly (the 50 Hz control path; a copy per field cost more than the sample). A class
-# with `_group_into(refs, shifts)` gives one `into(t, vec, ang, slots)` for all its references
+# with `group_into(refs, shifts)` gives one `into(t, vec, ang, slots)` for all its references
 # in a stack (see `combinators.StackedReference`): one call for the group, not one each.
 
 

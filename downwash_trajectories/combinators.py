@@ -92,9 +92,9 @@ class StackedReference:
 def _writers(refs: list[Reference], n_worlds: int) -> list[tuple[Callable[..., None], Any]]:
     """(into, slots) pairs: `into(t, vec, ang, slots)` fills those vehicle slots of a stacked sample.
 
-    References of a class with `_group_into` (possibly under one `TimeShifted`) share one `into`
+    References of a class with `group_into` (possibly under one `TimeShifted`) share one `into`
     per class, with their slots (V_g,): one compiled call for, say, five circles, where one each
-    cost more than the sample. Other references with `_sample_into` fill their own slot v; any
+    cost more than the sample. Other references with `sample_into` fill their own slot v; any
     other Reference is sampled and copied. The slots are disjoint, so the order does not matter.
     """
     groups: dict[type, list[tuple[int, Reference, np.ndarray | None]]] = {}
@@ -105,20 +105,20 @@ def _writers(refs: list[Reference], n_worlds: int) -> list[tuple[Callable[..., N
             t0 = np.asarray(ref.t0)
             if t0.dtype == np.float64 and t0.shape in ((), (n_worlds,)):  # else t + t0 is not plain float64 (W,)
                 inner, shift = ref.ref, np.broadcast_to(t0, (n_worlds,))
-        if hasattr(type(inner), "_group_into"):
+        if hasattr(type(inner), "group_into"):
             groups.setdefault(type(inner), []).append((v, inner, shift))
-        elif (into := getattr(ref, "_sample_into", None)) is not None:
+        elif (into := getattr(ref, "sample_into", None)) is not None:
             writers.append((into, v))
         else:
             writers.append((functools.partial(_copy_into, ref), v))
     for cls, members in groups.items():
         slots, grouped, shifts = zip(*members)
-        writers.append((cls._group_into(list(grouped), list(shifts)), np.array(slots, dtype=np.int64)))
+        writers.append((cls.group_into(list(grouped), list(shifts)), np.array(slots, dtype=np.int64)))
     return writers
 
 
 def _copy_into(ref: Reference, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
-    """Sample `ref` at t and copy it into vehicle slot v (a Reference without `_sample_into`)."""
+    """Sample `ref` at t and copy it into vehicle slot v (a Reference without `sample_into`)."""
     for dst, src in zip((vec[0, :, v], vec[1, :, v], vec[2, :, v], ang[0, :, v], ang[1, :, v]), ref(t)):
         dst[...] = src
 
@@ -136,9 +136,9 @@ class TimeShifted:
         self.ref, self.t0 = ref, t0
         self.n_worlds = ref.n_worlds
         self.duration = ref.duration
-        into = getattr(ref, "_sample_into", None)
+        into = getattr(ref, "sample_into", None)
         if into is not None:  # stacked: write the slots in place too (see downwash_trajectories.base)
-            self._sample_into = lambda t, vec, ang, v: into(t + self.t0, vec, ang, v)
+            self.sample_into = lambda t, vec, ang, v: into(t + self.t0, vec, ang, v)
 
     def __call__(self, t: Any) -> RefSample:
         return self.ref(np.asarray(t, dtype=float) + self.t0)

@@ -7,7 +7,7 @@
   the paper's future work), in a straight line or around a horizontal circle.
 
 Each serves W worlds (each world may have its own parameters) and has analytic derivatives;
-all but `Line` have a compiled `_sample_into` for stacking, and `Circle` a `_group_into` that
+all but `Line` have a compiled `sample_into` for stacking, and `Circle` a `group_into` that
 fills all the circles of a stack in one call (see `downwash_trajectories.base`); the tests
 check every derivative against finite differences. Waypoint patterns (`Waypoints`,
 `MIN_JERK_PEAK`) live in `downwash_trajectories.waypoints`, importable from here too.
@@ -141,7 +141,7 @@ class Hover:
         yaw, yaw_rate = zero_yaw(w)
         return RefSample(self.points.copy(), np.zeros((w, 3)), np.zeros((w, 3)), yaw, yaw_rate)
 
-    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    def sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
         _hover_into(self.points, vec, ang, v)
 
 
@@ -194,10 +194,10 @@ class Lemniscate:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
         vec, ang, _ = empty_sample(self.n_worlds, 1)
-        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        self.sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
         return single(vec, ang)
 
-    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    def sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
         _lemniscate_into(t, self._omega, self.center, self.half_length, self.half_width, vec, ang, v)
 
 
@@ -253,10 +253,10 @@ class Transect:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
         vec, ang, _ = empty_sample(self.n_worlds, 1)
-        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        self.sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
         return single(vec, ang)
 
-    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    def sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
         _transect_into(t, self._omega, self._base, self.half_length, vec, ang, v)
 
 
@@ -338,14 +338,14 @@ class Circle:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
         vec, ang, _ = empty_sample(self.n_worlds, 1)
-        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        self.sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
         return single(vec, ang)
 
-    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    def sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
         _circles_into(t, vec, ang, np.array([v]), *self._alone)
 
     @classmethod
-    def _group_into(cls, circles: list["Circle"], shifts: list[np.ndarray | None]):
+    def group_into(cls, circles: list["Circle"], shifts: list[np.ndarray | None]):
         """`into(t, vec, ang, slots)` that fills vehicle slots (G,) of a stacked sample with several
         circles, circle g at t + shifts[g] (s, (W,) float; None: at t): one compiled call for them
         all, not one each (a stack is sampled at every control tick). Reads the circles now."""

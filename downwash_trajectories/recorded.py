@@ -101,10 +101,10 @@ class Recorded:
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)); arrays (W, 3) and (W,)."""
         vec, ang, _ = empty_sample(self.n_worlds, 1)
-        self._sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
+        self.sample_into(sample_times(t, self.n_worlds), vec, ang, 0)
         return single(vec, ang)
 
-    def _sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
+    def sample_into(self, t: np.ndarray, vec: np.ndarray, ang: np.ndarray, v: int) -> None:
         """Samples at t (W,) s into vehicle slot v of vec (3, W, V, 3), ang (2, W, V)."""
         knots = self.t
         # segment i holds t in [t_i, t_{i+1}); times outside are clamped to an end segment's end

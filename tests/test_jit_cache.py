@@ -62,12 +62,12 @@ def test_the_stamp_covers_every_kernel_package_and_only_ours():
     assert jit.install_locator()  # (idempotent: installed at import)
     from numba.core import caching
 
-    stamped = [c for c in caching.CacheImpl._locator_classes if getattr(c, "_downwash_stamp", False)]
+    stamped = [c for c in caching.CacheImpl._locator_classes if getattr(c, "downwash_stamp", False)]
     assert len(stamped) == 3
     import sim.passes
 
     locator = sim.passes.actuate_kernel._cache._impl.locator
-    assert getattr(type(locator), "_downwash_stamp", False) and locator.get_source_stamp() == jit.source_stamp()
+    assert getattr(type(locator), "downwash_stamp", False) and locator.get_source_stamp() == jit.source_stamp()
     for package in jit.KERNEL_PACKAGES:
         assert (ROOT / package / "__init__.py").exists(), package
     assert all(c.from_function(numba.njit(lambda: 0).py_func, numba.__file__) is None for c in stamped)

@@ -579,7 +579,7 @@ def test_stack_fills_in_place_exactly_like_sampling_each_reference():
         # shifted by a per-world phase: in place through the inner reference, at t + t0
         TimeShifted(Lemniscate(rng.normal(size=(W, 3)), 1.0, 0.5, 10.0, n_worlds=W), rng.uniform(0, 10, W)),
     ]
-    assert hasattr(refs[-1], "_sample_into")
+    assert hasattr(refs[-1], "sample_into")
 
     class Opaque:  # a Reference without the in-place fill: sampled and copied
         def __init__(self, ref):

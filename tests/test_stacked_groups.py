@@ -1,4 +1,4 @@
-"""A stack fills references of one class together (`_group_into`, e.g. formation5's five circles in one
+"""A stack fills references of one class together (`group_into`, e.g. formation5's five circles in one
 compiled call): every vehicle's sample must be, bit for bit, its reference sampled on its own."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ KINDS = ["circle", "shifted_circle", "twice_shifted_circle", "int_shifted_circle
 
 
 class Opaque:
-    """A Reference without `_sample_into`: the stack samples and copies it."""
+    """A Reference without `sample_into`: the stack samples and copies it."""
 
     def __init__(self, ref):
         self.ref, self.n_worlds, self.duration = ref, ref.n_worlds, ref.duration
