@@ -58,15 +58,15 @@ from downwash_core.params import LEADER_POSITION
 from downwash_core.provenance import fingerprint
 from downwash_core.status import Status
 from downwash.checkpoint import checkpoint_digest, load_checkpoint, save_checkpoint
-from downwash.datasets import Dataset, concatenate, load_dataset
+from downwash.datasets import Dataset
 from downwash.forked_jobs import in_parallel as _in_parallel  # (importable from here as before: tests use it)
 from downwash.guard import GuardedPredictor
-from downwash.labels import label_noise_floor
+from downwash.labels import PAIR, label_noise_floor
 from downwash.manifest import (check_logs, check_models, integrity_error, listed_logs, rerun_command,
                                verify_collection, write_manifest)
 from downwash.models import PAIRWISE_KINDS, STAGED_KINDS
 from downwash.predictor import LearnedPredictor
-from downwash.stages import ProgressFactory, Stage, fly_recorded, locked_folder
+from downwash.stages import CheckedLoader, ProgressFactory, Stage, fly_recorded, locked_folder
 from downwash.staged_provenance import (  # the settings and provenance, importable from here as before
     DEPLOYED_KIND, STAGES, CollectionConfig, load_manifest, check_checkpoint, pipeline_dirs, provenance, train_config,
 )
@@ -117,27 +117,6 @@ def _check_stage(k: int, sdir: Path, entry: dict, cfg: CollectionConfig, deploye
         "flight that meets it as diverged. Check the field over this stage's separations "
         "(`python -m experiments.force_maps --field ...`); each log's metadata holds its flight's status and message."
     )
-
-
-class _Labelled:
-    """Labelled samples per folder, each folder's logs checked against the manifest before they are
-    read, loaded once per run (a finished stage's logs never change)."""
-
-    def __init__(self, out: Path, manifest: dict, rerun: str) -> None:
-        self.out, self.manifest, self.rerun = out, manifest, rerun
-        self._cache: dict[Path, Dataset] = {}
-
-    def __call__(self, dirs: list[Path]) -> Dataset:
-        for d in dirs:
-            if d not in self._cache:
-                problems = check_logs(self.out, self.manifest, [d])
-                if problems:
-                    raise integrity_error(self.out, problems, self.rerun)
-                files = [p for p in listed_logs(self.out, self.manifest) if p.parent == d]
-                if not files:
-                    raise DataError(f"{d}: the manifest lists no logs here; run `{self.rerun}` to collect them")
-                self._cache[d] = load_dataset(files)
-        return concatenate([self._cache[d] for d in dirs])
 
 
 def _train_and_save(kind: str, data: Dataset, train_dirs: list[Path], path: Path, cfg: CollectionConfig,
@@ -236,7 +215,7 @@ def _collect(cfg: CollectionConfig, out: Path, models_dir: Path, field: Any, pro
     run = {"pid": os.getpid(), "host": socket.gethostname(),
            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "flights": 0, "models": []}
 
-    labelled = _Labelled(out, manifest, rerun)
+    labelled = CheckedLoader(PAIR, {out: manifest}, rerun)  # the pair's samples, each folder checked once
     stage_results = []
     for k, stage in enumerate(STAGES):
         sdir = out / f"stage{k}"

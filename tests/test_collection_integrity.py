@@ -284,16 +284,16 @@ def test_an_edited_manifest_is_refused_by_name(copy, field):
 def test_sweep_cells_follow_the_data(copy, collection):
     """The same provenance with other data (a collection flown again by code that flies
     differently: its manifest records other data digests) gives other cells."""
-    from downwash.sweep_cells import _load_collection
+    from downwash.sweep_cells import load_collection_with_digest
 
     grid = SweepGrid(models=("shallow",), minutes=(0.1,), seeds=(0, 1), quick=True)
-    *_, digest = _load_collection(collection / "staged")
+    *_, digest = load_collection_with_digest(collection / "staged")
     assert digest == collection_digest(collection / "staged")
     path = copy / "staged" / "manifest.json"
     m = json.loads(path.read_text())
     m["stages"]["1"]["files"]["train/flight_000.npz"]["data_sha256"] = "0" * 64
     write_manifest(path, m)  # as other code would have written it
-    *_, other = _load_collection(copy / "staged")  # the files still match their SHA-256
+    *_, other = load_collection_with_digest(copy / "staged")  # the files still match their SHA-256
     assert other != digest
     a = plan_cells(grid, {"": ("key", 0.4, digest)})
     b = plan_cells(grid, {"": ("key", 0.4, other)})
