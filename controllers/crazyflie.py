@@ -165,6 +165,8 @@ class MellingerController(LabController):
     `LabController`. State: the integral of the position error (W, V, 3) m s, cleared by `reset(worlds)`.
     """
 
+    observer_bandwidth = 2.0  # rad/s, as chosen for it (results/observer_bandwidth.json; see FeedbackLinearisedLQR)
+
     def __init__(self, gains: MellingerGains | None = None, **limits: Any):
         super().__init__(**limits)
         self.gains = _gains(gains, MellingerGains)
@@ -265,6 +267,8 @@ class CrazyfliePID(LabController):
     (None: none, the autopilot's rotor limits); dt, max_tilt_deg, min_thrust_g: see `LabController`.
     State: the position and velocity integrators (W, V, 3), cleared by `reset(worlds)`.
     """
+
+    observer_bandwidth = 1.0  # rad/s, as chosen for it (results/observer_bandwidth.json; see FeedbackLinearisedLQR)
 
     def __init__(self, gains: PIDGains | None = None, thrust_max_g: float | None = None, **limits: Any):
         super().__init__(**limits)

@@ -95,6 +95,8 @@ class INDIController(LabController):
     has measured no acceleration: its command is nu less the whole prediction).
     """
 
+    observer_bandwidth = 1.0  # rad/s, as chosen for it (results/observer_bandwidth.json; see FeedbackLinearisedLQR)
+
     def __init__(self, kp: Any = None, kd: Any = None, cutoff_hz: float = CUTOFF_HZ, **limits: Any):
         super().__init__(**limits)
         default_kp, default_kd = lqr_matched_gains()

@@ -171,6 +171,10 @@ class FeedbackLinearisedLQR:
     simulator's 50 Hz path), tested against them.
     """
 
+    # rad/s: the disturbance observer's bandwidth under this controller, chosen on the training flights
+    # (`python -m experiments.observer_bandwidth`, results/observer_bandwidth.json; sim.observer.bandwidth_for)
+    observer_bandwidth = 8.0
+
     def __init__(self, config: LQRConfig | None = None, gain: np.ndarray | None = None):
         """gain: (4, 7) K in place of the LQR gain of `config`'s weights (e.g. the state part of an
         augmented system's gain, `controllers.integral`); the limits are still `config`'s."""

@@ -42,7 +42,7 @@ from downwash.guard import GuardedPredictor, guard_settings
 from downwash.predictor import LearnedPredictor
 from sim.flight import fly
 from sim.logs import FlightLog
-from sim.observer import DisturbanceObserver
+from sim.observer import DisturbanceObserver, bandwidth_for
 from sim.predictor import OraclePredictor, PerWorldPredictor, Predictor, ZeroPredictor
 from sim.scene import Scene
 from downwash_trajectories import Reference
@@ -111,23 +111,25 @@ def guard_record(conditions: Sequence[str], guard: dict | None = None) -> dict |
 
 
 def make_predictor(condition: str, field: Any, checkpoints: dict[str, Path] | None = None, guard: dict | None = None,
-                   *, aggregation: Any = None, load: Callable[[str], Predictor] | None = None) -> Predictor:
+                   *, aggregation: Any = None, load: Callable[[str], Predictor] | None = None,
+                   controller: Any = None) -> Predictor:
     """The predictor a condition flies with, the one factory every experiment uses. A learned condition's
     model "<kind>[-<data>]" comes from load(model) (default: `checkpoints[model]`, checked to be of its
     kind); guarded ones take the `GuardedPredictor` keywords `guard` (None: its defaults); the oracle
-    sums its field under `aggregation` (None: linear)."""
+    sums its field under `aggregation` (None: linear); the observer (``dob``, ``<model>_dob``) runs at
+    the bandwidth chosen for the flights' `controller` (`sim.observer.bandwidth_for`; None: the LQR)."""
     if condition in ("no_downwash", "baseline", "integral"):
         return ZeroPredictor()
     if condition == "oracle":
         return OraclePredictor(field, aggregation=aggregation)
     if condition == "dob":
-        return DisturbanceObserver()
+        return DisturbanceObserver(bandwidth=bandwidth_for(controller))
     # "<kind>" or "<kind>-<data>" (the same kind trained on other data, e.g. equivariant-outdoor), maybe guarded
     model = model_of(condition)
     predictor = (load(model) if load is not None
                  else LearnedPredictor.from_checkpoint(checkpoints[model], expect_kind=_kind(condition)))
     if condition.endswith(OBSERVED):
-        return DisturbanceObserver(predictor)
+        return DisturbanceObserver(predictor, bandwidth=bandwidth_for(controller))
     return GuardedPredictor(predictor, **(guard or {})) if condition.endswith(GUARDED) else predictor
 
 
@@ -197,7 +199,8 @@ def fly_conditions(
     controller). The conditions the fused tick can fly go as one batch, the others as a second
     (module doc).
     """
-    predictors = [make_predictor(c, field, checkpoints, guard) for c in conditions]
+    predictors = [make_predictor(c, field, checkpoints, guard, controller=components.get("controller"))
+                  for c in conditions]
     return fly_predictors(scene, conditions, predictors, reference, seeds, duration, meta=meta, field=field,
                           **components)
 

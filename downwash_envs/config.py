@@ -27,7 +27,7 @@ from downwash_core.validate import choice, count, number, pair
 from downwash_envs.option_checks import check_not_text_or_bool, number_option, pair_option, unknown_options_error
 from sim.field import DownwashField, check_field
 from sim.field_memory import is_stateful_field
-from sim.observer import DisturbanceObserver
+from sim.observer import DEFAULT_BANDWIDTH, DisturbanceObserver
 from sim.predictor import ZeroPredictor
 from sim.fields.registry import FIELDS, field_parameters, resolve_field_spec
 from sim.simulator import SimConfig
@@ -118,7 +118,7 @@ class FollowerConfig:
             must divide the 100 Hz autopilot grid). Default 50 (10 physics steps).
         predictor: "none", "oracle" (the LQR subtracts the true mean field,
             evaluated at 45 Hz; residual mode only), "dob" (a disturbance observer,
-            `sim.observer.DisturbanceObserver`, at its stated bandwidth: the generic
+            `sim.observer.DisturbanceObserver`, at the bandwidth chosen for the env's controller: the generic
             baseline a learned compensation is compared with), or a predictor object
             (`sim.predictor.Predictor`, e.g. a learned model behind the guard:
             ``GuardedPredictor(LearnedPredictor.from_checkpoint(path))`` of
@@ -466,15 +466,17 @@ def _reference_probe(c: FollowerConfig) -> None:
         )
 
 
-def predictor_of(spec: Any, oracle: Any, owner: Any) -> Any:
+def predictor_of(spec: Any, oracle: Any, owner: Any, bandwidth: float = DEFAULT_BANDWIDTH) -> Any:
     """The predictor an env's ``predictor`` option names: no model for "none", ``oracle()`` for
-    "oracle", else the owner's own disturbance observer ("dob") or deep copy of the given predictor
-    object (made once: a predictor with state, such as a guard or the observer, serves one simulator)."""
+    "oracle", else the owner's own disturbance observer ("dob", at `bandwidth`: the one chosen for the
+    env's controller, `sim.observer.bandwidth_for`) or deep copy of the given predictor object (made
+    once: a predictor with state, such as a guard or the observer, serves one simulator)."""
     if isinstance(spec, str) and spec != "dob":
         return oracle() if spec == "oracle" else ZeroPredictor()
     own = _OWN_PREDICTORS.get(owner)
     if own is None:
-        own = _OWN_PREDICTORS[owner] = DisturbanceObserver() if spec == "dob" else copy.deepcopy(spec)
+        own = _OWN_PREDICTORS[owner] = (DisturbanceObserver(bandwidth=bandwidth) if spec == "dob"
+                                        else copy.deepcopy(spec))
     return own
 
 

@@ -31,7 +31,7 @@ from downwash_core.validate import count
 from downwash_envs.config import (
     REWARD_WEIGHTS, FollowerConfig, build_field, make_config, number_option, predictor_of, unknown_options_error,
 )
-from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
+from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales, env_controller
 from downwash_envs.observation import OBSERVATION, ObsEntry, layout_table, layout_bounds, layout_slices, table_row
 from downwash_envs.reward import REWARD_TERMS
 from sim.aggregation import DEFAULT_AGGREGATION, LinearSuperposition, make_aggregation
@@ -39,6 +39,7 @@ from sim.neighbours import NeighbourSet, select_into, select_neighbours
 from sim.predictor import OraclePredictor
 from sim.presets import Preset, make_preset
 from sim.scene import Scene, build_scene
+from sim.observer import bandwidth_for
 from downwash_trajectories import Cached, TimeShifted
 
 __all__ = [
@@ -390,7 +391,8 @@ class SwarmWorlds(TaskWorlds):
         self._base_ref = preset.reference(n_worlds, sim.collision_radius_xy, sim.collision_radius_z)
         # linear superposition is the simulator's (and the oracle's) own sum; another law goes into their slot
         extra = {} if isinstance(cfg.law, LinearSuperposition) else {"aggregation": cfg.law}
-        predictor = predictor_of(task.predictor, lambda: OraclePredictor(cfg.field, **extra), self)
+        predictor = predictor_of(task.predictor, lambda: OraclePredictor(cfg.field, **extra), self,
+                                 bandwidth_for(env_controller(task)))
         super().__init__(task, scene, agent_index, [SwarmEpisode(0, 0.0)] * int(n_worlds), n_threads,
                          field=cfg.field, predictor=predictor, **extra)
         self.obs_shape = (agent_index.size, obs_dim(self.K))

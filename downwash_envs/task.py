@@ -25,7 +25,7 @@ import numpy as np
 
 from downwash_core.jit import njit
 from downwash_envs.config import FIELD_KNOBS, FollowerConfig, build_field, predictor_of
-from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales
+from downwash_envs.engine import TaskWorlds, VehicleScales, check_action, draw_vehicle_scales, env_controller
 from downwash_envs.observation import OBS_DIM, OBS_SLICES, OBSERVATION, obs_bounds
 from downwash_envs.reward import (  # noqa: F401  (the follower task's reward, defined once for both tasks)
     ERROR_CAP, INFO_KEYS, REWARD_TERMS, squared_norm, task_constants, task_kernel, task_terms,
@@ -34,6 +34,7 @@ from sim.field import DownwashField
 from sim.fields.per_world import PerWorldFields
 from sim.predictor import OraclePredictor
 from sim.scene import Scene, build_scene
+from sim.observer import bandwidth_for
 from downwash_trajectories import Cached, Hover, TimeShifted, Waypoints, make_reference, random_passes, stack
 
 __all__ = [
@@ -175,7 +176,8 @@ class FollowerWorlds(TaskWorlds):
         return dataclasses.replace(self.base_field, **values)
 
     def _predictor(self, field: Any) -> Any:
-        return predictor_of(self.cfg.predictor, lambda: OraclePredictor(field), self)
+        return predictor_of(self.cfg.predictor, lambda: OraclePredictor(field), self,
+                            bandwidth_for(env_controller(self.cfg)))
 
     def _episodes_changed(self) -> None:
         if self.scale_names:

@@ -146,7 +146,7 @@ def _model_paths(names: list[str], pair_model: Path, models_dir: Path, pair_mode
 
 
 def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], neighbours,
-                guard: dict[str, float]) -> list:
+                guard: dict[str, float], controller: Any = None) -> list:
     from downwash.checkpoint import wrap_pairwise
     from downwash.conditions import make_predictor
     from downwash.predictor import LearnedPredictor
@@ -158,7 +158,7 @@ def _predictors(names: list[str], field: Any, law: Any, paths: dict[str, Path], 
         return LearnedPredictor(paths[model], expect_neighbours=neighbours,
                                 expect_aggregation=None if mix == "pair" else law)
 
-    return [make_predictor(c, field, guard=guard, aggregation=law, load=load) for c in names]
+    return [make_predictor(c, field, guard=guard, aggregation=law, load=load, controller=controller) for c in names]
 
 
 def run(args: SwarmArgs) -> dict:
@@ -196,7 +196,7 @@ def run(args: SwarmArgs) -> dict:
         results["laws"][law_name] = {"law": describe(law), "collection_dir": str(swarm_dir),
                                      "models": collected["models"], "stages": collected["stages"]}
         paths = _model_paths(names, pair_model, swarm_dir / "models", pair_models_dir)
-        predictors = _predictors(names, p.field, law, paths, cfg.neighbours, guard)
+        predictors = _predictors(names, p.field, law, paths, cfg.neighbours, guard, components["controller"])
         for preset in presets:
             duration = args.duration or (2.0 if args.quick else max(preset.duration, 10.0))
             W = len(names) * K

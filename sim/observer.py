@@ -35,11 +35,18 @@ from downwash_core.errors import ConfigError
 from downwash_core.state import VehicleStates
 from sim.predictor import ZeroPredictor, is_stateful
 
-__all__ = ["DisturbanceObserver", "DEFAULT_BANDWIDTH"]
+__all__ = ["DisturbanceObserver", "DEFAULT_BANDWIDTH", "bandwidth_for"]
 
 # rad/s (a time constant of 0.125 s): chosen once on the staged collection's training flights, never
 # on a test flight, by `python -m experiments.observer_bandwidth` (results/observer_bandwidth.json)
-DEFAULT_BANDWIDTH = 8.0
+DEFAULT_BANDWIDTH = 8.0  # under the paper's LQR; each controller states its own (`bandwidth_for`)
+
+
+def bandwidth_for(controller: Any) -> float:
+    """The observer's bandwidth under `controller`, rad/s: its ``observer_bandwidth`` (chosen for it as
+    `DEFAULT_BANDWIDTH` was for the LQR: the observer estimates what the command misses, so the best
+    bandwidth depends on the controller), else `DEFAULT_BANDWIDTH` (None: the default LQR)."""
+    return float(getattr(controller, "observer_bandwidth", DEFAULT_BANDWIDTH))
 
 
 class DisturbanceObserver:

@@ -109,11 +109,12 @@ def _fakes():
                                                                          "deep": 0.611, "equivariant": 0.5954,
                                                                          "equivariant_general": 0.5987}}}}
     bandwidth = {"experiment": "observer_bandwidth", "flights_per_stage": 4, "seconds": 28.5, "stages": [[1.35, 1.75]],
-                 "criterion": "mean 3-D tracking error of the follower", "best": 16.0, "chosen": 8.0,
+                 "criterion": "mean 3-D tracking error of the follower",
                  "rule": "the lowest bandwidth whose paired 95 % interval against the best reaches 0",
-                 "candidates": [{"bandwidth": b, "pos_err_3d_mean": e, "minus_best_ci95": ci, "estimation_rms": rms,
-                                 "crashes": 0} for b, e, ci, rms in ((8.0, 0.01541, [-0.0011, 0.0014], 0.2602),
-                                                                    (16.0, 0.01532, [0.0, 0.0], 0.4641))]}
+                 "controllers": {"lqr": {"best": 16.0, "chosen": 8.0, "candidates": [
+                     {"bandwidth": b, "pos_err_3d_mean": e, "minus_best_ci95": ci, "estimation_rms": rms, "crashes": 0}
+                     for b, e, ci, rms in ((8.0, 0.01541, [-0.0011, 0.0014], 0.2602),
+                                           (16.0, 0.01532, [0.0, 0.0], 0.4641))]}}}
     return {"staged_collection": ("experiments.staged_collection", "StagedArgs", staged),
             "observer_bandwidth": ("experiments.observer_bandwidth", "BandwidthArgs", bandwidth),
             "controller_table": ("experiments.controller_table", "ControllerTableArgs", {

@@ -146,17 +146,22 @@ def render_swarm_baselines(presets: dict[str, dict]) -> str | None:
 
 
 def render_observer_bandwidth(r: dict, label: str) -> str:
-    rows = [[short(e["bandwidth"]), fmt(100 * e[_ERROR]), "{:+.2f} to {:+.2f}".format(*(100 * x for x in e["minus_best_ci95"])),
-             fmt(e["estimation_rms"]), str(e["crashes"])] for e in r["candidates"]]
-    return "\n\n".join([
-        f"The disturbance observer's one setting, its bandwidth, chosen once on the staged collection's training "
-        f"flights ({r['flights_per_stage']} per stage, {short(r['seconds'])} s each, the follower flying the "
-        f"stages' patterns with the observer alone), never on a test flight. Criterion: {r['criterion']}; rule: "
-        f"{r['rule']}. Best: {short(r['best'])} rad/s; chosen: **{short(r['chosen'])} rad/s**, the default of every "
-        f"`dob` condition (`{label}`):",
-        markdown_table(["bandwidth (rad/s)", "3-D error (cm)", "minus the best, cm (95 % CI)",
-                "estimation RMS (m/s^2)", "crashes"], rows)])
-
+    controllers = {c: r["controllers"][c] for c in sorted(r["controllers"], key=lambda k: (
+        CONTROLLER_NAMES.index(k) if k in CONTROLLER_NAMES else len(CONTROLLER_NAMES), k))}  # the registry's order
+    chosen = ", ".join(f"{c} **{short(e['chosen'])} rad/s**" for c, e in controllers.items())
+    parts = [f"The disturbance observer's one setting, its bandwidth, chosen once on the staged collection's training "
+             f"flights ({r['flights_per_stage']} per stage, {short(r['seconds'])} s each, the follower flying the "
+             f"stages' patterns with the observer alone) under each controller, never on a test flight. Criterion: "
+             f"{r['criterion']}; rule: {r['rule']}. Chosen: {chosen}; every `dob` and `<model>_dob` condition flies "
+             f"its controller's (`sim.observer.bandwidth_for`; `{label}`):"]
+    for c, e in controllers.items():
+        rows = [[short(x["bandwidth"]), fmt(100 * x[_ERROR]),
+                 "{:+.2f} to {:+.2f}".format(*(100 * v for v in x["minus_best_ci95"])), fmt(x["estimation_rms"]),
+                 str(x["crashes"])] for x in e["candidates"]]
+        parts += [f"Under `{c}` (best {short(e['best'])} rad/s, chosen {short(e['chosen'])} rad/s):",
+                  markdown_table(["bandwidth (rad/s)", "3-D error (cm)", "minus the best, cm (95 % CI)",
+                                  "estimation RMS (m/s^2)", "crashes"], rows)]
+    return "\n\n".join(parts)
 
 
 def render_controller_table(r: dict, label: str) -> str:
