@@ -21,8 +21,8 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from downwash_core.jit import njit
 
-__all__ = ["Physics", "make_physics", "mj_step_address", "profiling_timer_off", "resolve_threads", "usable_cores", "available_memory",
-           "check_world_memory", "world_bytes", "MEMORY_FRACTION"]
+__all__ = ["Physics", "SerialPhysics", "make_physics", "mj_step_address", "profiling_timer_off", "resolve_threads",
+           "usable_cores", "available_memory", "check_world_memory", "world_bytes", "MEMORY_FRACTION"]
 
 log = logging.getLogger(__name__)
 

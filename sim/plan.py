@@ -178,7 +178,7 @@ def make_plan(sim: Any, bound: PlanInputs) -> Plan | None:
         code = PRED_C
     try:
         return Plan(sim, bound, stepping, native, field_packed, oracle_packed, code, compiled, n_threads, per_world,
-                     guard, (field_law, oracle_law))
+                    guard, (field_law, oracle_law))
     except _NoPlan:
         return None
 
