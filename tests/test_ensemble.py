@@ -17,7 +17,6 @@ from downwash_core.errors import ConfigError
 from downwash.checkpoint import load_checkpoint, save_checkpoint
 from downwash.ensemble import train_ensemble
 from downwash.models import PAIRWISE_KINDS, DownwashModel
-from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from test_training import field_dataset
 

@@ -10,7 +10,7 @@ from downwash.predictor import LearnedPredictor
 from downwash.train import TrainConfig, rmse, train_model
 from sim.field import DownwashField
 from sim.flight import fly
-from downwash_core.params import LEADER_POSITION, RATES
+from downwash_core.params import LEADER_POSITION
 from sim.scene import build_scene
 
 LEADER = np.array(LEADER_POSITION)

@@ -36,7 +36,6 @@ def test_each_controllers_bandwidth_is_the_committed_choice_and_the_rule_holds()
 def test_the_observer_flies_at_its_controllers_bandwidth_in_every_condition_and_env():
     from controllers.crazyflie import MellingerController
     from downwash.conditions import make_predictor
-    from downwash_envs.config import predictor_of
     from sim.observer import bandwidth_for
 
     mellinger = MellingerController()

@@ -41,8 +41,7 @@ from downwash.features import (
 )
 from test_checkpoint import trained_like  # tests/ is on sys.path under pytest
 from downwash.labels import DEFAULT_POLYORDER, DEFAULT_WINDOW, FAIL_MARGIN_S, SAMPLE_SCHEMA, labels_from_log
-from downwash.models import PAIRWISE_KINDS, DeepSNMLP
-from downwash.registry import make_model
+from downwash.models import PAIRWISE_KINDS
 from sim.field import DownwashField, pairwise_field
 from sim.logs import ARRAY_SPECS, FlightLog
 from conftest import restamp

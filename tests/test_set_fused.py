@@ -17,7 +17,7 @@ does for the pair predictor).
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 import downwash.predictor as predictor_module
