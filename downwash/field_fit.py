@@ -5,12 +5,8 @@
     write_fitted("so2.json", fit)                      # then --field fitted:so2.json
     randomization_ranges(fit); compare_forces(fit, held_out)
 
-Samples (`pair_states`): `downwash.real_logs.flights.labelled_samples`' (contacts, crashes and their
-margins dropped), each with one leader: the vehicle above the follower (by more than WAKE_DEPTH[0])
-laterally nearest to it, since every field's wake is a column below its leader, so the lateral offset
-decides whether the follower is in it; with none above, the nearest other vehicle, whose wake the fields
-put at (or near) zero there, which keeps a fit honest about where there is no wake. Samples under two or
-more vehicles (``LS2S``, ...) are dropped: their force is two wakes' sum, which one leader cannot give.
+Samples (`pair_states`, `downwash.field_fit_samples`, which says how each follower's one leader is
+picked): real labelled samples, each a follower with one leader.
 Fit (`fit_field`): least squares of a few float parameters of a registered field (`DEFAULT_FIT`; fitting
 every constant is ill-posed), scaled for each pair's kinds (`sim.vehicle_params.pair_field`), to the
 labels y (N, 3) m/s^2 over three axes; parameters with positive bounds in log space (relative steps).

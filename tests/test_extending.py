@@ -20,6 +20,19 @@ def _flight(duration=2.0, **components):
     return fly(build_scene(), reference, [0], duration, **components)[0]
 
 
+def _fused_equals_readable(sims, n_ticks=40, reset_at=15):
+    """Tick a fused and a readable simulator of the same worlds side by side, world 1 reset at tick
+    `reset_at` (None: never): every tick's rows are equal bit for bit. Returns the last tick's rows."""
+    assert sims[0]._plan is not None and sims[1]._plan is None
+    for k in range(n_ticks):
+        if k == reset_at:
+            for sim in sims:
+                sim.reset(np.array([1]))
+        rows = [dict(sim.tick()) for sim in sims]
+        assert all(np.array_equal(rows[0][name], rows[1][name], equal_nan=True) for name in rows[0])
+    return rows
+
+
 def test_the_field_recipe_flies_by_import_path(tmp_path, monkeypatch):
     from experiments.common import load_field
 
@@ -59,13 +72,7 @@ def test_the_compiled_field_recipe_flies_the_fused_tick_as_the_readable_path(tmp
     field = CompiledGaussianJet()
     reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], 0.1, 0.05, n_worlds=3)])
     sims = [Simulator(build_scene(), reference, [0, 1, 2], field=field, fast=fast) for fast in (True, False)]
-    assert sims[0]._plan is not None and sims[1]._plan is None
-    for k in range(40):
-        if k == 15:
-            for sim in sims:
-                sim.reset(np.array([1]))
-        rows = [dict(sim.tick()) for sim in sims]
-        assert all(np.array_equal(rows[0][name], rows[1][name], equal_nan=True) for name in rows[0])
+    rows = _fused_equals_readable(sims)
     assert rows[0]["field_mean"][:, 1, 2].mean() < -1.0  # the jet pushes the follower down
     state = sims[0].true_states()
     np.testing.assert_allclose(field.pairwise(state.pos, state.vel, state.rot),
@@ -224,10 +231,7 @@ def test_the_compiled_controller_recipe_flies_the_fused_tick_as_the_readable_pat
     reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=3)])
     sims = [Simulator(build_scene(), reference, [0, 1, 2], controller=namespace["CompiledPD"](), fast=fast)
             for fast in (True, False)]
-    assert sims[0]._plan is not None and sims[1]._plan is None
-    for _ in range(50):
-        rows = [dict(sim.tick()) for sim in sims]
-        assert all(np.array_equal(rows[0][k], rows[1][k], equal_nan=True) for k in rows[0])
+    _fused_equals_readable(sims, n_ticks=50, reset_at=None)
     assert np.all(sims[0].controller.memory[..., 0] == 50)
 
 
@@ -285,13 +289,7 @@ def test_the_compiled_sensor_recipe_flies_the_fused_tick_as_the_readable_path(tm
     reference = stack([Hover(LEADER, n_worlds=3), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=3)])
     config = SimConfig(mocap=cls(loss=0.4))
     sims = [Simulator(scene, reference, [0, 1, 2], config=config, fast=fast) for fast in (True, False)]
-    assert sims[0]._plan is not None and sims[1]._plan is None
-    for k in range(40):
-        if k == 15:
-            for sim in sims:
-                sim.reset(np.array([1]))
-        rows = [dict(sim.tick()) for sim in sims]
-        assert all(np.array_equal(rows[0][name], rows[1][name], equal_nan=True) for name in rows[0])
+    _fused_equals_readable(sims)
     pair = stack([Hover(LEADER, n_worlds=2), Hover(LEADER - [0, 0, 0.6], n_worlds=2)])  # the page's two seeds
     run = {"SimConfig": SimConfig, "DropoutMocap": cls, "scene": scene, "reference": pair,
            "fly": lambda *args, duration, **kw: fly(*args, duration=2.0, **kw)}
