@@ -87,9 +87,11 @@ def pair_forces_kernel(pos, vel, rot, c, scale):
 
     The same statements as `pairwise_kernel`, accumulating into out[w, i, j] instead
     of out[w, j] (so for V = 2 the two agree bit for bit). A copy rather than a shared
-    helper: numba does not inline across cached functions, and a helper called per pair
-    cost `pairwise_kernel`, the 100 Hz path, 20-100 % (measured); the tests pin the two
-    loops to each other and to `DownwashField.__call__`. c and scale as in `pairwise_kernel`.
+    helper: a helper called per pair cost `pairwise_kernel`, the 100 Hz path, 20-100 %
+    (measured). One inlined into both (`downwash_core.jit.njit_inline`) would have to hand back
+    the radial-and-down and the swirl terms apart, since `pairwise_kernel` adds them to its sum
+    one after the other (their bits); not tried. The tests pin the two loops to each other and
+    to `DownwashField.__call__`. c and scale as in `pairwise_kernel`.
     """
     strength, depth0, width0, width_slope, fade_start, fade_end = c[0], c[1], c[2], c[3], c[4], c[5]
     approach_gain, approach_speed, radial_gain, radial_offset = c[6], c[7], c[8], c[9]
