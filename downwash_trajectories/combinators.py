@@ -82,11 +82,17 @@ class StackedReference:
 
     def __call__(self, t: float | ArrayLike) -> RefSample:
         """Sample at `t` (s, float or (W,)): pos/vel/acc (W, V, 3), yaw/yaw_rate (W, V)."""
-        t = sample_times(t, self.n_worlds)
         vec, ang, out = empty_sample(self.n_worlds, self.n_vehicles)
+        self.fill(t, vec, ang)
+        return out
+
+    def fill(self, t: float | ArrayLike, vec: np.ndarray, ang: np.ndarray) -> None:
+        """Sample at `t` into storage of `empty_sample`'s layout: vec (3, W, V, 3) (pos, vel, acc),
+        ang (2, W, V) (yaw, yaw rate). A caller that samples every tick keeps its storage (the
+        simulator's fused tick): the same sample as `self(t)`, without new arrays."""
+        t = sample_times(t, self.n_worlds)
         for into, slots in self._writers:
             into(t, vec, ang, slots)
-        return out
 
 
 def _writers(refs: list[Reference], n_worlds: int) -> list[tuple[Callable[..., None], Any]]:

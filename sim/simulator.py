@@ -247,6 +247,8 @@ class Simulator(FusedTicks, ReadableTicks):
         self._yaw_rate_des = np.empty((W, V))  # rad/s
         self._thrust_acc = np.empty((W, V))  # m/s^2
         self._status_new = np.zeros(W, np.int64)
+        self._ref_storage = (np.empty((3, W, V, 3)), np.empty((2, W, V)))  # a stacked reference's samples (vec, ang)
+        self._ref_views = (*self._ref_storage[0], *self._ref_storage[1])  # pos, vel, acc, yaw, yaw_rate
         self.row: Mapping[str, np.ndarray] = {}
         self.wind = wind
         announce_first_compile()

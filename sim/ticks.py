@@ -16,6 +16,7 @@ import numpy as np
 
 from controllers.lqr import ControllerState, Setpoint
 from downwash_core.state import VehicleStates
+from downwash_trajectories.combinators import StackedReference
 from sim import fork_join
 from sim.aggregation import wake_field
 from sim.fused_abi import FC, STEP_CALLER, TAB
@@ -36,13 +37,18 @@ class FusedTicks:
 
     def _tick_fused(self, plan: Plan, residual: np.ndarray | None, override: np.ndarray | None) -> Row:
         """One controller tick through `_fused_kernel` (see the module docstring)."""
-        ref = self.reference(self.t)
+        reference = self.reference
+        if type(reference) is StackedReference and reference.n_vehicles == self.V:  # into kept storage
+            reference.fill(self.t, *self._ref_storage)
+            refs = self._ref_views
+        else:
+            ref = reference(self.t)
+            refs = (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate)
         flat = np.empty(plan.row_size)
         n_sub, block = plan.n_sub, self.cfg.noise_block
         actions = (residual is not None) + 2 * (override is not None)
         residual = plan.no_action if residual is None else kernel_array(residual)
         override = plan.no_action if override is None else kernel_array(override)
-        refs = (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate)
         if plan.n_threads > 1:  # the helpers read them by address, as C-contiguous arrays
             refs = tuple(kernel_array(x) for x in refs)
         args = plan.leading_args + refs + (residual, override, actions, flat)

@@ -433,6 +433,21 @@ def test_stack_shapes_and_values():
     assert_fd_derivatives(both, t)
 
 
+def test_stack_fill_writes_the_sample_into_kept_storage():
+    """`fill` (the simulator's fused tick samples through it) equals a call, overwriting whatever
+    the storage held, and checks the times as a call does."""
+    w = 4
+    both = stack([Hover(LEADER, n_worlds=w), Lemniscate(LEADER - [0, 0, 0.6], n_worlds=w, period=[10, 12, 14, 16]),
+                  random_passes(np.random.default_rng(1), w, LEADER)])
+    vec, ang = np.full((3, w, 3, 3), np.nan), np.full((2, w, 3), np.nan)
+    for t in (np.array([0.5, 1.5, 7.0, 30.0]), 3.25):
+        both.fill(t, vec, ang)
+        for x, y in zip((*vec, *ang), both(t)):
+            np.testing.assert_array_equal(x, y)
+    with pytest.raises(ConfigError, match="t: expected"):
+        both.fill(np.zeros(3), vec, ang)
+
+
 def test_stack_rejects_mismatched_world_counts():
     with pytest.raises(ValueError, match="same n_worlds"):
         stack([Hover(LEADER, n_worlds=2), Hover(LEADER, n_worlds=3)])
