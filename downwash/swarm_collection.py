@@ -26,7 +26,8 @@ the two-vehicle data only ("pair") and on all of it ("mixed"), the generalisatio
 of the paper's section 6, and once more on all of it reading the vehicle kinds ("kinds",
 ``kinds=True``), so that "mixed" against "kinds" isolates what knowing the kinds is worth.
 The "pair" models depend on no law, so they live in
-a folder of their own (`pair_models_dir`) that every law's collection shares. The
+a folder of their own (`pair_models_dir`) that every law's collection shares, each training
+them there under that folder's lock. The
 models of sets train on a shorter schedule than the two-vehicle models
 (`swarm_train_config`: at least 600 steps, at most 20 epochs, against 1500 and 60), so
 that the swarm experiment fits its five minutes on two cores.
@@ -44,6 +45,7 @@ with the differences.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -223,8 +225,10 @@ def collect_swarm(
         for kind in TRAINABLE_SET_KINDS:
             for mix in DATA_MIXES:
                 path = swarm_model_path(Path(pair_models_dir) if mix == "pair" else out / "models", kind, mix)
-                if not path.is_file():
-                    _train(kind, data[mix], path, cfg, kinds=mix == "kinds")
+                # the pair models' folder is every law's: another law's collection may be training there
+                with locked_folder(path.parent, "swarm pair models") if mix == "pair" else contextlib.nullcontext():
+                    if not path.is_file():
+                        _train(kind, data[mix], path, cfg, kinds=mix == "kinds")
                 model = load_checkpoint(path, expect_kind=kind).model
                 models[f"{kind}-{mix}"] = {"path": str(path), "val_rmse": rmse(model, val)[0]}
         manifest["complete"] = True

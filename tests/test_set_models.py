@@ -566,6 +566,61 @@ def test_the_swarm_predictor_clamps_as_the_pair_predictor(backend):
         LearnedPredictor(wrap_pairwise(pair, NeighbourSet(3)), clamp=float("nan"))
 
 
+def test_the_swarm_collection_trains_the_shared_pair_models_under_their_folders_lock(tmp_path, monkeypatch):
+    """Every law's collection trains the law-free pair models into one folder: each trains them holding that
+    folder's lock (another process could not take it meanwhile), the models of its own data under its own."""
+    import fcntl
+    import os
+
+    import downwash.swarm_collection as sc
+    from downwash_core.locks import LOCK_NAME
+    from sim.aggregation import make_aggregation
+
+    pair_path = tmp_path / "equivariant.pt"
+    save_checkpoint(pair_path, trained_like("equivariant"), {})
+    pair_dir, swarm_dir = tmp_path / "pair_models", tmp_path / "swarm"
+
+    def taken(folder):
+        fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a descriptor of its own: as another process would
+            return False
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)
+
+    trained = {}
+
+    def train(kind, data, path, cfg, kinds=False):
+        trained[path] = taken(pair_dir if path.parent == pair_dir else swarm_dir)
+        save_checkpoint(path, make_model(kind).eval(), {}, neighbours=cfg.neighbours,
+                        provenance={"aggregation": None, "field": None})
+
+    class Data:
+        skipped = {}
+
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __call__(self, *args, **kwargs):
+            return None
+
+    monkeypatch.setattr(sc, "fly_recorded", lambda *args, **kwargs: None)  # no flights, no data: the wiring only
+    monkeypatch.setattr(sc, "CheckedLoader", Data)
+    monkeypatch.setattr(sc, "concatenate", lambda parts: None)
+    monkeypatch.setattr(sc, "rmse", lambda model, data: (0.0,))
+    monkeypatch.setattr(sc, "_train", train)
+    sc.collect_swarm(sc.SwarmCollectionConfig(quick=True), swarm_dir, tmp_path / "pair", pair_path, {}, None,
+                     make_aggregation("linear"), pair_dir)
+    pair = {path: held for path, held in trained.items() if path.parent == pair_dir}
+    assert len(pair) == len(sc.TRAINABLE_SET_KINDS) and all(pair.values())
+    assert not taken(pair_dir)  # let go after
+    # the other models (the stages' and those of the swarm's own data) under the collection's own lock
+    own = [held for path, held in trained.items() if path.is_relative_to(swarm_dir)]
+    assert len(own) == len(trained) - len(pair) > 0 and all(own)
+
+
 def test_the_swarm_collection_deploys_its_models_clamped(tmp_path, monkeypatch):
     """Its provenance records the clamp, and the deployed predictor applies it (it was never applied)."""
     import downwash.stages as stages
