@@ -202,7 +202,7 @@ class Plan:
         ph = sim.physics
         self.revision = ph.revision
         self.stepping = stepping
-        self.n_sub = r.autopilot_per_control
+        self.n_sub, self.noise_block = r.autopilot_per_control, cfg.noise_block  # autopilot ticks: a tick's, a block's
         pw_guards = per_world is not None and bool(per_world["pw_guard_fn"].any())
         self.row_layout, self.row_size = row_layout(W, V, bound.wind_on, guard is not None or pw_guards)
         wind_consts = sim.wind.kernel_constants() if bound.wind_on else (np.zeros(3), np.zeros(3), np.ones(3), np.eye(3), 1.0)

@@ -402,10 +402,14 @@ class Simulator(FusedTicks, ReadableTicks):
         worlds: it gets an error instead, never a hang."""
         lock = self.__dict__["_in_use"]
         if not lock.acquire(blocking=False):
-            raise ConcurrentUseError(
-                f"Simulator.{what}: another thread is inside this simulator. A simulator, and the env "
-                f"that holds it, serves one thread at a time: make one env (or simulator) per thread")
+            self._busy(what)
         return lock
+
+    @staticmethod
+    def _busy(what: str) -> None:
+        raise ConcurrentUseError(
+            f"Simulator.{what}: another thread is inside this simulator. A simulator, and the env "
+            f"that holds it, serves one thread at a time: make one env (or simulator) per thread")
 
     def tick(self, residual: np.ndarray | None = None, override: np.ndarray | None = None) -> Mapping[str, np.ndarray]:
         """Advance every active world by one controller period; returns the tick's log row.
@@ -418,18 +422,17 @@ class Simulator(FusedTicks, ReadableTicks):
         the state at the tick's start and the command applied during it, fresh arrays never written
         again. A dict on the readable path, a `Row` on the fused one.
         """
-        W, V = self.W, self.V
         if residual is not None:
-            residual = as_batch(residual, (W, V, 3))
+            residual = as_batch(residual, (self.W, self.V, 3))
         if override is not None:
-            override = as_batch(override, (W, V, 3))
-        lock = self._one_thread("tick")
+            override = as_batch(override, (self.W, self.V, 3))
+        lock = self.__dict__["_in_use"]  # (`_one_thread`, inline: once per tick)
+        if not lock.acquire(blocking=False):
+            self._busy("tick")
         try:
-            if not self._bound:
-                self._bind()
             plan = self._plan
-            if plan is not None and plan.revision != self.physics.revision:  # set_body_mass changed the worlds
-                self._bind()
+            if not self._bound or plan is not None and plan.revision != self.physics.revision:
+                self._bind()  # a component replaced, or set_body_mass changed the worlds
                 plan = self._plan
             with profiling_timer_off():  # (MuJoCo's profiling timer: see sim.physics)
                 row = self._tick_fused(plan, residual, override) if plan is not None \

@@ -19,6 +19,7 @@ from downwash_core.state import VehicleStates
 from downwash_trajectories.combinators import StackedReference
 from sim import fork_join
 from sim.aggregation import wake_field
+from sim.fork_join import SOLO
 from sim.fused_abi import FC, STEP_CALLER, TAB
 from sim.passes import (actuate_kernel, hold_kernel, sense_kernel, sense_law_kernel, Sensed, wind_advance_kernel,
                         wind_force_kernel, wind_sense_kernel)
@@ -40,20 +41,31 @@ class FusedTicks:
         reference = self.reference
         if type(reference) is StackedReference and reference.n_vehicles == self.V:  # into kept storage
             reference.fill(self.t, *self._ref_storage)
-            refs = self._ref_views
+            head = plan.leading_args + self._ref_views
         else:
             ref = reference(self.t)
             refs = (ref.pos, ref.vel, ref.acc, ref.yaw, ref.yaw_rate)
+            if plan.n_threads > 1:  # the helpers read them by address, as C-contiguous arrays
+                refs = tuple(kernel_array(x) for x in refs)
+            head = plan.leading_args + refs
         flat = np.empty(plan.row_size)
-        n_sub, block = plan.n_sub, self.cfg.noise_block
-        actions = (residual is not None) + 2 * (override is not None)
-        residual = plan.no_action if residual is None else kernel_array(residual)
-        override = plan.no_action if override is None else kernel_array(override)
-        if plan.n_threads > 1:  # the helpers read them by address, as C-contiguous arrays
-            refs = tuple(kernel_array(x) for x in refs)
-        args = plan.leading_args + refs + (residual, override, actions, flat)
+        if residual is None and override is None:
+            args = head + (plan.no_action, plan.no_action, 0, flat)
+        else:
+            args = head + (plan.no_action if residual is None else kernel_array(residual),
+                           plan.no_action if override is None else kernel_array(override),
+                           (residual is not None) + 2 * (override is not None), flat)
+        n_sub, block = plan.n_sub, plan.noise_block
+        if plan.stepping != STEP_CALLER and self._cursor_max + n_sub <= block:  # the whole tick in one call
+            if plan.n_threads == 1:
+                n_ended = plan.kernel(*args, 0, n_sub, plan.own_chunks, NO_CONTROL, SOLO)
+            else:
+                n_ended = self._run_threads(plan, args, 0, n_sub)
+            self.__dict__["_cursor_max"] += n_sub  # (not a bound input: skips __setattr__)
+            if n_ended:
+                self._end_worlds(self._status_new)
+            return Row(flat, plan.row_layout)
         sub, diverged, n_ended = 0, None, 0
-        chunks = plan.own_chunks
         caller_steps = plan.stepping == STEP_CALLER
         while sub < n_sub:
             if self._cursor_max >= block:
@@ -62,10 +74,10 @@ class FusedTicks:
             # caller steps the physics: then one autopilot tick per call
             stop = min(sub + 1 if caller_steps else n_sub, sub + block - self._cursor_max)
             if plan.n_threads == 1:
-                n_ended = plan.kernel(*args, sub, stop, chunks, NO_CONTROL, fork_join.SOLO)
+                n_ended = plan.kernel(*args, sub, stop, plan.own_chunks, NO_CONTROL, SOLO)
             else:
                 n_ended = self._run_threads(plan, args, sub, stop)
-            self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
+            self.__dict__["_cursor_max"] += stop - sub
             if caller_steps:
                 d = self.physics.step(self.cfg.rates.physics_per_autopilot, self.active)
                 diverged = d if diverged is None else diverged | d
