@@ -32,7 +32,7 @@ import numpy as np
 
 from controllers.autopilot import rotor_thrusts
 from downwash_core.geometry import perturb_quat_into, quat_to_rot
-from downwash_core.jit import njit
+from downwash_core.jit import njit, njit_inline
 from downwash_core.status import Status
 from sim.estimation import kf_predict, kf_update
 from sim.fused_abi import call_sensor
@@ -64,6 +64,19 @@ class Sensed(NamedTuple):
                    np.empty((W, V, 3, 3)), np.empty((W, V)), np.empty((W, V, 3)))
 
 
+@njit_inline
+def read_truth(qpos, qvel, layout, w, i, kin, quat, rot):
+    """Vehicle i of world w's true state from MuJoCo's: position and velocity into kin[0], kin[1]
+    (W, V, 3 each), attitude into quat (w, x, y, z) and rot (body to world): both sensing passes' first step."""
+    a, b = layout[i, _QPOS], layout[i, _QVEL]
+    for k in range(4):
+        quat[w, i, k] = qpos[w, a + 3 + k]
+    quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+    for k in range(3):
+        kin[0, w, i, k] = qpos[w, a + k]
+        kin[1, w, i, k] = qvel[w, b + k]
+
+
 @njit
 def sense_kernel(
     qpos, qvel, layout, noise, cursor, sigma_p, sigma_att, offset, gain_p, gain_v,
@@ -92,10 +105,7 @@ def sense_kernel(
     for w in range(W):
         c = cursor[w]
         for i in range(V):
-            a, b = layout[i, _QPOS], layout[i, _QVEL]
-            for k in range(4):
-                quat[w, i, k] = qpos[w, a + 3 + k]
-            quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
+            read_truth(qpos, qvel, layout, w, i, kin, quat, rot)
             q = quat_est[w, i]
             perturb_quat_into(
                 quat[w, i, 0], quat[w, i, 1], quat[w, i, 2], quat[w, i, 3],
@@ -103,10 +113,7 @@ def sense_kernel(
             )
             yaw_meas[w, i] = quat_to_rot(q[0], q[1], q[2], q[3], rot_est[w, i])
             for k in range(3):
-                p = qpos[w, a + k]
-                m = p + sigma_p * noise[w, c, i, k] + offset[w, i, k]  # (p + white) + offset: 0 adds nothing
-                kin[0, w, i, k] = p
-                kin[1, w, i, k] = qvel[w, b + k]
+                m = kin[0, w, i, k] + sigma_p * noise[w, c, i, k] + offset[w, i, k]  # (p + white) + offset: 0 adds nothing
                 kin[2, w, i, k] = m
                 pe, ve = kf_update(pos_est[w, i, k], vel_est[w, i, k], m, gain_p, gain_v)
                 pos_est[w, i, k] = kin[3, w, i, k] = pe
@@ -135,13 +142,7 @@ def sense_law_kernel(
     for w in range(W):
         c = cursor[w]
         for i in range(V):
-            a, b = layout[i, _QPOS], layout[i, _QVEL]
-            for k in range(4):
-                quat[w, i, k] = qpos[w, a + 3 + k]
-            quat_to_rot(qpos[w, a + 3], qpos[w, a + 4], qpos[w, a + 5], qpos[w, a + 6], rot[w, i])
-            for k in range(3):
-                kin[0, w, i, k] = qpos[w, a + k]
-                kin[1, w, i, k] = qvel[w, b + k]
+            read_truth(qpos, qvel, layout, w, i, kin, quat, rot)
             for k in range(6):
                 normals[w, i, k] = noise[w, c, i, k]
     measured, truth = kin[2], kin[0]

@@ -38,6 +38,7 @@ FUSED = {"FUSED_KERNELS[0]": PHYSICS_LAYOUTS, "FUSED_KERNELS[1]": PHYSICS_LAYOUT
 FUSED_CALLEES_AT_MOST = {
     "sense_kernel": PHYSICS_LAYOUTS, "actuate_kernel": PHYSICS_LAYOUTS, "status_kernel": PHYSICS_LAYOUTS,
     "sense_law_kernel": PHYSICS_LAYOUTS,  # (a sensor's compiled law, sim.sensor_contract: typed, never run here)
+    "read_truth": PHYSICS_LAYOUTS,  # (both sensing passes', inlined)
     "wind_force_kernel": PHYSICS_LAYOUTS, "hold_kernel": PHYSICS_LAYOUTS, "wind_sense_kernel": PHYSICS_LAYOUTS,
     "wind_advance_kernel": PHYSICS_LAYOUTS, "_step_rows": 1, "_copy_into": 1, "_row_view": 1,
     "true_states_kernel": PHYSICS_LAYOUTS,  # (`Simulator.true_states`, from Python)
