@@ -1,8 +1,9 @@
 """The simulator's two ways through a controller tick, as mixins of `sim.simulator.Simulator`.
 
-`FusedTicks` drives the fused kernel (`sim.fused`): the tick's reference and actions into its
-arguments, one call per stretch of autopilot ticks (or one per autopilot tick when the caller steps
-the physics), and the helper threads that take chunks of worlds (`sim.fork_join`). `ReadableTicks`
+`FusedTicks` drives the fused kernel (`sim.fused`): the tick's reference (a stacked one sampled into
+storage the simulator keeps) and actions into its arguments, one call per stretch of autopilot ticks
+(the whole tick unless the noise blocks need a refill within it; one per autopilot tick when the
+caller steps the physics), and the helper threads that take chunks of worlds (`sim.fork_join`). `ReadableTicks`
 runs each autopilot tick as the compiled passes (`sim.passes`) around the Python components
 (predictor, field, reference, controller, safety filter). Both write the same log row, bit for bit
 (tests/test_fast_path.py). They use the simulator's own state; `Simulator` alone builds it.
