@@ -108,6 +108,8 @@ TABLES = {
     "safety": Table("sim.safety.SafetyConfig", {
         "inflation": Key(float, "the factor on each pair's collision ellipsoid its barrier keeps out of",
                          {"ge": 1.0, "le": 100.0}),
+        "max_margin": Key(float, "the most the barrier's surface lies beyond a pair's ellipsoid, vertically, m",
+                          {"gt": 0.0, "le": 100.0}),
         "ground_clearance": Key(float, "the least height of a vehicle's centre, m", {"ge": 0.0, "le": 100.0}),
         "k0": Key(float, "the barrier's gain on h, 1/s^2", {"gt": 0.0, "le": 1e4}),
         "k1": Key(float, "the barrier's gain on h', 1/s (at least 2 sqrt(k0))", {"gt": 0.0, "le": 1e3}),

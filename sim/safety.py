@@ -8,7 +8,10 @@ the estimated states the controller uses,
 - every pair out of its collision ellipsoid inflated by `inflation` (the simulator's own: each pair's lateral
   and vertical radii a, c, `sim.vehicle_params.collision_radii`, handed to the filter when it is built):
   h = q - inflation with q = sqrt((dx^2 + dy^2) / a^2 + dz^2 / c^2), dp = p_i - p_j; the simulator counts a
-  collision at q < 1, so the bound is what it checks, scaled;
+  collision at q < 1, so the bound is what it checks, scaled. The margin beyond the ellipsoid, (inflation - 1) c
+  vertically, is at most `max_margin` m: a larger pair's barrier is its ellipsoid times 1 + max_margin / c, given
+  to the filter as radii scaled by that over `inflation` (`barrier_radii`: h then is the inflated one's times a
+  constant, the same barrier);
 - every vehicle's height: h = z_i - ground_clearance.
 
 Each barrier is of second order (exponential, HOCBF), since a position has relative degree 2:
@@ -79,13 +82,15 @@ from sim.observer import DEFAULT_BANDWIDTH
 from sim.safety_kernels import (DEPENDENT, MAX_STEPS, MIN_Q, N_PARAMS, SAFETY_SIGNATURE, STATE_WIDTH, TOLERANCE,
                                 cbf_filter_kernel, safety_function)
 
-__all__ = ["SafetyConfig", "SafetyFilter", "safety_filter", "actuator_box", "constraint_rows", "estimate_step",
+__all__ = ["SafetyConfig", "SafetyFilter", "safety_filter", "actuator_box", "barrier_radii", "constraint_rows",
+           "estimate_step",
            "record_step", "realised", "pack_params", "solve_qp", "cbf_filter_kernel", "SAFETY_SIGNATURE",
            "safety_function", "TOLERANCE",
            "DEPENDENT", "N_PARAMS", "STATE_WIDTH"]
 
 # name, unit, lowest, highest, lowest excluded
-_RANGES = (("inflation", "-", 1.0, 100.0, False), ("ground_clearance", "m", 0.0, 100.0, False),
+_RANGES = (("inflation", "-", 1.0, 100.0, False), ("max_margin", "m", 0.0, 100.0, True),
+           ("ground_clearance", "m", 0.0, 100.0, False),
            ("k0", "1/s^2", 0.0, 1e4, True), ("k1", "1/s", 0.0, 1e3, True), ("bandwidth", "rad/s", 0.0, 1e3, True),
            ("thrust_fraction", "-", 0.0, 1.0, True))
 
@@ -106,6 +111,10 @@ class SafetyConfig:
     the swarm's flights. More costs the flights that fly safely: a bound above about 2.7 reaches the
     formations' ordinary flights (their baselines come to 2.7 to 3 times their ellipsoids), and 2.5 already
     holds back the flights a wrong model carries to 2.3 (a 2 % change of their mean error).
+    max_margin 0.12 m: the paper quads' margin at 2.5, the most any pair keeps. What the margin holds is a
+    model error of a few m/s^2 for tenths of a second, centimetres whatever the vehicles' size, while 2.5 times
+    an X500's ellipsoid over a paper quad's is 0.24 m beyond it, and held the wrong model's flights in
+    heavy_over_light 2 % from where they fly without the layer; capped, that pair keeps 1.75 times its ellipsoid.
     k0 64, k1 16 (a double pole at 8 rad/s, the time constant 0.125 s): the barrier acts once a pair closes
     faster than about l1 h (l1 the slower pole), so the faster the poles, the later and shorter it acts, and
     the smaller the displacement d / k0 of a model error; at 4 and 6 rad/s (inflation 2.5 to 3) it acted on
@@ -119,6 +128,7 @@ class SafetyConfig:
     thrust is the attitude's)."""
 
     inflation: float = 2.5  # -, the factor on each pair's collision ellipsoid that its barrier keeps out of
+    max_margin: float = 0.12  # m, the most the barrier's surface lies beyond a pair's ellipsoid, vertically
     ground_clearance: float = 0.1  # m, the least height of a vehicle's centre
     k0: float = 64.0  # 1/s^2, the barrier's gain on h
     k1: float = 16.0  # 1/s, its gain on h' (>= 2 sqrt(k0): real poles)
@@ -145,16 +155,31 @@ class SafetyConfig:
     def describe(self) -> dict[str, Any]:
         """Class, settings and method (JSON-serialisable), for logs and provenance."""
         return {"type": type(self).__name__, **asdict(self), "barrier": "h'' + k1 h' + k0 h >= 0",
-                "pair": "h = sqrt((dx^2 + dy^2) / a^2 + dz^2 / c^2) - inflation, a, c: the pair's collision radii",
+                "pair": "h = sqrt((dx^2 + dy^2) / a^2 + dz^2 / c^2) - inflation, a, c: the pair's collision radii "
+                        "(times (c + max_margin) / (inflation c) where (inflation - 1) c > max_margin)",
                 "drift": "per barrier the more restrictive of f_hat and the filter's own estimate of the force felt",
                 "solver": "dual active set (Goldfarb-Idnani), least squares on the commands", "tolerance": TOLERANCE}
+
+
+def barrier_radii(config: SafetyConfig, radius_xy: Any, radius_z: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Each pair's radii (V, V) m as the barrier h = q - inflation takes them: the collision radii, scaled by
+    s = (c + max_margin) / (inflation c) where the margin (inflation - 1) c exceeds max_margin (beyond rounding),
+    so that the barrier's surface lies max_margin beyond the ellipsoid vertically (and in proportion laterally);
+    elsewhere the radii themselves, bit for bit. With a' = s a, c' = s c, h' = q / s - inflation is
+    (q - s inflation) / s: the capped barrier times a constant, whose condition h'' + k1 h' + k0 h >= 0 is the
+    same."""
+    xy, z = (np.asarray(r, dtype=np.float64) for r in (radius_xy, radius_z))
+    capped = (config.inflation - 1.0) * z > config.max_margin * (1.0 + 1e-9)
+    scale = np.where(capped, (z + config.max_margin) / (config.inflation * np.where(capped, z, 1.0)), 1.0)
+    return np.where(capped, xy * scale, xy), np.where(capped, z * scale, z)
 
 
 def pack_params(config: SafetyConfig, radius_xy: Any, radius_z: Any, max_thrust: Any, dt: float = RATES.control_dt,
                 max_tilt: float = math.radians(MAX_TILT_DEG),
                 min_vertical: float = MIN_THRUST_G * GRAVITY) -> np.ndarray:
     """(N_PARAMS + 2 V V + V,) float64, as the compiled filter reads them: the scalars (N_PARAMS), then each pair's
-    lateral and vertical collision radii (V, V) m each, row by row, then each vehicle's full specific thrust
+    lateral and vertical barrier radii (V, V) m each (`barrier_radii` of the collision radii given), row by row,
+    then each vehicle's full specific thrust
     max_thrust (V,) m/s^2 (its rotors' T/W g: `realised`); dt s, the period between the filter's calls (the
     estimate's measurement); max_tilt rad and min_vertical m/s^2, feedback linearisation's limits."""
     xy, z = (np.asarray(r, dtype=np.float64) for r in (radius_xy, radius_z))
@@ -165,6 +190,7 @@ def pack_params(config: SafetyConfig, radius_xy: Any, radius_z: Any, max_thrust:
     off = ~np.eye(len(xy), dtype=bool)
     if not (np.isfinite(xy[off]).all() and np.isfinite(z[off]).all() and (xy[off] > 0).all() and (z[off] > 0).all()):
         raise ConfigError("safety: each pair's collision radii must be finite and > 0 m")
+    xy, z = barrier_radii(config, xy, z)
     if not (isinstance(dt, numbers.Real) and math.isfinite(dt) and dt > 0):
         raise ConfigError(f"safety: dt: expected a finite number > 0 s, got {dt!r}")
     gain = 1.0 - math.exp(-config.bandwidth * float(dt))  # the estimate's step per tick (`sim.observer`'s filter)

@@ -22,8 +22,8 @@ from downwash_trajectories import Hover, Lemniscate, Line, stack
 from sim.flight import fly
 from sim.observer import DEFAULT_BANDWIDTH
 from sim.presets import make_preset
-from sim.safety import (STATE_WIDTH, TOLERANCE, SafetyConfig, SafetyFilter, cbf_filter_kernel, constraint_rows,
-                        estimate_step, realised, record_step)
+from sim.safety import (STATE_WIDTH, TOLERANCE, SafetyConfig, SafetyFilter, barrier_radii, cbf_filter_kernel,
+                        constraint_rows, estimate_step, realised, record_step)
 from sim.scene import build_scene
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle_params import collision_radii
@@ -405,6 +405,31 @@ def test_another_controller_gets_feedback_linearisation_again_towards_its_own_he
     assert min(row["pos"][:, 0, 2].min() - row["pos"][:, 1, 2].max() for row in rows[0]) >= BOUND
 
 
+@FAST
+@given(st.floats(1.0, 4.0), st.floats(0.01, 0.3), st.floats(0.02, 0.3), st.floats(0.5, 4.0), st.integers(0, 2**32 - 1))
+def test_a_capped_margin_is_the_pairs_own_inflation_and_an_uncapped_one_keeps_its_radii(inflation, max_margin, c,
+                                                                                        aspect, seed):
+    """`barrier_radii`: where (inflation - 1) c exceeds max_margin the scaled radii give the same constraint rows as
+    the pair's own inflation 1 + max_margin / c on its collision radii (so the surface lies max_margin beyond the
+    ellipsoid); elsewhere the radii pass bit for bit."""
+    xy, z = np.full((2, 2), aspect * c), np.full((2, 2), c)
+    capped = SafetyConfig(inflation=inflation, max_margin=max_margin)
+    bx, bz = barrier_radii(capped, xy, z)
+    if (inflation - 1.0) * c <= max_margin:
+        assert np.array_equal(bx, xy) and np.array_equal(bz, z)
+        return
+    assert bz[0, 1] < c and math.isclose(bz[0, 1] / c, bx[0, 1] / (aspect * c), rel_tol=1e-12)
+    own = SafetyConfig(inflation=1.0 + max_margin / c, max_margin=100.0)
+    quads = [QUAD, QUAD]
+    rng = np.random.default_rng(seed)
+    pos = np.array([[[0.0, 0.0, 1.5], [0.0, 0.0, 1.5 - c * (1.2 + max_margin / c)]]]) + 0.02 * rng.normal(size=(1, 2, 3))
+    vel, f_hat, u = rng.normal(size=(1, 2, 3)), rng.normal(size=(1, 2, 3)), rng.normal(size=(1, 2, 3))
+    rows = [constraint_rows(f.params, f.lower, f.upper, pos, vel, f_hat, u)
+            for f in (SafetyFilter(cfg, quads, xy, z) for cfg in (capped, own))]
+    np.testing.assert_allclose(rows[0][0], rows[1][0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(rows[0][1], rows[1][1], rtol=1e-9, atol=1e-9)
+
+
 def test_the_filter_reads_each_pairs_ellipsoid_from_the_simulators_vehicles():
     """The simulator hands the filter its per-pair radii (`sim.vehicle_params`, kinds and `SimConfig` included), the
     control period and one row of estimates per world."""
@@ -414,13 +439,17 @@ def test_the_filter_reads_each_pairs_ellipsoid_from_the_simulators_vehicles():
     sim = Simulator(scene, ref, [0, 1], safety=CFG, config=config)
     filt = sim._safety_filter
     a, c = radii(filt, 3)
-    assert np.array_equal(a, sim.vehicle_params.collision_xy) and np.array_equal(c, sim.vehicle_params.collision_z)
+    barrier = barrier_radii(CFG, sim.vehicle_params.collision_xy, sim.vehicle_params.collision_z)
+    assert np.array_equal(a, barrier[0]) and np.array_equal(c, barrier[1])
+    off = ~np.eye(3, dtype=bool)  # each pair's margin, 1.5 c, is under max_margin: the radii pass as they are
+    assert np.array_equal(a[off], sim.vehicle_params.collision_xy[off])
     assert a[0, 2] < a[0, 1] < 0.3 and filt.state.shape == (2, 3, STATE_WIDTH) and filt.params[5] == DT
 
 
 @pytest.mark.parametrize("kwargs, named", [
     ({"inflation": 0.5}, "inflation"), ({"inflation": float("nan")}, "inflation"),
     ({"inflation": float("inf")}, "inflation"), ({"ground_clearance": -1.0}, "ground_clearance"),
+    ({"max_margin": 0.0}, "max_margin"),
     ({"k0": 0.0}, "k0"), ({"k1": "fast"}, "k1"), ({"k0": 9.0, "k1": 5.0}, "k1"), ({"bandwidth": 0.0}, "bandwidth"),
     ({"bandwidth": True}, "bandwidth"), ({"thrust_fraction": 1.5}, "thrust_fraction"),
     ({"thrust_fraction": True}, "thrust_fraction"),
