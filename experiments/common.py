@@ -40,13 +40,15 @@ from downwash_core.errors import ConfigError, TestbedError
 from experiments.console import ProgressBar, format_table, setup_logging
 from experiments.options import (AGGREGATIONS, CONDITIONS, CONTROLLER_NAMES, DEFAULT_CONDITIONS, DEFAULT_CONTROLLER,
                                  DEFAULT_FIELD, FIELD_CHOICES, FIELD_NAMES, PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS,
-                                 PRESETS, SEED_COUNT_MAX, WIND_HELP, WIND_SEVERITIES, field_check, in_range, load_wind,
-                                 names_check, one_of, range_words, registered_field_names, seed_count_check, wind_check)
+                                 PRESETS, SEED_COUNT_MAX, WIND_HELP, WIND_SEVERITIES, comma_items, comma_numbers,
+                                 field_check, in_range, load_wind, names_check, one_of, range_words,
+                                 registered_field_names, seed_count_check, wind_check)
 
 __all__ = [
     "WIND_HELP", "load_wind", "CommonArgs", "PipelineArgs", "FlightArgs", "Pipeline", "ProgressBar", "arg",
     "parse_args", "load_field", "build_parser", "read_config", "resolve_pipeline", "write_results", "format_table",
-    "script", "run_main", "check_writable", "check_options", "allowed_range", "names_check", "one_of", "field_check",
+    "script", "run_main", "check_writable", "check_options", "allowed_range", "names_check", "comma_items",
+    "comma_numbers", "one_of", "field_check",
     "wind_check", "registered_field_names", "seed_count_check", "out_lock", "OneLineParser", "setup_logging",
     "CONDITIONS", "SEED_COUNT_MAX", "DEFAULT_CONDITIONS", "PAIRWISE_KINDS", "option_fields", "one_line",
     "CONTROLLER_NAMES", "FIELD_NAMES", "DEFAULT_FIELD", "PRESETS", "AGGREGATIONS", "WIND_SEVERITIES", "PAPER_MINUTES",

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CONDITIONS, CONTROLLER_NAMES, SEED_COUNT_MAX, PipelineArgs, arg, format_table,
-                                names_check, out_lock, parse_args, run_main, script, seed_count_check, setup_logging,
-                                write_results)
+from experiments.common import (CONDITIONS, CONTROLLER_NAMES, SEED_COUNT_MAX, PipelineArgs, arg, comma_items,
+                                format_table, names_check, out_lock, parse_args, run_main, script, seed_count_check,
+                                setup_logging, write_results)
 
 __all__ = ["ControllerTableArgs", "TRACKS", "KEYS", "run", "main"]
 
@@ -40,10 +40,6 @@ class ControllerTableArgs(PipelineArgs):
     seeds: int = arg(10, f"flights per condition (at most {SEED_COUNT_MAX})", ge=1, check=seed_count_check, quick=1)
 
 
-def _items(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
-
-
 def run(args: ControllerTableArgs) -> dict:
     """Each track under each controller; print and write the table."""
     from experiments.tracking import args_class
@@ -54,8 +50,8 @@ def run(args: ControllerTableArgs) -> dict:
     out = Path(args.out)
     table: dict[str, dict[str, Any]] = {}
     for track in TRACKS:
-        for controller in _items(args.controllers):
-            conditions = [c for c in _items(args.conditions) if controller == "lqr" or c != "integral"]
+        for controller in comma_items(args.controllers):
+            conditions = [c for c in comma_items(args.conditions) if controller == "lqr" or c != "integral"]
             flight = args_class(track)(out=str(out / f"{track}-{controller}"), seed=args.seed, quick=args.quick,
                                        collection_dir=args.collection_dir, models_dir=args.models_dir,
                                        controller=controller, conditions=",".join(conditions), seeds=args.seeds,

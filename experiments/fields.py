@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CONDITIONS, FIELD_NAMES, CommonArgs, arg, format_table, load_field,
+from experiments.common import (CONDITIONS, FIELD_NAMES, CommonArgs, arg, comma_items, format_table, load_field,
                                 out_lock, parse_args, registered_field_names, run_main, setup_logging, write_results,
                                 script)
 
@@ -43,7 +43,7 @@ TABLE_KEYS = ("improvement_pos_3d", "improvement_pos_z", "gap_to_oracle_pos_3d",
 def _only_check(only: str) -> str | None:
     """--only while parsing (the registry's names without loading it): None when every name is registered."""
     allowed = registered_field_names()
-    unknown = [n.strip() for n in only.split(",") if n.strip() and n.strip() not in allowed]
+    unknown = [n for n in comma_items(only) if n not in allowed]
     return f"unknown fields {unknown}; allowed: {', '.join(allowed)}" if unknown else None
 
 
@@ -101,7 +101,7 @@ def run_every_field(args: FieldsArgs, out: Path) -> dict:
 def _selected(only: str) -> list[str]:
     from sim.fields.registry import FIELDS
 
-    names = [n.strip() for n in only.split(",") if n.strip()] or list(FIELDS)
+    names = comma_items(only) or list(FIELDS)
     unknown = [n for n in names if n not in FIELDS]
     if unknown:
         raise ConfigError(f"--only: unknown fields {unknown}; allowed: {', '.join(FIELDS)}")

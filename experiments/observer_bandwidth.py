@@ -35,8 +35,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CONTROLLER_NAMES, CommonArgs, arg, format_table, names_check, out_lock, parse_args,
-                                run_main, script, setup_logging, write_results)
+from experiments.common import (CONTROLLER_NAMES, CommonArgs, arg, comma_items, comma_numbers, format_table,
+                                names_check, out_lock, parse_args, run_main, script, setup_logging, write_results)
 
 __all__ = ["BandwidthArgs", "CANDIDATES", "run", "main"]
 
@@ -56,7 +56,7 @@ class BandwidthArgs(CommonArgs):
 
 def _candidates(text: str) -> list[float]:
     try:
-        values = [float(x) for x in text.split(",") if x.strip()]
+        values = comma_numbers(text)
     except ValueError:
         values = []
     if not values or not all(np.isfinite(v) and v > 0 for v in values) or len(set(values)) != len(values):
@@ -124,7 +124,7 @@ def run(args: BandwidthArgs) -> dict:
     from downwash.staged_provenance import STAGES
 
     bandwidths = _candidates("1,2" if args.quick and args.candidates == BandwidthArgs.candidates else args.candidates)
-    controllers = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    controllers = comma_items(args.controllers)
     chosen = {c: _choose(args, c, bandwidths) for c in controllers}
     first = chosen[controllers[0]]
     results: dict[str, Any] = {

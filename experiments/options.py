@@ -22,7 +22,7 @@ __all__ = [
     "WIND_SEVERITIES", "PAPER_MINUTES", "PAPER_MODELS", "CONTROLLER_NAMES", "DEFAULT_CONTROLLER", "FIELD_CHOICES",
     "SEED_COUNT_MAX", "WIND_HELP", "RegisteredNames", "PLUGIN_GROUP", "GUARDED", "UNLEARNED",
     "seed_count_check", "one_of", "names_check", "registered_field_names", "field_check", "wind_check", "load_wind",
-    "in_range", "range_words",
+    "in_range", "range_words", "comma_items", "comma_numbers",
 ]
 
 
@@ -193,12 +193,22 @@ def _factory_problem(module: str, name: str) -> str | None:
     return None
 
 
+def comma_items(text: str) -> list[str]:
+    """The items of an option's comma list, stripped, empty ones dropped: 'a, b,' -> ['a', 'b']."""
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def comma_numbers(text: str) -> list[float]:
+    """The numbers of an option's comma list (`comma_items`); ValueError for an item that is not one."""
+    return [float(x) for x in comma_items(text)]
+
+
 def names_check(allowed: Sequence[str], empty: bool = False) -> Callable[[str], str | None]:
     """A `check` for a comma list of names from `allowed` (at least one unless `empty`, each once), so
     that a bad name is refused with the others, before any import of the registry it comes from."""
 
     def check(text: str) -> str | None:
-        names = [n.strip() for n in text.split(",") if n.strip()]
+        names = comma_items(text)
         unknown = [n for n in names if n not in allowed]
         if (not names and not empty) or unknown or len(set(names)) != len(names):
             why = f"unknown {unknown}" if unknown else "duplicate names" if names else "no name"

@@ -35,10 +35,11 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, FlightArgs,
-                                ProgressBar, arg, check_options, field_check, format_table, load_field, load_wind,
-                                names_check, one_of, out_lock, parse_args, resolve_pipeline, run_main,
-                                seed_count_check, setup_logging, wind_check, write_results, script)
+from experiments.common import (CONDITIONS, DEFAULT_FIELD, comma_items, comma_numbers, FLIGHT_SECONDS_MAX,
+                                SEED_COUNT_MAX, WIND_HELP, FlightArgs, ProgressBar, arg, check_options, field_check,
+                                format_table, load_field, load_wind, names_check, one_of, out_lock, parse_args,
+                                resolve_pipeline, run_main, seed_count_check, setup_logging, wind_check, write_results,
+                                script)
 from experiments.components import check_controller, flight_components, flown_record, guard_config
 
 __all__ = ["OutdoorArgs", "LEADERS", "LEADER_SPEED_RANGE", "run", "main"]
@@ -53,7 +54,7 @@ LEADER_SPEED_RANGE = (0.5, 3.0)  # m/s, the leader's ground speed (the paper's o
 
 
 def _trained_check(text: str) -> str | None:
-    trained = _trained_of(text)
+    trained = comma_items(text)
     if not trained or not set(trained) <= set(TRAINED) or len(set(trained)) != len(trained):
         return f"expected a comma list of {', '.join(TRAINED)}, each at most once"
     return None
@@ -61,7 +62,7 @@ def _trained_check(text: str) -> str | None:
 
 def _speeds_check(text: str) -> str | None:
     try:
-        speeds = _sweep_speeds(text)
+        speeds = comma_numbers(text)
     except ValueError:
         speeds = None
     lo, hi = LEADER_SPEED_RANGE
@@ -157,16 +158,7 @@ def _main_field(args: OutdoorArgs) -> str:
 
 def _trained(args: OutdoorArgs) -> list[str]:
     """The data mixes of --trained, in order."""
-    return _trained_of(args.trained)
-
-
-def _trained_of(text: str) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()]
-
-
-def _sweep_speeds(text: str) -> list[float]:
-    """The speeds of --sweep-speeds (ValueError for a non-number)."""
-    return [float(x) for x in text.split(",") if x.strip()]
+    return comma_items(args.trained)
 
 
 def _references(args: OutdoorArgs, W: int):
@@ -229,7 +221,7 @@ def run(args: OutdoorArgs) -> dict:
             **{k: outdoor[k] for k in ("key", "minutes", "stages", "models", "data_winds", "dir", "wall_seconds")},
             "deployed": outdoor["provenance"]["outdoor"]["deployed"]},  # what the outdoor stages flew with
     }
-    speeds = _sweep_speeds(args.sweep_speeds)
+    speeds = comma_numbers(args.sweep_speeds)
     if speeds:  # the same conditions, seeds and wind at each speed
         by_speed = [aggregate_conditions(fly_at(dataclasses.replace(args, speed=v))) for v in speeds]
         results["sweep"] = {"speeds": speeds, "conditions": _with_kinds(_per_point(by_speed, conditions), kinds)}

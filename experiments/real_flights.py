@@ -53,7 +53,7 @@ import numpy as np
 from downwash_core.errors import ConfigError
 from experiments.common import (CommonArgs, OneLineParser, arg, check_writable, format_table, out_lock, parse_args,
                                 run_main, setup_logging, write_results, script)
-from experiments.options import PAIRWISE_KINDS, names_check
+from experiments.options import PAIRWISE_KINDS, comma_items, comma_numbers, names_check
 
 __all__ = ["RealFlightsArgs", "run", "decode", "main"]
 
@@ -70,7 +70,7 @@ PUBLISHED_UNITS = ("the data set's learning/log.txt: per type the mean squared e
 
 
 def _globs_check(text: str) -> str | None:
-    globs = [g.strip() for g in text.split(",") if g.strip()]
+    globs = comma_items(text)
     if not globs:
         return "expected a comma list of globs of task folders relative to --data"
     if any(g.startswith("/") or ".." in Path(g).parts for g in globs):
@@ -84,7 +84,7 @@ def _folder_check(text: str) -> str | None:
 
 def _fractions_check(text: str) -> str | None:
     try:
-        values = [float(x) for x in text.split(",") if x.strip()]
+        values = comma_numbers(text)
     except ValueError:
         return "expected a comma list of fractions in (0, 1]"
     ok = values and all(0 < v <= 1 for v in values) and values == sorted(set(values))
@@ -97,7 +97,7 @@ def _task_glob_check(text: str) -> str | None:
 
 
 def _replay_check(text: str) -> str | None:
-    names = [n.strip() for n in text.split(",") if n.strip()]
+    names = comma_items(text)
     allowed = (*_FIT_FIELDS, *(f"fitted-{f}" for f in _FIT_FIELDS))
     bad = [n for n in names if n not in allowed]
     return f"unknown {bad}; allowed: a comma list of {', '.join(allowed)}" if bad or len(set(names)) != len(names) else None
@@ -147,10 +147,6 @@ def _root(data: str) -> Path:
     if not root.is_dir():
         raise ConfigError(f"--data: {root} is not a folder")
     return root / "data" / "training" if (root / "data" / "training").is_dir() else root
-
-
-def _split(text: str) -> list[str]:
-    return [g.strip() for g in text.split(",") if g.strip()]
 
 
 def _rmse(err: np.ndarray) -> float:
@@ -253,7 +249,7 @@ def _learning_curves(args, kinds, flights, test, types, config) -> dict:
     from downwash.sweep_stats import paired_comparison
 
     wake = _wake(types)
-    fractions = [float(x) for x in _split(args.curve_fractions)]
+    fractions = comma_numbers(args.curve_fractions)
     train = [(ref, f) for ref, f in flights["train"] if f.n_vehicles > 1]
     if len(train) < 2:
         return {"skipped": "fewer than two training flights of two or more vehicles"}
@@ -285,7 +281,7 @@ def _fitted_fields(args, flights) -> dict:
                                     write_fitted)
     from sim.fields.registry import make_field
 
-    names = _split(args.fit_fields)
+    names = comma_items(args.fit_fields)
     if not names:
         return {}
     train, test = pair_states(flights["train"], args.stride), pair_states(flights["test"], args.stride)
@@ -310,12 +306,12 @@ def _replays(args, flights, fitted: dict, model_path: Path | None) -> dict:
     from sim.fields.registry import make_field
 
     chosen = [(ref, f) for ref, f in flights["test"] if fnmatch.fnmatch(ref.folder.name, args.replay_tasks)]
-    names = _split(args.replay_fields)
+    names = comma_items(args.replay_fields)
     if not args.replay_tasks or not chosen or not names:
         return {"skipped": "no test flight matches --replay-tasks" if names else "no --replay-fields"}
     seeds = [args.seed + k for k in range(args.replay_seeds)]
     out: dict = {"flights": len(chosen), "tasks": args.replay_tasks, "tracking": {}, "in_loop": {}}
-    for gains in _split(args.replay_gains):
+    for gains in comma_items(args.replay_gains):
         controller = {"controller": crazyflie_stiff_lqr()} if gains == "crazyflie" else {}
         for name in names:
             base = name.removeprefix("fitted-")
@@ -339,10 +335,10 @@ def run(args: RealFlightsArgs) -> dict:
 
     t0 = time.perf_counter()
     root = _root(args.data)
-    unfitted = [n for n in _split(args.replay_fields) if n.startswith("fitted-") and n[7:] not in _split(args.fit_fields)]
+    unfitted = [n for n in comma_items(args.replay_fields) if n.startswith("fitted-") and n[7:] not in comma_items(args.fit_fields)]
     if args.replay_tasks and unfitted:
         raise ConfigError(f"--replay-fields: {unfitted[0]} needs {unfitted[0][7:]} in --fit-fields")
-    refs = {role: find_flights(root, _split(text)) for role, text in (("train", args.train), ("test", args.test))}
+    refs = {role: find_flights(root, comma_items(text)) for role, text in (("train", args.train), ("test", args.test))}
     both = sorted({r.name for r in refs["train"]} & {r.name for r in refs["test"]})
     if both:
         raise ConfigError(f"--train and --test share {len(both)} flights (e.g. {both[0]}): hold out whole folders")
@@ -363,7 +359,7 @@ def run(args: RealFlightsArgs) -> dict:
     train, types_train = data["train"]
     test, types_test = data["test"]
     free = train.y[np.char.startswith(types_train, "none2")]
-    kinds, set_kinds = _split(args.models), _split(args.set_models)
+    kinds, set_kinds = comma_items(args.models), comma_items(args.set_models)
     config = train_config(args.seed, args.quick)
     predictions, models, model_path = {}, {}, None
     for kind, (model, history) in _train_pairs(kinds, train, config).items():

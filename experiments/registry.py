@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CommonArgs, arg, names_check, out_lock, parse_args, run_main, script, setup_logging,
-                                write_results)
+from experiments.common import (CommonArgs, arg, comma_items, names_check, out_lock, parse_args, run_main, script,
+                                setup_logging, write_results)
 
 __all__ = ["RegistryArgs", "KINDS", "listing", "run", "main"]
 
@@ -79,7 +79,7 @@ def run(args: RegistryArgs) -> dict:
     """The listing: printed and written to <out>/results.json."""
     if args.field:
         raise ConfigError("--field: the registry listing flies nothing and takes no field")
-    kinds = [k.strip() for k in args.kind.split(",") if k.strip()]
+    kinds = comma_items(args.kind)
     results = listing(kinds)
     _print(results)
     path = write_results(args.out, results, args)

@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from downwash_core.errors import ConfigError
-from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX, PipelineArgs,
-                                ProgressBar, arg, format_table, names_check, out_lock, parse_args, resolve_pipeline,
-                                run_main, seed_count_check, setup_logging, write_results, script)
+from experiments.common import (PAIRWISE_KINDS, comma_numbers, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX,
+                                PipelineArgs, ProgressBar, arg, format_table, names_check, out_lock, parse_args,
+                                resolve_pipeline, run_main, seed_count_check, setup_logging, write_results, script)
 from experiments.components import (training_config)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]
@@ -44,7 +44,7 @@ MINUTES = PAPER_MINUTES  # plus the full set
 def _minutes_check(text: str) -> str | None:
     """--minutes while parsing: what `downwash.sweep_cells.SweepGrid` takes, without importing it."""
     try:
-        values = [float(t) for t in text.split(",") if t.strip()]
+        values = comma_numbers(text)
     except ValueError:
         values = [math.nan]
     return None if all(math.isfinite(v) and v > 0 for v in values) else "expected a comma list of numbers > 0 (min)"

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from downwash_core.errors import ConfigError
-from experiments.common import (CommonArgs, arg, format_table, out_lock, parse_args, run_main, script, setup_logging,
-                                write_results)
+from experiments.common import (CommonArgs, arg, comma_items, format_table, out_lock, parse_args, run_main, script,
+                                setup_logging, write_results)
 
 __all__ = ["VehiclesArgs", "VEHICLE_NAMES", "listing", "run", "main"]
 
@@ -36,7 +36,7 @@ class VehiclesArgs(CommonArgs):
 def _selected(only: str) -> list[str]:
     from downwash_core.vehicles import VEHICLES
 
-    names = [n.strip() for n in only.split(",") if n.strip()] or list(VEHICLES)
+    names = comma_items(only) or list(VEHICLES)
     unknown = [n for n in names if n not in VEHICLES]
     if unknown:
         raise ConfigError(f"--only: unknown vehicle kinds {unknown}; allowed: {', '.join(VEHICLES)}")

@@ -583,3 +583,13 @@ def test_help_names_the_tables_an_experiment_applies():
     from experiments.staged_collection import StagedArgs
 
     assert "tables:" not in " ".join(common.build_parser(StagedArgs, "staged_collection").format_help().split())
+
+
+def test_a_comma_list_option_is_its_stripped_items_and_a_non_number_is_named():
+    """The one reading of an option's comma list (`experiments.options.comma_items`, `comma_numbers`)."""
+    from experiments.options import comma_items, comma_numbers
+
+    assert comma_items(" so2, momentum ,,shed,") == ["so2", "momentum", "shed"] and comma_items(" , ") == []
+    assert comma_numbers("0.5, 2,1e-3") == [0.5, 2.0, 0.001]
+    with pytest.raises(ValueError, match="'fast'"):
+        comma_numbers("1,fast")

@@ -49,7 +49,8 @@ def render_swarm_safety(r: dict, label: str) -> str:
     s = r.get("provenance", {}).get("safety") or {}
     return "\n\n".join([
         f"The swarm experiment flown with the safety layer (`--safety`: each pair's collision ellipsoid inflated "
-        f"{s.get('inflation')} times, at most {s.get('max_margin')} m beyond it vertically, height {s.get('ground_clearance')} m, k0 {s.get('k0')}, k1 {s.get('k1')}, its "
+        f"{s.get('inflation')} times, at most {s.get('max_margin')} m beyond it vertically, height "
+        f"{s.get('ground_clearance')} m, k0 {s.get('k0')}, k1 {s.get('k1')}, its "
         f"estimate's bandwidth {s.get('bandwidth')} rad/s), {n} flights per cell (`{label}`):",
         markdown_table(["law", "preset", "baseline crashes", "most crashes"], rows)])
 
