@@ -35,11 +35,10 @@ import numpy as np
 
 from downwash_core.errors import ConfigError
 from downwash_core.params import LEADER_POSITION
-from experiments.common import (CONDITIONS, DEFAULT_FIELD, comma_items, comma_numbers, FLIGHT_SECONDS_MAX,
-                                SEED_COUNT_MAX, WIND_HELP, FlightArgs, ProgressBar, arg, check_options, field_check,
-                                format_table, load_field, load_wind, names_check, one_of, out_lock, parse_args,
-                                resolve_pipeline, run_main, seed_count_check, setup_logging, wind_check, write_results,
-                                script)
+from experiments.common import (CONDITIONS, DEFAULT_FIELD, FLIGHT_SECONDS_MAX, SEED_COUNT_MAX, WIND_HELP, FlightArgs,
+                                ProgressBar, arg, check_options, comma_items, comma_numbers, field_check, format_table,
+                                load_field, load_wind, names_check, one_of, out_lock, parse_args, resolve_pipeline,
+                                run_main, script, seed_count_check, setup_logging, wind_check, write_results)
 from experiments.components import check_controller, flight_components, flown_record, guard_config
 
 __all__ = ["OutdoorArgs", "LEADERS", "LEADER_SPEED_RANGE", "run", "main"]

@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from downwash_core.errors import ConfigError
-from experiments.common import (PAIRWISE_KINDS, comma_numbers, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX,
-                                PipelineArgs, ProgressBar, arg, format_table, names_check, out_lock, parse_args,
-                                resolve_pipeline, run_main, seed_count_check, setup_logging, write_results, script)
+from experiments.common import (PAIRWISE_KINDS, PAPER_MINUTES, PAPER_MODELS, SEED_COUNT_MAX, PipelineArgs, ProgressBar,
+                                arg, comma_numbers, format_table, names_check, out_lock, parse_args, resolve_pipeline,
+                                run_main, script, seed_count_check, setup_logging, write_results)
 from experiments.components import (training_config)
 
 __all__ = ["EfficiencyArgs", "MINUTES", "grid_of", "run", "main"]

@@ -83,10 +83,8 @@ from sim.safety_kernels import (DEPENDENT, MAX_STEPS, MIN_Q, N_PARAMS, SAFETY_SI
                                 cbf_filter_kernel, safety_function)
 
 __all__ = ["SafetyConfig", "SafetyFilter", "safety_filter", "actuator_box", "barrier_radii", "constraint_rows",
-           "estimate_step",
-           "record_step", "realised", "pack_params", "solve_qp", "cbf_filter_kernel", "SAFETY_SIGNATURE",
-           "safety_function", "TOLERANCE",
-           "DEPENDENT", "N_PARAMS", "STATE_WIDTH"]
+           "estimate_step", "record_step", "realised", "pack_params", "solve_qp", "cbf_filter_kernel",
+           "SAFETY_SIGNATURE", "safety_function", "TOLERANCE", "DEPENDENT", "N_PARAMS", "STATE_WIDTH"]
 
 # name, unit, lowest, highest, lowest excluded
 _RANGES = (("inflation", "-", 1.0, 100.0, False), ("max_margin", "m", 0.0, 100.0, True),
@@ -179,9 +177,9 @@ def pack_params(config: SafetyConfig, radius_xy: Any, radius_z: Any, max_thrust:
                 min_vertical: float = MIN_THRUST_G * GRAVITY) -> np.ndarray:
     """(N_PARAMS + 2 V V + V,) float64, as the compiled filter reads them: the scalars (N_PARAMS), then each pair's
     lateral and vertical barrier radii (V, V) m each (`barrier_radii` of the collision radii given), row by row,
-    then each vehicle's full specific thrust
-    max_thrust (V,) m/s^2 (its rotors' T/W g: `realised`); dt s, the period between the filter's calls (the
-    estimate's measurement); max_tilt rad and min_vertical m/s^2, feedback linearisation's limits."""
+    then each vehicle's full specific thrust max_thrust (V,) m/s^2 (its rotors' T/W g: `realised`); dt s, the
+    period between the filter's calls (the estimate's measurement); max_tilt rad and min_vertical m/s^2, feedback
+    linearisation's limits."""
     xy, z = (np.asarray(r, dtype=np.float64) for r in (radius_xy, radius_z))
     top = np.asarray(max_thrust, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[0] != xy.shape[1] or z.shape != xy.shape or top.shape != xy.shape[:1]:
