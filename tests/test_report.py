@@ -74,6 +74,7 @@ def _fakes():
              "real_time_factor_serial": 107.26, "batched_over_bare": 1.2514, "predictor_us_per_call_batch64": 195.33,
              "train_seconds_equivariant_full": 8.012, "serial_over_bare": 0.6412, "rounds": 15,
              "targets": {"serial_over_bare": 0.6, "batched_over_bare": 1.7, "batched_over_mujoco_rollout": 0.9},
+             "ratio_intervals": {"serial_over_bare": [0.62, 0.66], "batched_over_bare": None},
              "mujoco_batch_over_bare": 2.059, "mujoco_batch_world_steps_per_s": 271603.2,
              "closed_loop_batched_world_steps_per_s": 165076.3, "mujoco_rollout_world_steps_per_s": 268410.7,
              "batched_over_mujoco_rollout": 0.6149, "formation5_batched_world_steps_per_s": 98213.9,
@@ -280,9 +281,10 @@ def test_report_renders_every_value_and_copies_byte_for_byte(tmp_path, transect_
             f"0.646x of MuJoCo's rollout ({fmt(b['formation5_mujoco_rollout_world_steps_per_s'])} world-steps/s) |"
             ) in summary
     assert summary.count("x of MuJoCo's rollout") == 2
-    assert "| `batched_over_mujoco_rollout` | >= 0.9 | 0.615 | no |" in text
+    assert "| `batched_over_mujoco_rollout` | >= 0.9 | 0.615 | - | no |" in text
     assert ">= " not in summary  # no aims in the summary
-    assert "| `serial_over_bare` | >= 0.6 | 0.641 | yes |" in text and "| `batched_over_bare` | >= 1.7 | 1.25 | no |" in text
+    assert "| `serial_over_bare` | >= 0.6 | 0.641 | 0.620 to 0.660 | yes |" in text
+    assert "| `batched_over_bare` | >= 1.7 | 1.25 | - | no |" in text
     assert "pipeline key `feedc0ffee12`" in text and "seed 0" in text and "field built-in" in text
     assert f"at {written['benchmark']['provenance']['code']['commit'][:12]}" in text
 

@@ -61,6 +61,9 @@ small MLP per step, torch at its default threads) with the env's default threads
 n_threads=1 (env_learner_threads_over_one_thread), and two processes of 64 worlds at once:
 the slower one's rate over one alone (two_processes_share_of_solo), each also with
 n_threads=1 (*_one_thread).
+Each simulation ratio also comes with a distribution-free 95 % interval of its median over the
+rounds (`median_interval`; for a ratio of two measurements, of the median of their per-round
+quotients), under ratio_intervals: how far the run's own rounds leave it uncertain.
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -219,8 +222,14 @@ def run(args: BenchmarkArgs) -> dict:
     for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
         r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
         r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
+    rounds_of: dict[str, Any] = {}  # each simulation ratio's per-round values, for its interval
+    for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
+        rounds_of[f"serial_over_bare{suffix}"] = ratios[f"closed_loop_serial_steps_per_s{suffix}"]
+        rounds_of[f"batched_over_bare{suffix}"] = ratios[f"closed_loop_batched_world_steps_per_s{suffix}"]
     for name in ("serial", "batched"):  # what the guard costs: within 10 % of the model alone
         r[f"guarded_over_unguarded_{name}"] = r[f"{name}_over_bare_guarded"] / r[f"{name}_over_bare"]
+        rounds_of[f"guarded_over_unguarded_{name}"] = (np.array(rounds_of[f"{name}_over_bare_guarded"])
+                                                       / np.array(rounds_of[f"{name}_over_bare"]))
         # a user's controller and field through the public compiled contracts (controllers.compiled,
         # sim.field_contract), and the lab's Mellinger controller, against the built-in LQR and field
         for what in ("pd_recipe", "jet_recipe", "mellinger"):
@@ -229,13 +238,18 @@ def run(args: BenchmarkArgs) -> dict:
         r[f"compiled_controller_over_builtin_{name}"] = r[f"{name}_over_bare_pd_recipe"] / r[f"{name}_over_bare_oracle"]
         r[f"compiled_field_over_builtin_{name}"] = r[f"{name}_over_bare_jet_recipe"] / r[f"{name}_over_bare_oracle"]
         r[f"mellinger_over_builtin_{name}"] = r[f"{name}_over_bare_mellinger"] / r[f"{name}_over_bare_oracle"]
+        key = f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}_per_s"
+        for what, ratio_name in (("pd_recipe", "compiled_controller"), ("jet_recipe", "compiled_field")):
+            rounds_of[f"{ratio_name}_over_builtin_{name}"] = (np.array(ratios[f"{key}_{what}"])
+                                                              / np.array(ratios[f"{key}_oracle"]))
     for suffix in ("", "_oracle"):
         r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
     r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
     for ours, theirs in beside.items():  # each against its bare window, so a round's state cancels
         prefix = "formation5_" if ours.startswith("formation5") else ""
         r[f"{prefix}mujoco_rollout_over_bare"] = ratio[theirs]
-        r[f"{prefix}batched_over_mujoco_rollout"] = float(np.median(np.array(ratios[ours]) / np.array(ratios[theirs])))
+        rounds_of[f"{prefix}batched_over_mujoco_rollout"] = np.array(ratios[ours]) / np.array(ratios[theirs])
+        r[f"{prefix}batched_over_mujoco_rollout"] = float(np.median(rounds_of[f"{prefix}batched_over_mujoco_rollout"]))
         r[f"{prefix}batched_over_mujoco_rollout_no_timer"] = float(
             np.median(np.array(ratios[ours]) / np.array(ratios[theirs + "_no_timer"])))
     # the same flights against MuJoCo without its profiling timer, which the simulator turns off while it steps
@@ -247,7 +261,10 @@ def run(args: BenchmarkArgs) -> dict:
     for name in ("serial", "batched"):
         for suffix in ("", "_summed"):
             r[f"formation5_{name}_over_bare{suffix}"] = ratio[f"formation5_{name}_world_steps_per_s{suffix}"]
+            rounds_of[f"formation5_{name}_over_bare{suffix}"] = ratios[f"formation5_{name}_world_steps_per_s{suffix}"]
     r["env_single_physics_over_bare"] = ratio["env_steps_per_s_single"]
+    rounds_of["env_single_physics_over_bare"] = ratios["env_steps_per_s_single"]
+    r["ratio_intervals"] = {key: median_interval(v) for key, v in sorted(rounds_of.items())}
     r["env_vector64_physics_over_bare"] = ratio["env_steps_per_s_vector64"]
     r["rounds"] = repeats
     r["batched_worlds"] = worlds
@@ -258,6 +275,22 @@ def run(args: BenchmarkArgs) -> dict:
     r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
     r["targets"] = dict(TARGETS)
     return r
+
+
+def median_interval(values: Any, level: float = 0.95) -> list[float] | None:
+    """[lo, hi]: a distribution-free interval of the median of independent rounds, the order statistics
+    x_(k) and x_(n+1-k) (1-based) with k the largest for which P(B < k) <= (1 - level) / 2, B ~ Binomial(n, 1/2)
+    (the median lies below x_(k) only if fewer than k rounds do): it holds the median with probability at
+    least `level` whatever the rounds' distribution. 15 rounds give x_(4) and x_(12) (96.5 %). None when
+    there are too few rounds for any such interval (fewer than 6 at 95 %)."""
+    from scipy.stats import binom
+
+    x = np.sort(np.asarray(values, dtype=np.float64))
+    n = len(x)
+    k = 0
+    while k + 1 <= n // 2 and binom.cdf(k, n, 0.5) <= (1.0 - level) / 2.0:  # P(B <= k) = P(B < k + 1)
+        k += 1
+    return None if k == 0 else [float(x[k - 1]), float(x[n - k])]
 
 
 def alternate(keys: list[str], beside: dict[str, str], round_index: int) -> list[str]:

@@ -49,19 +49,29 @@ def _speed_summary(r: dict) -> list[list[str]]:
     return rows
 
 
+def _interval(lo_hi: list[float] | None) -> str:
+    return "-" if not lo_hi else f"{fmt(lo_hi[0], 3)} to {fmt(lo_hi[1], 3)}"
+
+
 def render_benchmark(r: dict, label: str) -> str:
     parts = [f"Measured by `python -m experiments.benchmark` on {r.get('cpu_count')} cores (mujoco {r.get('mujoco')}), "
              "every rate from one run:", markdown_table(["", "measured", ""], _speed_summary(r)),
              "### The benchmark's full record"]
     targets = r.get("targets") or {}
     if targets:
-        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
+        intervals = r.get("ratio_intervals") or {}
+        rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), _interval(intervals.get(k)),
+                 "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
         parts += [f"The ratios the project aims for, as measured in this run ({r.get('rounds')} rounds, each "
                   "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
                   "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
                   f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
-                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds):",
-                  markdown_table(["ratio", "aim", "measured", "reached"], rows)]
+                  f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds). The interval is "
+                  "the run's own uncertainty: a distribution-free 95 % interval of the median over its rounds (for "
+                  "a ratio of two measurements, of their per-round quotients), where the rounds allow one. Runs "
+                  "of the same code minutes apart have moved further than it "
+                  "([design notes](design-notes.md#the-benchmarks-spread)):",
+                  markdown_table(["ratio", "aim", "measured", "95 % interval", "reached"], rows)]
     rows = [[f"`{k}`", fmt(v, 4)] for k, v in sorted(r.items()) if isinstance(v, float)]
     parts += [f"Every rate and ratio, {r.get('batched_worlds')} batched worlds (`{label}`):", markdown_table(["key", "value"], rows)]
     return "\n\n".join(parts)
