@@ -61,9 +61,13 @@ small MLP per step, torch at its default threads) with the env's default threads
 n_threads=1 (env_learner_threads_over_one_thread), and two processes of 64 worlds at once:
 the slower one's rate over one alone (two_processes_share_of_solo), each also with
 n_threads=1 (*_one_thread).
-Each simulation ratio also comes with a distribution-free 95 % interval of its median over the
-rounds (`median_interval`; for a ratio of two measurements, of the median of their per-round
-quotients), under ratio_intervals: how far the run's own rounds leave it uncertain.
+A ratio of two of our flights (guarded_over_unguarded_*, compiled_controller_over_builtin_*,
+compiled_field_over_builtin_*, mellinger_over_builtin_*) is measured side by side: after its own
+window each such flight flies again right beside the flight it is compared with, the order
+alternating by round, and the ratio is the median of those per-round quotients (`side_by_side`),
+as a change of code is measured by paired rounds. Each simulation ratio also comes with a
+distribution-free 95 % interval of its median over the rounds (`median_interval`), under
+ratio_intervals: how far the run's own rounds leave it uncertain.
 Nothing here is a pass/fail test: the numbers are written down and printed.
 """
 
@@ -202,6 +206,13 @@ def run(args: BenchmarkArgs) -> dict:
     rates: dict[str, list[float]] = {key: [] for key in (*bares, *measure)}
     ratios: dict[str, list[float]] = {key: [] for key in measure}
     no_timer: dict[str, list[float]] = {key: [] for key in measure}  # over the bare step without MuJoCo's timer
+    # a ratio of two of our flights (a user's component or the guard against the built-in flight): after its own
+    # window, each flight flies again right beside its partner, the order alternating by round (`side_by_side`)
+    partners = {f"{flight}_{what}": f"{flight}{base}" for flight in ("closed_loop_serial_steps_per_s",
+                                                                     "closed_loop_batched_world_steps_per_s")
+                for what, base in (("pd_recipe", "_oracle"), ("jet_recipe", "_oracle"), ("mellinger", "_oracle"),
+                                   ("guarded", ""))}
+    beside_quotients: dict[str, list[float]] = {key: [] for key in partners}
     for i in range(repeats):
         for key in alternate(list(measure), beside, i):
             fn, preset = measure[key]
@@ -213,6 +224,8 @@ def run(args: BenchmarkArgs) -> dict:
             rates[key].append(rate)
             ratios[key].append(rate / bare)
             no_timer[key].append(rate / bare_no_timer)
+            if key in partners:
+                beside_quotients[key].append(side_by_side(fn, measure[partners[key]][0], i % 2 == 1))
     for m in rollouts.values():
         m.close()
     r.update({key: float(np.median(v)) for key, v in rates.items()})
@@ -226,22 +239,19 @@ def run(args: BenchmarkArgs) -> dict:
     for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
         rounds_of[f"serial_over_bare{suffix}"] = ratios[f"closed_loop_serial_steps_per_s{suffix}"]
         rounds_of[f"batched_over_bare{suffix}"] = ratios[f"closed_loop_batched_world_steps_per_s{suffix}"]
-    for name in ("serial", "batched"):  # what the guard costs: within 10 % of the model alone
-        r[f"guarded_over_unguarded_{name}"] = r[f"{name}_over_bare_guarded"] / r[f"{name}_over_bare"]
-        rounds_of[f"guarded_over_unguarded_{name}"] = (np.array(rounds_of[f"{name}_over_bare_guarded"])
-                                                       / np.array(rounds_of[f"{name}_over_bare"]))
+    beside_ratios = (("guarded", "guarded_over_unguarded"),  # what the guard costs: within 10 % of the model alone
+                     ("pd_recipe", "compiled_controller_over_builtin"), ("jet_recipe", "compiled_field_over_builtin"),
+                     ("mellinger", "mellinger_over_builtin"))
+    for name in ("serial", "batched"):
+        flight = f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}_per_s"
+        for what, ratio_name in beside_ratios:
+            rounds_of[f"{ratio_name}_{name}"] = beside_quotients[f"{flight}_{what}"]
+            r[f"{ratio_name}_{name}"] = float(np.median(beside_quotients[f"{flight}_{what}"]))
         # a user's controller and field through the public compiled contracts (controllers.compiled,
-        # sim.field_contract), and the lab's Mellinger controller, against the built-in LQR and field
+        # sim.field_contract), and the lab's Mellinger controller, each over bare (their ratios to the built-in LQR and
+        # field above, side by side)
         for what in ("pd_recipe", "jet_recipe", "mellinger"):
-            r[f"{name}_over_bare_{what}"] = ratio[f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}"
-                                                  f"_per_s_{what}"]
-        r[f"compiled_controller_over_builtin_{name}"] = r[f"{name}_over_bare_pd_recipe"] / r[f"{name}_over_bare_oracle"]
-        r[f"compiled_field_over_builtin_{name}"] = r[f"{name}_over_bare_jet_recipe"] / r[f"{name}_over_bare_oracle"]
-        r[f"mellinger_over_builtin_{name}"] = r[f"{name}_over_bare_mellinger"] / r[f"{name}_over_bare_oracle"]
-        key = f"closed_loop_{name}_{'steps' if name == 'serial' else 'world_steps'}_per_s"
-        for what, ratio_name in (("pd_recipe", "compiled_controller"), ("jet_recipe", "compiled_field")):
-            rounds_of[f"{ratio_name}_over_builtin_{name}"] = (np.array(ratios[f"{key}_{what}"])
-                                                              / np.array(ratios[f"{key}_oracle"]))
+            r[f"{name}_over_bare_{what}"] = ratio[f"{flight}_{what}"]
     for suffix in ("", "_oracle"):
         r[f"real_time_factor_serial{suffix}"] = r[f"closed_loop_serial_steps_per_s{suffix}"] * physics_dt
     r["mujoco_batch_over_bare"] = ratio["mujoco_batch_world_steps_per_s"]
@@ -275,6 +285,16 @@ def run(args: BenchmarkArgs) -> dict:
     r.update(contention(0.3 if args.quick else 2.0, 1 if args.quick else 5))
     r["targets"] = dict(TARGETS)
     return r
+
+
+def side_by_side(fn: Any, partner: Any, partner_first: bool) -> float:
+    """fn's rate over partner's, each one window right after the other (partner_first: partner's window first): two
+    of our flights compared as paired rounds compare them, no bare window between them to add its own noise."""
+    if partner_first:
+        theirs = partner()
+        return fn() / theirs
+    ours = fn()
+    return ours / partner()
 
 
 def median_interval(values: Any, level: float = 0.95) -> list[float] | None:

@@ -63,12 +63,13 @@ def render_benchmark(r: dict, label: str) -> str:
         rows = [[f"`{k}`", f">= {v:g}", fmt(r.get(k), 3), _interval(intervals.get(k)),
                  "yes" if (r.get(k) or 0.0) >= v else "no"] for k, v in targets.items()]
         parts += [f"The ratios the project aims for, as measured in this run ({r.get('rounds')} rounds, each "
-                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it; "
+                  "simulation ratio the median over rounds of the rate over a bare `mj_step` window just before it, "
+                  "or for a ratio of two of our flights, of the one's rate over the other's flown right beside it; "
                   "the `sb3_*` ratios: stable-baselines3's rollout collection through the native vector env over "
                   f"the same through the other vector env, {r.get('sb3_worlds')} worlds, torch at "
                   f"{r.get('sb3_torch_threads')} thread(s), the median of alternated rounds). The interval is "
-                  "the run's own uncertainty: a distribution-free 95 % interval of the median over its rounds (for "
-                  "a ratio of two measurements, of their per-round quotients), where the rounds allow one. Runs "
+                  "the run's own uncertainty: a distribution-free 95 % interval of the median over its rounds, "
+                  "where the rounds allow one. Runs "
                   "of the same code minutes apart have moved further than it "
                   "([design notes](design-notes.md#the-benchmarks-spread)):",
                   markdown_table(["ratio", "aim", "measured", "95 % interval", "reached"], rows)]
