@@ -232,13 +232,12 @@ def run(args: BenchmarkArgs) -> dict:
     for key in ("env_steps_per_s_single", "env_steps_per_s_vector64"):  # back in env steps
         r[key] /= per_env_step
     ratio = {key: float(np.median(v)) for key, v in ratios.items()}
-    for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
-        r[f"serial_over_bare{suffix}"] = ratio[f"closed_loop_serial_steps_per_s{suffix}"]
-        r[f"batched_over_bare{suffix}"] = ratio[f"closed_loop_batched_world_steps_per_s{suffix}"]
     rounds_of: dict[str, Any] = {}  # each simulation ratio's per-round values, for its interval
     for suffix in ("", "_oracle", "_readable", "_guarded", "_shed"):
-        rounds_of[f"serial_over_bare{suffix}"] = ratios[f"closed_loop_serial_steps_per_s{suffix}"]
-        rounds_of[f"batched_over_bare{suffix}"] = ratios[f"closed_loop_batched_world_steps_per_s{suffix}"]
+        for name, flight in (("serial", "closed_loop_serial_steps_per_s"),
+                             ("batched", "closed_loop_batched_world_steps_per_s")):
+            r[f"{name}_over_bare{suffix}"] = ratio[f"{flight}{suffix}"]
+            rounds_of[f"{name}_over_bare{suffix}"] = ratios[f"{flight}{suffix}"]
     beside_ratios = (("guarded", "guarded_over_unguarded"),  # what the guard costs: within 10 % of the model alone
                      ("pd_recipe", "compiled_controller_over_builtin"), ("jet_recipe", "compiled_field_over_builtin"),
                      ("mellinger", "mellinger_over_builtin"))
