@@ -20,7 +20,6 @@ from downwash_core.state import VehicleStates
 from downwash_trajectories.combinators import StackedReference
 from sim import fork_join
 from sim.aggregation import wake_field
-from sim.fork_join import SOLO
 from sim.fused_abi import FC, STEP_CALLER, TAB
 from sim.passes import (actuate_kernel, hold_kernel, sense_kernel, sense_law_kernel, Sensed, wind_advance_kernel,
                         wind_force_kernel, wind_sense_kernel)
@@ -50,12 +49,9 @@ class FusedTicks:
                 refs = tuple(kernel_array(x) for x in refs)
             head = plan.leading_args + refs
         flat = np.empty(plan.row_size)
-        if residual is None and override is None:
-            args = head + (plan.no_action, plan.no_action, 0, flat)
-        else:
-            args = head + (plan.no_action if residual is None else kernel_array(residual),
-                           plan.no_action if override is None else kernel_array(override),
-                           (residual is not None) + 2 * (override is not None), flat)
+        args = head + (plan.no_action if residual is None else kernel_array(residual),
+                       plan.no_action if override is None else kernel_array(override),
+                       (residual is not None) + 2 * (override is not None), flat)
         n_sub, block = plan.n_sub, plan.noise_block
         if plan.stepping != STEP_CALLER and self._cursor_max + n_sub <= block:  # the whole tick in one call
             if self._call(plan, args, 0, n_sub):  # (the loop below without its bookkeeping: 2-3 % of a tick, measured)
@@ -84,7 +80,7 @@ class FusedTicks:
         """Autopilot ticks sub..stop-1 through the kernel, on this thread alone or with the helpers; counts
         them used of the noise blocks. Returns how many worlds ended."""
         if plan.n_threads == 1:
-            n_ended = plan.kernel(*args, sub, stop, plan.own_chunks, NO_CONTROL, SOLO)
+            n_ended = plan.kernel(*args, sub, stop, plan.own_chunks, NO_CONTROL, fork_join.SOLO)
         else:
             n_ended = self._run_threads(plan, args, sub, stop)
         self.__dict__["_cursor_max"] += stop - sub  # (not a bound input: skips __setattr__)
